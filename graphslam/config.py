@@ -1,0 +1,131 @@
+"""Typed configuration, mirrored by ``configs/default.yaml``.
+
+Unknown keys are errors (``extra="forbid"``); the effective configuration is dumped
+with every run's outputs (``config.yaml``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from graphslam.errors import ConfigError
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class FingerprintConfig(_Strict):
+    """Eq. 9: RMS RSS difference over the union of a pair's access points."""
+
+    missing_rssi_dbm: float = Field(-110.0, description="value of an access point not heard (paper: -110 dBm)")
+    min_rssi_dbm: float = Field(-100.0, description="readings weaker than this are dropped as noise")
+    max_scan_step_gap_s: float = Field(
+        1.5, gt=0, description="a scan further than this in time from every step is not associated"
+    )
+
+
+class EdgeConfig(_Strict):
+    """Which fingerprint pairs become WiFi-vicinity edges (paper section III-B.2)."""
+
+    window_steps: int = Field(20, ge=2, description="L: the median-window length, in steps")
+    exclude_same_session_s: float = Field(
+        30.0, ge=0, description="no edge between scans of one session closer than this in time"
+    )
+    exclude_same_session_m: float = Field(
+        10.0, ge=0, description="... or closer than this along the walked path (dead reckoning)"
+    )
+    max_per_fingerprint: int = Field(
+        4, ge=1, description="keep at most this many most-similar partners per fingerprint (0 = paper: all)"
+    )
+    min_common_aps: int = Field(3, ge=1, description="pairs sharing fewer access points are not compared")
+    chunk_rows: int = Field(1024, ge=16, description="fingerprints per block of the distance computation")
+
+
+class ImuConfig(_Strict):
+    """Eq. 8: information of the IMU-between factors, as standard deviations per step."""
+
+    sigma_xy_m: float = Field(0.05, gt=0, description="per-step position sigma (Omega = 1/sigma^2)")
+    sigma_heading_rad: float = Field(0.01, gt=0, description="per-step heading sigma")
+
+
+class WifiFactorConfig(_Strict):
+    """Eq. 10: fuzzy vicinity error, 0 below d_min, linear to e_max at d_max, flat beyond."""
+
+    d_min_m: float = Field(2.0, ge=0)
+    d_max_m: float = Field(30.0, gt=0)
+    e_max: float = Field(0.3, gt=0)
+    omega: float = Field(1.0, gt=0, description="Omega_Wifi, the scalar information of each edge")
+
+    @model_validator(mode="after")
+    def _order(self) -> "WifiFactorConfig":
+        if self.d_max_m <= self.d_min_m:
+            raise ValueError("d_max_m must be greater than d_min_m")
+        return self
+
+
+class OptimizerConfig(_Strict):
+    reference_session: str | None = Field(None, description="session whose first pose is fixed (default: first)")
+    initialization: Literal["origin", "registration"] = Field(
+        "registration",
+        description="origin: every walk starts at (0,0,0) as in the paper; registration: rigid WiFi-match fit",
+    )
+    max_iterations: int = Field(100, ge=1)
+    relative_error_tol: float = Field(1e-5, gt=0)
+    absolute_error_tol: float = Field(1e-5, ge=0)
+    outer_iterations: int = Field(6, ge=1, description="re-evaluations of the saturated (d > d_max) edge set")
+    verbose: bool = False
+
+
+class GraphSlamConfig(_Strict):
+    fingerprint: FingerprintConfig = FingerprintConfig()
+    edges: EdgeConfig = EdgeConfig()
+    imu: ImuConfig = ImuConfig()
+    wifi: WifiFactorConfig = WifiFactorConfig()
+    optimizer: OptimizerConfig = OptimizerConfig()
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
+
+
+def config_from_dict(data: dict[str, Any] | None, source: str = "<dict>") -> GraphSlamConfig:
+    try:
+        return GraphSlamConfig.model_validate(data or {})
+    except ValidationError as e:
+        problems = "; ".join(
+            f"{'.'.join(str(p) for p in err['loc']) or '<root>'}: {err['msg']}" for err in e.errors()
+        )
+        raise ConfigError(f"{source}: invalid configuration: {problems}") from None
+
+
+def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> GraphSlamConfig:
+    """Load a YAML config (a partial file is merged over the defaults)."""
+    data: dict[str, Any] = {}
+    source = "<defaults>"
+    if path is not None:
+        source = str(path)
+        try:
+            text = Path(path).read_text(encoding="utf-8")
+        except OSError as e:
+            raise ConfigError(f"{path}: cannot read config ({e.strerror or e})") from None
+        try:
+            loaded = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            raise ConfigError(f"{path}: not valid YAML ({e})") from None
+        if loaded is not None and not isinstance(loaded, dict):
+            raise ConfigError(f"{path}: top level must be a mapping")
+        data = loaded or {}
+    if overrides:
+        data = _merge(data, overrides)
+    return config_from_dict(data, source)
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out

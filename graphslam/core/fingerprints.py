@@ -1,0 +1,201 @@
+"""WiFi fingerprints and the paper's RSS distance (eq. 9).
+
+A fingerprint set is stored as a sparse (N, A) matrix of *shifted* RSS values
+``v = rssi - missing_dbm`` (> 0 where heard, 0 where not heard), over an AP index
+(tuple of BSSIDs, column order). With that shift, eq. 9 over the union U of the
+pair's access points becomes matrix products:
+
+    d(i, j)^2 = (|v_i|^2 + |v_j|^2 - 2 v_i . v_j) / (n_i + n_j - c_ij)
+
+where n is the number of APs heard and c_ij the number heard by both. Access
+points that only the query heard and the reference set does not know add to
+both numerator and |U| (``extra_sq``, ``extra_n``), so the distance stays exact.
+Distances are computed in row blocks, so memory is bounded by
+``block_rows * N`` however big the survey is.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterator, Mapping, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import sparse
+
+DEFAULT_MISSING_DBM = -110.0
+DEFAULT_MIN_RSSI_DBM = -100.0
+
+# Bound on the float64 cells of one distance block (rows x columns), ~256 MB.
+MAX_BLOCK_CELLS = 32_000_000
+
+
+@dataclass(frozen=True, eq=False)
+class FingerprintMatrix:
+    """N fingerprints over an AP index. Rows are scans; see module docstring for the encoding."""
+
+    bssids: tuple[str, ...]
+    values: sparse.csr_matrix  # (N, A) float64, shifted RSS
+    missing_dbm: float = DEFAULT_MISSING_DBM
+    extra_sq: NDArray[np.float64] | None = None  # (N,) sum of v^2 over APs outside the index
+    extra_n: NDArray[np.int64] | None = None  # (N,) count of APs outside the index
+
+    def __post_init__(self) -> None:
+        v = sparse.csr_matrix(self.values, dtype=np.float64)
+        v.eliminate_zeros()
+        if v.shape[1] != len(self.bssids):
+            raise ValueError("FingerprintMatrix: columns do not match the AP index")
+        if v.nnz and (v.data <= 0).any():
+            raise ValueError("FingerprintMatrix: shifted RSS must be > 0 (rssi above missing_dbm)")
+        object.__setattr__(self, "values", v)
+        n = v.shape[0]
+        object.__setattr__(
+            self, "extra_sq", np.zeros(n) if self.extra_sq is None else np.asarray(self.extra_sq, float)
+        )
+        object.__setattr__(
+            self, "extra_n", np.zeros(n, np.int64) if self.extra_n is None else np.asarray(self.extra_n, np.int64)
+        )
+
+    def __len__(self) -> int:
+        return self.values.shape[0]
+
+    @property
+    def n_aps(self) -> int:
+        return len(self.bssids)
+
+    @property
+    def heard(self) -> NDArray[np.int64]:
+        """Number of APs heard per fingerprint (inside and outside the index)."""
+        return np.diff(self.values.indptr).astype(np.int64) + self.extra_n
+
+    @classmethod
+    def from_scans(
+        cls,
+        scans: Sequence[Mapping[str, float]],
+        *,
+        bssids: Sequence[str] | None = None,
+        missing_dbm: float = DEFAULT_MISSING_DBM,
+        min_rssi_dbm: float = DEFAULT_MIN_RSSI_DBM,
+    ) -> "FingerprintMatrix":
+        """Build from ``bssid -> dBm`` mappings.
+
+        With ``bssids`` given (a reference AP index, e.g. a radio map's), readings of
+        other APs go to ``extra_sq``/``extra_n``; otherwise the index is every AP seen,
+        sorted.
+        """
+        floor = max(min_rssi_dbm, missing_dbm + 1e-6)
+        if bssids is None:
+            bssids = sorted({b for s in scans for b, r in s.items() if r >= floor})
+        index = {b: i for i, b in enumerate(bssids)}
+        rows: list[int] = []
+        cols: list[int] = []
+        vals: list[float] = []
+        extra_sq = np.zeros(len(scans))
+        extra_n = np.zeros(len(scans), np.int64)
+        for i, s in enumerate(scans):
+            for b, r in s.items():
+                if r < floor:
+                    continue
+                j = index.get(b)
+                if j is None:
+                    extra_sq[i] += (r - missing_dbm) ** 2
+                    extra_n[i] += 1
+                else:
+                    rows.append(i)
+                    cols.append(j)
+                    vals.append(r - missing_dbm)
+        m = sparse.csr_matrix((vals, (rows, cols)), shape=(len(scans), len(bssids)))
+        return cls(tuple(bssids), m, missing_dbm, extra_sq, extra_n)
+
+    @classmethod
+    def from_dense(
+        cls, rssi: NDArray, bssids: Sequence[str], *, missing_dbm: float = DEFAULT_MISSING_DBM,
+        min_rssi_dbm: float = DEFAULT_MIN_RSSI_DBM,
+    ) -> "FingerprintMatrix":
+        """From an (N, A) dBm array where NaN (or anything below ``min_rssi_dbm``) means not heard."""
+        a = np.asarray(rssi, dtype=float)
+        floor = max(min_rssi_dbm, missing_dbm + 1e-6)
+        heard = np.isfinite(a) & (a >= floor)
+        v = np.where(heard, a - missing_dbm, 0.0)
+        return cls(tuple(bssids), sparse.csr_matrix(v), missing_dbm)
+
+    def rows(self, idx: NDArray | slice) -> "FingerprintMatrix":
+        return FingerprintMatrix(
+            self.bssids, self.values[idx], self.missing_dbm, self.extra_sq[idx], self.extra_n[idx]
+        )
+
+    def dense_rssi(self) -> NDArray[np.float64]:
+        """(N, A) dBm with ``missing_dbm`` where not heard."""
+        return self.values.toarray() + self.missing_dbm * (self.values.toarray() == 0) + (
+            self.values.toarray() != 0
+        ) * self.missing_dbm
+
+
+def _sq_norms(m: FingerprintMatrix) -> NDArray[np.float64]:
+    return np.asarray(m.values.multiply(m.values).sum(axis=1)).ravel() + m.extra_sq
+
+
+class DistanceEngine:
+    """Eq. 9 distances from blocks of query fingerprints to a fixed reference set.
+
+    Precomputes what depends on the reference set only; chooses dense BLAS when the
+    reference matrix is dense enough, sparse products otherwise.
+    """
+
+    def __init__(self, ref: FingerprintMatrix, *, dense_threshold: float = 0.05) -> None:
+        self.ref = ref
+        self.ref_sq = _sq_norms(ref)
+        self.ref_n = ref.heard.astype(np.float64)
+        nnz_frac = ref.values.nnz / max(1, ref.values.shape[0] * ref.values.shape[1])
+        self.dense = nnz_frac >= dense_threshold or ref.n_aps <= 64
+        v = ref.values
+        b = v.copy()
+        b.data[:] = 1.0
+        if self.dense:
+            self.ref_vT = np.ascontiguousarray(v.toarray().T)
+            self.ref_bT = np.ascontiguousarray(b.toarray().T)
+        else:
+            self.ref_vT = v.T.tocsr()
+            self.ref_bT = b.T.tocsr()
+
+    def block(self, q: FingerprintMatrix, *, min_common: int = 1) -> tuple[NDArray, NDArray]:
+        """(distances, common-AP counts), each (len(q), len(ref)). Pairs with fewer than
+        ``min_common`` shared APs get distance ``inf``."""
+        if q.bssids is not self.ref.bssids and q.bssids != self.ref.bssids:
+            raise ValueError("query and reference fingerprints use different AP indices")
+        qv = q.values
+        qb = qv.copy()
+        qb.data[:] = 1.0
+        if self.dense:
+            dot = qv @ self.ref_vT
+            common = qb @ self.ref_bT
+        else:
+            dot = (qv @ self.ref_vT).toarray()
+            common = (qb @ self.ref_bT).toarray()
+        dot = np.asarray(dot)
+        common = np.asarray(common)
+        num = _sq_norms(q)[:, None] + self.ref_sq[None, :] - 2.0 * dot
+        den = q.heard.astype(np.float64)[:, None] + self.ref_n[None, :] - common
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d = np.sqrt(np.maximum(num, 0.0) / den)
+        d[(den <= 0) | (common < min_common)] = np.inf
+        return d, common
+
+    def iter_blocks(
+        self, q: FingerprintMatrix, *, min_common: int = 1, block_rows: int | None = None
+    ) -> Iterator[tuple[int, NDArray, NDArray]]:
+        """Yield ``(first_row, distances, common)`` over row blocks of ``q``."""
+        n_ref = max(1, len(self.ref))
+        rows = block_rows or max(16, MAX_BLOCK_CELLS // (3 * n_ref))
+        for start in range(0, len(q), rows):
+            d, c = self.block(q.rows(slice(start, start + rows)), min_common=min_common)
+            yield start, d, c
+
+
+def rss_distance(a: Mapping[str, float], b: Mapping[str, float], missing_dbm: float = DEFAULT_MISSING_DBM) -> float:
+    """Eq. 9 for one pair, straight from the definition (reference implementation for tests)."""
+    union = set(a) | set(b)
+    if not union:
+        return float("inf")
+    s = sum((a.get(k, missing_dbm) - b.get(k, missing_dbm)) ** 2 for k in union)
+    return float(np.sqrt(s / len(union)))

@@ -1,0 +1,65 @@
+"""Per-session statistics for ``graphslam inspect``."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from graphslam.core.types import Session, Survey
+
+
+@dataclass(frozen=True)
+class SessionSummary:
+    session_id: str
+    site: str
+    floor: str
+    steps: int
+    scans: int
+    access_points: int
+    duration_s: float
+    walked_m: float
+    landmarks: int
+    has_ground_truth: bool
+
+    @classmethod
+    def of(cls, s: Session) -> "SessionSummary":
+        return cls(
+            session_id=s.session_id,
+            site=s.site,
+            floor=s.floor,
+            steps=len(s.steps),
+            scans=len(s.scans),
+            access_points=len(s.access_points),
+            duration_s=round(s.duration_s, 3),
+            walked_m=round(s.steps.path_length, 3),
+            landmarks=len(s.landmarks),
+            has_ground_truth=s.ground_truth is not None,
+        )
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class SurveySummary:
+    sessions: tuple[SessionSummary, ...]
+    access_points: int  # distinct over the whole survey
+
+    @classmethod
+    def of(cls, survey: Survey) -> "SurveySummary":
+        aps: set[str] = set()
+        for s in survey:
+            aps |= s.access_points
+        return cls(tuple(SessionSummary.of(s) for s in survey), len(aps))
+
+    @property
+    def totals(self) -> dict:
+        ss = self.sessions
+        return {
+            "sessions": len(ss),
+            "steps": sum(s.steps for s in ss),
+            "scans": sum(s.scans for s in ss),
+            "access_points": self.access_points,
+            "duration_s": round(sum(s.duration_s for s in ss), 3),
+            "walked_m": round(sum(s.walked_m for s in ss), 3),
+            "landmarks": sum(s.landmarks for s in ss),
+        }

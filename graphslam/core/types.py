@@ -1,0 +1,191 @@
+"""Domain objects: sessions, scans, landmarks. Pure data, checked on construction.
+
+Conventions (used everywhere unless a docstring says otherwise):
+- time: integer nanoseconds since the Unix epoch (``t_ns``);
+- positions: metres; headings: radians, counter-clockwise about +z, wrapped to (-pi, pi];
+- a session's ``steps`` are in the foot module's own frame (first pose (0, 0, 0) by
+  contract); ``ground_truth`` and ``landmarks`` are in the site frame and are for
+  evaluation only: nothing in ``graphslam.core`` that builds or solves a graph reads them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import Iterator, Mapping, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+def _frozen(a: NDArray, dtype: type) -> NDArray:
+    arr = np.array(a, dtype=dtype, copy=True)
+    arr.setflags(write=False)
+    return arr
+
+
+def wrap_angle(a: NDArray | float) -> NDArray | float:
+    """Wrap angles to (-pi, pi]."""
+    return np.pi - np.mod(np.pi - np.asarray(a), 2.0 * np.pi)
+
+
+@dataclass(frozen=True, eq=False)
+class PoseTrack:
+    """A time-stamped sequence of planar poses (x, y, heading)."""
+
+    t_ns: NDArray[np.int64]
+    xy: NDArray[np.float64]  # (N, 2)
+    heading: NDArray[np.float64]  # (N,)
+
+    def __post_init__(self) -> None:
+        t = _frozen(self.t_ns, np.int64)
+        xy = _frozen(np.reshape(self.xy, (-1, 2)), np.float64)
+        h = _frozen(self.heading, np.float64)
+        if not (t.ndim == 1 and h.ndim == 1 and len(t) == len(xy) == len(h)):
+            raise ValueError("PoseTrack: t_ns, xy and heading must have the same length")
+        if not (np.isfinite(xy).all() and np.isfinite(h).all()):
+            raise ValueError("PoseTrack: non-finite pose")
+        if len(t) > 1 and np.any(np.diff(t) <= 0):
+            raise ValueError("PoseTrack: timestamps must strictly increase")
+        object.__setattr__(self, "t_ns", t)
+        object.__setattr__(self, "xy", xy)
+        object.__setattr__(self, "heading", h)
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+    @property
+    def xyh(self) -> NDArray[np.float64]:
+        """(N, 3) array of x, y, heading."""
+        return np.column_stack([self.xy, self.heading])
+
+    @property
+    def path_length(self) -> float:
+        """Walked length in metres (sum of step lengths)."""
+        if len(self) < 2:
+            return 0.0
+        return float(np.linalg.norm(np.diff(self.xy, axis=0), axis=1).sum())
+
+    @classmethod
+    def from_xyh(cls, t_ns: Sequence[int] | NDArray, xyh: NDArray) -> "PoseTrack":
+        xyh = np.asarray(xyh, dtype=float).reshape(-1, 3)
+        return cls(np.asarray(t_ns, dtype=np.int64), xyh[:, :2], xyh[:, 2])
+
+
+@dataclass(frozen=True)
+class Scan:
+    """One completed WiFi scan: access point id (BSSID) -> RSS in dBm."""
+
+    t_ns: int
+    readings: Mapping[str, float]
+
+    def __post_init__(self) -> None:
+        r = dict(self.readings)
+        for bssid, rssi in r.items():
+            if not isinstance(bssid, str) or not bssid:
+                raise ValueError("Scan: bssid must be a non-empty string")
+            if not np.isfinite(rssi):
+                raise ValueError(f"Scan: non-finite rssi for {bssid}")
+        object.__setattr__(self, "t_ns", int(self.t_ns))
+        object.__setattr__(self, "readings", MappingProxyType({k: float(v) for k, v in r.items()}))
+
+    def __len__(self) -> int:
+        return len(self.readings)
+
+
+@dataclass(frozen=True)
+class LandmarkMark:
+    """A walker pressed the button at surveyed landmark ``landmark_id`` (site frame)."""
+
+    t_ns: int
+    landmark_id: str
+    x: float
+    y: float
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.x) and np.isfinite(self.y)):
+            raise ValueError("LandmarkMark: non-finite position")
+
+
+@dataclass(frozen=True, eq=False)
+class Session:
+    """One walker's recording.
+
+    ``steps`` and ``scans`` are what the solver sees. ``landmarks`` and
+    ``ground_truth`` are kept apart: evaluation only.
+    """
+
+    session_id: str
+    steps: PoseTrack
+    scans: tuple[Scan, ...] = ()
+    landmarks: tuple[LandmarkMark, ...] = ()
+    ground_truth: PoseTrack | None = None
+    site: str = ""
+    floor: str = ""
+    source: str = ""  # file it came from, for messages
+
+    def __post_init__(self) -> None:
+        if not self.session_id:
+            raise ValueError("Session: empty session_id")
+        object.__setattr__(self, "scans", tuple(self.scans))
+        object.__setattr__(self, "landmarks", tuple(self.landmarks))
+
+    @property
+    def duration_s(self) -> float:
+        ts = [self.steps.t_ns[0], self.steps.t_ns[-1]] if len(self.steps) else []
+        ts += [s.t_ns for s in self.scans[:1]] + [s.t_ns for s in self.scans[-1:]]
+        return (max(ts) - min(ts)) / 1e9 if ts else 0.0
+
+    @property
+    def access_points(self) -> frozenset[str]:
+        return frozenset(b for s in self.scans for b in s.readings)
+
+
+@dataclass(frozen=True, eq=False)
+class Survey:
+    """A set of sessions with unique ids (what one survey job reads)."""
+
+    sessions: tuple[Session, ...]
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "sessions", tuple(self.sessions))
+        ids = [s.session_id for s in self.sessions]
+        if len(set(ids)) != len(ids):
+            dup = sorted({i for i in ids if ids.count(i) > 1})
+            raise ValueError(f"duplicate session ids: {dup}")
+
+    def __iter__(self) -> Iterator[Session]:
+        return iter(self.sessions)
+
+    def __len__(self) -> int:
+        return len(self.sessions)
+
+    def __getitem__(self, session_id: str) -> Session:
+        for s in self.sessions:
+            if s.session_id == session_id:
+                return s
+        raise KeyError(session_id)
+
+    @property
+    def n_steps(self) -> int:
+        return sum(len(s.steps) for s in self.sessions)
+
+    @property
+    def n_scans(self) -> int:
+        return sum(len(s.scans) for s in self.sessions)
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return any(s.ground_truth is not None or s.landmarks for s in self.sessions)
+
+
+def heading_to_quaternion(h: float) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of a rotation by ``h`` about +z."""
+    return (0.0, 0.0, float(np.sin(h / 2.0)), float(np.cos(h / 2.0)))
+
+
+def quaternion_to_heading(x: float, y: float, z: float, w: float) -> float:
+    """Yaw of a unit quaternion (rotation about +z)."""
+    return float(np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)))
+
+

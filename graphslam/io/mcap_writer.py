@@ -1,0 +1,117 @@
+"""Write sessions (and aligned trajectories) as MCAP in the survey recording format."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Iterable
+
+from mcap.writer import CompressionType, Writer
+
+from graphslam.core.types import PoseTrack, Session, heading_to_quaternion
+from graphslam.io.atomic import atomic_open
+from graphslam.io.schemas import (
+    SESSION_METADATA,
+    TOPIC_GROUND_TRUTH,
+    TOPIC_LANDMARKS,
+    TOPIC_POSE,
+    TOPIC_SCAN,
+    TOPIC_SCHEMAS,
+    schema_bytes,
+)
+
+
+def _stamp(t_ns: int) -> dict:
+    return {"sec": int(t_ns // 1_000_000_000), "nsec": int(t_ns % 1_000_000_000)}
+
+
+def _pose_msgs(track: PoseTrack, frame_id: str) -> Iterable[tuple[int, bytes]]:
+    for t, (x, y), h in zip(track.t_ns.tolist(), track.xy.tolist(), track.heading.tolist()):
+        qx, qy, qz, qw = heading_to_quaternion(h)
+        body = {
+            "timestamp": _stamp(t),
+            "frame_id": frame_id,
+            "pose": {
+                "position": {"x": x, "y": y, "z": 0.0},
+                "orientation": {"x": qx, "y": qy, "z": qz, "w": qw},
+            },
+        }
+        yield t, json.dumps(body, separators=(",", ":")).encode()
+
+
+class _Channels:
+    def __init__(self, writer: Writer) -> None:
+        self.writer = writer
+        self.schemas: dict[str, int] = {}
+        self.channels: dict[str, int] = {}
+
+    def channel(self, topic: str, schema_name: str | None = None, schema: dict | None = None) -> int:
+        if topic not in self.channels:
+            if schema_name is None:
+                schema_name, schema = TOPIC_SCHEMAS[topic]
+            if schema_name not in self.schemas:
+                self.schemas[schema_name] = self.writer.register_schema(
+                    name=schema_name, encoding="jsonschema", data=schema_bytes(schema or {})
+                )
+            self.channels[topic] = self.writer.register_channel(
+                topic=topic, message_encoding="json", schema_id=self.schemas[schema_name]
+            )
+        return self.channels[topic]
+
+    def add(self, channel_id: int, t_ns: int, data: bytes) -> None:
+        self.writer.add_message(channel_id=channel_id, log_time=int(t_ns), publish_time=int(t_ns), data=data)
+
+
+def write_session(session: Session, path: str | Path) -> Path:
+    """Write ``session`` to ``path`` (atomically), including landmarks and ground truth if present."""
+    path = Path(path)
+    with atomic_open(path, "wb") as fh:
+        writer = Writer(fh, compression=CompressionType.ZSTD)
+        writer.start(profile="", library="graphslam")
+        ch = _Channels(writer)
+        writer.add_metadata(
+            SESSION_METADATA,
+            {"session_id": session.session_id, "site": session.site, "floor": session.floor},
+        )
+        events: list[tuple[int, int, bytes]] = []
+        pose_ch = ch.channel(TOPIC_POSE)
+        events += [(t, pose_ch, d) for t, d in _pose_msgs(session.steps, "fmip")]
+        scan_ch = ch.channel(TOPIC_SCAN)
+        for s in session.scans:
+            body = {
+                "timestamp": _stamp(s.t_ns),
+                "readings": [{"bssid": b, "rssi": r} for b, r in s.readings.items()],
+            }
+            events.append((s.t_ns, scan_ch, json.dumps(body, separators=(",", ":")).encode()))
+        if session.landmarks:
+            lm_ch = ch.channel(TOPIC_LANDMARKS)
+            for m in session.landmarks:
+                body = {"timestamp": _stamp(m.t_ns), "landmark_id": m.landmark_id, "x": m.x, "y": m.y}
+                events.append((m.t_ns, lm_ch, json.dumps(body).encode()))
+        if session.ground_truth is not None:
+            gt_ch = ch.channel(TOPIC_GROUND_TRUTH)
+            events += [(t, gt_ch, d) for t, d in _pose_msgs(session.ground_truth, "site")]
+        for t, c, d in sorted(events, key=lambda e: (e[0], e[1])):
+            ch.add(c, t, d)
+        writer.finish()
+    return path
+
+
+def write_aligned(tracks: dict[str, PoseTrack], path: str | Path, frame_id: str = "aligned") -> Path:
+    """One ``foxglove.PoseInFrame`` topic per session (``/aligned/<session_id>``), viewable in Foxglove."""
+    path = Path(path)
+    with atomic_open(path, "wb") as fh:
+        writer = Writer(fh, compression=CompressionType.ZSTD)
+        writer.start(profile="", library="graphslam")
+        ch = _Channels(writer)
+        name, schema = TOPIC_SCHEMAS[TOPIC_POSE]
+        events = []
+        for sid, track in tracks.items():
+            c = ch.channel(f"/aligned/{sid}", name, schema)
+            events += [(t, c, d) for t, d in _pose_msgs(track, frame_id)]
+        for t, c, d in sorted(events, key=lambda e: (e[0], e[1])):
+            ch.add(c, t, d)
+        writer.finish()
+    return path
+
+
