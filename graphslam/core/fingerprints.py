@@ -126,9 +126,8 @@ class FingerprintMatrix:
 
     def dense_rssi(self) -> NDArray[np.float64]:
         """(N, A) dBm with ``missing_dbm`` where not heard."""
-        return self.values.toarray() + self.missing_dbm * (self.values.toarray() == 0) + (
-            self.values.toarray() != 0
-        ) * self.missing_dbm
+        v = self.values.toarray()
+        return np.where(v > 0, v + self.missing_dbm, self.missing_dbm)
 
 
 def _sq_norms(m: FingerprintMatrix) -> NDArray[np.float64]:
