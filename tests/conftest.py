@@ -1,0 +1,104 @@
+"""Shared test helpers: tiny hand-made recordings, raw MCAP writer for bad-input cases."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+import pytest
+from mcap.writer import Writer
+
+from graphslam.core.types import LandmarkMark, PoseTrack, Scan, Session
+from graphslam.io.schemas import TOPIC_SCHEMAS, schema_bytes
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get("GRAPHSLAM_DATA", REPO.parent / "shared" / "data"))
+ILC = DATA / "ilc20" / "site1"
+
+T0 = 1_767_225_600_000_000_000  # 2026-01-01T00:00:00Z in ns
+
+
+def needs_data(sub: str) -> Any:
+    return pytest.mark.skipif(not (DATA / sub).exists(), reason=f"real data {DATA / sub} not present")
+
+
+def pose_body(t_ns: int, x: float, y: float, h: float, frame: str = "fmip") -> dict:
+    return {
+        "timestamp": {"sec": t_ns // 10**9, "nsec": t_ns % 10**9},
+        "frame_id": frame,
+        "pose": {
+            "position": {"x": x, "y": y, "z": 0.0},
+            "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(h / 2), "w": math.cos(h / 2)},
+        },
+    }
+
+
+def scan_body(t_ns: int, readings: dict[str, float]) -> dict:
+    return {
+        "timestamp": {"sec": t_ns // 10**9, "nsec": t_ns % 10**9},
+        "readings": [{"bssid": b, "rssi": r} for b, r in readings.items()],
+    }
+
+
+def write_raw_mcap(
+    path: Path,
+    messages: Iterable[tuple[str, Any, int]],
+    *,
+    metadata: dict[str, str] | None = None,
+    schema_names: dict[str, str] | None = None,
+) -> Path:
+    """Write (topic, body, log_time) messages as-is (no checks): for bad-input tests."""
+    with open(path, "wb") as fh:
+        w = Writer(fh)
+        w.start()
+        if metadata is not None:
+            w.add_metadata("graphslam.session", metadata)
+        channels: dict[str, int] = {}
+        for topic, body, t in messages:
+            if topic not in channels:
+                name, schema = TOPIC_SCHEMAS.get(topic, ("unknown", {}))
+                name = (schema_names or {}).get(topic, name)
+                sid = w.register_schema(name=name, encoding="jsonschema", data=schema_bytes(schema))
+                channels[topic] = w.register_channel(topic=topic, message_encoding="json", schema_id=sid)
+            data = body if isinstance(body, bytes) else json.dumps(body).encode()
+            w.add_message(channels[topic], log_time=t, data=data, publish_time=t)
+        w.finish()
+    return path
+
+
+def good_messages(n_steps: int = 10, n_scans: int = 3) -> list[tuple[str, Any, int]]:
+    msgs: list[tuple[str, Any, int]] = []
+    for i in range(n_steps):
+        t = T0 + i * 500_000_000
+        msgs.append(("/fmip/pose", pose_body(t, 0.7 * i, 0.0, 0.0), t))
+    for j in range(n_scans):
+        t = T0 + j * 2_000_000_000 + 100
+        msgs.append(("/wifi/scan", scan_body(t, {"aa:bb": -50.0 - j, "cc:dd": -70.0}), t))
+    return sorted(msgs, key=lambda m: m[2])
+
+
+def make_session(
+    session_id: str = "s0",
+    n_steps: int = 20,
+    *,
+    with_truth: bool = True,
+    seed: int = 0,
+) -> Session:
+    rng = np.random.default_rng(seed)
+    t = T0 + np.arange(n_steps, dtype=np.int64) * 500_000_000
+    h = np.cumsum(rng.normal(0, 0.05, n_steps))
+    h[0] = 0.0
+    xy = np.zeros((n_steps, 2))
+    for i in range(1, n_steps):
+        xy[i] = xy[i - 1] + 0.7 * np.array([np.cos(h[i - 1]), np.sin(h[i - 1])])
+    scans = tuple(
+        Scan(int(t[i]) + 1000, {f"ap{k}": float(-40 - 3 * k - rng.integers(0, 5)) for k in range(5)})
+        for i in range(0, n_steps, 4)
+    )
+    truth = PoseTrack(t, xy + [10.0, 5.0], h) if with_truth else None
+    marks = (LandmarkMark(int(t[3]), "L1", 12.0, 5.0),) if with_truth else ()
+    return Session(session_id, PoseTrack(t, xy, h), scans, marks, truth, site="test", floor="0")

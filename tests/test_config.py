@@ -1,0 +1,41 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from conftest import REPO
+from graphslam.config import GraphSlamConfig, load_config
+from graphslam.errors import ConfigError
+
+
+def test_default_yaml_mirrors_models() -> None:
+    assert load_config(REPO / "configs" / "default.yaml") == GraphSlamConfig()
+    data = yaml.safe_load((REPO / "configs" / "default.yaml").read_text())
+    assert data == GraphSlamConfig().model_dump(mode="json")
+
+
+def test_unknown_key_is_an_error(tmp_path: Path) -> None:
+    p = tmp_path / "c.yaml"
+    p.write_text("wifi:\n  d_min_m: 3\n  dmax: 20\n")
+    with pytest.raises(ConfigError) as e:
+        load_config(p)
+    assert str(p) in str(e.value) and "wifi.dmax" in str(e.value)
+
+
+def test_partial_file_merges_over_defaults(tmp_path: Path) -> None:
+    p = tmp_path / "c.yaml"
+    p.write_text("wifi:\n  d_min_m: 3\n")
+    c = load_config(p)
+    assert c.wifi.d_min_m == 3 and c.wifi.d_max_m == GraphSlamConfig().wifi.d_max_m
+
+
+def test_bad_values_rejected(tmp_path: Path) -> None:
+    p = tmp_path / "c.yaml"
+    p.write_text("wifi:\n  d_min_m: 40\n  d_max_m: 30\n")
+    with pytest.raises(ConfigError, match="d_max_m must be greater"):
+        load_config(p)
+    p.write_text("- a list\n")
+    with pytest.raises(ConfigError, match="mapping"):
+        load_config(p)
