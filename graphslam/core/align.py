@@ -1,0 +1,276 @@
+"""Multi-walk alignment: the paper's graph (section III), built and solved with GTSAM.
+
+``align(survey, config)`` reads like the method:
+ 1. attach fingerprints to step nodes            (association)
+ 2. median-window thresholds and WiFi edges      (edges)
+ 3. initial placement of walks                   (initialise)
+ 4. IMU-between + fuzzy WiFi factors             (factors)
+ 5. Levenberg-Marquardt, reference pose fixed    (below)
+
+Only ``steps`` and ``scans`` of the sessions are read here: landmarks and ground
+truth never reach the solver, its initialisation or its parameters.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from graphslam.config import GraphSlamConfig
+from graphslam.core import factors as F
+from graphslam.core.association import FingerprintNodes, associate
+from graphslam.core.edges import WifiEdges, propose_edges, window_thresholds
+from graphslam.core.initialise import Placement, register_walks, se2_apply
+from graphslam.core.types import PoseTrack, Survey, wrap_angle
+from graphslam.errors import SolverError
+
+log = logging.getLogger(__name__)
+
+X = gtsam.symbol_shorthand.X  # X(i): step pose i, numbered globally over all walks
+
+
+@dataclass(frozen=True)
+class IterationRecord:
+    stage: int  # outer stage (one saturation radius / active edge set)
+    iteration: int  # LM iteration within the stage
+    error_before: float
+    error_after: float
+    active_edges: int
+
+
+ProgressCallback = Callable[[IterationRecord], None]
+
+
+@dataclass(frozen=True, eq=False)
+class Alignment:
+    """Result of ``align``: aligned walks in the reference walk's frame (metres, radians)."""
+
+    session_ids: tuple[str, ...]
+    reference: str
+    tracks: dict[str, PoseTrack]  # aligned walks only
+    unaligned: dict[str, str]  # session id -> reason
+    fingerprints: FingerprintNodes
+    edges: WifiEdges
+    node_xyh: NDArray[np.float64]  # (N, 3) optimised pose of every step node (NaN: unaligned)
+    initial_xyh: NDArray[np.float64]  # (N, 3) initial guess
+    placement: Placement | None
+    iterations: tuple[IterationRecord, ...]
+    initial_error: float
+    final_error: float
+    converged: bool
+    timings_s: dict[str, float] = field(default_factory=dict)
+    edge_states: dict[str, int] = field(default_factory=dict)
+    snapshots: tuple[tuple[int, NDArray[np.float64]], ...] = ()  # (stage, node_xyh) after each stage
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.node_xyh)
+
+    def fingerprint_xy(self) -> NDArray[np.float64]:
+        """Optimised position of every fingerprint (NaN where its walk is unaligned)."""
+        return self.node_xyh[self.fingerprints.node, :2]
+
+
+def _dr_nodes(survey: Survey) -> tuple[NDArray, NDArray]:
+    xyh = np.concatenate([s.steps.xyh for s in survey]) if len(survey) else np.zeros((0, 3))
+    sess = np.concatenate([np.full(len(s.steps), i) for i, s in enumerate(survey)]).astype(np.int64)
+    return xyh, sess
+
+
+def _reference_index(survey: Survey, cfg: GraphSlamConfig) -> int:
+    ref = cfg.optimizer.reference_session
+    if ref is None:
+        return 0
+    ids = [s.session_id for s in survey]
+    if ref not in ids:
+        raise SolverError(f"reference session {ref!r} is not in the survey (have e.g. {ids[:3]})")
+    return ids.index(ref)
+
+
+def _transform_poses(xyh: NDArray, T: NDArray) -> NDArray:
+    return np.column_stack([se2_apply(T, xyh[:, :2]), wrap_angle(xyh[:, 2] + T[2])])
+
+
+def _saturation_radii(cfg: GraphSlamConfig) -> list[float]:
+    """Graduated saturation: start wide (far-off starts still attract), end at d_max (the paper)."""
+    n = cfg.optimizer.outer_iterations
+    d_max = cfg.wifi.d_max_m
+    start = np.inf if cfg.optimizer.initialization == "origin" else 2.0 * d_max
+    if n == 1:
+        return [d_max]
+    radii = [start] + list(np.geomspace(4.0 * d_max if np.isinf(start) else start, d_max, n - 1))
+    return [float(r) for r in radii]
+
+
+def align(survey: Survey, config: GraphSlamConfig | None = None, progress: ProgressCallback | None = None) -> Alignment:
+    """Align all walks of ``survey`` into the frame of the reference walk's first pose."""
+    cfg = config or GraphSlamConfig()
+    if len(survey) == 0:
+        raise SolverError("survey has no sessions")
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+
+    # 1. fingerprints on step nodes
+    fp = associate(
+        survey,
+        max_gap_s=cfg.fingerprint.max_scan_step_gap_s,
+        missing_dbm=cfg.fingerprint.missing_rssi_dbm,
+        min_rssi_dbm=cfg.fingerprint.min_rssi_dbm,
+    )
+    timings["associate"] = time.perf_counter() - t0
+
+    # 2. median-window thresholds and edges
+    t = time.perf_counter()
+    thr = window_thresholds(fp, cfg.edges.window_steps, cfg.edges.min_common_aps)
+    edges = propose_edges(
+        fp,
+        thr,
+        exclude_same_session_s=cfg.edges.exclude_same_session_s,
+        exclude_same_session_m=cfg.edges.exclude_same_session_m,
+        max_per_fingerprint=cfg.edges.max_per_fingerprint,
+        min_common_aps=cfg.edges.min_common_aps,
+        block_rows=cfg.edges.chunk_rows,
+    )
+    timings["edges"] = time.perf_counter() - t
+    log.info("%d fingerprints on %d steps, %d WiFi edges", len(fp), fp.offsets[-1], len(edges))
+
+    # 3. which walks can be aligned, and where they start
+    t = time.perf_counter()
+    dr_xyh, node_sess = _dr_nodes(survey)
+    ref = _reference_index(survey, cfg)
+    n_s = len(survey)
+    ea, eb = fp.node[edges.i], fp.node[edges.j]
+    placement = None
+    unaligned: dict[str, str] = {}
+    if cfg.optimizer.initialization == "registration":
+        placement = register_walks(n_s, ref, node_sess, dr_xyh[:, :2], ea, eb)
+        included = placement.placed.copy()
+        for s in np.flatnonzero(~included):
+            unaligned[survey.sessions[s].session_id] = "no rigid WiFi registration chain to the reference walk"
+        transforms = placement.transforms
+    else:
+        transforms = np.zeros((n_s, 3))
+        sa, sb = node_sess[ea], node_sess[eb]
+        g = coo_matrix((np.ones(len(sa)), (sa, sb)), shape=(n_s, n_s))
+        _, label = connected_components(g, directed=False)
+        included = label == label[ref]
+        for s in np.flatnonzero(~included):
+            unaligned[survey.sessions[s].session_id] = "no WiFi edge path to the reference walk"
+    init_xyh = np.full_like(dr_xyh, np.nan)
+    for s in np.flatnonzero(included):
+        a, b = fp.offsets[s], fp.offsets[s + 1]
+        init_xyh[a:b] = _transform_poses(dr_xyh[a:b], transforms[s])
+    timings["initialise"] = time.perf_counter() - t
+
+    # 4. factors
+    t = time.perf_counter()
+    imu_graph = gtsam.NonlinearFactorGraph()
+    imu_nm = F.imu_noise(cfg.imu)
+    values = gtsam.Values()
+    for s in np.flatnonzero(included):
+        a, b = int(fp.offsets[s]), int(fp.offsets[s + 1])
+        u = F.relative_steps(survey.sessions[s].steps)
+        for k in range(a + 1, b):
+            imu_graph.add(F.imu_factor(X(k - 1), X(k), u[k - 1 - a], imu_nm))
+        for k in range(a, b):
+            values.insert(X(k), gtsam.Pose2(*init_xyh[k]))
+    r0 = int(fp.offsets[ref])
+    imu_graph.add(gtsam.PriorFactorPose2(X(r0), gtsam.Pose2(*init_xyh[r0]), F.reference_prior_noise()))
+    use = included[node_sess[ea]] & included[node_sess[eb]]
+    ea, eb = ea[use], eb[use]
+    wifi_nm = F.wifi_noise(cfg.wifi)
+    wifi_factors = [F.wifi_factor(X(int(i)), X(int(j)), wifi_nm) for i, j in zip(ea, eb)]
+    timings["build_graph"] = time.perf_counter() - t
+
+    # 5. LM over a shrinking set of unsaturated edges
+    t = time.perf_counter()
+    records: list[IterationRecord] = []
+    snapshots: list[tuple[int, NDArray]] = []
+
+    def objective(xyh: NDArray, vals: gtsam.Values) -> float:
+        d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
+        return float(imu_graph.error(vals) + F.fuzzy_cost(d, cfg.wifi).sum())
+
+    xyh = init_xyh.copy()
+    initial_error = objective(xyh, values)
+    converged = False
+    prev_active: NDArray | None = None
+    for stage, radius in enumerate(_saturation_radii(cfg)):
+        d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
+        active = d <= radius
+        if prev_active is not None and radius == cfg.wifi.d_max_m and np.array_equal(active, prev_active) and converged:
+            break
+        graph = gtsam.NonlinearFactorGraph(imu_graph)
+        for k in np.flatnonzero(active):
+            graph.add(wifi_factors[k])
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(cfg.optimizer.max_iterations)
+        params.setRelativeErrorTol(cfg.optimizer.relative_error_tol)
+        params.setAbsoluteErrorTol(cfg.optimizer.absolute_error_tol)
+        params.setOrderingType("METIS")
+        n_active = int(active.sum())
+
+        def hook(it: int, before: float, after: float, _s: int = stage, _n: int = n_active) -> None:
+            rec = IterationRecord(_s, int(it), float(before), float(after), _n)
+            records.append(rec)
+            if progress is not None:
+                progress(rec)
+
+        params.iterationHook = hook
+        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        values = optimizer.optimize()
+        converged = optimizer.iterations() < cfg.optimizer.max_iterations
+        xyh = _values_to_xyh(values, init_xyh)
+        snapshots.append((stage, xyh.copy()))
+        prev_active = active
+    timings["optimise"] = time.perf_counter() - t
+    final_error = objective(xyh, values)
+
+    d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
+    st = F.edge_state(d, cfg.wifi)
+    tracks = {}
+    for s in np.flatnonzero(included):
+        sess = survey.sessions[s]
+        a, b = fp.offsets[s], fp.offsets[s + 1]
+        tracks[sess.session_id] = PoseTrack.from_xyh(sess.steps.t_ns, xyh[a:b])
+    timings["total"] = time.perf_counter() - t0
+    return Alignment(
+        session_ids=tuple(s.session_id for s in survey),
+        reference=survey.sessions[ref].session_id,
+        tracks=tracks,
+        unaligned=unaligned,
+        fingerprints=fp,
+        edges=edges,
+        node_xyh=xyh,
+        initial_xyh=init_xyh,
+        placement=placement,
+        iterations=tuple(records),
+        initial_error=initial_error,
+        final_error=final_error,
+        converged=converged,
+        timings_s=timings,
+        edge_states={
+            "inactive": int((st == 0).sum()),
+            "ramp": int((st == 1).sum()),
+            "saturated": int((st == 2).sum()),
+        },
+        snapshots=tuple(snapshots),
+    )
+
+
+def _values_to_xyh(values: gtsam.Values, template: NDArray) -> NDArray:
+    out = np.full_like(template, np.nan)
+    # gtsam.utilities.extractPose2 returns poses in key order
+    keys = gtsam.KeyVector(values.keys())
+    poses = gtsam.utilities.extractPose2(values)
+    idx = np.array([gtsam.Symbol(k).index() for k in keys], dtype=np.int64)
+    out[idx] = poses
+    return out

@@ -1,0 +1,172 @@
+"""Initial placement of walks whose start poses are unknown.
+
+``origin``: the paper's default (eq. 2): every walk starts at (0, 0, 0) of the reference frame.
+
+``registration``: WiFi edges between two walks are correspondences between their
+dead-reckoned frames. A 2-point RANSAC finds, per pair of walks, the rigid
+transform with most correspondences within ``inlier_m``; a maximum spanning tree
+over walks (weight = inliers) chains these transforms out from the reference walk.
+Walks the tree does not reach keep the origin start and are reported unplaced.
+The fit is rigid, so long drifting walks are placed only roughly: LM does the rest.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import minimum_spanning_tree
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class Placement:
+    """Per-walk rigid transform (x, y, theta) from its dead-reckoning frame to the reference frame."""
+
+    transforms: NDArray[np.float64]  # (S, 3)
+    placed: NDArray[np.bool_]  # (S,) reached from the reference walk
+    inliers: NDArray[np.int64]  # (S,) inliers of the tree edge that placed it (reference: -1)
+    parent: NDArray[np.int64]  # (S,) tree parent (-1 for the reference / unplaced)
+
+
+def se2_apply(T: NDArray, xy: NDArray) -> NDArray:
+    c, s = np.cos(T[2]), np.sin(T[2])
+    return np.column_stack([c * xy[:, 0] - s * xy[:, 1] + T[0], s * xy[:, 0] + c * xy[:, 1] + T[1]])
+
+
+def se2_compose(a: NDArray, b: NDArray) -> NDArray:
+    c, s = np.cos(a[2]), np.sin(a[2])
+    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], np.arctan2(np.sin(a[2] + b[2]), np.cos(a[2] + b[2]))])
+
+
+def fit_se2(src: NDArray, dst: NDArray, w: NDArray | None = None) -> NDArray:
+    """Least-squares rigid transform T (x, y, theta) with dst ~ T(src) (2-D Kabsch)."""
+    w = np.ones(len(src)) if w is None else w
+    ws = w.sum()
+    ms, md = (w[:, None] * src).sum(0) / ws, (w[:, None] * dst).sum(0) / ws
+    a, b = src - ms, dst - md
+    sxx = (w * (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])).sum()
+    sxy = (w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])).sum()
+    th = np.arctan2(sxy, sxx)
+    c, s = np.cos(th), np.sin(th)
+    t = md - np.array([c * ms[0] - s * ms[1], s * ms[0] + c * ms[1]])
+    return np.array([t[0], t[1], th])
+
+
+def ransac_se2(
+    p: NDArray, q: NDArray, *, inlier_m: float, rng: np.random.Generator, hypotheses: int = 256, min_span_m: float = 3.0
+) -> tuple[NDArray, NDArray[np.bool_]]:
+    """Rigid T with p ~ T(q) maximising inliers; (T, inlier mask). Vectorised over hypotheses."""
+    n = len(p)
+    if n < 2:
+        return np.zeros(3), np.zeros(n, bool)
+    a = rng.integers(0, n, hypotheses)
+    b = rng.integers(0, n, hypotheses)
+    dp, dq = p[b] - p[a], q[b] - q[a]
+    lp, lq = np.linalg.norm(dp, axis=1), np.linalg.norm(dq, axis=1)
+    good = (a != b) & (lq > min_span_m) & (np.abs(lp - lq) < inlier_m)
+    if not good.any():
+        return np.zeros(3), np.zeros(n, bool)
+    a, b, dp, dq = a[good], b[good], dp[good], dq[good]
+    th = np.arctan2(dp[:, 1], dp[:, 0]) - np.arctan2(dq[:, 1], dq[:, 0])
+    c, s = np.cos(th), np.sin(th)
+    mq = (q[a] + q[b]) / 2
+    mp = (p[a] + p[b]) / 2
+    tx = mp[:, 0] - (c * mq[:, 0] - s * mq[:, 1])
+    ty = mp[:, 1] - (s * mq[:, 0] + c * mq[:, 1])
+    # residuals of every correspondence under every hypothesis: (H, n)
+    px = c[:, None] * q[None, :, 0] - s[:, None] * q[None, :, 1] + tx[:, None]
+    py = s[:, None] * q[None, :, 0] + c[:, None] * q[None, :, 1] + ty[:, None]
+    r = np.hypot(px - p[None, :, 0], py - p[None, :, 1])
+    counts = (r < inlier_m).sum(axis=1)
+    best = int(np.argmax(counts))
+    inl = r[best] < inlier_m
+    for _ in range(3):  # refine on inliers, re-select
+        if inl.sum() < 2:
+            break
+        T = fit_se2(q[inl], p[inl])
+        inl_new = np.linalg.norm(se2_apply(T, q) - p, axis=1) < inlier_m
+        if (inl_new == inl).all():
+            break
+        inl = inl_new
+    T = fit_se2(q[inl], p[inl]) if inl.sum() >= 2 else np.zeros(3)
+    return T, inl
+
+
+def register_walks(
+    n_sessions: int,
+    reference: int,
+    node_session: NDArray[np.int64],
+    node_xy: NDArray[np.float64],
+    edge_a: NDArray[np.int64],
+    edge_b: NDArray[np.int64],
+    *,
+    inlier_m: float = 6.0,
+    min_inliers: int = 4,
+    seed: int = 0,
+) -> Placement:
+    """Place walks by pairwise RANSAC + maximum spanning tree. ``edge_a/b`` are node indices."""
+    rng = np.random.default_rng(seed)
+    sa, sb = node_session[edge_a], node_session[edge_b]
+    cross = sa != sb
+    a, b, sa, sb = edge_a[cross], edge_b[cross], sa[cross], sb[cross]
+    # orient every pair (lo, hi)
+    swap = sa > sb
+    a, b = np.where(swap, b, a), np.where(swap, a, b)
+    sa, sb = np.minimum(sa, sb), np.maximum(sa, sb)
+    pair_key = sa * n_sessions + sb
+    order = np.argsort(pair_key, kind="stable")
+    keys, starts = np.unique(pair_key[order], return_index=True)
+    ends = np.append(starts[1:], len(order))
+    rel: dict[tuple[int, int], NDArray] = {}
+    wi, wj, ww = [], [], []
+    for key, s0, s1 in zip(keys, starts, ends):
+        idx = order[s0:s1]
+        if len(idx) < min_inliers:
+            continue
+        lo, hi = int(key // n_sessions), int(key % n_sessions)
+        T, inl = ransac_se2(node_xy[a[idx]], node_xy[b[idx]], inlier_m=inlier_m, rng=rng)
+        k = int(inl.sum())
+        if k >= min_inliers:
+            rel[(lo, hi)] = T  # maps hi's frame into lo's frame
+            wi.append(lo)
+            wj.append(hi)
+            ww.append(k)
+    transforms = np.zeros((n_sessions, 3))
+    placed = np.zeros(n_sessions, bool)
+    inliers = np.zeros(n_sessions, np.int64)
+    parent = np.full(n_sessions, -1, np.int64)
+    placed[reference] = True
+    inliers[reference] = -1
+    if ww:
+        # maximum spanning tree = minimum spanning tree of negated weights
+        g = coo_matrix((-np.asarray(ww, float), (wi, wj)), shape=(n_sessions, n_sessions)).tocsr()
+        tree = minimum_spanning_tree(g).tocoo()
+        adj: dict[int, list[tuple[int, int]]] = {}
+        for u, v, w in zip(tree.row, tree.col, tree.data):
+            adj.setdefault(int(u), []).append((int(v), int(-w)))
+            adj.setdefault(int(v), []).append((int(u), int(-w)))
+        queue = deque([reference])
+        while queue:
+            u = queue.popleft()
+            for v, w in adj.get(u, []):
+                if placed[v]:
+                    continue
+                T_uv = rel[(u, v)] if (u, v) in rel else _inverse(rel[(v, u)])
+                transforms[v] = se2_compose(transforms[u], T_uv)
+                placed[v] = True
+                inliers[v] = w
+                parent[v] = u
+                queue.append(v)
+    log.info("registration: %d of %d walks placed from %d walk pairs", placed.sum(), n_sessions, len(ww))
+    return Placement(transforms, placed, inliers, parent)
+
+
+def _inverse(T: NDArray) -> NDArray:
+    c, s = np.cos(T[2]), np.sin(T[2])
+    return np.array([-(c * T[0] + s * T[1]), -(-s * T[0] + c * T[1]), -T[2]])
