@@ -53,3 +53,7 @@ class RadioMapError(GraphSlamError):
 
 class QueryError(GraphSlamError):
     """A localisation query is malformed (empty, no known access point, ...)."""
+
+
+class SimulationError(GraphSlamError):
+    """The simulator cannot produce the requested survey (inconsistent floor plan or walk)."""

@@ -129,7 +129,7 @@ def align(survey: Survey, config: GraphSlamConfig | None = None, progress: Progr
 
     # 2. median-window thresholds and edges
     t = time.perf_counter()
-    thr = window_thresholds(fp, cfg.edges.window_steps, cfg.edges.min_common_aps)
+    thr = window_thresholds(fp, cfg.edges.window_steps)
     edges = propose_edges(
         fp,
         thr,

@@ -29,6 +29,7 @@ class FingerprintNodes:
     fingerprints: FingerprintMatrix
     session: NDArray[np.int64]  # (F,) session index
     step: NDArray[np.int64]  # (F,) step index within its session
+    scan: NDArray[np.int64]  # (F,) scan index within its session
     node: NDArray[np.int64]  # (F,) global node index
     t_ns: NDArray[np.int64]  # (F,) scan time
     path_m: NDArray[np.float64]  # (F,) distance walked along its session (dead reckoning) at that step
@@ -50,7 +51,7 @@ def associate(
     sizes = np.array([len(s.steps) for s in survey], dtype=np.int64)
     offsets = np.concatenate([[0], np.cumsum(sizes)])
     max_gap = int(max_gap_s * 1e9)
-    scans, sess, step, t_all, path = [], [], [], [], []
+    scans, sess, step, scan_idx, t_all, path = [], [], [], [], [], []
     dropped = 0
     for si, s in enumerate(survey):
         if not s.scans:
@@ -71,6 +72,7 @@ def associate(
             scans.append(s.scans[k].readings)
         sess.append(np.full(ok.sum(), si, np.int64))
         step.append(near[ok])
+        scan_idx.append(np.flatnonzero(ok))
         t_all.append(t_scan[ok])
         path.append(cum[near[ok]])
     fp = FingerprintMatrix.from_scans(scans, missing_dbm=missing_dbm, min_rssi_dbm=min_rssi_dbm)
@@ -81,6 +83,7 @@ def associate(
         fingerprints=fp,
         session=session,
         step=stp,
+        scan=cat(scan_idx, np.int64),
         node=offsets[session] + stp if len(session) else np.zeros(0, np.int64),
         t_ns=cat(t_all, np.int64),
         path_m=cat(path, np.float64),

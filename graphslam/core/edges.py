@@ -41,17 +41,18 @@ class WifiEdges:
         return len(self.i)
 
 
-def window_thresholds(fp: FingerprintNodes, window_steps: int, min_common: int = 1) -> NDArray[np.float64]:
+def window_thresholds(fp: FingerprintNodes, window_steps: int) -> NDArray[np.float64]:
     """d_med(k) for every fingerprint: median distance to same-session fingerprints within +-L/2 steps.
 
     NaN where the window holds no other fingerprint (such a fingerprint proposes no edge).
+    Plain eq. 9 over the union of APs, whatever the pair shares.
     """
     thr = np.full(len(fp), np.nan)
     half = window_steps / 2.0
     for s in np.unique(fp.session):
         idx = np.flatnonzero(fp.session == s)  # ordered by step (association keeps scan order)
         sub = fp.fingerprints.rows(idx)
-        d, _ = DistanceEngine(sub).block(sub, min_common=min_common)
+        d, _ = DistanceEngine(sub).block(sub, min_common=0)
         steps = fp.step[idx].astype(float)
         in_win = np.abs(steps[:, None] - steps[None, :]) <= half
         np.fill_diagonal(in_win, False)

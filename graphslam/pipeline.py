@@ -1,0 +1,184 @@
+"""The survey job: read recordings, align, export. Side effects live here, maths in ``core``.
+
+``run_survey`` reads like a table of contents; each step is one library call.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from graphslam.config import GraphSlamConfig
+from graphslam.core.align import Alignment, ProgressCallback, align
+from graphslam.core.evaluate import Evaluation, evaluate
+from graphslam.core.types import Survey
+from graphslam.io.atomic import atomic_write_text
+from graphslam.io.csv_io import write_trajectories
+from graphslam.io.mcap_reader import read_survey
+from graphslam.io.mcap_writer import write_aligned
+
+log = logging.getLogger(__name__)
+
+REPORT_VERSION = 1
+
+
+@dataclass(frozen=True, eq=False)
+class SurveyResult:
+    survey: Survey
+    alignment: Alignment
+    evaluation: Evaluation | None
+    report: dict[str, Any]
+    out_dir: Path | None
+    files: dict[str, Path] = field(default_factory=dict)
+
+
+def build_report(survey: Survey, al: Alignment, ev: Evaluation | None, cfg: GraphSlamConfig, timings: dict) -> dict:
+    fp = al.fingerprints
+    report: dict[str, Any] = {
+        "version": REPORT_VERSION,
+        "sessions": len(survey),
+        "aligned_sessions": len(al.tracks),
+        "reference_session": al.reference,
+        "unaligned": [{"session_id": k, "reason": v} for k, v in al.unaligned.items()],
+        "nodes": al.n_nodes,
+        "fingerprints": len(fp),
+        "scans_dropped": fp.dropped,
+        "access_points": fp.fingerprints.n_aps,
+        "edges": {
+            "imu": int(sum(len(t) - 1 for t in al.tracks.values())),
+            "wifi": len(al.edges),
+            "wifi_candidates": al.edges.candidates,
+            "wifi_states": al.edge_states,
+        },
+        "optimizer": {
+            "initialization": cfg.optimizer.initialization,
+            "iterations": len(al.iterations),
+            "stages": len({r.stage for r in al.iterations}),
+            "initial_error": al.initial_error,
+            "final_error": al.final_error,
+            "converged": al.converged,
+        },
+        "timings_s": {k: round(v, 4) for k, v in timings.items()},
+    }
+    if al.placement is not None:
+        ids = al.session_ids
+        report["walks"] = [
+            {
+                "session_id": ids[s],
+                "aligned": ids[s] in al.tracks,
+                "registration_inliers": int(al.placement.inliers[s]),
+                "registered_to": ids[int(al.placement.parent[s])] if al.placement.parent[s] >= 0 else None,
+            }
+            for s in range(len(ids))
+        ]
+    if ev is not None:
+        report["evaluation"] = ev.as_dict()
+    return report
+
+
+def run_survey(
+    paths: Sequence[str | Path],
+    out_dir: str | Path | None,
+    config: GraphSlamConfig | None = None,
+    *,
+    progress: ProgressCallback | None = None,
+    rerun_path: str | Path | None = None,
+) -> SurveyResult:
+    """Read ``paths``, align every walk, write the outputs into ``out_dir`` (None: no files)."""
+    cfg = config or GraphSlamConfig()
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    survey = read_survey(paths)
+    timings["read"] = time.perf_counter() - t0
+
+    alignment = align(survey, cfg, progress=progress)
+    timings.update({f"align.{k}": v for k, v in alignment.timings_s.items()})
+
+    t = time.perf_counter()
+    evaluation = evaluate(alignment.tracks, survey) if survey.has_ground_truth else None
+    timings["evaluate"] = time.perf_counter() - t
+
+    files: dict[str, Path] = {}
+    report = build_report(survey, alignment, evaluation, cfg, timings)
+    if out_dir is not None:
+        t = time.perf_counter()
+        files = write_outputs(Path(out_dir), survey, alignment, report, cfg)
+        timings["write"] = time.perf_counter() - t
+    if rerun_path is not None:
+        from graphslam.viz.rerun_log import log_survey  # optional, heavy import
+
+        t = time.perf_counter()
+        log_survey(rerun_path, survey, alignment, cfg)
+        timings["rerun"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t0
+    report["timings_s"] = {k: round(v, 4) for k, v in timings.items()}
+    if out_dir is not None:
+        atomic_write_text(Path(out_dir) / "report.json", json.dumps(report, indent=2))
+    return SurveyResult(survey, alignment, evaluation, report, Path(out_dir) if out_dir else None, files)
+
+
+def write_outputs(
+    out_dir: Path, survey: Survey, al: Alignment, report: dict, cfg: GraphSlamConfig
+) -> dict[str, Path]:
+    """Stage every output in a temporary folder, then move them in: no half-written result."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=".graphslam-", dir=out_dir))
+    try:
+        names = {
+            "trajectories": "trajectories.csv",
+            "aligned": "aligned.mcap",
+            "radio_map": "radio_map.parquet",
+            "config": "config.yaml",
+            "report": "report.json",
+        }
+        write_trajectories(al.tracks, stage / names["trajectories"])
+        write_aligned(al.tracks, stage / names["aligned"])
+        _write_radio_map(survey, al, cfg, stage / names["radio_map"])
+        atomic_write_text(stage / names["config"], cfg.to_yaml())
+        atomic_write_text(stage / names["report"], json.dumps(report, indent=2))
+        files = {}
+        for key, name in names.items():
+            if (stage / name).exists():
+                (stage / name).replace(out_dir / name)
+                files[key] = out_dir / name
+        return files
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+
+
+def _write_radio_map(survey: Survey, al: Alignment, cfg: GraphSlamConfig, path: Path) -> None:
+    try:
+        from graphslam.core.radiomap import RadioMap
+        from graphslam.io.radiomap_io import write_radio_map
+    except ImportError:  # radio map module not available yet
+        return
+    fp = al.fingerprints
+    xy = al.fingerprint_xy()
+    keep = np.isfinite(xy).all(axis=1)
+    scans = _scan_readings(survey, al)
+    ids = np.array(al.session_ids, dtype=object)[fp.session]
+    rm = RadioMap.from_scans(
+        [scans[i] for i in np.flatnonzero(keep)],
+        xy[keep],
+        session_ids=list(ids[keep]),
+        t_ns=fp.t_ns[keep],
+        frame="aligned",
+        missing_dbm=cfg.fingerprint.missing_rssi_dbm,
+        min_rssi_dbm=cfg.fingerprint.min_rssi_dbm,
+        metadata={"config": cfg.model_dump(mode="json"), "reference_session": al.reference},
+    )
+    write_radio_map(rm, path)
+
+
+def _scan_readings(survey: Survey, al: Alignment) -> list[dict[str, float]]:
+    """The readings of every associated fingerprint, in ``FingerprintNodes`` order."""
+    fp = al.fingerprints
+    return [dict(survey.sessions[s].scans[k].readings) for s, k in zip(fp.session.tolist(), fp.scan.tolist())]
