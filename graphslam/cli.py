@@ -9,11 +9,15 @@ import json
 import logging
 import sys
 from pathlib import Path
-from typing import List, Optional
+from typing import TYPE_CHECKING, List, Optional
 
 import typer
 
 from graphslam.errors import GraphSlamError
+
+if TYPE_CHECKING:
+    from graphslam.config import GraphSlamConfig
+    from graphslam.core.align import IterationRecord
 
 app = typer.Typer(
     add_completion=False,
@@ -62,6 +66,159 @@ def inspect(
         f"{t['access_points']:,} distinct APs, {t['duration_s'] / 60:.1f} min, "
         f"{t['walked_m'] / 1000:.2f} km walked, {t['landmarks']:,} landmarks"
     )
+
+
+def _config(config: Optional[Path], set_: Optional[List[str]]) -> "GraphSlamConfig":
+    """Config file (partial files merge over the defaults) plus ``--set a.b=value`` overrides."""
+    import yaml
+
+    from graphslam.config import GraphSlamConfig, load_config
+    from graphslam.errors import ConfigError
+
+    overrides: dict = {}
+    for item in set_ or []:
+        key, sep, raw = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. wifi.d_min_m=3")
+        node = overrides
+        *parents, leaf = key.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = yaml.safe_load(raw)
+    cfg: GraphSlamConfig = load_config(config, overrides)
+    return cfg
+
+
+class _LmProgress:
+    """One progress line per LM iteration on stderr (tqdm), stage and error in the postfix."""
+
+    def __init__(self, enabled: bool) -> None:
+        from tqdm import tqdm
+
+        self.bar = tqdm(desc="optimise", unit="it", disable=not enabled, leave=False, file=sys.stderr)
+
+    def __call__(self, rec: "IterationRecord") -> None:
+        self.bar.update(1)
+        self.bar.set_postfix(stage=rec.stage, error=f"{rec.error_after:.4g}", edges=rec.active_edges)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+@app.command()
+def survey(
+    paths: List[Path] = typer.Argument(..., help="Recordings (.mcap) or folders of them."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (created)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config (see configs/default.yaml)."),
+    set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value, e.g. wifi.d_min_m=3."),
+    rerun: Optional[Path] = typer.Option(None, "--rerun", help="Also log the survey to this .rrd file."),
+    floor_plan: Optional[Path] = typer.Option(None, "--floor-plan", help="PNG shown under everything in Rerun."),
+    floor_size: Optional[tuple[float, float]] = typer.Option(None, "--floor-size", help="W H of the floor plan (m)."),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show optimiser progress."),
+) -> None:
+    """Align every walk into one frame; write trajectories.csv, aligned.mcap, radio_map.parquet,
+    report.json and the effective config.yaml into OUT."""
+    from graphslam.pipeline import run_survey
+
+    cfg = _config(config, set_)
+    bar = _LmProgress(progress and sys.stderr.isatty())
+    try:
+        result = run_survey(
+            paths, out, cfg, progress=bar, rerun_path=rerun, floor_plan=floor_plan, floor_size=floor_size
+        )
+    finally:
+        bar.close()
+    r = result.report
+    typer.echo(
+        f"aligned {r['aligned_sessions']}/{r['sessions']} walks, {r['nodes']:,} poses, "
+        f"{r['edges']['wifi']:,} WiFi edges; LM {r['optimizer']['iterations']} iterations "
+        f"(converged: {r['optimizer']['converged']}), error {r['optimizer']['initial_error']:.4g} -> "
+        f"{r['optimizer']['final_error']:.4g}; {r['timings_s']['total']:.2f} s"
+    )
+    ev = r.get("evaluation")
+    if ev and ev["landmarks"]["n"]:
+        lm, raw = ev["landmarks"], ev["landmarks_raw"]
+        typer.echo(
+            f"landmark error (SE(2) fit, n={lm['n']}): mean {lm['mean_m']:.2f} m, median {lm['median_m']:.2f} m, "
+            f"p90 {lm['p90_m']:.2f} m, max {lm['max_m']:.2f} m"
+            + (f"; raw dead reckoning mean {raw['mean_m']:.2f} m" if raw["n"] else "")
+        )
+    typer.echo(f"outputs in {out}")
+
+
+@app.command()
+def evaluate(
+    trajectories: Path = typer.Argument(..., help="trajectories.csv written by `graphslam survey`."),
+    paths: List[Path] = typer.Argument(..., help="The recordings, with /landmarks or /ground_truth/pose."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Write the evaluation as JSON here."),
+    plot: Optional[Path] = typer.Option(None, "--plot", help="Landmark error histogram (PNG, as the paper's fig. 7)."),
+) -> None:
+    """Landmark errors after an SE(2) fit, heading alignment and raw-vs-aligned comparison."""
+    from graphslam.core.evaluate import evaluate as run_evaluation
+    from graphslam.errors import InputError
+    from graphslam.io.atomic import atomic_write_text
+    from graphslam.io.csv_io import read_trajectories
+    from graphslam.io.mcap_reader import read_survey
+
+    tracks = read_trajectories(trajectories)
+    survey_ = read_survey(paths)
+    if not survey_.has_ground_truth:
+        raise InputError(", ".join(map(str, paths)), "no /landmarks or /ground_truth/pose to evaluate against")
+    ev = run_evaluation(tracks, survey_)
+    text = json.dumps(ev.as_dict(), indent=2)
+    if out:
+        atomic_write_text(out, text)
+    if plot:
+        from graphslam.viz.plots import landmark_histogram
+
+        landmark_histogram(ev, plot)
+    lm, raw = ev.landmarks, ev.landmarks_raw
+    typer.echo(
+        json.dumps(
+            {
+                "landmarks": {k: getattr(lm, k) for k in ("n", "mean_m", "median_m", "p90_m", "max_m")},
+                "raw_landmarks_mean_m": raw.mean_m,
+                "heading_mean_deg": ev.heading_mean_deg,
+                "steps_mean_m": ev.steps.mean_m,
+            }
+        )
+    )
+
+
+@app.command()
+def simulate(
+    scenario: str = typer.Argument(..., help="Scenario: paper, corridor or crowd (see docs/simulator.md)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (created); existing files are replaced."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Random seed; same seed, same recordings."),
+    size: float = typer.Option(1.0, "--size", help="Multiplies the number of walks (paper --size 12: ~100k steps)."),
+    test_walks: int = typer.Option(0, "--test-walks", min=0, help="Extra held-out walks, written to OUT/test/."),
+) -> None:
+    """Simulate a survey and write it as MCAP recordings (one per walk) plus OUT/building.json.
+
+    Walks carry ground truth and landmark marks (evaluation only). Reading OUT as a
+    folder also finds OUT/test/; pass OUT/*.mcap to keep the test walks held out.
+    """
+    import time
+
+    from graphslam.sim import SurveyStats
+    from graphslam.sim import simulate as run_simulation
+
+    t0 = time.perf_counter()
+    sim = run_simulation(scenario, seed=seed, size=size, test_walks=test_walks)
+    t_sim = time.perf_counter() - t0
+    sim.write(out)
+    st = SurveyStats.of(sim.survey)
+    typer.echo(
+        f"{scenario} seed={seed} size={size:g}: {len(st.walks)} sessions, {st.steps:,} steps, "
+        f"{st.scans:,} scans, {len(sim.building.aps)} APs ({st.access_points_heard} heard), "
+        f"{st.length_m / 1000:.2f} km, {st.duration_s / 60:.1f} min, {st.marks} landmark marks"
+    )
+    drifts = ", ".join(f"{w.max_drift_m:.1f}" for w in st.walks[:12]) + (", ..." if len(st.walks) > 12 else "")
+    typer.echo(f"max raw drift {st.max_drift_m:.1f} m (per walk: {drifts})")
+    if sim.test_sessions:
+        tst = SurveyStats.of(sim.test_sessions)
+        typer.echo(f"test: {len(tst.walks)} sessions, {tst.steps:,} steps, {tst.scans:,} scans -> {out / 'test'}")
+    typer.echo(f"wrote {out} (simulated in {t_sim:.1f} s, total {time.perf_counter() - t0:.1f} s)")
 
 
 def main(argv: Optional[list[str]] = None) -> None:

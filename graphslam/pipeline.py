@@ -91,6 +91,8 @@ def run_survey(
     *,
     progress: ProgressCallback | None = None,
     rerun_path: str | Path | None = None,
+    floor_plan: str | Path | None = None,
+    floor_size: tuple[float, float] | None = None,
 ) -> SurveyResult:
     """Read ``paths``, align every walk, write the outputs into ``out_dir`` (None: no files)."""
     cfg = config or GraphSlamConfig()
@@ -116,7 +118,7 @@ def run_survey(
         from graphslam.viz.rerun_log import log_survey  # optional, heavy import
 
         t = time.perf_counter()
-        log_survey(rerun_path, survey, alignment, cfg)
+        log_survey(rerun_path, survey, alignment, cfg, floor_plan=floor_plan, floor_size=floor_size)
         timings["rerun"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
     report["timings_s"] = {k: round(v, 4) for k, v in timings.items()}

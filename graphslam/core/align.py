@@ -110,24 +110,45 @@ def _saturation_radii(cfg: GraphSlamConfig) -> list[float]:
     return [float(r) for r in radii]
 
 
-def align(survey: Survey, config: GraphSlamConfig | None = None, progress: ProgressCallback | None = None) -> Alignment:
-    """Align all walks of ``survey`` into the frame of the reference walk's first pose."""
-    cfg = config or GraphSlamConfig()
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """Everything the optimiser needs, as arrays: built once, solvable by any back end.
+
+    Node ``n`` is step ``n - offsets[s]`` of session ``s`` (global numbering).
+    """
+
+    survey: Survey
+    fingerprints: FingerprintNodes
+    edges: WifiEdges
+    reference: int  # session index
+    included: NDArray[np.bool_]  # (S,) walks in the graph
+    unaligned: dict[str, str]
+    placement: Placement | None
+    init_xyh: NDArray[np.float64]  # (N, 3), NaN for walks not in the graph
+    imu_pairs: NDArray[np.int64]  # (M, 2) consecutive nodes of included walks
+    imu_u: NDArray[np.float64]  # (M, 3) measured body-frame step (eq. 6)
+    wifi_pairs: NDArray[np.int64]  # (E, 2) nodes of WiFi edges between included walks
+    timings_s: dict[str, float]
+
+    @property
+    def reference_node(self) -> int:
+        return int(self.fingerprints.offsets[self.reference])
+
+
+def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
+    """Steps 1-3 of the method: fingerprints on nodes, WiFi edges, initial placement."""
     if len(survey) == 0:
         raise SolverError("survey has no sessions")
     timings: dict[str, float] = {}
-    t0 = time.perf_counter()
-
-    # 1. fingerprints on step nodes
+    t = time.perf_counter()
     fp = associate(
         survey,
         max_gap_s=cfg.fingerprint.max_scan_step_gap_s,
         missing_dbm=cfg.fingerprint.missing_rssi_dbm,
         min_rssi_dbm=cfg.fingerprint.min_rssi_dbm,
     )
-    timings["associate"] = time.perf_counter() - t0
+    timings["associate"] = time.perf_counter() - t
 
-    # 2. median-window thresholds and edges
     t = time.perf_counter()
     thr = window_thresholds(fp, cfg.edges.window_steps)
     edges = propose_edges(
@@ -142,7 +163,6 @@ def align(survey: Survey, config: GraphSlamConfig | None = None, progress: Progr
     timings["edges"] = time.perf_counter() - t
     log.info("%d fingerprints on %d steps, %d WiFi edges", len(fp), fp.offsets[-1], len(edges))
 
-    # 3. which walks can be aligned, and where they start
     t = time.perf_counter()
     dr_xyh, node_sess = _dr_nodes(survey)
     ref = _reference_index(survey, cfg)
@@ -153,44 +173,88 @@ def align(survey: Survey, config: GraphSlamConfig | None = None, progress: Progr
     if cfg.optimizer.initialization == "registration":
         placement = register_walks(n_s, ref, node_sess, dr_xyh[:, :2], ea, eb)
         included = placement.placed.copy()
-        for s in np.flatnonzero(~included):
-            unaligned[survey.sessions[s].session_id] = "no rigid WiFi registration chain to the reference walk"
+        reason = "no rigid WiFi registration chain to the reference walk"
         transforms = placement.transforms
     else:
         transforms = np.zeros((n_s, 3))
-        sa, sb = node_sess[ea], node_sess[eb]
-        g = coo_matrix((np.ones(len(sa)), (sa, sb)), shape=(n_s, n_s))
+        g = coo_matrix((np.ones(len(ea)), (node_sess[ea], node_sess[eb])), shape=(n_s, n_s))
         _, label = connected_components(g, directed=False)
         included = label == label[ref]
-        for s in np.flatnonzero(~included):
-            unaligned[survey.sessions[s].session_id] = "no WiFi edge path to the reference walk"
+        reason = "no WiFi edge path to the reference walk"
+    for s in np.flatnonzero(~included):
+        unaligned[survey.sessions[s].session_id] = reason
     init_xyh = np.full_like(dr_xyh, np.nan)
-    for s in np.flatnonzero(included):
-        a, b = fp.offsets[s], fp.offsets[s + 1]
-        init_xyh[a:b] = _transform_poses(dr_xyh[a:b], transforms[s])
-    timings["initialise"] = time.perf_counter() - t
-
-    # 4. factors
-    t = time.perf_counter()
-    imu_graph = gtsam.NonlinearFactorGraph()
-    imu_nm = F.imu_noise(cfg.imu)
-    values = gtsam.Values()
+    imu_pairs, imu_u = [], []
     for s in np.flatnonzero(included):
         a, b = int(fp.offsets[s]), int(fp.offsets[s + 1])
-        u = F.relative_steps(survey.sessions[s].steps)
-        for k in range(a + 1, b):
-            imu_graph.add(F.imu_factor(X(k - 1), X(k), u[k - 1 - a], imu_nm))
-        for k in range(a, b):
-            values.insert(X(k), gtsam.Pose2(*init_xyh[k]))
-    r0 = int(fp.offsets[ref])
-    imu_graph.add(gtsam.PriorFactorPose2(X(r0), gtsam.Pose2(*init_xyh[r0]), F.reference_prior_noise()))
+        init_xyh[a:b] = _transform_poses(dr_xyh[a:b], transforms[s])
+        k = np.arange(a + 1, b)
+        imu_pairs.append(np.column_stack([k - 1, k]))
+        imu_u.append(F.relative_steps(survey.sessions[s].steps))
     use = included[node_sess[ea]] & included[node_sess[eb]]
-    ea, eb = ea[use], eb[use]
+    timings["initialise"] = time.perf_counter() - t
+    return Problem(
+        survey=survey,
+        fingerprints=fp,
+        edges=edges,
+        reference=ref,
+        included=included,
+        unaligned=unaligned,
+        placement=placement,
+        init_xyh=init_xyh,
+        imu_pairs=np.concatenate(imu_pairs).astype(np.int64),
+        imu_u=np.concatenate(imu_u),
+        wifi_pairs=np.column_stack([ea[use], eb[use]]).astype(np.int64),
+        timings_s=timings,
+    )
+
+
+def native_graph(
+    problem: Problem, cfg: GraphSlamConfig
+) -> tuple[gtsam.NonlinearFactorGraph, list[gtsam.NonlinearFactor], gtsam.Values]:
+    """(IMU factors + reference prior, one WiFi factor per edge, initial values): all GTSAM C++ factors."""
+    imu_graph = gtsam.NonlinearFactorGraph()
+    imu_nm = F.imu_noise(cfg.imu)
+    for (i, j), u in zip(problem.imu_pairs.tolist(), problem.imu_u):
+        imu_graph.add(F.imu_factor(X(i), X(j), u, imu_nm))
+    r0 = problem.reference_node
+    imu_graph.add(gtsam.PriorFactorPose2(X(r0), gtsam.Pose2(*problem.init_xyh[r0]), F.reference_prior_noise()))
+    values = gtsam.Values()
+    for n in np.flatnonzero(np.isfinite(problem.init_xyh[:, 0])).tolist():
+        values.insert(X(n), gtsam.Pose2(*problem.init_xyh[n]))
     wifi_nm = F.wifi_noise(cfg.wifi)
-    wifi_factors = [F.wifi_factor(X(int(i)), X(int(j)), wifi_nm) for i, j in zip(ea, eb)]
+    wifi = [F.wifi_factor(X(i), X(j), wifi_nm) for i, j in problem.wifi_pairs.tolist()]
+    return imu_graph, wifi, values
+
+
+def lm_params(cfg: GraphSlamConfig) -> gtsam.LevenbergMarquardtParams:
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(cfg.optimizer.max_iterations)
+    params.setRelativeErrorTol(cfg.optimizer.relative_error_tol)
+    params.setAbsoluteErrorTol(cfg.optimizer.absolute_error_tol)
+    params.setOrderingType("METIS")
+    return params
+
+
+def align(survey: Survey, config: GraphSlamConfig | None = None, progress: ProgressCallback | None = None) -> Alignment:
+    """Align all walks of ``survey`` into the frame of the reference walk's first pose."""
+    cfg = config or GraphSlamConfig()
+    t0 = time.perf_counter()
+    problem = build_problem(survey, cfg)
+    return solve(problem, cfg, progress, t0=t0)
+
+
+def solve(
+    problem: Problem, cfg: GraphSlamConfig, progress: ProgressCallback | None = None, *, t0: float | None = None
+) -> Alignment:
+    """Step 5: LM over a shrinking set of unsaturated WiFi edges (graduated saturation)."""
+    t0 = time.perf_counter() if t0 is None else t0
+    timings = dict(problem.timings_s)
+    t = time.perf_counter()
+    imu_graph, wifi_factors, values = native_graph(problem, cfg)
+    ea, eb = problem.wifi_pairs[:, 0], problem.wifi_pairs[:, 1]
     timings["build_graph"] = time.perf_counter() - t
 
-    # 5. LM over a shrinking set of unsaturated edges
     t = time.perf_counter()
     records: list[IterationRecord] = []
     snapshots: list[tuple[int, NDArray]] = []
@@ -199,6 +263,7 @@ def align(survey: Survey, config: GraphSlamConfig | None = None, progress: Progr
         d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
         return float(imu_graph.error(vals) + F.fuzzy_cost(d, cfg.wifi).sum())
 
+    init_xyh = problem.init_xyh
     xyh = init_xyh.copy()
     initial_error = objective(xyh, values)
     converged = False
@@ -209,13 +274,9 @@ def align(survey: Survey, config: GraphSlamConfig | None = None, progress: Progr
         if prev_active is not None and radius == cfg.wifi.d_max_m and np.array_equal(active, prev_active) and converged:
             break
         graph = gtsam.NonlinearFactorGraph(imu_graph)
-        for k in np.flatnonzero(active):
+        for k in np.flatnonzero(active).tolist():
             graph.add(wifi_factors[k])
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(cfg.optimizer.max_iterations)
-        params.setRelativeErrorTol(cfg.optimizer.relative_error_tol)
-        params.setAbsoluteErrorTol(cfg.optimizer.absolute_error_tol)
-        params.setOrderingType("METIS")
+        params = lm_params(cfg)
         n_active = int(active.sum())
 
         def hook(it: int, before: float, after: float, _s: int = stage, _n: int = n_active) -> None:
@@ -236,22 +297,24 @@ def align(survey: Survey, config: GraphSlamConfig | None = None, progress: Progr
 
     d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
     st = F.edge_state(d, cfg.wifi)
+    survey = problem.survey
+    fp = problem.fingerprints
     tracks = {}
-    for s in np.flatnonzero(included):
+    for s in np.flatnonzero(problem.included):
         sess = survey.sessions[s]
         a, b = fp.offsets[s], fp.offsets[s + 1]
         tracks[sess.session_id] = PoseTrack.from_xyh(sess.steps.t_ns, xyh[a:b])
     timings["total"] = time.perf_counter() - t0
     return Alignment(
         session_ids=tuple(s.session_id for s in survey),
-        reference=survey.sessions[ref].session_id,
+        reference=survey.sessions[problem.reference].session_id,
         tracks=tracks,
-        unaligned=unaligned,
+        unaligned=dict(problem.unaligned),
         fingerprints=fp,
-        edges=edges,
+        edges=problem.edges,
         node_xyh=xyh,
         initial_xyh=init_xyh,
-        placement=placement,
+        placement=problem.placement,
         iterations=tuple(records),
         initial_error=initial_error,
         final_error=final_error,
