@@ -195,8 +195,8 @@ def simulate(
 ) -> None:
     """Simulate a survey and write it as MCAP recordings (one per walk) plus OUT/building.json.
 
-    Walks carry ground truth and landmark marks (evaluation only). Reading OUT as a
-    folder also finds OUT/test/; pass OUT/*.mcap to keep the test walks held out.
+    Walks carry ground truth and landmark marks (evaluation only).
+    Reading OUT as a folder also finds OUT/test/: pass OUT/*.mcap to keep test walks held out.
     """
     import time
 
@@ -219,6 +219,38 @@ def simulate(
         tst = SurveyStats.of(sim.test_sessions)
         typer.echo(f"test: {len(tst.walks)} sessions, {tst.steps:,} steps, {tst.scans:,} scans -> {out / 'test'}")
     typer.echo(f"wrote {out} (simulated in {t_sim:.1f} s, total {time.perf_counter() - t0:.1f} s)")
+
+
+@bench_app.command("accuracy")
+def bench_accuracy(
+    scenario: str = typer.Argument(..., help="Simulator scenario: paper, corridor, crowd."),
+    seeds: str = typer.Option("0,1,2", help="Comma-separated seeds."),
+    size: float = typer.Option(1.0, help="Simulator size multiplier."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c"),
+    set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value."),
+) -> None:
+    """Align simulated surveys; print one JSON line of errors per seed, then the mean over seeds."""
+    from graphslam.bench import accuracy
+
+    rows = accuracy(scenario, [int(s) for s in seeds.split(",")], _config(config, set_), size=size)
+    for r in rows:
+        typer.echo(json.dumps(r))
+    keys = ("landmark_mean_m", "landmark_max_m", "heading_mean_deg", "steps_mean_m", "align_s")
+    typer.echo(json.dumps({"mean_over_seeds": {k: round(sum(r[k] for r in rows) / len(rows), 3) for k in keys}}))
+
+
+@bench_app.command("survey")
+def bench_survey(
+    scenario: str = typer.Argument("paper"),
+    seed: int = typer.Option(0),
+    runs: int = typer.Option(5, help="End-to-end runs (median reported)."),
+    size: float = typer.Option(1.0, help="Simulator size multiplier (scale tests)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c"),
+) -> None:
+    """Time `graphslam survey` end to end on a simulated survey (fresh process per run); peak memory."""
+    from graphslam.bench import survey_speed
+
+    typer.echo(json.dumps(survey_speed(scenario, seed, runs=runs, size=size, config=config)))
 
 
 def main(argv: Optional[list[str]] = None) -> None:

@@ -78,6 +78,9 @@ class OptimizerConfig(_Strict):
     relative_error_tol: float = Field(1e-5, gt=0)
     absolute_error_tol: float = Field(1e-5, ge=0)
     outer_iterations: int = Field(6, ge=1, description="re-evaluations of the saturated (d > d_max) edge set")
+    compress_chains: bool = Field(
+        True, description="solve only fingerprint poses (IMU chains between them composed exactly), restore the rest"
+    )
     verbose: bool = False
 
 

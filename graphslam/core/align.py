@@ -27,6 +27,7 @@ from scipy.sparse.csgraph import connected_components
 from graphslam.config import GraphSlamConfig
 from graphslam.core import factors as F
 from graphslam.core.association import FingerprintNodes, associate
+from graphslam.core.chains import CompressedChains, compress, expand
 from graphslam.core.edges import WifiEdges, propose_edges, window_thresholds
 from graphslam.core.initialise import Placement, register_walks, se2_apply
 from graphslam.core.types import PoseTrack, Survey, wrap_angle
@@ -211,20 +212,36 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
 
 def native_graph(
     problem: Problem, cfg: GraphSlamConfig
-) -> tuple[gtsam.NonlinearFactorGraph, list[gtsam.NonlinearFactor], gtsam.Values]:
-    """(IMU factors + reference prior, one WiFi factor per edge, initial values): all GTSAM C++ factors."""
+) -> tuple[gtsam.NonlinearFactorGraph, list[gtsam.NonlinearFactor], gtsam.Values, CompressedChains | None]:
+    """(IMU factors + reference prior, one WiFi factor per edge, initial values, chains): GTSAM C++ factors only.
+
+    With ``optimizer.compress_chains`` the IMU chain between fingerprint poses becomes one
+    between factor per segment (``graphslam.core.chains``); otherwise one per step (eq. 6-8).
+    """
     imu_graph = gtsam.NonlinearFactorGraph()
-    imu_nm = F.imu_noise(cfg.imu)
-    for (i, j), u in zip(problem.imu_pairs.tolist(), problem.imu_u):
-        imu_graph.add(F.imu_factor(X(i), X(j), u, imu_nm))
+    chains = None
+    if cfg.optimizer.compress_chains:
+        keep = np.zeros(len(problem.init_xyh), bool)
+        keep[problem.wifi_pairs.ravel()] = True
+        keep[problem.reference_node] = True
+        step_cov = np.diag([cfg.imu.sigma_xy_m**2, cfg.imu.sigma_xy_m**2, cfg.imu.sigma_heading_rad**2])
+        chains = compress(problem.init_xyh, problem.fingerprints.offsets, keep, problem.included, step_cov)
+        for (i, j), u, cov in zip(chains.pairs.tolist(), chains.measured, chains.covariance):
+            imu_graph.add(F.imu_factor(X(i), X(j), u, gtsam.noiseModel.Gaussian.Covariance(cov)))
+        nodes = chains.kept
+    else:
+        imu_nm = F.imu_noise(cfg.imu)
+        for (i, j), u in zip(problem.imu_pairs.tolist(), problem.imu_u):
+            imu_graph.add(F.imu_factor(X(i), X(j), u, imu_nm))
+        nodes = np.flatnonzero(np.isfinite(problem.init_xyh[:, 0]))
     r0 = problem.reference_node
     imu_graph.add(gtsam.PriorFactorPose2(X(r0), gtsam.Pose2(*problem.init_xyh[r0]), F.reference_prior_noise()))
     values = gtsam.Values()
-    for n in np.flatnonzero(np.isfinite(problem.init_xyh[:, 0])).tolist():
+    for n in nodes.tolist():
         values.insert(X(n), gtsam.Pose2(*problem.init_xyh[n]))
     wifi_nm = F.wifi_noise(cfg.wifi)
     wifi = [F.wifi_factor(X(i), X(j), wifi_nm) for i, j in problem.wifi_pairs.tolist()]
-    return imu_graph, wifi, values
+    return imu_graph, wifi, values, chains
 
 
 def lm_params(cfg: GraphSlamConfig) -> gtsam.LevenbergMarquardtParams:
@@ -251,7 +268,7 @@ def solve(
     t0 = time.perf_counter() if t0 is None else t0
     timings = dict(problem.timings_s)
     t = time.perf_counter()
-    imu_graph, wifi_factors, values = native_graph(problem, cfg)
+    imu_graph, wifi_factors, values, chains = native_graph(problem, cfg)
     ea, eb = problem.wifi_pairs[:, 0], problem.wifi_pairs[:, 1]
     timings["build_graph"] = time.perf_counter() - t
 
@@ -271,8 +288,8 @@ def solve(
     for stage, radius in enumerate(_saturation_radii(cfg)):
         d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
         active = d <= radius
-        if prev_active is not None and radius == cfg.wifi.d_max_m and np.array_equal(active, prev_active) and converged:
-            break
+        if prev_active is not None and np.array_equal(active, prev_active) and converged:
+            continue  # LM already converged on exactly this graph
         graph = gtsam.NonlinearFactorGraph(imu_graph)
         for k in np.flatnonzero(active).tolist():
             graph.add(wifi_factors[k])
@@ -290,6 +307,8 @@ def solve(
         values = optimizer.optimize()
         converged = optimizer.iterations() < cfg.optimizer.max_iterations
         xyh = _values_to_xyh(values, init_xyh)
+        if chains is not None:
+            xyh = expand(xyh, init_xyh, chains)
         snapshots.append((stage, xyh.copy()))
         prev_active = active
     timings["optimise"] = time.perf_counter() - t

@@ -1,0 +1,3 @@
+from graphslam.cli import main
+
+main()

@@ -1,0 +1,107 @@
+"""Benchmarks on simulated surveys: accuracy over seeds, end-to-end speed, scale.
+
+Side effects (temporary files, subprocesses) live here, not in ``core``. Every
+function returns plain dicts so the CLI prints them as JSON lines and
+docs/benchmarks.md can quote the command that made them.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+from graphslam.config import GraphSlamConfig
+from graphslam.core.align import align
+from graphslam.core.evaluate import evaluate
+
+log = logging.getLogger(__name__)
+
+
+def accuracy(scenario: str, seeds: Sequence[int], cfg: GraphSlamConfig, *, size: float = 1.0) -> list[dict[str, Any]]:
+    """Align simulated surveys in memory; landmark/heading/step errors per seed."""
+    from graphslam.sim import simulate
+
+    rows = []
+    for seed in seeds:
+        survey = simulate(scenario, seed=seed, size=size).survey
+        t = time.perf_counter()
+        al = align(survey, cfg)
+        dt = time.perf_counter() - t
+        ev = evaluate(al.tracks, survey)
+        rows.append(
+            {
+                "scenario": scenario,
+                "seed": seed,
+                "walks": len(survey),
+                "aligned": len(al.tracks),
+                "steps": survey.n_steps,
+                "wifi_edges": len(al.edges),
+                "landmark_n": ev.landmarks.n,
+                "landmark_mean_m": round(ev.landmarks.mean_m, 3),
+                "landmark_median_m": round(ev.landmarks.median_m, 3),
+                "landmark_p90_m": round(ev.landmarks.p90_m, 3),
+                "landmark_max_m": round(ev.landmarks.max_m, 3),
+                "raw_landmark_mean_m": round(ev.landmarks_raw.mean_m, 3),
+                "raw_landmark_max_m": round(ev.landmarks_raw.max_m, 3),
+                "heading_mean_deg": round(ev.heading_mean_deg, 3),
+                "steps_mean_m": round(ev.steps.mean_m, 3),
+                "align_s": round(dt, 3),
+                "lm_iterations": len(al.iterations),
+            }
+        )
+    return rows
+
+
+def survey_speed(
+    scenario: str, seed: int, *, runs: int = 5, size: float = 1.0, config: Path | None = None
+) -> dict[str, Any]:
+    """End-to-end ``graphslam survey`` (read MCAP, align, write every output) in a fresh process per run.
+
+    Median wall time over ``runs``; per-stage medians from report.json; peak RSS of the runs.
+    """
+    from graphslam.sim import simulate
+
+    with tempfile.TemporaryDirectory(prefix="graphslam-bench-") as tmp:
+        data = Path(tmp) / "data"
+        sim = simulate(scenario, seed=seed, size=size)
+        sim.write(data)
+        totals, walls, stages = [], [], []
+        peak_kb = 0
+        for r in range(runs):
+            out = Path(tmp) / f"out{r}"
+            cmd = [sys.executable, "-m", "graphslam", "survey", str(data), "--out", str(out), "--no-progress"]
+            if config:
+                cmd += ["--config", str(config)]
+            before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+            t = time.perf_counter()
+            proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "RERUN": "off"})
+            walls.append(time.perf_counter() - t)
+            if proc.returncode != 0:
+                raise RuntimeError(f"survey failed: {proc.stderr.strip()}")
+            peak_kb = max(peak_kb, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, before)
+            rep = json.loads((out / "report.json").read_text())
+            totals.append(rep["timings_s"]["total"])
+            stages.append(rep["timings_s"])
+        keys = stages[0].keys()
+        return {
+            "scenario": scenario,
+            "seed": seed,
+            "size": size,
+            "runs": runs,
+            "steps": sim.survey.n_steps,
+            "scans": sim.survey.n_scans,
+            "wall_s_median": round(statistics.median(walls), 3),
+            "pipeline_s_median": round(statistics.median(totals), 3),
+            "stages_s_median": {k: round(statistics.median(s[k] for s in stages), 3) for k in keys},
+            "peak_rss_mb": round(peak_kb / 1024, 1),
+            "landmark_mean_m": rep.get("evaluation", {}).get("landmarks", {}).get("mean_m"),
+        }
