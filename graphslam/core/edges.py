@@ -41,26 +41,52 @@ class WifiEdges:
         return len(self.i)
 
 
+def _row_distances(fp: FingerprintNodes, a: NDArray[np.int64], b: NDArray[np.int64]) -> NDArray[np.float64]:
+    """Eq. 9 between fingerprint rows a[i] and b[i] (element-wise pairs, not all pairs)."""
+    v = fp.fingerprints.values
+    va, vb = v[a], v[b]
+    dot = np.asarray(va.multiply(vb).sum(axis=1)).ravel()
+    common = np.asarray((va > 0).multiply(vb > 0).sum(axis=1)).ravel()
+    sq = np.asarray(v.multiply(v).sum(axis=1)).ravel() + fp.fingerprints.extra_sq
+    n = fp.fingerprints.heard.astype(float)
+    den = n[a] + n[b] - common
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = np.sqrt(np.maximum(sq[a] + sq[b] - 2.0 * dot, 0.0) / den)
+    return np.where(den > 0, d, np.inf)
+
+
 def window_thresholds(fp: FingerprintNodes, window_steps: int) -> NDArray[np.float64]:
     """d_med(k) for every fingerprint: median distance to same-session fingerprints within +-L/2 steps.
 
     NaN where the window holds no other fingerprint (such a fingerprint proposes no edge).
-    Plain eq. 9 over the union of APs, whatever the pair shares.
+    Plain eq. 9 over the union of APs, whatever the pair shares. Banded: O(F * window), so
+    long walks cost no more per fingerprint than short ones.
     """
-    thr = np.full(len(fp), np.nan)
+    n = len(fp)
     half = window_steps / 2.0
-    for s in np.unique(fp.session):
-        idx = np.flatnonzero(fp.session == s)  # ordered by step (association keeps scan order)
-        sub = fp.fingerprints.rows(idx)
-        d, _ = DistanceEngine(sub).block(sub, min_common=0)
-        steps = fp.step[idx].astype(float)
-        in_win = np.abs(steps[:, None] - steps[None, :]) <= half
-        np.fill_diagonal(in_win, False)
-        d = np.where(in_win & np.isfinite(d), d, np.nan)
-        has = in_win.any(axis=1) & np.isfinite(d).any(axis=1)
-        if has.any():
-            thr[idx[has]] = np.nanmedian(d[has], axis=1)
-    return thr
+    # fingerprints are grouped by session and ordered by step inside it: the window of k is
+    # a run of neighbours k-o .. k+o; o never exceeds the largest number of scans per window
+    cols: list[NDArray] = []
+    idx = np.arange(n)
+    for o in range(1, n):
+        j = idx + o
+        ok = j < n
+        ok[ok] &= (fp.session[j[ok]] == fp.session[idx[ok]]) & (fp.step[j[ok]] - fp.step[idx[ok]] <= half)
+        if not ok.any():
+            break
+        d = np.full(n, np.nan)
+        d[ok] = _row_distances(fp, idx[ok], j[ok])
+        cols.append(d)  # k -> k + o
+        back = np.full(n, np.nan)
+        back[j[ok]] = d[ok]  # k + o -> k
+        cols.append(back)
+    if not cols:
+        return np.full(n, np.nan)
+    m = np.sort(np.column_stack(cols), axis=1)  # NaN sort last
+    c = np.isfinite(m).sum(axis=1)
+    lo = np.take_along_axis(m, np.maximum((c - 1) // 2, 0)[:, None], 1)[:, 0]
+    hi = np.take_along_axis(m, np.maximum(c // 2, 0)[:, None], 1)[:, 0]
+    return np.where(c > 0, (lo + hi) / 2.0, np.nan)
 
 
 def propose_edges(
