@@ -105,3 +105,69 @@ def survey_speed(
             "peak_rss_mb": round(peak_kb / 1024, 1),
             "landmark_mean_m": rep.get("evaluation", {}).get("landmarks", {}).get("mean_m"),
         }
+
+
+def fig8(
+    scenario: str,
+    seeds: Sequence[int],
+    cfg: GraphSlamConfig,
+    *,
+    test_walks: int = 5,
+    k: int = 3,
+    plot: Path | None = None,
+) -> dict[str, Any]:
+    """The paper's fig. 8: kNN errors of held-out test walks on the crowdsourced vs the surveyed map.
+
+    The crowdsourced map lives in the aligned frame; it is put into the site frame with the
+    SE(2) fit of the landmark evaluation (evaluation only, like the paper's manual rotation).
+    The surveyed map holds the same fingerprints at their ground-truth positions.
+    """
+    import numpy as np
+
+    from graphslam.core.evaluate import interpolate_xy
+    from graphslam.core.knn import KnnConfig, KnnLocator
+    from graphslam.core.survey_maps import crowdsourced_radio_map, surveyed_radio_map
+    from graphslam.sim import simulate
+
+    errs: dict[str, list] = {"crowdsourced": [], "surveyed": []}
+    per_seed = []
+    for seed in seeds:
+        sim = simulate(scenario, seed=seed, test_walks=test_walks)
+        al = align(sim.survey, cfg)
+        ev = evaluate(al.tracks, sim.survey)
+        maps = {
+            "crowdsourced": crowdsourced_radio_map(sim.survey, al, cfg, site_from_aligned=np.array(ev.site_from_aligned)),
+            "surveyed": surveyed_radio_map(sim.survey, al, cfg),
+        }
+        scans = [sc for s in sim.test_sessions for sc in s.scans]
+        truth = np.concatenate(
+            [interpolate_xy(s.ground_truth, np.array([sc.t_ns for sc in s.scans], float)) for s in sim.test_sessions]
+        )
+        row: dict[str, Any] = {"seed": seed, "queries": len(scans)}
+        for name, rm in maps.items():
+            res = KnnLocator(rm, KnnConfig(k=k)).locate([sc.readings for sc in scans])
+            e = np.linalg.norm(res.xy - truth, axis=1)
+            e = e[np.isfinite(e)]
+            errs[name].append(e)
+            row[f"{name}_p_lt_10m"] = round(float(np.mean(e < 10.0)), 4)
+            row[f"{name}_median_m"] = round(float(np.median(e)), 3)
+        per_seed.append(row)
+    all_e = {n: np.concatenate(v) for n, v in errs.items()}
+    out: dict[str, Any] = {
+        "scenario": scenario,
+        "seeds": list(seeds),
+        "k": k,
+        "test_walks_per_seed": test_walks,
+        "queries": int(len(all_e["surveyed"])),
+        "per_seed": per_seed,
+    }
+    for n, e in all_e.items():
+        out[f"{n}_p_lt_10m"] = round(float(np.mean(e < 10.0)), 4)
+        out[f"{n}_mean_m"] = round(float(np.mean(e)), 3)
+        out[f"{n}_median_m"] = round(float(np.median(e)), 3)
+        out[f"{n}_p90_m"] = round(float(np.percentile(e, 90)), 3)
+    if plot is not None:
+        from graphslam.viz.plots import error_cdf
+
+        error_cdf(all_e, plot, title=f"kNN (k={k}) on held-out walks, {scenario}, seeds {','.join(map(str, seeds))}")
+    return out

@@ -115,6 +115,9 @@ def survey(
     floor_plan: Optional[Path] = typer.Option(None, "--floor-plan", help="PNG shown under everything in Rerun."),
     floor_size: Optional[tuple[float, float]] = typer.Option(None, "--floor-size", help="W H of the floor plan (m)."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show optimiser progress."),
+    surveyed: bool = typer.Option(
+        False, "--surveyed", help="Also write radio_map_surveyed.parquet: fingerprints at ground-truth poses (evaluation)."
+    ),
 ) -> None:
     """Align every walk into one frame; write trajectories.csv, aligned.mcap, radio_map.parquet,
     report.json and the effective config.yaml into OUT."""
@@ -124,7 +127,7 @@ def survey(
     bar = _LmProgress(progress and sys.stderr.isatty())
     try:
         result = run_survey(
-            paths, out, cfg, progress=bar, rerun_path=rerun, floor_plan=floor_plan, floor_size=floor_size
+            paths, out, cfg, progress=bar, rerun_path=rerun, floor_plan=floor_plan, floor_size=floor_size, surveyed=surveyed
         )
     finally:
         bar.close()
@@ -251,6 +254,115 @@ def bench_survey(
     from graphslam.bench import survey_speed
 
     typer.echo(json.dumps(survey_speed(scenario, seed, runs=runs, size=size, config=config)))
+
+
+@bench_app.command("ujiindoorloc")
+def bench_ujiindoorloc(
+    data_dir: Path = typer.Argument(..., help="Folder with trainingData.csv[.gz] and validationData.csv[.gz]."),
+    k: int = typer.Option(7, "--k", min=1, help="Neighbours."),
+    weighted: bool = typer.Option(True, "--weighted/--no-weighted", help="Inverse-distance weights, else uniform."),
+    min_rssi: float = typer.Option(-95.0, "--min-rssi", help="Drop readings below this (dBm)."),
+    missing_dbm: float = typer.Option(-100.0, "--missing-dbm", help="RSS of an AP not heard, in eq. 9 (dBm)."),
+    min_common: int = typer.Option(1, "--min-common", min=1, help="Neighbours must share this many APs."),
+    repeats: int = typer.Option(5, "--repeats", min=1, help="Timed runs (the median is reported)."),
+) -> None:
+    """kNN on UJIIndoorLoc (train: trainingData, test: validationData); prints one JSON line."""
+    from graphslam.core.knn_bench import run_ujiindoorloc_benchmark
+
+    r = run_ujiindoorloc_benchmark(
+        data_dir, k=k, weighted=weighted, min_rssi_dbm=min_rssi, missing_dbm=missing_dbm,
+        min_common=min_common, repeats=repeats,
+    )
+    typer.echo(json.dumps(r.as_dict()))
+
+
+@app.command()
+def locate(
+    query_paths: List[Path] = typer.Argument(..., help="Query recordings (.mcap) or folders of them."),
+    radio_map: Path = typer.Option(..., "--radio-map", help="Radio map (.parquet)."),
+    out: Path = typer.Option(..., "--out", help="Output CSV: session_id,t_ns,x,y,score,spread,..."),
+    k: int = typer.Option(3, "--k", min=1, help="Neighbours."),
+    weighted: bool = typer.Option(True, "--weighted/--no-weighted", help="Inverse-distance weights, else uniform."),
+    min_common: int = typer.Option(1, "--min-common", min=1, help="Neighbours must share this many APs."),
+) -> None:
+    """Locate every /wifi/scan of the query sessions by kNN against a radio map."""
+    from graphslam.locate import locate_files
+
+    run = locate_files(radio_map, query_paths, out=out, k=k, weighted=weighted, min_common=min_common)
+    typer.echo(json.dumps(run.as_dict()))
+
+
+@app.command()
+def serve(
+    radio_map: Path = typer.Option(..., "--radio-map", help="Radio map (.parquet)."),
+    host: str = typer.Option("127.0.0.1", "--host", help="Bind address (loopback by default)."),
+    port: int = typer.Option(8077, "--port", min=0, max=65535, help="TCP port."),
+    k: int = typer.Option(3, "--k", min=1, help="Neighbours."),
+    weighted: bool = typer.Option(True, "--weighted/--no-weighted", help="Inverse-distance weights, else uniform."),
+    min_common: int = typer.Option(1, "--min-common", min=1, help="Neighbours must share this many APs."),
+    max_batch: int = typer.Option(10_000, "--max-batch", min=1, help="Most fingerprints per request."),
+    max_body_bytes: int = typer.Option(32 * 1024 * 1024, "--max-body-bytes", min=1024, help="Largest request body."),
+) -> None:
+    """Serve kNN positioning over HTTP (POST /v1/locate, GET /v1/radio-map, GET /healthz, /openapi.json)."""
+    from graphslam.service.server import serve as serve_map
+
+    serve_map(
+        radio_map, host=host, port=port, k=k, weighted=weighted, min_common=min_common,
+        max_batch=max_batch, max_body_bytes=max_body_bytes,
+    )
+
+
+@app.command()
+def view(
+    out_dir: Path = typer.Argument(..., help="A finished `graphslam survey --out` folder."),
+    recordings: Optional[List[Path]] = typer.Option(
+        None, "--recordings", "-r", help="The survey's .mcap files or folders (repeat): adds raw walks and landmarks."
+    ),
+    save: Optional[Path] = typer.Option(None, "--save", help="Write the Rerun recording to this .rrd file."),
+    serve: bool = typer.Option(False, "--serve", help="Serve it in Rerun's web viewer on 127.0.0.1 (Ctrl-C stops)."),
+    spawn: bool = typer.Option(False, "--spawn", help="Open it in the native Rerun viewer (needs a display)."),
+    floor_plan: Optional[Path] = typer.Option(None, "--floor-plan", help="PNG shown under everything."),
+    floor_size: Optional[tuple[float, float]] = typer.Option(None, "--floor-size", help="W H of the floor plan (m)."),
+    web_port: int = typer.Option(9090, "--web-port", help="HTTP port of the web viewer (--serve)."),
+    grpc_port: int = typer.Option(9876, "--grpc-port", help="gRPC port of the web viewer's data server (--serve)."),
+) -> None:
+    """Show a finished survey in Rerun: save an .rrd, serve it on the web viewer, or open the native viewer."""
+    import tempfile
+
+    from graphslam.errors import ConfigError
+    from graphslam.viz.rerun_log import require_display, serve_rrd, spawn_viewer, write_survey_view
+
+    if not (save or serve or spawn):
+        raise ConfigError("choose at least one of --save FILE.rrd, --serve, --spawn")
+    if spawn:
+        require_display()
+    target = save or Path(tempfile.mkdtemp(prefix="graphslam-view-")) / "survey.rrd"
+    result = write_survey_view(
+        out_dir, target, recordings=recordings or (), floor_plan=floor_plan, floor_size=floor_size
+    )
+    typer.echo(f"wrote {result.path} ({result.path.stat().st_size / 1e6:.1f} MB, {len(result.counts)} entities)")
+    if spawn:
+        spawn_viewer(result.path)
+        typer.echo("opened the Rerun viewer")
+    if serve:
+        server = serve_rrd(result.path, web_port=web_port, grpc_port=grpc_port)
+        typer.echo(f"serving {result.path} at {server.url} (Ctrl-C stops)")
+        server.wait()
+
+
+@bench_app.command("fig8")
+def bench_fig8(
+    scenario: str = typer.Argument("paper"),
+    seeds: str = typer.Option("0,1,2", help="Comma-separated seeds."),
+    test_walks: int = typer.Option(5, help="Held-out test walks per seed."),
+    k: int = typer.Option(3, help="kNN neighbours."),
+    plot: Optional[Path] = typer.Option(None, help="Write the CDF plot (PNG) here."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c"),
+) -> None:
+    """The paper's fig. 8: kNN error CDF of held-out walks, crowdsourced vs surveyed radio map."""
+    from graphslam.bench import fig8
+
+    typer.echo(json.dumps(fig8(scenario, [int(s) for s in seeds.split(",")], _config(config, None), test_walks=test_walks, k=k, plot=plot)))
 
 
 def main(argv: Optional[list[str]] = None) -> None:

@@ -40,7 +40,7 @@ class EdgeConfig(_Strict):
         10.0, ge=0, description="... or closer than this along the walked path (dead reckoning)"
     )
     max_per_fingerprint: int = Field(
-        4, ge=1, description="keep at most this many most-similar partners per fingerprint (0 = paper: all)"
+        3, ge=0, description="keep at most this many most-similar partners per fingerprint (0 = paper: all)"
     )
     min_common_aps: int = Field(3, ge=1, description="pairs sharing fewer access points are not compared")
     chunk_rows: int = Field(1024, ge=16, description="fingerprints per block of the distance computation")
@@ -56,9 +56,9 @@ class ImuConfig(_Strict):
 class WifiFactorConfig(_Strict):
     """Eq. 10: fuzzy vicinity error, 0 below d_min, linear to e_max at d_max, flat beyond."""
 
-    d_min_m: float = Field(2.0, ge=0)
-    d_max_m: float = Field(30.0, gt=0)
-    e_max: float = Field(0.3, gt=0)
+    d_min_m: float = Field(1.0, ge=0, description="paper: 2 m; 1 m measured best on the simulator")
+    d_max_m: float = Field(30.0, gt=0, description="beyond this the error is flat (edge treated as an outlier)")
+    e_max: float = Field(1.0, gt=0, description="error at and beyond d_max (weight of an edge vs the IMU chain)")
     omega: float = Field(1.0, gt=0, description="Omega_Wifi, the scalar information of each edge")
 
     @model_validator(mode="after")
@@ -75,7 +75,7 @@ class OptimizerConfig(_Strict):
         description="origin: every walk starts at (0,0,0) as in the paper; registration: rigid WiFi-match fit",
     )
     max_iterations: int = Field(100, ge=1)
-    relative_error_tol: float = Field(1e-5, gt=0)
+    relative_error_tol: float = Field(1e-4, gt=0)
     absolute_error_tol: float = Field(1e-5, ge=0)
     outer_iterations: int = Field(6, ge=1, description="re-evaluations of the saturated (d > d_max) edge set")
     compress_chains: bool = Field(

@@ -93,6 +93,7 @@ def run_survey(
     rerun_path: str | Path | None = None,
     floor_plan: str | Path | None = None,
     floor_size: tuple[float, float] | None = None,
+    surveyed: bool = False,
 ) -> SurveyResult:
     """Read ``paths``, align every walk, write the outputs into ``out_dir`` (None: no files)."""
     cfg = config or GraphSlamConfig()
@@ -112,7 +113,7 @@ def run_survey(
     report = build_report(survey, alignment, evaluation, cfg, timings)
     if out_dir is not None:
         t = time.perf_counter()
-        files = write_outputs(Path(out_dir), survey, alignment, report, cfg)
+        files = write_outputs(Path(out_dir), survey, alignment, report, cfg, surveyed=surveyed)
         timings["write"] = time.perf_counter() - t
     if rerun_path is not None:
         from graphslam.viz.rerun_log import log_survey  # optional, heavy import
@@ -128,7 +129,7 @@ def run_survey(
 
 
 def write_outputs(
-    out_dir: Path, survey: Survey, al: Alignment, report: dict, cfg: GraphSlamConfig
+    out_dir: Path, survey: Survey, al: Alignment, report: dict, cfg: GraphSlamConfig, *, surveyed: bool = False
 ) -> dict[str, Path]:
     """Stage every output in a temporary folder, then move them in: no half-written result."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -144,6 +145,12 @@ def write_outputs(
         write_trajectories(al.tracks, stage / names["trajectories"])
         write_aligned(al.tracks, stage / names["aligned"])
         _write_radio_map(survey, al, cfg, stage / names["radio_map"])
+        if surveyed:  # evaluation: the same fingerprints at their ground-truth positions
+            from graphslam.core.survey_maps import surveyed_radio_map
+            from graphslam.io.radiomap_io import write_radio_map
+
+            names["radio_map_surveyed"] = "radio_map_surveyed.parquet"
+            write_radio_map(surveyed_radio_map(survey, al, cfg), stage / names["radio_map_surveyed"])
         atomic_write_text(stage / names["config"], cfg.to_yaml())
         atomic_write_text(stage / names["report"], json.dumps(report, indent=2))
         files = {}
@@ -157,30 +164,7 @@ def write_outputs(
 
 
 def _write_radio_map(survey: Survey, al: Alignment, cfg: GraphSlamConfig, path: Path) -> None:
-    try:
-        from graphslam.core.radiomap import RadioMap
-        from graphslam.io.radiomap_io import write_radio_map
-    except ImportError:  # radio map module not available yet
-        return
-    fp = al.fingerprints
-    xy = al.fingerprint_xy()
-    keep = np.isfinite(xy).all(axis=1)
-    scans = _scan_readings(survey, al)
-    ids = np.array(al.session_ids, dtype=object)[fp.session]
-    rm = RadioMap.from_scans(
-        [scans[i] for i in np.flatnonzero(keep)],
-        xy[keep],
-        session_ids=list(ids[keep]),
-        t_ns=fp.t_ns[keep],
-        frame="aligned",
-        missing_dbm=cfg.fingerprint.missing_rssi_dbm,
-        min_rssi_dbm=cfg.fingerprint.min_rssi_dbm,
-        metadata={"config": cfg.model_dump(mode="json"), "reference_session": al.reference},
-    )
-    write_radio_map(rm, path)
+    from graphslam.core.survey_maps import crowdsourced_radio_map
+    from graphslam.io.radiomap_io import write_radio_map
 
-
-def _scan_readings(survey: Survey, al: Alignment) -> list[dict[str, float]]:
-    """The readings of every associated fingerprint, in ``FingerprintNodes`` order."""
-    fp = al.fingerprints
-    return [dict(survey.sessions[s].scans[k].readings) for s, k in zip(fp.session.tolist(), fp.scan.tolist())]
+    write_radio_map(crowdsourced_radio_map(survey, al, cfg), path)
