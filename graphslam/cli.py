@@ -365,6 +365,30 @@ def bench_fig8(
     typer.echo(json.dumps(fig8(scenario, [int(s) for s in seeds.split(",")], _config(config, None), test_walks=test_walks, k=k, plot=plot)))
 
 
+@app.command()
+def demo(
+    out: Path = typer.Option(Path("graphslam-demo"), "--out", "-o", help="Working folder (created)."),
+    seed: int = typer.Option(0, help="Simulator seed."),
+    rerun: bool = typer.Option(False, "--rerun", help="Also write OUT/survey.rrd."),
+) -> None:
+    """Simulate the paper's survey, align it, locate held-out walks; print the headline figures."""
+    from graphslam.demo import run_demo
+
+    r = run_demo(out, seed=seed, rerun=rerun)
+    f = r.figures
+    typer.echo(f"simulated {f['walks']} walks, {f['steps']:,} steps, {f['km_walked']} km ({f['time_simulate_s']} s)")
+    typer.echo(
+        f"survey: aligned {f['aligned']} walks in {f['time_survey_s']} s; landmark error mean "
+        f"{f['landmark_mean_m']} m, max {f['landmark_max_m']} m (raw dead reckoning: {f['raw_dead_reckoning_landmark_mean_m']} m)"
+    )
+    typer.echo(
+        f"locate: {f['knn_queries']} held-out scans, median error {f['knn_median_m']} m, "
+        f"P(error < 10 m) = {f['knn_p_lt_10m']} ({f['time_locate_s']} s)"
+    )
+    typer.echo(f"outputs in {r.out_dir} (total {f['total_s']} s)")
+    typer.echo(json.dumps(f))
+
+
 def main(argv: Optional[list[str]] = None) -> None:
     """Console entry point: run the app, turn ``GraphSlamError`` into one line and exit 2."""
     try:

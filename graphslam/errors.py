@@ -57,3 +57,7 @@ class QueryError(GraphSlamError):
 
 class SimulationError(GraphSlamError):
     """The simulator cannot produce the requested survey (inconsistent floor plan or walk)."""
+
+
+class VisualizationError(GraphSlamError):
+    """A Rerun recording could not be written or a viewer could not be started."""

@@ -46,8 +46,18 @@ def test_reads_real_ilc_floor() -> None:
 
 @needs_data("ilc20/site1")
 def test_reads_every_ilc_file() -> None:
-    survey = read_survey([ILC])
-    assert len(survey) == len(list(ILC.rglob("*.mcap")))
+    floors = sorted(p for p in ILC.iterdir() if p.is_dir())
+    assert [f.name for f in floors] == ["B1", "F1", "F2", "F3", "F4"]
+    for floor in floors:
+        survey = read_survey([floor])
+        assert len(survey) == len(list(floor.glob("*.mcap"))) > 90
+        assert all(s.floor == floor.name for s in survey)
+
+
+def test_folder_means_its_own_files_not_subfolders(tmp_path: Path) -> None:
+    write_session(make_session("top", 10), tmp_path / "top.mcap")
+    write_session(make_session("held-out", 10), tmp_path / "test" / "held-out.mcap")
+    assert [s.session_id for s in read_survey([tmp_path])] == ["top"]
 
 
 def _err(path: Path | list[Path]) -> InputError:

@@ -80,14 +80,13 @@ class Scan:
     readings: Mapping[str, float]
 
     def __post_init__(self) -> None:
-        r = dict(self.readings)
-        for bssid, rssi in r.items():
-            if not isinstance(bssid, str) or not bssid:
-                raise ValueError("Scan: bssid must be a non-empty string")
-            if not np.isfinite(rssi):
-                raise ValueError(f"Scan: non-finite rssi for {bssid}")
+        r = {k: float(v) for k, v in dict(self.readings).items()}
+        if not all(type(b) is str and b for b in r):
+            raise ValueError("Scan: bssid must be a non-empty string")
+        if r and not np.isfinite(np.fromiter(r.values(), float, len(r))).all():
+            raise ValueError("Scan: non-finite rssi")
         object.__setattr__(self, "t_ns", int(self.t_ns))
-        object.__setattr__(self, "readings", MappingProxyType({k: float(v) for k, v in r.items()}))
+        object.__setattr__(self, "readings", MappingProxyType(r))
 
     def __len__(self) -> int:
         return len(self.readings)

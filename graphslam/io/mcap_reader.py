@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 import numpy as np
+import orjson
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
@@ -34,11 +35,13 @@ QUATERNION_NORM_TOL = 1e-3
 
 
 def expand_paths(paths: Iterable[str | Path]) -> list[Path]:
-    """Files as given, folders searched recursively for ``*.mcap``; sorted, de-duplicated."""
+    """Files as given; a folder means the ``*.mcap`` files directly in it (not its sub-folders:
+    a simulator's held-out ``test/`` walks or another floor must not join a survey by accident).
+    Sorted, de-duplicated."""
     out: list[Path] = []
     for p in map(Path, paths):
         if p.is_dir():
-            found = sorted(p.rglob("*.mcap"))
+            found = sorted(p.glob("*.mcap"))
             if not found:
                 raise InputError(p, "folder contains no .mcap recordings")
             out.extend(found)
@@ -119,15 +122,72 @@ class _Parse:
 
 def _decode(path: Path, topic: str, index: int, data: bytes) -> dict:
     try:
-        msg = json.loads(data)
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise InputError(path, f"message #{index} is not valid JSON ({e})", topic=topic) from None
+        msg = orjson.loads(data)
+    except orjson.JSONDecodeError:
+        # orjson rejects NaN/Infinity literals; the standard parser reads them, so the
+        # field check can name the non-finite field instead of calling the message invalid
+        msg = _decode_std(path, topic, index, data)
     if not isinstance(msg, dict):
         raise InputError(path, f"message #{index} is not a JSON object", topic=topic)
     return msg
 
 
+def _decode_std(path: Path, topic: str, index: int, data: bytes) -> Any:
+    try:
+        msg = json.loads(data)
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise InputError(path, f"message #{index} is not valid JSON ({e})", topic=topic) from None
+    return msg
+
+
+_NUM = (int, float)
+
+
+def _pose_fast(msg: dict) -> tuple[int, float, float, float] | None:
+    """The common, valid case without per-field bookkeeping; None sends the message to ``_pose``,
+    which names the exact problem."""
+    try:
+        ts, pose = msg["timestamp"], msg["pose"]
+        sec, nsec = ts["sec"], ts["nsec"]
+        pos, q = pose["position"], pose["orientation"]
+        x, y, qx, qy, qz, qw = pos["x"], pos["y"], q["x"], q["y"], q["z"], q["w"]
+    except (KeyError, TypeError):
+        return None
+    if type(sec) is not int or type(nsec) is not int:
+        return None
+    for v in (x, y, qx, qy, qz, qw):
+        if type(v) not in _NUM or not math.isfinite(v):
+            return None
+    n = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+    if abs(n - 1.0) > QUATERNION_NORM_TOL:
+        return None
+    qx, qy, qz, qw = qx / n, qy / n, qz / n, qw / n
+    return sec * 1_000_000_000 + nsec, float(x), float(y), math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+
+
+def _readings_fast(msg: dict) -> tuple[int, dict[str, float]] | None:
+    try:
+        ts = msg["timestamp"]
+        sec, nsec = ts["sec"], ts["nsec"]
+        items = msg["readings"]
+        r: dict[str, float] = {}
+        for item in items:
+            b, v = item["bssid"], item["rssi"]
+            if type(b) is not str or not b or type(v) not in _NUM or not math.isfinite(v):
+                return None
+            if v > r.get(b, -math.inf):  # a BSSID twice in one scan: keep the stronger reading
+                r[b] = float(v)
+    except (KeyError, TypeError):
+        return None
+    if type(sec) is not int or type(nsec) is not int:
+        return None
+    return sec * 1_000_000_000 + nsec, r
+
+
 def _pose(p: _Parse, msg: dict, log_time: int) -> tuple[int, float, float, float]:
+    fast = _pose_fast(msg)
+    if fast is not None:
+        return fast
     t = p.stamp(msg, log_time)
     x = p.number(msg, "pose.position.x")
     y = p.number(msg, "pose.position.y")
@@ -138,6 +198,25 @@ def _pose(p: _Parse, msg: dict, log_time: int) -> tuple[int, float, float, float
     qx, qy, qz, qw = (c / n for c in q)
     h = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
     return t, x, y, h
+
+
+def _scan_slow(p: _Parse, msg: dict, log_time: int) -> tuple[int, dict[str, float]]:
+    t = p.stamp(msg, log_time)
+    readings = p.get(msg, "readings")
+    if not isinstance(readings, list):
+        raise p.fail("readings", "expected an array")
+    r: dict[str, float] = {}
+    for j, item in enumerate(readings):
+        if not isinstance(item, dict):
+            raise p.fail(f"readings[{j}]", "expected an object")
+        bssid = item.get("bssid")
+        if not isinstance(bssid, str) or not bssid:
+            raise p.fail(f"readings[{j}].bssid", f"expected a non-empty string, got {bssid!r}")
+        value = item.get("rssi")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise p.fail(f"readings[{j}].rssi", f"missing or non-finite rssi: {value!r}")
+        r[bssid] = max(float(value), r.get(bssid, -math.inf))
+    return t, r
 
 
 def _track(path: Path, topic: str, rows: list[tuple[int, float, float, float]]) -> PoseTrack:
@@ -216,25 +295,11 @@ def _read(path: Path, fh: Any) -> Session:
         elif topic == TOPIC_GROUND_TRUTH:
             truth.append(_pose(p, msg, message.log_time))
         elif topic == TOPIC_SCAN:
-            t = p.stamp(msg, message.log_time)
+            fast = _readings_fast(msg)
+            t, r = fast if fast is not None else _scan_slow(p, msg, message.log_time)
             if t < last_scan_t:
                 raise p.fail("timestamp", f"time goes backwards ({t} ns after {last_scan_t} ns)")
             last_scan_t = t
-            readings = p.get(msg, "readings")
-            if not isinstance(readings, list):
-                raise p.fail("readings", "expected an array")
-            r: dict[str, float] = {}
-            for j, item in enumerate(readings):
-                bssid = p.string(item, "bssid") if isinstance(item, dict) else None
-                if bssid is None:
-                    raise p.fail(f"readings[{j}]", "expected an object")
-                rssi = _Parse(path, topic, i)
-                try:
-                    value = rssi.number(item, "rssi")
-                except InputError:
-                    raise p.fail(f"readings[{j}].rssi", f"missing or non-finite rssi: {item.get('rssi')!r}") from None
-                # A BSSID reported twice in one scan: keep the stronger reading.
-                r[bssid] = max(value, r.get(bssid, -math.inf))
             scans.append(Scan(t, r))
         elif topic == TOPIC_LANDMARKS:
             t = p.stamp(msg, message.log_time)

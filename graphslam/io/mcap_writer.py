@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import json
+import orjson
 from pathlib import Path
 from typing import Iterable
 
@@ -36,7 +36,7 @@ def _pose_msgs(track: PoseTrack, frame_id: str) -> Iterable[tuple[int, bytes]]:
                 "orientation": {"x": qx, "y": qy, "z": qz, "w": qw},
             },
         }
-        yield t, json.dumps(body, separators=(",", ":")).encode()
+        yield t, orjson.dumps(body)
 
 
 class _Channels:
@@ -82,12 +82,12 @@ def write_session(session: Session, path: str | Path) -> Path:
                 "timestamp": _stamp(s.t_ns),
                 "readings": [{"bssid": b, "rssi": r} for b, r in s.readings.items()],
             }
-            events.append((s.t_ns, scan_ch, json.dumps(body, separators=(",", ":")).encode()))
+            events.append((s.t_ns, scan_ch, orjson.dumps(body)))
         if session.landmarks:
             lm_ch = ch.channel(TOPIC_LANDMARKS)
             for m in session.landmarks:
                 body = {"timestamp": _stamp(m.t_ns), "landmark_id": m.landmark_id, "x": m.x, "y": m.y}
-                events.append((m.t_ns, lm_ch, json.dumps(body).encode()))
+                events.append((m.t_ns, lm_ch, orjson.dumps(body)))
         if session.ground_truth is not None:
             gt_ch = ch.channel(TOPIC_GROUND_TRUTH)
             events += [(t, gt_ch, d) for t, d in _pose_msgs(session.ground_truth, "site")]

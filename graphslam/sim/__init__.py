@@ -1,0 +1,65 @@
+"""Survey simulator: office floors, WiFi radio model, walkers with foot-module drift.
+
+Typical use::
+
+    from graphslam.sim import simulate
+    sim = simulate("paper", seed=0, test_walks=3)
+    sim.survey                 # graphslam.core.types.Survey (ground truth + landmark marks)
+    sim.test_sessions          # held-out walks, same building
+    sim.building.mean_rss(xy)  # (N, A) noiseless mean RSS, columns = sim.building.aps.bssids
+    sim.write("out/")          # OUT/*.mcap, OUT/test/*.mcap, OUT/building.json
+
+See docs/simulator.md for the models and their parameters.
+"""
+
+from graphslam.sim.floorplan import FloorPlan, Landmark, corridor_plan, office_plan
+from graphslam.sim.radio import (
+    AccessPoints,
+    RadioEnvironment,
+    RadioParams,
+    ShadowingField,
+    make_radio,
+    wall_crossings,
+)
+from graphslam.sim.scenarios import (
+    SCENARIOS,
+    Building,
+    Scenario,
+    SimulatedSurvey,
+    build_building,
+    get_scenario,
+    simulate,
+    with_overrides,
+)
+from graphslam.sim.stats import SurveyStats, WalkStats, align_by_start, raw_drift
+from graphslam.sim.walker import ImuErrorParams, WalkerParams, WalkSpec, dead_reckon, simulate_walk
+
+__all__ = [
+    "AccessPoints",
+    "Building",
+    "FloorPlan",
+    "ImuErrorParams",
+    "Landmark",
+    "RadioEnvironment",
+    "RadioParams",
+    "SCENARIOS",
+    "Scenario",
+    "ShadowingField",
+    "SimulatedSurvey",
+    "SurveyStats",
+    "WalkSpec",
+    "WalkStats",
+    "WalkerParams",
+    "align_by_start",
+    "build_building",
+    "corridor_plan",
+    "dead_reckon",
+    "get_scenario",
+    "make_radio",
+    "office_plan",
+    "raw_drift",
+    "simulate",
+    "simulate_walk",
+    "wall_crossings",
+    "with_overrides",
+]

@@ -33,7 +33,7 @@ _MERGE_M = 0.5
 
 
 def _frozen(a: NDArray, dtype: type) -> NDArray:
-    arr = np.array(a, dtype=dtype, copy=True)
+    arr: NDArray = np.array(a, dtype=dtype, copy=True)
     arr.setflags(write=False)
     return arr
 
@@ -226,7 +226,7 @@ class _Builder:
                 j = int(np.argmin(np.abs(np.array(merged) - a)))
                 door_node[(cid, a)] = idx[j]
         node_room = [-1] * len(nodes)
-        rooms = []
+        rooms: list[tuple[float, float, float, float]] = []
         for cid, mid, pt, box in self.doors:
             r = len(nodes)
             nodes.append((float(pt[0]), float(pt[1])))

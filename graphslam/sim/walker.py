@@ -38,7 +38,6 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.signal import lfilter
 
 from graphslam.core.types import LandmarkMark, PoseTrack, Session, wrap_angle
 from graphslam.errors import ConfigError, SimulationError
@@ -61,7 +60,7 @@ class WalkerParams:
     min_step_m: float = 0.35
     max_step_m: float = 0.95
     lateral_sigma_m: float = 0.25  # std of the offset from the centre line
-    lateral_corr_steps: float = 10.0  # AR(1) correlation time of that offset, in steps
+    lateral_corr_steps: float = 10.0  # correlation exp(-1) of that offset after this many steps
     room_weight: float = 0.15  # at a door, weight of entering the room (corridor ways weigh 1)
     stop_prob: float = 0.003  # per step: stop for a while (talk, look around)
     stop_s: tuple[float, float] = (3.0, 15.0)
@@ -96,12 +95,17 @@ class ImuErrorParams:
     scale_sigma: float = 0.01  # per-walker step-length scale error (relative)
     step_length_sigma_m: float = 0.02  # per-step length error
     heading_sigma_rad: float = 0.002  # per-step heading error (heading random walk)
-    gyro_bias_sigma_rad_s: float = 1.0e-4  # initial yaw-rate bias std
-    gyro_bias_walk: float = 2.0e-6  # bias random walk, rad/s per sqrt(s)
+    # Initial yaw-rate bias: magnitude uniform in this range, random sign. A range
+    # rather than a Gaussian keeps every walker's drift of similar size.
+    gyro_bias_rad_s: tuple[float, float] = (2.5e-4, 3.5e-4)  # 0.86-1.2 deg/min
+    gyro_bias_walk: float = 3.0e-6  # bias random walk, rad/s per sqrt(s)
 
     def __post_init__(self) -> None:
-        for name, v in vars(self).items():
-            if v < 0:
+        lo, hi = self.gyro_bias_rad_s
+        if not 0 <= lo <= hi:
+            raise ConfigError(f"ImuErrorParams.gyro_bias_rad_s: need 0 <= low <= high, got {(lo, hi)}")
+        for name in ("scale_sigma", "step_length_sigma_m", "heading_sigma_rad", "gyro_bias_walk"):
+            if getattr(self, name) < 0:
                 raise ConfigError(f"ImuErrorParams.{name} must be >= 0")
 
 
@@ -124,25 +128,25 @@ def graph_route(plan: FloorPlan, rng: np.random.Generator, length_m: float, room
     Entering a room node adds a detour: to a random point of the room and back.
     """
     adj = plan.neighbours()
+    is_room = (plan.node_room >= 0).tolist()
+    nodes = plan.nodes.tolist()
+    rooms = plan.rooms.tolist()
     starts = plan.corridor_nodes
     cur = int(starts[rng.integers(len(starts))])
     prev = -1
-    pts: list[NDArray] = [plan.nodes[cur]]
+    pts: list[list[float]] = [nodes[cur]]
     total = 0.0
     while total < length_m:
         options = [n for n in adj[cur] if n != prev] or adj[cur]
-        w = np.array([room_weight if plan.node_room[n] >= 0 else 1.0 for n in options])
-        if w.sum() <= 0:
-            w = np.ones(len(options))
-        nxt = options[int(rng.choice(len(options), p=w / w.sum()))]
-        new = [plan.nodes[nxt]]
-        room = int(plan.node_room[nxt])
-        if room >= 0:
-            x0, y0, x1, y1 = plan.rooms[room]
-            inner = np.array([rng.uniform(x0, max(x0, x1)), rng.uniform(y0, max(y0, y1))])
-            new += [inner, plan.nodes[nxt]]
+        cum = np.cumsum([room_weight if is_room[n] else 1.0 for n in options])
+        pick = int(np.searchsorted(cum, rng.random() * cum[-1], side="right")) if cum[-1] > 0 else 0
+        nxt = options[min(pick, len(options) - 1)]
+        new = [nodes[nxt]]
+        if is_room[nxt]:
+            x0, y0, x1, y1 = rooms[int(plan.node_room[nxt])]
+            new += [[rng.uniform(x0, max(x0, x1)), rng.uniform(y0, max(y0, y1))], nodes[nxt]]
         for p in new:
-            total += float(np.linalg.norm(p - pts[-1]))
+            total += math.hypot(p[0] - pts[-1][0], p[1] - pts[-1][1])
             pts.append(p)
         prev, cur = cur, nxt
     return np.array(pts)
@@ -161,15 +165,18 @@ def _along(route: NDArray, s: NDArray) -> tuple[NDArray, NDArray]:
     return route[i] + (s - cum[i])[:, None] * u, u
 
 
-def _ar1(rng: np.random.Generator, n: int, sigma: float, corr_steps: float) -> NDArray:
-    """Stationary AR(1) sequence, std ``sigma``, correlation exp(-1) after ``corr_steps``."""
+def _smooth_noise(rng: np.random.Generator, n: int, sigma: float, corr_steps: float) -> NDArray:
+    """Stationary Gaussian sequence, std ``sigma``, correlation exp(-(k / corr_steps)^2) at lag k.
+
+    White noise convolved with a Gaussian kernel of std ``corr_steps / 2``.
+    """
     if n == 0 or sigma == 0:
         return np.zeros(n)
-    a = math.exp(-1.0 / corr_steps)
-    e = rng.normal(0.0, sigma * math.sqrt(1 - a * a), n)
-    e[0] = rng.normal(0.0, sigma)
-    # x_k = a x_{k-1} + e_k, as a linear filter (vectorised, exact).
-    return lfilter([1.0], [1.0, -a], e)
+    k_sigma = corr_steps / 2.0
+    pad = int(4 * k_sigma) + 1
+    kernel = np.exp(-0.5 * (np.arange(-pad, pad + 1) / k_sigma) ** 2)
+    smooth = np.convolve(rng.standard_normal(n + 2 * pad), kernel, mode="valid")
+    return smooth * (sigma / np.sqrt(np.sum(kernel**2)))
 
 
 # --------------------------------------------------------------------------- walk
@@ -208,8 +215,12 @@ def _true_motion(
     s = np.concatenate([[0.0], np.cumsum(lengths)])
     s = s[s <= route_len]
     centre, u = _along(route, s)
+    # Normals averaged over 5 steps: the sideways offset turns smoothly at corners
+    # (and fades out at U-turns) instead of jumping with the route direction.
     normal = np.column_stack([-u[:, 1], u[:, 0]])
-    xy = centre + _ar1(rng, len(s), wp.lateral_sigma_m, wp.lateral_corr_steps)[:, None] * normal
+    kernel = np.ones(5) / 5.0
+    normal = np.column_stack([np.convolve(np.pad(normal[:, i], 2, mode="edge"), kernel, "valid") for i in (0, 1)])
+    xy = centre + _smooth_noise(rng, len(s), wp.lateral_sigma_m, wp.lateral_corr_steps)[:, None] * normal
     n = len(xy)
     walk = period * np.clip(1 + rng.normal(0, wp.step_period_jitter, n), 0.5, 1.5)
     walk[0] = 0.0
@@ -269,7 +280,7 @@ def dead_reckon(
     length = np.linalg.norm(step, axis=1)
     dt = np.diff(t_ns).astype(float) / NS
     scale = rng.normal(0.0, imu.scale_sigma)
-    b0 = rng.normal(0.0, imu.gyro_bias_sigma_rad_s)
+    b0 = rng.choice([-1.0, 1.0]) * rng.uniform(*imu.gyro_bias_rad_s)
     bias = b0 + np.cumsum(rng.normal(0.0, 1.0, n - 1) * imu.gyro_bias_walk * np.sqrt(dt))
     err = np.concatenate([[0.0], np.cumsum(bias * dt + rng.normal(0.0, imu.heading_sigma_rad, n - 1))])
     l_dr = np.maximum(length * (1.0 + scale) + rng.normal(0.0, imu.step_length_sigma_m, n - 1), 0.0)
