@@ -6,12 +6,14 @@ import pytest
 import yaml
 
 from conftest import REPO
-from graphslam.config import GraphSlamConfig, load_config
+from graphslam.config import GraphSlamConfig, commented_yaml, load_config
 from graphslam.errors import ConfigError
 
 
 def test_default_yaml_mirrors_models() -> None:
     assert load_config(REPO / "configs" / "default.yaml") == GraphSlamConfig()
+    # regenerate with: python -c "from graphslam.config import commented_yaml; print(commented_yaml(), end='')"
+    assert (REPO / "configs" / "default.yaml").read_text() == commented_yaml()
     data = yaml.safe_load((REPO / "configs" / "default.yaml").read_text())
     assert data == GraphSlamConfig().model_dump(mode="json")
 
