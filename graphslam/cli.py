@@ -159,7 +159,7 @@ def evaluate(
     """Landmark errors after an SE(2) fit, heading alignment and raw-vs-aligned comparison."""
     from graphslam.core.evaluate import evaluate as run_evaluation
     from graphslam.errors import InputError
-    from graphslam.io.atomic import atomic_write_text
+    from graphslam.io.atomic import atomic_write_json, json_safe
     from graphslam.io.csv_io import read_trajectories
     from graphslam.io.mcap_reader import read_survey
 
@@ -168,24 +168,20 @@ def evaluate(
     if not survey_.has_ground_truth:
         raise InputError(", ".join(map(str, paths)), "no /landmarks or /ground_truth/pose to evaluate against")
     ev = run_evaluation(tracks, survey_)
-    text = json.dumps(ev.as_dict(), indent=2)
     if out:
-        atomic_write_text(out, text)
+        atomic_write_json(out, ev.as_dict())
     if plot:
         from graphslam.viz.plots import landmark_histogram
 
         landmark_histogram(ev, plot)
     lm, raw = ev.landmarks, ev.landmarks_raw
-    typer.echo(
-        json.dumps(
-            {
-                "landmarks": {k: getattr(lm, k) for k in ("n", "mean_m", "median_m", "p90_m", "max_m")},
-                "raw_landmarks_mean_m": raw.mean_m,
-                "heading_mean_deg": ev.heading_mean_deg,
-                "steps_mean_m": ev.steps.mean_m,
-            }
-        )
-    )
+    summary = {
+        "landmarks": {k: getattr(lm, k) for k in ("n", "mean_m", "median_m", "p90_m", "max_m")},
+        "raw_landmarks_mean_m": raw.mean_m,
+        "heading_mean_deg": ev.heading_mean_deg,
+        "steps_mean_m": ev.steps.mean_m,
+    }
+    typer.echo(json.dumps(json_safe(summary)))
 
 
 @app.command()
@@ -267,7 +263,7 @@ def bench_ujiindoorloc(
     repeats: int = typer.Option(5, "--repeats", min=1, help="Timed runs (the median is reported)."),
 ) -> None:
     """kNN on UJIIndoorLoc (train: trainingData, test: validationData); prints one JSON line."""
-    from graphslam.core.knn_bench import run_ujiindoorloc_benchmark
+    from graphslam.uji_bench import run_ujiindoorloc_benchmark
 
     r = run_ujiindoorloc_benchmark(
         data_dir, k=k, weighted=weighted, min_rssi_dbm=min_rssi, missing_dbm=missing_dbm,

@@ -86,6 +86,11 @@ class OptimizerConfig(_Strict):
     relative_error_tol: float = Field(1e-4, gt=0)
     absolute_error_tol: float = Field(1e-5, ge=0)
     outer_iterations: int = Field(6, ge=1, description="re-evaluations of the saturated (d > d_max) edge set")
+    linear_solver: Literal["auto", "cholesky", "pcg"] = Field(
+        "auto",
+        description="cholesky: multifrontal, METIS; pcg: block-Jacobi PCG (large surveys); auto: pcg above pcg_above_poses",
+    )
+    pcg_above_poses: int = Field(6000, ge=0, description="auto switches to pcg above this many pose variables")
     compress_chains: bool = Field(
         True, description="solve only fingerprint poses (IMU chains between them composed exactly), restore the rest"
     )

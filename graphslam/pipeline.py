@@ -20,7 +20,7 @@ from graphslam.config import GraphSlamConfig
 from graphslam.core.align import Alignment, ProgressCallback, align
 from graphslam.core.evaluate import Evaluation, evaluate
 from graphslam.core.types import Survey
-from graphslam.io.atomic import atomic_write_text
+from graphslam.io.atomic import atomic_write_json, atomic_write_text
 from graphslam.io.csv_io import write_trajectories
 from graphslam.io.mcap_reader import read_survey
 from graphslam.io.mcap_writer import write_aligned
@@ -124,7 +124,7 @@ def run_survey(
     timings["total"] = time.perf_counter() - t0
     report["timings_s"] = {k: round(v, 4) for k, v in timings.items()}
     if out_dir is not None:
-        atomic_write_text(Path(out_dir) / "report.json", json.dumps(report, indent=2))
+        atomic_write_json(Path(out_dir) / "report.json", report)
     return SurveyResult(survey, alignment, evaluation, report, Path(out_dir) if out_dir else None, files)
 
 
@@ -152,7 +152,7 @@ def write_outputs(
             names["radio_map_surveyed"] = "radio_map_surveyed.parquet"
             write_radio_map(surveyed_radio_map(survey, al, cfg), stage / names["radio_map_surveyed"])
         atomic_write_text(stage / names["config"], cfg.to_yaml())
-        atomic_write_text(stage / names["report"], json.dumps(report, indent=2))
+        atomic_write_json(stage / names["report"], report)
         files = {}
         for key, name in names.items():
             if (stage / name).exists():

@@ -244,12 +244,21 @@ def native_graph(
     return imu_graph, wifi, values, chains
 
 
-def lm_params(cfg: GraphSlamConfig) -> gtsam.LevenbergMarquardtParams:
+def lm_params(cfg: GraphSlamConfig, n_poses: int = 0) -> gtsam.LevenbergMarquardtParams:
+    """LM settings. Direct multifrontal Cholesky is fastest on surveys of a few thousand fingerprint
+    poses; beyond that the WiFi edges, which tie every revisited place together, make elimination
+    cliques grow large and block-Jacobi PCG wins (docs/benchmarks.md)."""
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(cfg.optimizer.max_iterations)
     params.setRelativeErrorTol(cfg.optimizer.relative_error_tol)
     params.setAbsoluteErrorTol(cfg.optimizer.absolute_error_tol)
     params.setOrderingType("METIS")
+    solver = cfg.optimizer.linear_solver
+    if solver == "pcg" or (solver == "auto" and n_poses > cfg.optimizer.pcg_above_poses):
+        params.setLinearSolverType("ITERATIVE")
+        pcg = gtsam.PCGSolverParameters()
+        pcg.preconditioner = gtsam.BlockJacobiPreconditionerParameters()
+        params.setIterativeParams(pcg)
     return params
 
 
@@ -293,7 +302,7 @@ def solve(
         graph = gtsam.NonlinearFactorGraph(imu_graph)
         for k in np.flatnonzero(active).tolist():
             graph.add(wifi_factors[k])
-        params = lm_params(cfg)
+        params = lm_params(cfg, values.size())
         n_active = int(active.sum())
 
         def hook(it: int, before: float, after: float, _s: int = stage, _n: int = n_active) -> None:

@@ -107,31 +107,33 @@ def propose_edges(
     engine = DistanceEngine(fp.fingerprints)
     out_i, out_j, out_d, out_c = [], [], [], []
     candidates = 0
-    t_s = fp.t_ns / 1e9
+    t_s = (fp.t_ns - (fp.t_ns.min() if n else 0)) / 1e9
+    # fingerprints are grouped by session: a session's columns are one contiguous range
+    bounds = np.searchsorted(fp.session, np.arange(fp.session.max() + 2 if n else 1))
+    m = max_per_fingerprint if max_per_fingerprint > 0 else n
     for start, d, common in engine.iter_blocks(fp.fingerprints, min_common=min_common_aps, block_rows=block_rows):
         rows = np.arange(start, start + len(d))
-        thr = thresholds[rows][:, None]
-        ok = d < thr  # NaN threshold -> False
-        same = fp.session[rows][:, None] == fp.session[None, :]
-        near = (np.abs(t_s[rows][:, None] - t_s[None, :]) < exclude_same_session_s) | (
-            np.abs(fp.path_m[rows][:, None] - fp.path_m[None, :]) < exclude_same_session_m
-        )
-        ok &= ~(same & near)
+        ok = d < thresholds[rows][:, None]  # NaN threshold -> False
         ok[np.arange(len(rows)), rows] = False
-        candidates += int(ok.sum())
-        dm = np.where(ok, d, np.inf)
-        m = min(max_per_fingerprint, n - 1) if max_per_fingerprint > 0 else n - 1
-        if m <= 0:
-            continue
-        part = np.argpartition(dm, m - 1, axis=1)[:, :m] if m < n else np.tile(np.arange(n), (len(rows), 1))
-        r = np.repeat(rows, part.shape[1])
-        c = part.ravel()
-        dv = dm[np.repeat(np.arange(len(rows)), part.shape[1]), c]
-        keep = np.isfinite(dv)
-        out_i.append(r[keep])
-        out_j.append(c[keep])
+        for s in np.unique(fp.session[rows]):
+            r = np.flatnonzero(fp.session[rows] == s)
+            c0, c1 = bounds[s], bounds[s + 1]
+            near = (np.abs(t_s[rows[r]][:, None] - t_s[None, c0:c1]) < exclude_same_session_s) | (
+                np.abs(fp.path_m[rows[r]][:, None] - fp.path_m[None, c0:c1]) < exclude_same_session_m
+            )
+            ok[r[:, None], np.arange(c0, c1)[None, :]] &= ~near
+        # the candidates below threshold are few per row: rank those, not the whole block
+        ri, ci = np.nonzero(ok)
+        candidates += len(ri)
+        dv = d[ri, ci]
+        order = np.lexsort((dv, ri))
+        ri, ci, dv = ri[order], ci[order], dv[order]
+        first = np.searchsorted(ri, ri, side="left")
+        keep = (np.arange(len(ri)) - first) < m
+        out_i.append(rows[ri[keep]])
+        out_j.append(ci[keep])
         out_d.append(dv[keep])
-        out_c.append(common[np.repeat(np.arange(len(rows)), part.shape[1]), c][keep])
+        out_c.append(common[ri[keep], ci[keep]])
     if not out_i:
         z = np.zeros(0, np.int64)
         return WifiEdges(z, z, np.zeros(0), z, candidates)

@@ -32,3 +32,26 @@ def atomic_open(path: str | Path, mode: str = "wb", **kwargs: object) -> Iterato
 def atomic_write_text(path: str | Path, text: str) -> None:
     with atomic_open(path, "w", encoding="utf-8") as fh:
         fh.write(text)
+
+
+def json_safe(obj: object) -> object:
+    """Replace NaN/inf floats by None (strict JSON), recursively; numpy scalars become Python numbers."""
+    import math
+
+    import numpy as np
+
+    if isinstance(obj, dict):
+        return {str(k): json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def atomic_write_json(path: str | Path, obj: object) -> None:
+    import json
+
+    atomic_write_text(path, json.dumps(json_safe(obj), indent=2, allow_nan=False))
