@@ -1,0 +1,65 @@
+"""Eq. 9 distance engine against the definition, on random hand-made fingerprints."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from graphslam.core.fingerprints import DistanceEngine, FingerprintMatrix, rss_distance
+
+
+def random_scans(n: int, n_aps: int, seed: int) -> list[dict[str, float]]:
+    rng = np.random.default_rng(seed)
+    aps = [f"ap{i}" for i in range(n_aps)]
+    return [
+        {a: float(rng.integers(-99, -35)) for a in rng.choice(aps, rng.integers(1, 15), replace=False)}
+        for _ in range(n)
+    ]
+
+
+def test_rss_distance_by_hand() -> None:
+    a = {"x": -50.0, "y": -70.0}
+    b = {"x": -60.0, "z": -90.0}
+    # union {x, y, z}: (10^2 + 40^2 + 20^2) / 3 with missing = -110
+    assert rss_distance(a, b) == pytest.approx(np.sqrt((100 + 1600 + 400) / 3))
+    assert rss_distance(a, a) == 0.0
+
+
+@pytest.mark.parametrize("dense", [True, False])
+def test_engine_matches_definition(dense: bool) -> None:
+    scans = random_scans(60, 120, seed=3)
+    fm = FingerprintMatrix.from_scans(scans)
+    eng = DistanceEngine(fm, dense_threshold=0.0 if dense else 1.1)
+    assert eng.dense is dense or fm.n_aps <= 64
+    d, common = eng.block(fm, min_common=0)
+    ref = np.array([[rss_distance(a, b) for b in scans] for a in scans])
+    np.testing.assert_allclose(d, ref, atol=1e-6)
+    inter = np.array([[len(set(a) & set(b)) for b in scans] for a in scans])
+    np.testing.assert_array_equal(common, inter)
+
+
+def test_queries_with_aps_unknown_to_the_reference() -> None:
+    scans = random_scans(40, 80, seed=5)
+    ref = FingerprintMatrix.from_scans(scans[10:])
+    q = FingerprintMatrix.from_scans(scans[:10], bssids=ref.bssids)
+    assert q.extra_n.sum() > 0, "the test needs query APs the reference lacks"
+    d, _ = DistanceEngine(ref).block(q, min_common=0)
+    expected = np.array([[rss_distance(a, b) for b in scans[10:]] for a in scans[:10]])
+    np.testing.assert_allclose(d, expected, atol=1e-6)
+
+
+def test_min_common_and_blocks() -> None:
+    scans = random_scans(50, 40, seed=7)
+    fm = FingerprintMatrix.from_scans(scans)
+    eng = DistanceEngine(fm)
+    d3, c = eng.block(fm, min_common=3)
+    assert np.isinf(d3[c < 3]).all() and np.isfinite(d3[c >= 3]).all()
+    blocks = list(eng.iter_blocks(fm, min_common=3, block_rows=7))
+    assert [b[0] for b in blocks] == list(range(0, 50, 7))
+    np.testing.assert_array_equal(np.vstack([b[1] for b in blocks]), d3)
+
+
+def test_readings_below_floor_are_dropped() -> None:
+    fm = FingerprintMatrix.from_scans([{"a": -50.0, "b": -105.0}], min_rssi_dbm=-100.0)
+    assert fm.bssids == ("a",) and fm.heard.tolist() == [1]
+    np.testing.assert_allclose(fm.dense_rssi(), [[-50.0]])
