@@ -171,3 +171,36 @@ def fig8(
 
         error_cdf(all_e, plot, title=f"kNN (k={k}) on held-out walks, {scenario}, seeds {','.join(map(str, seeds))}")
     return out
+
+
+def ilc_floors(site_dir: Path, cfg: GraphSlamConfig, floors: Sequence[str] | None = None) -> list[dict[str, Any]]:
+    """Align every floor of an ILC 2.0 site (real recordings); waypoint errors after one SE(2) fit."""
+    from graphslam.errors import InputError
+    from graphslam.pipeline import run_survey
+
+    site_dir = Path(site_dir)
+    names = list(floors) if floors else sorted(p.name for p in site_dir.iterdir() if p.is_dir())
+    if not names:
+        raise InputError(site_dir, "no floor folders (e.g. B1, F1) in this site folder")
+    rows = []
+    for name in names:
+        t = time.perf_counter()
+        res = run_survey([site_dir / name], None, cfg)
+        dt = time.perf_counter() - t
+        ev = res.evaluation
+        lm = ev.landmarks if ev is not None else None
+        rows.append(
+            {
+                "floor": name,
+                "walks": len(res.survey),
+                "aligned": len(res.alignment.tracks),
+                "aligned_fraction": round(len(res.alignment.tracks) / max(1, len(res.survey)), 3),
+                "waypoints": lm.n if lm else 0,
+                "mean_m": round(lm.mean_m, 2) if lm else None,
+                "p90_m": round(lm.p90_m, 2) if lm else None,
+                "max_m": round(lm.max_m, 2) if lm else None,
+                "per_walk_rigid_fit_mean_m": round(ev.landmarks_per_walk_fit.mean_m, 2) if ev else None,
+                "time_s": round(dt, 2),
+            }
+        )
+    return rows

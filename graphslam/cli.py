@@ -385,6 +385,20 @@ def demo(
     typer.echo(json.dumps(f))
 
 
+@bench_app.command("ilc")
+def bench_ilc(
+    site_dir: Path = typer.Argument(..., help="An ILC 2.0 site folder with one sub-folder per floor."),
+    floors: Optional[str] = typer.Option(None, help="Comma-separated floors (default: all)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c"),
+    set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value."),
+) -> None:
+    """Align each real ILC floor; one JSON line per floor with waypoint errors (SE(2) fit) and time."""
+    from graphslam.bench import ilc_floors
+
+    for row in ilc_floors(site_dir, _config(config, set_), floors.split(",") if floors else None):
+        typer.echo(json.dumps(row))
+
+
 def main(argv: Optional[list[str]] = None) -> None:
     """Console entry point: run the app, turn ``GraphSlamError`` into one line and exit 2."""
     try:
