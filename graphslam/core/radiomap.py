@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from scipy import sparse
 
 from graphslam.core.fingerprints import DEFAULT_MIN_RSSI_DBM, DEFAULT_MISSING_DBM, FingerprintMatrix
-from graphslam.errors import RadioMapError
+from graphslam.errors import QueryError, RadioMapError
 
 log = logging.getLogger(__name__)
 
@@ -130,6 +130,8 @@ class RadioMap:
     metadata: Mapping[str, Any] = field(default_factory=dict)  # JSON-serialisable provenance/config
     min_rssi_dbm: float = DEFAULT_MIN_RSSI_DBM  # readings below this were dropped; queries get the same
     format_version: int = RADIO_MAP_FORMAT_VERSION
+    # BSSID -> column, built once: queries are encoded against it many times.
+    _index: dict[str, int] = field(init=False, repr=False, compare=False, default_factory=dict)
 
     def __post_init__(self) -> None:
         fm = canonical_fingerprints(self.fingerprints)
@@ -161,7 +163,6 @@ class RadioMap:
         object.__setattr__(self, "buildings", _labels("buildings", self.buildings, n))
         object.__setattr__(self, "metadata", _json_metadata(self.metadata))
         object.__setattr__(self, "min_rssi_dbm", float(self.min_rssi_dbm))
-        # BSSID -> column, built once: queries are encoded against it many times.
         object.__setattr__(self, "_index", {b: i for i, b in enumerate(fm.bssids)})
         empty = int(np.sum(np.diff(fm.values.indptr) == 0))
         if empty:
@@ -246,7 +247,7 @@ class RadioMap:
         with the map's ``missing_dbm`` and ``min_rssi_dbm``. Same result as
         ``FingerprintMatrix.from_scans(scans, bssids=self.bssids, ...)`` without rebuilding the
         BSSID index per call (it dominates single-query latency on large maps)."""
-        index: dict[str, int] = self._index  # type: ignore[attr-defined]
+        index = self._index
         m = self.missing_dbm
         floor = max(self.min_rssi_dbm, m + 1e-6)
         rows: list[int] = []
@@ -266,6 +267,8 @@ class RadioMap:
                     rows.append(i)
                     cols.append(j)
                     vals.append(r - m)
+        if not (np.isfinite(vals).all() and np.isfinite(extra_sq).all()):
+            raise QueryError("query scans hold a non-finite RSS value")
         v = sparse.csr_matrix((vals, (rows, cols)), shape=(len(scans), len(index)))
         return FingerprintMatrix(self.bssids, v, m, extra_sq, extra_n)
 
@@ -276,7 +279,7 @@ class RadioMap:
             raise RadioMapError(
                 f"radio map: query missing_dbm {fm.missing_dbm} differs from the map's {self.missing_dbm}"
             )
-        index: dict[str, int] = self._index  # type: ignore[attr-defined]
+        index = self._index
         col_map = np.array([index.get(b, -1) for b in fm.bssids], dtype=np.int64)
         coo = fm.values.tocoo()
         keep = coo.data >= max(self.min_rssi_dbm, self.missing_dbm + 1e-6) - self.missing_dbm

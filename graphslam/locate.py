@@ -1,0 +1,92 @@
+"""``graphslam locate``: answer every WiFi scan of query recordings against a radio map."""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Iterator, Sequence
+
+from graphslam.core.knn import KnnConfig, KnnLocator, SurveyPositions, locate_survey
+from graphslam.io.atomic import atomic_open
+
+log = logging.getLogger(__name__)
+
+POSITIONS_HEADER = (
+    "session_id", "t_ns", "x", "y", "score", "spread", "n_neighbours", "n_known_aps", "floor", "building", "status",
+)
+
+
+@dataclass(frozen=True)
+class LocateRun:
+    """What ``locate_files`` did: counts and the positions (also written to ``out``)."""
+
+    positions: SurveyPositions
+    out: Path | None
+    n_sessions: int
+    n_scans: int
+    n_located: int
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "out": None if self.out is None else str(self.out),
+            "sessions": self.n_sessions,
+            "scans": self.n_scans,
+            "located": self.n_located,
+            "unlocated": self.n_scans - self.n_located,
+        }
+
+
+def _fmt(v: float, digits: int) -> str:
+    return "" if not math.isfinite(v) else f"{v:.{digits}f}"
+
+
+def position_rows(p: SurveyPositions) -> Iterator[tuple[object, ...]]:
+    r = p.result
+    floor = r.floor.tolist() if r.floor is not None else [""] * len(p)
+    building = r.building.tolist() if r.building is not None else [""] * len(p)
+    for sid, t, (x, y), s, sp, nn, nk, f, b, st in zip(
+        p.session_ids.tolist(), p.t_ns.tolist(), r.xy.tolist(), r.score.tolist(), r.spread.tolist(),
+        r.n_neighbours.tolist(), r.n_known_aps.tolist(), floor, building, r.status.tolist(),
+    ):
+        yield (sid, t, _fmt(x, 4), _fmt(y, 4), _fmt(s, 4), _fmt(sp, 4), nn, nk, f, b, st)
+
+
+def write_positions_csv(p: SurveyPositions, path: str | Path) -> Path:
+    """CSV ``session_id,t_ns,x,y,score,spread,n_neighbours,n_known_aps,floor,building,status``,
+    written atomically. Unlocated scans keep their row with empty x/y/score/spread."""
+    import csv
+
+    path = Path(path)
+    with atomic_open(path, "w", encoding="utf-8", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(POSITIONS_HEADER)
+        w.writerows(position_rows(p))
+    return path
+
+
+def locate_files(
+    radio_map_path: str | Path,
+    query_paths: Iterable[str | Path],
+    *,
+    out: str | Path | None = None,
+    k: int = 3,
+    weighted: bool = True,
+    min_common: int = 1,
+) -> LocateRun:
+    """Read the radio map and the query sessions (MCAP), locate every scan, write ``out`` (CSV)."""
+    from graphslam.io.mcap_reader import read_survey
+    from graphslam.io.radiomap_io import read_radio_map
+
+    rm = read_radio_map(radio_map_path)
+    survey = read_survey(list(query_paths))
+    locator = KnnLocator(rm, KnnConfig(k=k, weighted=weighted, min_common=min_common))
+    positions = locate_survey(locator, survey)
+    written = write_positions_csv(positions, out) if out is not None else None
+    n_ok = int(positions.result.valid.sum())
+    log.info("located %d of %d scans from %d sessions", n_ok, len(positions), len(survey))
+    return LocateRun(positions, written, len(survey), len(positions), n_ok)
+
+
+__all__: Sequence[str] = ("LocateRun", "locate_files", "write_positions_csv", "POSITIONS_HEADER")

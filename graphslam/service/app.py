@@ -1,0 +1,257 @@
+"""HTTP query service: kNN positioning against one radio map (FastAPI).
+
+Endpoints (OpenAPI at ``/openapi.json``, docs at ``/docs``):
+
+- ``POST /v1/locate``: one fingerprint ``{"readings": {bssid: dBm}}`` or a batch
+  ``{"fingerprints": [{"readings": {...}}, ...]}`` -> ``{"positions": [...]}``;
+- ``GET /v1/radio-map``: summary of the loaded map;
+- ``GET /healthz``: liveness.
+
+Every bad request is a 4xx with a ``detail`` message: malformed JSON, wrong types,
+NaN/inf, RSS outside [-200, 0] dBm, empty readings, an empty or too large batch
+(413), a too large body (413), fingerprints with no access point known to the map
+(422, with their indices). The whole batch is refused if any fingerprint is bad, so
+positions always line up with the request.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from typing import Annotated, Any, Awaitable, Callable, MutableMapping
+
+from fastapi import FastAPI, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
+
+from graphslam.core.knn import KnnConfig, KnnLocator
+from graphslam.core.radiomap import RadioMap
+from graphslam.errors import QueryError
+
+log = logging.getLogger(__name__)
+
+DEFAULT_MAX_BATCH = 10_000
+DEFAULT_MAX_BODY_BYTES = 32 * 1024 * 1024
+INLINE_MAX = 8  # batches up to this size are answered on the event loop (see locate())
+MAX_READINGS = 4096  # per fingerprint; real scans hear a few hundred APs at most
+RSSI_MIN_DBM, RSSI_MAX_DBM = -200.0, 0.0
+
+Bssid = Annotated[str, StringConstraints(min_length=1, max_length=128)]
+# strict: "-60" (a string) or true are refused; ints are accepted as numbers.
+Rssi = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=RSSI_MIN_DBM, le=RSSI_MAX_DBM)]
+
+
+class Fingerprint(BaseModel):
+    """One WiFi scan: BSSID -> RSS in dBm (APs not listed were not heard)."""
+
+    model_config = ConfigDict(extra="forbid")
+    readings: dict[Bssid, Rssi] = Field(min_length=1, max_length=MAX_READINGS)
+
+
+class LocateRequest(BaseModel):
+    """Either ``readings`` (one fingerprint) or ``fingerprints`` (a batch), not both."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {"readings": {"00:11:22:33:44:55": -61, "00:11:22:33:44:66": -78.5}},
+                {"fingerprints": [{"readings": {"00:11:22:33:44:55": -61}}, {"readings": {"aa:bb:cc:dd:ee:ff": -70}}]},
+            ]
+        },
+    )
+    readings: dict[Bssid, Rssi] | None = Field(default=None, min_length=1, max_length=MAX_READINGS)
+    fingerprints: list[Fingerprint] | None = Field(default=None, min_length=1)
+
+    @model_validator(mode="after")
+    def _one_form(self) -> "LocateRequest":
+        if (self.readings is None) == (self.fingerprints is None):
+            raise ValueError("give exactly one of 'readings' (one fingerprint) or 'fingerprints' (a batch)")
+        return self
+
+    def scans(self) -> list[dict[str, float]]:
+        if self.readings is not None:
+            return [self.readings]
+        assert self.fingerprints is not None
+        return [f.readings for f in self.fingerprints]
+
+
+class Position(BaseModel):
+    x: float = Field(description="metres, in the radio map's frame")
+    y: float
+    score: float = Field(description="mean eq. 9 RSS distance (dB) of the neighbours used; lower = closer match")
+    spread: float = Field(description="weighted RMS distance (m) of the neighbours' positions to the estimate")
+    n_neighbours: int
+    floor: str | None = None
+    building: str | None = None
+
+
+class LocateResponse(BaseModel):
+    frame: str
+    k: int
+    weighted: bool
+    positions: list[Position]
+
+
+class RadioMapInfo(BaseModel):
+    format_version: int
+    frame: str
+    n_fingerprints: int
+    n_access_points: int
+    n_sessions: int
+    mean_aps_per_fingerprint: float
+    bbox: dict[str, float] | None
+    floors: dict[str, int] | None
+    buildings: dict[str, int] | None
+    missing_dbm: float
+    min_rssi_dbm: float
+    t_ns_range: list[int] | None
+    metadata: dict[str, Any]
+    k: int
+    weighted: bool
+    min_common: int
+
+
+class Health(BaseModel):
+    status: str
+
+
+def _problem(status: int, detail: str, **extra: Any) -> JSONResponse:
+    return JSONResponse({"detail": detail, **extra}, status_code=status)
+
+
+class BodyLimit:
+    """ASGI middleware: refuse bodies above ``max_bytes`` (declared or streamed) with 413,
+    before anything is parsed."""
+
+    def __init__(self, app: Callable[..., Awaitable[None]], max_bytes: int) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+
+    async def __call__(self, scope: MutableMapping[str, Any], receive: Callable, send: Callable) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        too_big = _problem(413, f"request body larger than {self.max_bytes} bytes")
+        for name, value in scope.get("headers", []):
+            if name == b"content-length":
+                try:
+                    declared = int(value)
+                except ValueError:
+                    await _problem(400, "invalid Content-Length header")(scope, receive, send)
+                    return
+                if declared > self.max_bytes:
+                    await too_big(scope, receive, send)
+                    return
+        # Read the whole body here (FastAPI would anyway), counting: a chunked body has no
+        # Content-Length to check, and an exception raised inside receive() would turn into a 400.
+        chunks: list[bytes] = []
+        seen = 0
+        while True:
+            message = await receive()
+            if message["type"] == "http.disconnect":
+                return
+            body = message.get("body", b"")
+            seen += len(body)
+            if seen > self.max_bytes:
+                await too_big(scope, receive, send)
+                return
+            chunks.append(body)
+            if not message.get("more_body", False):
+                break
+        replay = [{"type": "http.request", "body": b"".join(chunks), "more_body": False}]
+
+        async def buffered_receive() -> MutableMapping[str, Any]:
+            if replay:
+                return replay.pop()
+            return await receive()
+
+        await self.app(scope, buffered_receive, send)
+
+
+def _validation_message(exc: RequestValidationError) -> tuple[str, list[dict[str, Any]]]:
+    errors = []
+    for e in exc.errors():
+        loc = [str(p) for p in e.get("loc", ()) if p != "body"]
+        errors.append({"loc": loc, "msg": e.get("msg", ""), "type": e.get("type", "")})
+    if any(e["type"] == "json_invalid" for e in errors):
+        at = next((e["loc"][0] for e in errors if e["type"] == "json_invalid" and e["loc"]), None)
+        return "malformed JSON body" + (f" (at character {at})" if at is not None else ""), errors
+    parts = [f"{'.'.join(e['loc']) or 'body'}: {e['msg']}" for e in errors[:5]]
+    more = f" (+{len(errors) - 5} more)" if len(errors) > 5 else ""
+    return "invalid request: " + "; ".join(parts) + more, errors
+
+
+def create_app(
+    radio_map: RadioMap,
+    *,
+    k: int = 3,
+    weighted: bool = True,
+    min_common: int = 1,
+    max_batch: int = DEFAULT_MAX_BATCH,
+    max_body_bytes: int = DEFAULT_MAX_BODY_BYTES,
+    threads: int | None = None,
+) -> FastAPI:
+    """The service for ``radio_map``. ``threads``: search threads per large request (default:
+    up to 2, the machine's cores; small requests use one)."""
+    locator = KnnLocator(radio_map, KnnConfig(k=k, weighted=weighted, min_common=min_common), threads=threads)
+    summary = radio_map.summary().as_dict()
+    app = FastAPI(
+        title="graphslam radio map service",
+        version="1",
+        summary="kNN WiFi fingerprint positioning (eq. 9 RSS distance) against one radio map",
+    )
+    app.state.locator = locator
+    app.add_middleware(BodyLimit, max_bytes=max_body_bytes)
+
+    @app.exception_handler(RequestValidationError)
+    async def _on_invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+        detail, errors = _validation_message(exc)
+        return _problem(422, detail, errors=errors)
+
+    @app.exception_handler(QueryError)
+    async def _on_query_error(request: Request, exc: QueryError) -> JSONResponse:
+        return _problem(422, str(exc))
+
+    @app.get("/healthz", response_model=Health)
+    def healthz() -> dict[str, str]:
+        return {"status": "ok"}
+
+    @app.get("/v1/radio-map", response_model=RadioMapInfo)
+    def radio_map_info() -> dict[str, Any]:
+        return {**summary, "k": k, "weighted": weighted, "min_common": min_common}
+
+    def answer(scans: list[dict[str, float]]) -> Response:
+        res = locator.locate(scans, strict=True)  # QueryError -> 422 with the bad indices
+        floor = res.floor.tolist() if res.floor is not None else [""] * len(scans)
+        building = res.building.tolist() if res.building is not None else [""] * len(scans)
+        positions = [
+            {"x": p[0], "y": p[1], "score": s, "spread": sp, "n_neighbours": n, "floor": f or None, "building": b or None}
+            for p, s, sp, n, f, b in zip(
+                res.xy.tolist(), res.score.tolist(), res.spread.tolist(), res.n_neighbours.tolist(), floor, building
+            )
+        ]
+        body = {"frame": radio_map.frame, "k": k, "weighted": weighted, "positions": positions}
+        # Serialised here (the shape is LocateResponse, documented in OpenAPI): FastAPI's
+        # response-model validation would add a second pass over every position.
+        return Response(json.dumps(body, allow_nan=False).encode(), media_type="application/json")
+
+    @app.post(
+        "/v1/locate",
+        response_model=LocateResponse,
+        responses={
+            413: {"description": "body or batch too large"},
+            422: {"description": "malformed request, or a fingerprint with no access point known to the map"},
+        },
+    )
+    async def locate(req: LocateRequest) -> Any:
+        scans = req.scans()
+        if len(scans) > max_batch:
+            return _problem(413, f"batch of {len(scans)} fingerprints, at most {max_batch} per request")
+        if len(scans) <= INLINE_MAX:
+            return answer(scans)  # ~1 ms: cheaper inline than a hop to the thread pool
+        return await run_in_threadpool(answer, scans)  # big batches must not block the event loop
+
+    return app

@@ -1,0 +1,92 @@
+"""Run the service: blocking (``serve``) or in a background thread (tests, benchmarks)."""
+
+from __future__ import annotations
+
+import logging
+import socket
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import uvicorn
+from fastapi import FastAPI
+
+from graphslam.errors import GraphSlamError
+
+log = logging.getLogger(__name__)
+
+DEFAULT_HOST = "127.0.0.1"  # loopback unless the operator says otherwise
+DEFAULT_PORT = 8077
+
+
+def serve(
+    radio_map_path: str | Path,
+    *,
+    host: str = DEFAULT_HOST,
+    port: int = DEFAULT_PORT,
+    k: int = 3,
+    weighted: bool = True,
+    min_common: int = 1,
+    max_batch: int | None = None,
+    max_body_bytes: int | None = None,
+    log_level: str = "info",
+) -> None:
+    """Load the radio map and serve it until interrupted."""
+    from graphslam.io.radiomap_io import read_radio_map
+    from graphslam.service.app import DEFAULT_MAX_BATCH, DEFAULT_MAX_BODY_BYTES, create_app
+
+    rm = read_radio_map(radio_map_path)
+    app = create_app(
+        rm, k=k, weighted=weighted, min_common=min_common,
+        max_batch=max_batch or DEFAULT_MAX_BATCH, max_body_bytes=max_body_bytes or DEFAULT_MAX_BODY_BYTES,
+    )
+    log.info("serving %s (%d fingerprints) on http://%s:%d", radio_map_path, len(rm), host, port)
+    uvicorn.run(app, host=host, port=port, log_level=log_level)
+
+
+@dataclass
+class BackgroundServer:
+    """A real uvicorn server on a loopback socket, in a daemon thread."""
+
+    server: uvicorn.Server
+    thread: threading.Thread
+    host: str
+    port: int
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.host}:{self.port}"
+
+    def stop(self, timeout: float = 10.0) -> None:
+        self.server.should_exit = True
+        self.thread.join(timeout)
+
+    def __enter__(self) -> "BackgroundServer":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def start_background_server(
+    app: FastAPI, *, host: str = DEFAULT_HOST, port: int = 0, startup_timeout: float = 20.0, log_level: str = "warning"
+) -> BackgroundServer:
+    """Bind ``host:port`` (0 = a free port) now, serve ``app`` in a thread, return once it accepts."""
+    # proto=IPPROTO_TCP matters: asyncio sets TCP_NODELAY on accepted sockets only when the
+    # listening socket says TCP; with proto 0, Nagle + delayed ACK add ~40 ms per response.
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind((host, port))
+    bound_port = sock.getsockname()[1]
+    config = uvicorn.Config(app, log_level=log_level, lifespan="off")
+    server = uvicorn.Server(config)
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True, name="graphslam-http")
+    thread.start()
+    deadline = time.monotonic() + startup_timeout
+    while not server.started:
+        if not thread.is_alive() or time.monotonic() > deadline:
+            server.should_exit = True
+            raise GraphSlamError(f"HTTP server on {host}:{bound_port} did not start")
+        time.sleep(0.01)
+    return BackgroundServer(server, thread, host, bound_port)

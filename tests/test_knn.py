@@ -1,0 +1,215 @@
+"""kNN positioning on eq. 9: hand-made maps with known answers, and agreement with DistanceEngine."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from graphslam.core.fingerprints import DistanceEngine, FingerprintMatrix, rss_distance
+from graphslam.core.knn import KnnConfig, KnnLocator, _candidate_block, _gather_block
+from graphslam.core.radiomap import RadioMap
+from graphslam.errors import ConfigError, QueryError, RadioMapError
+
+# Four reference fingerprints at the corners of a 10 m square; AP "a" loud at (0,0), "b" at (10,0), ...
+CORNERS = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])
+SCANS = [
+    {"a": -40.0, "b": -70.0, "c": -70.0, "d": -90.0},
+    {"a": -70.0, "b": -40.0, "c": -90.0, "d": -70.0},
+    {"a": -70.0, "b": -90.0, "c": -40.0, "d": -70.0},
+    {"a": -90.0, "b": -70.0, "c": -70.0, "d": -40.0},
+]
+
+
+def corner_map(**kw: object) -> RadioMap:
+    return RadioMap.from_scans(
+        SCANS, CORNERS, session_ids="walk", t_ns=[1, 2, 3, 4], frame="site",
+        floors=["F1", "F1", "F2", "F2"], buildings=["B", "B", "B", "B"], **kw,  # type: ignore[arg-type]
+    )
+
+
+def test_k1_returns_the_nearest_fingerprint_position_and_its_distance() -> None:
+    rm = corner_map()
+    q = {"a": -42.0, "b": -71.0, "c": -69.0, "d": -88.0}
+    res = KnnLocator(rm, KnnConfig(k=1)).locate([q])
+    assert res.neighbours[0].tolist() == [0]
+    assert res.xy[0].tolist() == [0.0, 0.0]
+    assert res.score[0] == pytest.approx(rss_distance(q, SCANS[0]))
+    assert res.spread[0] == 0.0
+    assert res.floor is not None and res.floor[0] == "F1"
+    assert res.valid.all() and res.status.tolist() == ["ok"]
+
+
+def test_unweighted_k2_is_the_midpoint_and_weighted_leans_to_the_closer_match() -> None:
+    rm = corner_map()
+    # Closer to corner 0 than to corner 1 (in RSS), far from 2 and 3.
+    q = {"a": -50.0, "b": -52.0, "c": -80.0, "d": -80.0}
+    d0, d1 = rss_distance(q, SCANS[0]), rss_distance(q, SCANS[1])
+    assert d0 < d1 < min(rss_distance(q, SCANS[2]), rss_distance(q, SCANS[3]))
+    plain = KnnLocator(rm, KnnConfig(k=2, weighted=False)).locate([q])
+    assert plain.neighbours[0].tolist() == [0, 1]
+    assert plain.xy[0] == pytest.approx([5.0, 0.0])
+    assert plain.spread[0] == pytest.approx(5.0)
+    assert plain.score[0] == pytest.approx((d0 + d1) / 2)
+    weighted = KnnLocator(rm, KnnConfig(k=2, weighted=True)).locate([q])
+    w0, w1 = 1 / d0, 1 / d1
+    assert weighted.xy[0] == pytest.approx([10.0 * w1 / (w0 + w1), 0.0], rel=1e-5)
+    assert weighted.xy[0, 0] < 5.0
+
+
+def test_floor_vote_is_weighted() -> None:
+    rm = corner_map()
+    # Nearest is corner 2 (F2); corners 0 and 1 (F1) are further: uniform vote of k=3 says F1,
+    # inverse-distance vote says F2 when corner 2 is much closer.
+    q = {"a": -70.0, "b": -90.0, "c": -41.0, "d": -70.0}
+    uni = KnnLocator(rm, KnnConfig(k=3, weighted=False)).locate([q])
+    wtd = KnnLocator(rm, KnnConfig(k=3, weighted=True)).locate([q])
+    assert uni.neighbours[0, 0] == 2 and set(uni.neighbours[0, 1:].tolist()) <= {0, 3}
+    nb_floors = rm.floors[uni.neighbours[0]]  # type: ignore[index]
+    majority = max(set(nb_floors.tolist()), key=nb_floors.tolist().count)
+    assert uni.floor is not None and wtd.floor is not None
+    assert uni.floor[0] == majority
+    assert wtd.floor[0] == "F2"
+
+
+def test_unknown_aps_are_flagged_or_raise() -> None:
+    rm = corner_map()
+    loc = KnnLocator(rm, KnnConfig(k=2))
+    res = loc.locate([{"zz": -50.0}, {"a": -40.0}, {"a": -101.0}])  # the last is below min_rssi
+    assert res.valid.tolist() == [False, True, False]
+    assert res.status.tolist() == ["no_known_ap", "ok", "no_known_ap"]
+    assert np.isnan(res.xy[0]).all() and res.neighbours[0].tolist() == [-1, -1]
+    with pytest.raises(QueryError, match="#0: no_known_ap"):
+        loc.locate([{"zz": -50.0}], strict=True)
+
+
+def test_min_common_excludes_neighbours_sharing_too_few_aps() -> None:
+    rm = RadioMap.from_scans(
+        [{"a": -50.0}, {"a": -60.0, "b": -60.0, "c": -60.0}], [[0, 0], [5, 5]], session_ids="s", t_ns=[0, 1],
+        frame="f",
+    )
+    q = {"a": -50.0, "b": -95.0, "c": -95.0}
+    assert KnnLocator(rm, KnnConfig(k=1)).locate([q]).neighbours[0, 0] == 0
+    assert KnnLocator(rm, KnnConfig(k=1, min_common=3)).locate([q]).neighbours[0, 0] == 1
+    only_a = KnnLocator(rm, KnnConfig(k=1, min_common=2)).locate([{"a": -50.0}])
+    assert only_a.status.tolist() == ["no_candidate"]
+
+
+def test_k_larger_than_map_pads() -> None:
+    res = KnnLocator(corner_map(), KnnConfig(k=6)).locate([SCANS[0]])
+    assert res.n_neighbours[0] == 4
+    assert res.neighbours[0, 4:].tolist() == [-1, -1]
+    assert np.isinf(res.distances[0, 4:]).all()
+
+
+def test_bad_config() -> None:
+    with pytest.raises(ConfigError, match="k must be"):
+        KnnConfig(k=0)
+    with pytest.raises(ConfigError, match="min_common"):
+        KnnConfig(min_common=0)
+
+
+def _random_scans(rng: np.random.Generator, n: int, n_aps: int, per_scan: int) -> list[dict[str, float]]:
+    out = []
+    for _ in range(n):
+        aps = rng.choice(n_aps, size=rng.integers(1, per_scan + 1), replace=False)
+        out.append({f"ap{j:03d}": float(rng.integers(-99, -30)) for j in aps})
+    return out
+
+
+@pytest.mark.parametrize("min_common", [1, 2])
+def test_sparse_candidate_distances_equal_the_engine(min_common: int) -> None:
+    rng = np.random.default_rng(1)
+    refs = _random_scans(rng, 300, 400, 8)  # sparse enough for the sparse path
+    rm = RadioMap.from_scans(refs, rng.uniform(0, 50, (300, 2)), session_ids="s", t_ns=np.arange(300), frame="f")
+    queries = _random_scans(rng, 40, 450, 10)  # includes APs unknown to the map
+    q = rm.encode(queries)
+    eng = DistanceEngine(rm.fingerprints)
+    assert not eng.dense
+    full, _ = eng.block(q, min_common=min_common)
+    mine = _candidate_block(eng, q, min_common)
+    assert np.array_equal(np.isfinite(full), np.isfinite(mine))
+    assert np.array_equal(full[np.isfinite(full)], mine[np.isfinite(mine)])  # bit-identical
+    gathered = _gather_block(eng, q, min_common)  # the few-queries path: same up to summation order
+    assert np.array_equal(np.isfinite(full), np.isfinite(gathered))
+    np.testing.assert_allclose(gathered[np.isfinite(gathered)], full[np.isfinite(full)], rtol=1e-12)
+    # and eq. 9 from its definition, for a few pairs
+    pairs = np.argwhere(np.isfinite(mine))
+    assert len(pairs) >= 10
+    for i, j in pairs[:: max(1, len(pairs) // 20)]:
+        assert mine[i, j] == pytest.approx(rss_distance(queries[i], refs[j]))
+    # kNN = brute force argsort of the same distances, on both paths (small blocks: gather; big: products)
+    for cells in (2000, 10**6):
+        res = KnnLocator(rm, KnnConfig(k=5, min_common=min_common), block_cells=cells, threads=2).locate(q)
+        for i in range(len(queries)):
+            order = np.lexsort((np.arange(full.shape[1]), full[i]))[:5]
+            expect = [int(j) if np.isfinite(full[i, j]) else -1 for j in order]
+            assert res.neighbours[i].tolist() == expect
+
+
+def test_scans_fingerprints_and_foreign_index_give_the_same_answer() -> None:
+    rng = np.random.default_rng(2)
+    refs = _random_scans(rng, 120, 60, 10)
+    rm = RadioMap.from_scans(refs, rng.uniform(0, 50, (120, 2)), session_ids="s", t_ns=np.arange(120), frame="f")
+    queries = _random_scans(rng, 30, 70, 10)
+    loc = KnnLocator(rm, KnnConfig(k=4))
+    a = loc.locate(queries)
+    foreign = FingerprintMatrix.from_scans(queries)  # its own AP index
+    b = loc.locate(foreign)
+    assert np.array_equal(a.neighbours, b.neighbours)
+    np.testing.assert_allclose(a.xy, b.xy, rtol=1e-12)
+
+
+def test_dense_engine_path_agrees() -> None:
+    # <= 64 APs: DistanceEngine goes dense; the locator must use it and agree with brute force.
+    rm = corner_map()
+    loc = KnnLocator(rm, KnnConfig(k=4, weighted=False))
+    assert loc.engine.dense
+    q = {"a": -60.0, "b": -60.0, "e": -50.0}
+    res = loc.locate([q])
+    d = [rss_distance(q, s) for s in SCANS]
+    assert res.distances[0] == pytest.approx(sorted(d))
+
+
+def test_radio_map_checks_and_canonical_index() -> None:
+    fm = FingerprintMatrix.from_dense(np.array([[-50.0, np.nan, -60.0]]), ["z", "unused", "a"])
+    rm = RadioMap.from_fingerprints(fm, np.array([[1.0, 2.0]]), session_ids="s", t_ns=[0], frame="f")
+    assert rm.bssids == ("a", "z")  # sorted, never-heard AP dropped
+    assert rm.fingerprints.values.toarray().tolist() == [[50.0, 60.0]]
+    with pytest.raises(RadioMapError, match="xy"):
+        RadioMap.from_scans([{"a": -50.0}], [[0.0, 0.0], [1.0, 1.0]], session_ids="s", t_ns=[0], frame="f")
+    with pytest.raises(RadioMapError, match="non-finite"):
+        RadioMap.from_scans([{"a": -50.0}], [[np.nan, 0.0]], session_ids="s", t_ns=[0], frame="f")
+    with pytest.raises(RadioMapError, match="metadata"):
+        RadioMap.from_scans([{"a": -50.0}], [[0.0, 0.0]], session_ids="s", t_ns=[0], frame="f", metadata={"x": {1}})
+    s = corner_map().summary().as_dict()
+    assert s["n_fingerprints"] == 4 and s["n_access_points"] == 4
+    assert s["bbox"] == {"min_x": 0.0, "min_y": 0.0, "max_x": 10.0, "max_y": 10.0}
+    assert s["floors"] == {"F1": 2, "F2": 2}
+
+
+def test_empty_map_answers_nothing() -> None:
+    rm = RadioMap.from_scans([], np.zeros((0, 2)), session_ids=[], t_ns=[], frame="f")
+    assert len(rm) == 0 and rm.summary().bbox is None
+    res = KnnLocator(rm).locate([{"a": -50.0}])
+    assert res.status.tolist() == ["no_known_ap"]
+
+
+def test_ties_at_the_kth_distance_take_the_lowest_rows() -> None:
+    # Rows 0, 7, 14, ... match the query better; all others are identical and tie. k=40 needs
+    # 11 of the tied ones: the lowest rows, whatever argpartition picks, so answers do not
+    # depend on k, block size or threads.
+    n = 200
+    scans = [{"a": -50.0, "b": -60.0} if i % 7 == 0 else {"a": -50.0, "b": -70.0} for i in range(n)]
+    rm = RadioMap.from_scans(scans, np.zeros((n, 2)), session_ids="s", t_ns=np.arange(n), frame="f")
+    res = KnnLocator(rm, KnnConfig(k=40)).locate([{"a": -50.0, "b": -60.0}] * 2)
+    better = list(range(0, n, 7))
+    tied = [i for i in range(n) if i % 7][:11]
+    assert res.neighbours.tolist() == [better + tied] * 2
+
+
+def test_empty_query_batch_and_non_finite_rssi() -> None:
+    loc = KnnLocator(corner_map())
+    res = loc.locate([])
+    assert len(res) == 0 and res.xy.shape == (0, 2) and res.floor is not None and len(res.floor) == 0
+    with pytest.raises(QueryError, match="non-finite"):
+        loc.locate([{"a": float("nan")}])
