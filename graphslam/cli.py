@@ -280,11 +280,30 @@ def locate(
     k: int = typer.Option(3, "--k", min=1, help="Neighbours."),
     weighted: bool = typer.Option(True, "--weighted/--no-weighted", help="Inverse-distance weights, else uniform."),
     min_common: int = typer.Option(1, "--min-common", min=1, help="Neighbours must share this many APs."),
+    rerun: Optional[Path] = typer.Option(
+        None, "--rerun", help="Also log the answers (and the truth, if the queries carry /ground_truth/pose) to this .rrd."
+    ),
+    site_from_map: Optional[tuple[float, float, float]] = typer.Option(
+        None, "--site-from-map", help="X Y THETA placing the map frame in the site frame (e.g. report.json's "
+        "evaluation.site_from_aligned), for the truth overlay."
+    ),
 ) -> None:
     """Locate every /wifi/scan of the query sessions by kNN against a radio map."""
     from graphslam.locate import locate_files
 
     run = locate_files(radio_map, query_paths, out=out, k=k, weighted=weighted, min_common=min_common)
+    if rerun is not None:
+        from graphslam.locate import query_truth
+        from graphslam.viz.rerun_log import log_locate_results
+
+        pos = run.positions
+        log_locate_results(
+            rerun,
+            pos.result.xy,
+            query_truth(query_paths, pos),
+            query_ids=[f"{s}@{t}" for s, t in zip(pos.session_ids.tolist(), pos.t_ns.tolist())],
+            site_from_map=site_from_map,
+        )
     typer.echo(json.dumps(run.as_dict()))
 
 

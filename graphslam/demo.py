@@ -56,6 +56,15 @@ def run_demo(out_dir: str | Path, *, scenario: str = "paper", seed: int = 0, tes
         [interpolate_xy(s.ground_truth, np.array([sc.t_ns for sc in s.scans], float)) for s in test if s.ground_truth is not None]
     )
     est = se2_apply(np.array(ev.site_from_aligned), located.result.xy) if ev is not None else located.result.xy
+    if rerun:
+        from graphslam.viz.rerun_log import log_locate_results
+
+        log_locate_results(
+            out / "locate.rrd",
+            located.result.xy,
+            truth,
+            site_from_map=ev.site_from_aligned if ev is not None else None,
+        )
     err = np.linalg.norm(est - truth, axis=1)
     err = err[np.isfinite(err)]
     figures = {

@@ -90,3 +90,22 @@ def locate_files(
 
 
 __all__: Sequence[str] = ("LocateRun", "locate_files", "write_positions_csv", "POSITIONS_HEADER")
+
+
+def query_truth(query_paths: Iterable[str | Path], positions: SurveyPositions) -> "np.ndarray | None":
+    """True position (site frame) of every located scan from the queries' ``/ground_truth/pose``,
+    interpolated at scan time; None when the queries carry no ground truth. Display/evaluation only."""
+    import numpy as np
+
+    from graphslam.core.evaluate import interpolate_xy
+    from graphslam.io.mcap_reader import read_survey
+
+    survey = read_survey(query_paths)
+    if not any(s.ground_truth is not None for s in survey):
+        return None
+    out = np.full((len(positions), 2), np.nan)
+    for s in survey:
+        rows = np.flatnonzero(positions.session_ids == s.session_id)
+        if len(rows) and s.ground_truth is not None:
+            out[rows] = interpolate_xy(s.ground_truth, positions.t_ns[rows].astype(float))
+    return out

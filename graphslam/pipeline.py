@@ -5,7 +5,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 import shutil
 import tempfile
@@ -13,8 +12,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
-
-import numpy as np
 
 from graphslam.config import GraphSlamConfig
 from graphslam.core.align import Alignment, ProgressCallback, align

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import T0
 from mcap.reader import make_reader
 
-from conftest import T0
 from graphslam.cli import main
 from graphslam.config import load_config
 from graphslam.core.align import align

@@ -4,8 +4,8 @@ from pathlib import Path
 
 import pytest
 import yaml
-
 from conftest import REPO
+
 from graphslam.config import GraphSlamConfig, commented_yaml, load_config
 from graphslam.errors import ConfigError
 

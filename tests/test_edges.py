@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from conftest import T0
+
 from graphslam.core.association import associate
 from graphslam.core.edges import propose_edges, window_thresholds
 from graphslam.core.fingerprints import rss_distance

@@ -7,8 +7,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import (
+    ILC,
+    T0,
+    good_messages,
+    make_session,
+    needs_data,
+    pose_body,
+    scan_body,
+    write_raw_mcap,
+)
 
-from conftest import ILC, T0, good_messages, make_session, needs_data, pose_body, scan_body, write_raw_mcap
 from graphslam.cli import main
 from graphslam.errors import InputError
 from graphslam.io.mcap_reader import read_session, read_survey

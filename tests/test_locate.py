@@ -84,3 +84,23 @@ def test_locate_cli_bad_radio_map_is_one_line_error(tmp_path: Path) -> None:
         main(["locate", "--radio-map", str(bad), str(q), "--out", str(tmp_path / "o.csv")])
     assert e.value.code == 2
     assert not (tmp_path / "o.csv").exists()
+
+
+def test_locate_rerun_logs_answers_and_truth(tmp_path: Path) -> None:
+    from dataclasses import replace
+
+    from rerun.chunk import RrdReader
+
+    rm_path = make_map(tmp_path)
+    q = query_session("q1", [10.0, 20.0, 30.0])
+    truth = PoseTrack(q.steps.t_ns, np.column_stack([np.arange(len(q.steps)) * 10.0 + 10.0, np.zeros(len(q.steps))]), q.steps.heading)
+    write_session(replace(q, ground_truth=truth), tmp_path / "q" / "q1.mcap")
+    rrd = tmp_path / "loc.rrd"
+    res = CliRunner().invoke(
+        app,
+        ["locate", "--radio-map", str(rm_path), str(tmp_path / "q"), "--out", str(tmp_path / "p.csv"), "--k", "1",
+         "--rerun", str(rrd)],
+    )
+    assert res.exit_code == 0, res.output
+    paths = set(RrdReader(rrd).store().schema().entity_paths())
+    assert {"/world/aligned/locate/estimate", "/world/locate/truth", "/world/locate/error"} <= {str(p) for p in paths}

@@ -16,11 +16,10 @@ from graphslam.config import GraphSlamConfig
 from graphslam.core.align import Alignment, align
 from graphslam.core.factors import edge_state
 from graphslam.core.types import Survey
-from graphslam.io.csv_io import read_trajectories
 from graphslam.errors import ConfigError, InputError, VisualizationError
+from graphslam.io.csv_io import read_trajectories
 from graphslam.sim import simulate
 from graphslam.viz import rerun_log as rl
-
 
 # ---- reading helpers -----------------------------------------------------------------
 

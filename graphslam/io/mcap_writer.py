@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import orjson
 from pathlib import Path
 from typing import Iterable
 
+import orjson
 from mcap.writer import CompressionType, Writer
 
 from graphslam.core.types import PoseTrack, Session, heading_to_quaternion

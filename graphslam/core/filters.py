@@ -1,0 +1,417 @@
+"""EKF and UKF for RSSI / velocity fusion (Papers 000 and 002 in ../shared/papers).
+
+State (frame of the AP models / radio map, metres, m/s)::
+
+    x = [p_x, p_y, v_x, v_y, b_x, b_y]            (papers' eq. 3)
+    x = [p_x, p_y, v_x, v_y, b_x, b_y, theta]     (optional: alignment angle estimated)
+
+Process (eq. 1-3): p += T v; v, b, theta constant; additive noise ``Q(T)``.
+Velocity measurement (eq. 4)::
+
+    y_v = M(theta) v + b,   M(theta) = [[-sin theta, cos theta], [cos theta, sin theta]]
+
+``M(theta) = S @ Rot(-theta)`` with ``S`` the x/y swap: the velocity sensor reports
+(east, north)-swapped components of the velocity rotated by ``-theta``. A foot
+module's odometry velocity ``v_odo`` therefore enters as ``y_v = S v_odo`` with
+``theta`` = rotation from the odometry frame to the map frame (see ``graphslam.track``).
+RSSI measurement (eq. 5-6), one row per access point ``i``::
+
+    y_i = P0_i - 10 gamma_i log10(sqrt(|p - a_i|^2 + d0^2))
+
+``d0`` (``min_distance_m``) keeps the model finite and smooth at the AP.
+
+EKF: eq. 8 of Paper 000, covariance update in Joseph form. UKF: eq. 8-10 of
+Paper 002 (sigma points ``x +- columns of chol(n / (1 - w0) P)``, weights
+``w0`` and ``(1 - w0) / 2n``), two deliberate departures, both documented in
+docs/tracking.md: the covariance update is ``P - K Psi K^T`` (eq. 10 prints ``+``,
+a typo: with ``+`` the covariance grows with every measurement), and the sigma points
+of the update are redrawn from the predicted ``(x, P)`` so that ``Q`` is part of
+the measurement statistics (the textbook additive-noise UKF).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Literal, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graphslam.errors import EstimationError
+
+log = logging.getLogger(__name__)
+
+FilterKind = Literal["ekf", "ukf"]
+STATE_NAMES = ("px", "py", "vx", "vy", "bx", "by", "theta")
+_EMPTY_IDX = np.zeros(0, dtype=np.int64)
+
+
+FilterError = EstimationError  # local name: every filter failure is an EstimationError
+
+
+def _ro(a: NDArray | Sequence[float], dtype: type = np.float64) -> NDArray:
+    arr: NDArray = np.array(a, dtype=dtype, copy=True)
+    arr.setflags(write=False)
+    return arr
+
+
+def velocity_matrix(theta: float | NDArray) -> NDArray[np.float64]:
+    """``M(theta)`` of eq. 4 (shape (..., 2, 2) for an array of angles)."""
+    t = np.asarray(theta, dtype=float)
+    s, c = np.sin(t), np.cos(t)
+    return np.stack([np.stack([-s, c], -1), np.stack([c, s], -1)], -2)
+
+
+@dataclass(frozen=True, eq=False)
+class PathLossModel:
+    """Log-distance path loss (eq. 5) of A access points, map frame (m, dBm)."""
+
+    ap_xy: NDArray[np.float64]  # (A, 2) m
+    p0_dbm: NDArray[np.float64]  # (A,) RSS at 1 m
+    gamma: NDArray[np.float64]  # (A,) path-loss exponent
+    min_distance_m: float = 0.1  # d0 in sqrt(d^2 + d0^2)
+    bssids: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        xy = np.asarray(self.ap_xy, float).reshape(-1, 2)
+        a = len(xy)
+        p0, g = np.asarray(self.p0_dbm, float).ravel(), np.asarray(self.gamma, float).ravel()
+        if p0.shape != (a,) or g.shape != (a,):
+            raise FilterError(f"path-loss model: {a} APs but {p0.size} P0 and {g.size} gamma values")
+        if not (np.isfinite(xy).all() and np.isfinite(p0).all() and np.isfinite(g).all()):
+            raise FilterError("path-loss model: non-finite parameter")
+        if self.min_distance_m <= 0:
+            raise FilterError("path-loss model: min_distance_m must be > 0")
+        if self.bssids and len(self.bssids) != a:
+            raise FilterError("path-loss model: one BSSID per AP expected")
+        object.__setattr__(self, "ap_xy", _ro(xy))
+        object.__setattr__(self, "p0_dbm", _ro(p0))
+        object.__setattr__(self, "gamma", _ro(g))
+        object.__setattr__(self, "bssids", tuple(self.bssids))
+
+    @classmethod
+    def paper_ekf(cls) -> "PathLossModel":
+        """Paper 000, sec. IV: 4 APs at the corners of 8.2 m x 14.6 m; P0 = -24/-33 dBm, gamma = 2.5."""
+        return cls(_PAPER_APS, np.array([-24.0, -33.0, -33.0, -24.0]), np.full(4, 2.5))
+
+    @classmethod
+    def paper_ukf(cls) -> "PathLossModel":
+        """Paper 002, sec. IV: same APs, P0 = -25 dBm, gamma = 2.5 for all."""
+        return cls(_PAPER_APS, np.full(4, -25.0), np.full(4, 2.5))
+
+    def __len__(self) -> int:
+        return len(self.ap_xy)
+
+    def mean_rss(self, xy: NDArray, idx: NDArray | None = None) -> NDArray[np.float64]:
+        """(..., a) mean RSS (dBm) at positions ``xy`` (..., 2) of the APs ``idx`` (default all)."""
+        idx = np.arange(len(self)) if idx is None else np.asarray(idx, dtype=np.int64)
+        d = np.asarray(xy, float)[..., None, :] - self.ap_xy[idx]
+        d2 = np.einsum("...k,...k->...", d, d) + self.min_distance_m**2
+        return self.p0_dbm[idx] - 5.0 * self.gamma[idx] * np.log10(d2)  # 10 log10(sqrt(.)) = 5 log10(.)
+
+    def jacobian(self, xy: NDArray, idx: NDArray | None = None) -> NDArray[np.float64]:
+        """(a, 2) d mean_rss / d (x, y) at one position."""
+        idx = np.arange(len(self)) if idx is None else np.asarray(idx, dtype=np.int64)
+        d = np.asarray(xy, float).reshape(1, 2) - self.ap_xy[idx]
+        d2 = np.einsum("ak,ak->a", d, d) + self.min_distance_m**2
+        return -(10.0 / np.log(10.0)) * self.gamma[idx, None] * d / d2[:, None]
+
+
+_PAPER_APS = np.array([[0.0, 0.0], [0.0, 14.6], [8.2, 14.6], [8.2, 0.0]])
+
+
+@dataclass(frozen=True, eq=False)
+class FusionModel:
+    """Process and measurement models of the papers, with their noise covariances.
+
+    ``q_diag`` is the process-noise variance per nominal period ``period_s`` (the papers'
+    ``Q`` with T = 4 s); for another ``dt`` it scales by ``dt / period_s`` (white-noise
+    rates), so irregular step times keep the same noise per second. ``theta_rad`` fixes the
+    alignment angle (the papers); ``None`` puts it in the state (index 6).
+    """
+
+    path_loss: PathLossModel
+    q_diag: NDArray[np.float64]  # (n,) per period_s
+    r_velocity: NDArray[np.float64]  # (2,) variance of y_v, (m/s)^2
+    r_rssi: NDArray[np.float64]  # (A,) variance per AP, dB^2
+    period_s: float = 4.0
+    theta_rad: float | None = 0.1
+
+    def __post_init__(self) -> None:
+        q = np.asarray(self.q_diag, float).ravel()
+        if q.shape != (self.n,):
+            raise FilterError(f"fusion model: q_diag has {q.size} entries, state has {self.n}")
+        rv = np.broadcast_to(np.asarray(self.r_velocity, float), (2,))
+        rr = np.broadcast_to(np.asarray(self.r_rssi, float), (len(self.path_loss),))
+        if (q < 0).any() or (rv <= 0).any() or (rr <= 0).any() or self.period_s <= 0:
+            raise FilterError("fusion model: noise variances must be >= 0 (Q) / > 0 (R) and period_s > 0")
+        object.__setattr__(self, "q_diag", _ro(q))
+        object.__setattr__(self, "r_velocity", _ro(rv))
+        object.__setattr__(self, "r_rssi", _ro(rr))
+
+    @classmethod
+    def paper_ekf(cls) -> "FusionModel":
+        """Paper 000 sec. IV: T = 4 s, theta = 0.1 rad, Q, R as printed (Q_55 = 1e9 read as 1e-9)."""
+        return cls(
+            PathLossModel.paper_ekf(),
+            q_diag=np.array([1e-3, 1e-3, 1e-4, 1e-4, 1e-9, 1e-9]),
+            r_velocity=np.array([1e-4, 1e-4]),
+            r_rssi=np.full(4, 40.0),
+        )
+
+    @classmethod
+    def paper_ukf(cls) -> "FusionModel":
+        """Paper 002 sec. IV: Q = diag(1, 1, 1, 1, 1e-5, 1e-5) 1e-4, R = diag(2e-3, 2e-3, 10, 10, 10, 10)."""
+        return cls(
+            PathLossModel.paper_ukf(),
+            q_diag=np.array([1, 1, 1, 1, 1e-5, 1e-5]) * 1e-4,
+            r_velocity=np.array([2e-3, 2e-3]),
+            r_rssi=np.full(4, 10.0),
+        )
+
+    @property
+    def n(self) -> int:
+        return 6 if self.theta_rad is not None else 7
+
+    def transition(self, dt: float) -> NDArray[np.float64]:
+        """``A`` of eq. 3 for a period ``dt`` (s)."""
+        F = np.eye(self.n)
+        F[0, 2] = F[1, 3] = dt
+        return F
+
+    def process_noise(self, dt: float) -> NDArray[np.float64]:
+        return np.diag(self.q_diag * (dt / self.period_s))
+
+    def propagate(self, X: NDArray, dt: float) -> NDArray[np.float64]:
+        """Eq. 3 without noise, for states in rows (m, n)."""
+        out = np.array(X, dtype=float, copy=True)
+        out[..., 0:2] += dt * out[..., 2:4]
+        return out
+
+    def measure(self, X: NDArray, use_velocity: bool, ap_idx: NDArray) -> NDArray[np.float64]:
+        """Predicted measurements (m, p) of states (m, n): [y_v (2) if used; RSSI of ``ap_idx``]."""
+        X = np.atleast_2d(np.asarray(X, float))
+        parts = []
+        if use_velocity:
+            th = X[:, 6] if self.theta_rad is None else np.full(len(X), self.theta_rad)
+            M = velocity_matrix(th)  # (m, 2, 2)
+            parts.append(np.einsum("mij,mj->mi", M, X[:, 2:4]) + X[:, 4:6])
+        if len(ap_idx):
+            parts.append(self.path_loss.mean_rss(X[:, 0:2], ap_idx))
+        return np.concatenate(parts, axis=1) if parts else np.zeros((len(X), 0))
+
+    def measurement_jacobian(self, x: NDArray, use_velocity: bool, ap_idx: NDArray) -> NDArray[np.float64]:
+        """Analytic ``H`` (p, n) of ``measure`` at one state (eq. 8's H_k)."""
+        x = np.asarray(x, float)
+        rows = []
+        if use_velocity:
+            Hv = np.zeros((2, self.n))
+            th = float(x[6]) if self.theta_rad is None else self.theta_rad
+            Hv[:, 2:4] = velocity_matrix(th)
+            Hv[:, 4:6] = np.eye(2)
+            if self.theta_rad is None:
+                s, c = np.sin(th), np.cos(th)
+                Hv[:, 6] = np.array([[-c, -s], [-s, c]]) @ x[2:4]  # dM/dtheta v
+            rows.append(Hv)
+        if len(ap_idx):
+            Hr = np.zeros((len(ap_idx), self.n))
+            Hr[:, 0:2] = self.path_loss.jacobian(x[0:2], ap_idx)
+            rows.append(Hr)
+        return np.vstack(rows) if rows else np.zeros((0, self.n))
+
+    def measurement_noise(self, use_velocity: bool, ap_idx: NDArray) -> NDArray[np.float64]:
+        r = np.concatenate([self.r_velocity if use_velocity else np.zeros(0), self.r_rssi[np.asarray(ap_idx, np.int64)]])
+        return np.diag(r)
+
+
+@dataclass(frozen=True, eq=False)
+class GaussianState:
+    """Mean ``x`` (n,) and covariance ``P`` (n, n); read-only."""
+
+    x: NDArray[np.float64]
+    P: NDArray[np.float64]
+
+    def __post_init__(self) -> None:
+        x = np.asarray(self.x, float).ravel()
+        P = np.asarray(self.P, float)
+        if P.shape != (len(x), len(x)) or not (np.isfinite(x).all() and np.isfinite(P).all()):
+            raise FilterError(f"state: P has shape {P.shape} for a state of size {len(x)}, or non-finite values")
+        object.__setattr__(self, "x", _ro(x))
+        object.__setattr__(self, "P", _ro(0.5 * (P + P.T)))  # why: keep P exactly symmetric
+
+
+@dataclass(frozen=True)
+class UpdateInfo:
+    """What one measurement update saw: innovation log-likelihood, NIS, rows used / gated out."""
+
+    loglik: float
+    nis: float
+    n_used: int
+    n_gated: int
+
+
+def _kalman_gain(C: NDArray, S: NDArray) -> NDArray:
+    """K = C S^-1 via a solve (S symmetric positive definite)."""
+    try:
+        cf = np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        raise FilterError("innovation covariance is not positive definite") from None
+    return np.linalg.solve(cf.T, np.linalg.solve(cf, C.T)).T
+
+
+def _gate(nu: NDArray, S: NDArray, n_fixed: int, gate_sigma: float | None) -> NDArray[np.bool_]:
+    """Rows kept: the first ``n_fixed`` (velocity) always; RSSI rows within ``gate_sigma`` std."""
+    keep = np.ones(len(nu), dtype=bool)
+    if gate_sigma is not None and len(nu) > n_fixed:
+        z = np.abs(nu[n_fixed:]) / np.sqrt(np.diag(S)[n_fixed:])
+        keep[n_fixed:] = z <= gate_sigma
+    return keep
+
+
+def _loglik(nu: NDArray, S: NDArray) -> tuple[float, float]:
+    if len(nu) == 0:
+        return 0.0, 0.0
+    nis = float(nu @ np.linalg.solve(S, nu))
+    _, logdet = np.linalg.slogdet(2.0 * np.pi * S)
+    return -0.5 * (nis + logdet), nis
+
+
+@dataclass(frozen=True, eq=False)
+class ExtendedKalmanFilter:
+    """Eq. 8 of Paper 000 (analytic Jacobians; Joseph-form covariance update)."""
+
+    model: FusionModel
+    kind: FilterKind = field(default="ekf", init=False)
+
+    def predict(self, s: GaussianState, dt: float) -> GaussianState:
+        F = self.model.transition(dt)
+        return GaussianState(F @ s.x, F @ s.P @ F.T + self.model.process_noise(dt))
+
+    def update(
+        self, s: GaussianState, y: NDArray, *, use_velocity: bool, ap_idx: NDArray = _EMPTY_IDX,
+        gate_sigma: float | None = None,
+    ) -> tuple[GaussianState, UpdateInfo]:
+        m = self.model
+        ap_idx = np.asarray(ap_idx, np.int64)
+        H = m.measurement_jacobian(s.x, use_velocity, ap_idx)
+        R = m.measurement_noise(use_velocity, ap_idx)
+        nu = np.asarray(y, float) - m.measure(s.x, use_velocity, ap_idx)[0]
+        S = H @ s.P @ H.T + R
+        keep = _gate(nu, S, 2 if use_velocity else 0, gate_sigma)
+        H, R, nu, S = H[keep], R[np.ix_(keep, keep)], nu[keep], S[np.ix_(keep, keep)]
+        if not len(nu):
+            return s, UpdateInfo(0.0, 0.0, 0, int((~keep).sum()))
+        K = _kalman_gain(s.P @ H.T, S)
+        IKH = np.eye(m.n) - K @ H
+        P = IKH @ s.P @ IKH.T + K @ R @ K.T  # Joseph form: stays PSD with rounding
+        ll, nis = _loglik(nu, S)
+        return GaussianState(s.x + K @ nu, P), UpdateInfo(ll, nis, len(nu), int((~keep).sum()))
+
+
+def sigma_points(x: NDArray, P: NDArray, w0: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Eq. 8 of Paper 002: (2n+1, n) sigma points and their weights (sum to one)."""
+    n = len(x)
+    if not 0.0 <= w0 < 1.0:
+        raise FilterError(f"UKF weight w0 must be in [0, 1), got {w0}")
+    try:
+        L = np.linalg.cholesky((n / (1.0 - w0)) * np.asarray(P, float))
+    except np.linalg.LinAlgError:
+        raise FilterError("state covariance is not positive definite (sigma points)") from None
+    X = np.empty((2 * n + 1, n))
+    X[0] = x
+    X[1::2] = x - L.T  # i odd: (-1)^i = -1; column ceil(i/2) of L
+    X[2::2] = x + L.T
+    w = np.full(2 * n + 1, (1.0 - w0) / (2 * n))
+    w[0] = w0
+    return X, w
+
+
+def unscented_transform(X: NDArray, w: NDArray) -> tuple[NDArray, NDArray]:
+    """Weighted mean and covariance of rows ``X`` (eq. 9 without Q)."""
+    mu = w @ X
+    D = X - mu
+    return mu, (D * w[:, None]).T @ D
+
+
+@dataclass(frozen=True, eq=False)
+class UnscentedKalmanFilter:
+    """Eq. 8-10 of Paper 002 with weight ``w0`` (their experiment: 0.1)."""
+
+    model: FusionModel
+    w0: float = 0.1
+    kind: FilterKind = field(default="ukf", init=False)
+
+    def predict(self, s: GaussianState, dt: float) -> GaussianState:
+        X, w = sigma_points(s.x, s.P, self.w0)
+        mu, P = unscented_transform(self.model.propagate(X, dt), w)
+        return GaussianState(mu, P + self.model.process_noise(dt))
+
+    def update(
+        self, s: GaussianState, y: NDArray, *, use_velocity: bool, ap_idx: NDArray = _EMPTY_IDX,
+        gate_sigma: float | None = None,
+    ) -> tuple[GaussianState, UpdateInfo]:
+        m = self.model
+        ap_idx = np.asarray(ap_idx, np.int64)
+        X, w = sigma_points(s.x, s.P, self.w0)  # redrawn from the predicted (x, P): includes Q
+        Y = m.measure(X, use_velocity, ap_idx)  # (2n+1, p), vectorised over sigma points
+        y_hat, Psi = unscented_transform(Y, w)
+        Psi = Psi + m.measurement_noise(use_velocity, ap_idx)
+        Phi = ((X - w @ X) * w[:, None]).T @ (Y - y_hat)  # cross covariance (n, p)
+        nu = np.asarray(y, float) - y_hat
+        keep = _gate(nu, Psi, 2 if use_velocity else 0, gate_sigma)
+        nu, Psi, Phi = nu[keep], Psi[np.ix_(keep, keep)], Phi[:, keep]
+        if not len(nu):
+            return s, UpdateInfo(0.0, 0.0, 0, int((~keep).sum()))
+        K = _kalman_gain(Phi, Psi)
+        P = s.P - K @ Psi @ K.T  # eq. 10 prints "+": a typo (see module docstring)
+        ll, nis = _loglik(nu, Psi)
+        return GaussianState(s.x + K @ nu, P), UpdateInfo(ll, nis, len(nu), int((~keep).sum()))
+
+
+KalmanFilter = ExtendedKalmanFilter | UnscentedKalmanFilter
+
+
+def make_filter(kind: str, model: FusionModel, *, w0: float = 0.1) -> KalmanFilter:
+    """``"ekf"`` or ``"ukf"`` (``FilterError`` otherwise)."""
+    if kind == "ekf":
+        return ExtendedKalmanFilter(model)
+    if kind == "ukf":
+        return UnscentedKalmanFilter(model, w0)
+    raise FilterError(f"unknown filter {kind!r}; use ekf or ukf")
+
+
+@dataclass(frozen=True, eq=False)
+class FilterRun:
+    """Filtered states after each epoch's update: ``x`` (N, n), ``P`` (N, n, n)."""
+
+    kind: str
+    x: NDArray[np.float64]
+    P: NDArray[np.float64]
+    loglik: float
+
+    @property
+    def trace_p(self) -> NDArray[np.float64]:
+        return np.trace(self.P, axis1=1, axis2=2)
+
+
+def run_fixed_rate(
+    filt: KalmanFilter, x0: NDArray, P0: NDArray, y_velocity: NDArray, y_rssi: NDArray, dt: float
+) -> FilterRun:
+    """The papers' loop: at every epoch k (period ``dt``) predict (k > 0), then one joint update
+    with ``[y_v; RSSI]``. ``y_rssi`` (N, A) may hold NaN for an AP not heard at that epoch."""
+    yv = np.asarray(y_velocity, float)
+    yr = np.asarray(y_rssi, float)
+    if yv.ndim != 2 or yv.shape[1] != 2 or yr.shape != (len(yv), len(filt.model.path_loss)):
+        raise FilterError(f"run: y_velocity {yv.shape} / y_rssi {yr.shape} do not match the model")
+    s = GaussianState(x0, P0)
+    xs, Ps, ll = [], [], 0.0
+    for k in range(len(yv)):
+        if k:
+            s = filt.predict(s, dt)
+        heard = np.flatnonzero(np.isfinite(yr[k]))
+        s, info = filt.update(s, np.concatenate([yv[k], yr[k, heard]]), use_velocity=True, ap_idx=heard)
+        ll += info.loglik
+        xs.append(s.x)
+        Ps.append(s.P)
+    return FilterRun(filt.kind, np.array(xs), np.array(Ps), ll)
