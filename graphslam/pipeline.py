@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import shutil
 import tempfile
@@ -106,18 +107,28 @@ def run_survey(
     evaluation = evaluate(alignment.tracks, survey) if survey.has_ground_truth else None
     timings["evaluate"] = time.perf_counter() - t
 
+    viz = None
+    if rerun_path is not None:
+        from graphslam.viz.background import start_log_survey
+
+        # forked now: imports rerun and logs on the other core while the outputs are written
+        viz = start_log_survey(rerun_path, survey, alignment, cfg, floor_plan=floor_plan, floor_size=floor_size)
     files: dict[str, Path] = {}
     report = build_report(survey, alignment, evaluation, cfg, timings)
     if out_dir is not None:
         t = time.perf_counter()
-        files = write_outputs(Path(out_dir), survey, alignment, report, cfg, surveyed=surveyed)
+        try:
+            files = write_outputs(Path(out_dir), survey, alignment, report, cfg, surveyed=surveyed)
+        except BaseException:
+            if viz is not None:  # let the child finish (and clean up its temp file) before failing
+                with contextlib.suppress(Exception):
+                    viz.wait()
+            raise
         timings["write"] = time.perf_counter() - t
-    if rerun_path is not None:
-        from graphslam.viz.rerun_log import log_survey  # optional, heavy import
-
+    if viz is not None:
         t = time.perf_counter()
-        log_survey(rerun_path, survey, alignment, cfg, floor_plan=floor_plan, floor_size=floor_size)
-        timings["rerun"] = time.perf_counter() - t
+        timings["rerun"] = viz.wait()  # log_survey itself, in the child
+        timings["rerun_wait"] = time.perf_counter() - t  # what the parent still waited for it
     timings["total"] = time.perf_counter() - t0
     report["timings_s"] = {k: round(v, 4) for k, v in timings.items()}
     if out_dir is not None:
