@@ -204,3 +204,118 @@ def ilc_floors(site_dir: Path, cfg: GraphSlamConfig, floors: Sequence[str] | Non
             }
         )
     return rows
+
+
+def filters_cart(
+    seeds: Sequence[int],
+    *,
+    shadowing_db: float | None = None,
+    plot_dir: Path | None = None,
+) -> dict[str, Any]:
+    """The filter papers' experiment (cart, 5 rounds, 4 APs) simulated per seed; EKF with Paper 000's
+    constants, UKF with Paper 002's (each paper's P0/gamma for truth and filter, their Q, R, x0, P0).
+
+    RMS error in x and y per seed and filter; mean / median / p90 over seeds. ``shadowing_db``
+    overrides the documented default (4 dB) for a sensitivity sweep. ``plot_dir``: one PNG per
+    filter (path, |error|, trace P) for the first seed.
+    """
+    import dataclasses
+
+    import numpy as np
+
+    from graphslam.core.filters import FusionModel, make_filter, run_fixed_rate
+    from graphslam.sim.cart import PAPER_P0, PAPER_X0, CartNoise, simulate_cart
+
+    noise = CartNoise() if shadowing_db is None else dataclasses.replace(CartNoise(), shadowing_sigma_db=shadowing_db)
+    out: dict[str, Any] = {"seeds": list(seeds), "noise": dataclasses.asdict(noise)}
+    for kind, model in (("ekf", FusionModel.paper_ekf()), ("ukf", FusionModel.paper_ukf())):
+        rx, ry, tp = [], [], []
+        for i, seed in enumerate(seeds):
+            run = simulate_cart(seed, path_loss=model.path_loss, noise=noise)
+            res = run_fixed_rate(make_filter(kind, model), PAPER_X0, PAPER_P0, run.y_velocity, run.y_rssi, run.period_s)
+            e = res.x[:, :2] - run.xy
+            rx.append(float(np.sqrt(np.mean(e[:, 0] ** 2))))
+            ry.append(float(np.sqrt(np.mean(e[:, 1] ** 2))))
+            tp.append(float(res.trace_p[-1]))
+            if plot_dir is not None and i == 0:
+                from graphslam.viz.tracking_plots import cart_figure
+
+                cart_figure(
+                    run.t_s, run.xy, res.x[:, :2], res.trace_p, Path(plot_dir) / f"tracking_cart_{kind}.png",
+                    f"{kind.upper()}, simulated cart (seed {seed}, shadowing {noise.shadowing_sigma_db:g} dB)",
+                )
+        for axis, r in (("x", rx), ("y", ry)):
+            a = np.array(r)
+            out[f"{kind}_rms_{axis}_m"] = {
+                "mean": round(float(a.mean()), 3), "median": round(float(np.median(a)), 3),
+                "p90": round(float(np.percentile(a, 90)), 3), "min": round(float(a.min()), 3),
+                "max": round(float(a.max()), 3), "per_seed": [round(v, 3) for v in r],
+            }
+        out[f"{kind}_final_trace_p_median"] = round(float(np.median(tp)), 4)
+    return out
+
+
+def tracking_paper(
+    scenario: str, seeds: Sequence[int], cfg: GraphSlamConfig, *, test_walks: int = 3, filters: Sequence[str] = ("ekf", "ukf")
+) -> dict[str, Any]:
+    """Held-out walks tracked (EKF / UKF, AP models fitted from the crowdsourced radio map) vs kNN
+    positioning of the same scans on the same map; AP position errors vs the simulator's APs.
+
+    The crowdsourced map is put into the site frame with the landmark SE(2) fit (evaluation only,
+    as ``fig8``); errors at scan times (the tracker's step output interpolated there).
+    """
+    import numpy as np
+
+    from graphslam.core.apmodel import ApModels, ap_position_errors
+    from graphslam.core.evaluate import interpolate_xy
+    from graphslam.core.knn import KnnConfig, KnnLocator
+    from graphslam.core.survey_maps import crowdsourced_radio_map
+    from graphslam.core.types import PoseTrack
+    from graphslam.sim import simulate
+    from graphslam.track import TrackConfig, track_sessions
+
+    errs: dict[str, list] = {"knn": [], **{f: [] for f in filters}}
+    ap_err, per_seed = [], []
+    n_unfitted = 0
+    for seed in seeds:
+        sim = simulate(scenario, seed=seed, test_walks=test_walks)
+        al = align(sim.survey, cfg)
+        ev = evaluate(al.tracks, sim.survey)
+        rm = crowdsourced_radio_map(sim.survey, al, cfg, site_from_aligned=np.array(ev.site_from_aligned))
+        models = ApModels.fit(rm)
+        n_unfitted += len(models.unfitted)
+        e_ap = ap_position_errors(models, sim.building.aps.bssids, sim.building.aps.xy)
+        ap_err.append(e_ap)
+        row: dict[str, Any] = {"seed": seed, "aps_fitted": len(models.fitted), "aps_unfitted": len(models.unfitted)}
+        sessions = sim.test_sessions
+        t_scan = [np.array([sc.t_ns for sc in s.scans], float) for s in sessions]
+        truth = np.concatenate([interpolate_xy(s.ground_truth, t) for s, t in zip(sessions, t_scan)])
+        knn = KnnLocator(rm, KnnConfig(k=3)).locate([sc.readings for s in sessions for sc in s.scans])
+        e = np.linalg.norm(knn.xy - truth, axis=1)
+        errs["knn"].append(e[np.isfinite(e)])
+        row["knn_mean_m"] = round(float(np.nanmean(e)), 3)
+        for f in filters:
+            t0 = time.perf_counter()
+            tracks = track_sessions(sessions, rm, models, TrackConfig(filter=f))
+            est = np.concatenate(
+                [interpolate_xy(PoseTrack(tr.t_ns, tr.xy, np.zeros(len(tr.t_ns))), t) for tr, t in zip(tracks, t_scan)]
+            )
+            e = np.linalg.norm(est - truth, axis=1)
+            errs[f].append(e)
+            row[f"{f}_mean_m"] = round(float(e.mean()), 3)
+            row[f"{f}_s"] = round(time.perf_counter() - t0, 2)
+        per_seed.append(row)
+    out: dict[str, Any] = {"scenario": scenario, "seeds": list(seeds), "test_walks_per_seed": test_walks}
+    for name, v in errs.items():
+        a = np.concatenate(v)
+        out[name] = {
+            "n": int(a.size), "mean_m": round(float(a.mean()), 3), "median_m": round(float(np.median(a)), 3),
+            "p90_m": round(float(np.percentile(a, 90)), 3),
+        }
+    a = np.concatenate(ap_err)
+    out["ap_position_error"] = {
+        "n_fitted": int(a.size), "n_unfitted": n_unfitted, "median_m": round(float(np.median(a)), 3),
+        "p90_m": round(float(np.percentile(a, 90)), 3),
+    }
+    out["per_seed"] = per_seed
+    return out

@@ -252,6 +252,11 @@ def bench_survey(
     typer.echo(json.dumps(survey_speed(scenario, seed, runs=runs, size=size, config=config)))
 
 
+INDEX_HELP = "kNN search: exact, ivf (approximate inverted file) or auto."
+IVF_CLUSTERS_HELP = "IVF: k-means clusters (default ~2 sqrt(N))."
+IVF_PROBES_HELP = "IVF: clusters searched per query (default 8)."
+
+
 @bench_app.command("ujiindoorloc")
 def bench_ujiindoorloc(
     data_dir: Path = typer.Argument(..., help="Folder with trainingData.csv[.gz] and validationData.csv[.gz]."),
@@ -261,13 +266,16 @@ def bench_ujiindoorloc(
     missing_dbm: float = typer.Option(-100.0, "--missing-dbm", help="RSS of an AP not heard, in eq. 9 (dBm)."),
     min_common: int = typer.Option(1, "--min-common", min=1, help="Neighbours must share this many APs."),
     repeats: int = typer.Option(5, "--repeats", min=1, help="Timed runs (the median is reported)."),
+    index: str = typer.Option("exact", "--index", help=INDEX_HELP + " Default: exact."),
+    ivf_clusters: Optional[int] = typer.Option(None, "--ivf-clusters", min=1, help=IVF_CLUSTERS_HELP),
+    ivf_probes: Optional[int] = typer.Option(None, "--ivf-probes", min=1, help=IVF_PROBES_HELP),
 ) -> None:
     """kNN on UJIIndoorLoc (train: trainingData, test: validationData); prints one JSON line."""
     from graphslam.uji_bench import run_ujiindoorloc_benchmark
 
     r = run_ujiindoorloc_benchmark(
         data_dir, k=k, weighted=weighted, min_rssi_dbm=min_rssi, missing_dbm=missing_dbm,
-        min_common=min_common, repeats=repeats,
+        min_common=min_common, repeats=repeats, index=index, ivf_clusters=ivf_clusters, ivf_probes=ivf_probes,
     )
     typer.echo(json.dumps(r.as_dict()))
 
@@ -287,11 +295,14 @@ def locate(
         None, "--site-from-map", help="X Y THETA placing the map frame in the site frame (e.g. report.json's "
         "evaluation.site_from_aligned), for the truth overlay."
     ),
+    index: str = typer.Option("exact", "--index", help=INDEX_HELP + " Default: exact."),
 ) -> None:
     """Locate every /wifi/scan of the query sessions by kNN against a radio map."""
     from graphslam.locate import locate_files
 
-    run = locate_files(radio_map, query_paths, out=out, k=k, weighted=weighted, min_common=min_common)
+    run = locate_files(
+        radio_map, query_paths, out=out, k=k, weighted=weighted, min_common=min_common, index=index
+    )
     if rerun is not None:
         from graphslam.locate import query_truth
         from graphslam.viz.rerun_log import log_locate_results
@@ -317,13 +328,17 @@ def serve(
     min_common: int = typer.Option(1, "--min-common", min=1, help="Neighbours must share this many APs."),
     max_batch: int = typer.Option(10_000, "--max-batch", min=1, help="Most fingerprints per request."),
     max_body_bytes: int = typer.Option(32 * 1024 * 1024, "--max-body-bytes", min=1024, help="Largest request body."),
+    index: str = typer.Option("auto", "--index", help=INDEX_HELP + " Default: auto (IVF from 5,000 references)."),
+    ivf_clusters: Optional[int] = typer.Option(None, "--ivf-clusters", min=1, help=IVF_CLUSTERS_HELP),
+    ivf_probes: Optional[int] = typer.Option(None, "--ivf-probes", min=1, help=IVF_PROBES_HELP),
 ) -> None:
     """Serve kNN positioning over HTTP (POST /v1/locate, GET /v1/radio-map, GET /healthz, /openapi.json)."""
     from graphslam.service.server import serve as serve_map
 
     serve_map(
         radio_map, host=host, port=port, k=k, weighted=weighted, min_common=min_common,
-        max_batch=max_batch, max_body_bytes=max_body_bytes,
+        max_batch=max_batch, max_body_bytes=max_body_bytes, index=index, ivf_clusters=ivf_clusters,
+        ivf_probes=ivf_probes,
     )
 
 
@@ -416,6 +431,67 @@ def bench_ilc(
 
     for row in ilc_floors(site_dir, _config(config, set_), floors.split(",") if floors else None):
         typer.echo(json.dumps(row))
+
+
+@app.command("fit-aps")
+def fit_aps(
+    radio_map: Path = typer.Option(..., "--radio-map", help="Radio map (.parquet)."),
+    out: Optional[Path] = typer.Option(None, "--out", help="AP models JSON (default: ap_models.json beside the map)."),
+    min_readings: int = typer.Option(20, "--min-readings", min=5, help="Fit only APs heard this often."),
+) -> None:
+    """Fit position, P0 and gamma of every often-heard AP of a radio map (robust least squares)."""
+    from graphslam.core.apmodel import ApFitConfig, ApModels, write_ap_models
+    from graphslam.io.radiomap_io import read_radio_map
+
+    models = ApModels.fit(read_radio_map(radio_map), ApFitConfig(min_readings=min_readings))
+    path = write_ap_models(models, out or radio_map.with_name("ap_models.json"))
+    reasons: dict[str, int] = {}
+    for u in models.unfitted:
+        key = u.reason.split(" (")[0]
+        reasons[key] = reasons.get(key, 0) + 1
+    typer.echo(json.dumps({"out": str(path), "fitted": len(models.fitted), "unfitted": len(models.unfitted), "reasons": reasons}))
+
+
+@app.command()
+def track(
+    sessions: List[Path] = typer.Argument(..., help="Session recordings (.mcap) or folders of them."),
+    radio_map: Path = typer.Option(..., "--radio-map", help="Radio map (.parquet); positions come out in its frame."),
+    filter_: str = typer.Option("ekf", "--filter", help="ekf or ukf."),
+    out: Path = typer.Option(..., "--out", help="Output CSV: one row per step (t_ns, x, y, covariance, ...)."),
+    ap_models: Optional[Path] = typer.Option(
+        None, "--ap-models", help="AP models JSON (default: ap_models.json beside the map, else fitted now)."
+    ),
+) -> None:
+    """Track walks on a radio map: EKF/UKF fusion of step velocity and WiFi RSSI (Papers 000/002)."""
+    from graphslam.track import TrackConfig, track_files
+
+    run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=TrackConfig(filter=filter_))
+    typer.echo(json.dumps(run.as_dict()))
+
+
+@bench_app.command("filters")
+def bench_filters(
+    seeds: str = typer.Option(",".join(map(str, range(20))), help="Comma-separated seeds."),
+    shadowing_db: Optional[float] = typer.Option(None, help="Override the 4 dB shadowing std (sensitivity)."),
+    plot_dir: Optional[Path] = typer.Option(None, help="Write tracking_cart_{ekf,ukf}.png here (first seed)."),
+) -> None:
+    """The filter papers' experiment simulated: RMS error in x and y of EKF and UKF over seeds."""
+    from graphslam.bench import filters_cart
+
+    typer.echo(json.dumps(filters_cart([int(s) for s in seeds.split(",")], shadowing_db=shadowing_db, plot_dir=plot_dir)))
+
+
+@bench_app.command("tracking")
+def bench_tracking(
+    scenario: str = typer.Argument("paper"),
+    seeds: str = typer.Option("0,1,2", help="Comma-separated seeds."),
+    test_walks: int = typer.Option(3, help="Held-out test walks per seed."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c"),
+) -> None:
+    """Held-out walks: EKF/UKF tracking vs kNN (mean error); AP position error vs the simulator."""
+    from graphslam.bench import tracking_paper
+
+    typer.echo(json.dumps(tracking_paper(scenario, [int(s) for s in seeds.split(",")], _config(config, None), test_walks=test_walks)))
 
 
 def main(argv: Optional[list[str]] = None) -> None:

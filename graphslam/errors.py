@@ -61,3 +61,7 @@ class SimulationError(GraphSlamError):
 
 class VisualizationError(GraphSlamError):
     """A Rerun recording could not be written or a viewer could not be started."""
+
+
+class EstimationError(GraphSlamError):
+    """A filter or an access-point fit cannot run (inconsistent model, covariance lost, no usable data)."""

@@ -74,14 +74,16 @@ def locate_files(
     k: int = 3,
     weighted: bool = True,
     min_common: int = 1,
+    index: str = "exact",
 ) -> LocateRun:
-    """Read the radio map and the query sessions (MCAP), locate every scan, write ``out`` (CSV)."""
+    """Read the radio map and the query sessions (MCAP), locate every scan, write ``out`` (CSV).
+    ``index``: kNN search (``KnnConfig.index``): exact by default."""
     from graphslam.io.mcap_reader import read_survey
     from graphslam.io.radiomap_io import read_radio_map
 
     rm = read_radio_map(radio_map_path)
     survey = read_survey(list(query_paths))
-    locator = KnnLocator(rm, KnnConfig(k=k, weighted=weighted, min_common=min_common))
+    locator = KnnLocator(rm, KnnConfig(k=k, weighted=weighted, min_common=min_common, index=index))  # type: ignore[arg-type]
     positions = locate_survey(locator, survey)
     written = write_positions_csv(positions, out) if out is not None else None
     n_ok = int(positions.result.valid.sum())

@@ -47,6 +47,11 @@ class UjiBenchResult:
     query_time_s: float  # median over repeats, all test queries
     repeats: int
     threads: int
+    index: str  # "exact" or "ivf"
+    ivf_clusters: int  # 0 for exact
+    ivf_probes: int
+    recall: float  # queries whose k neighbours (as a set) are the exact search's; 1.0 for exact
+    build_s: float  # locator construction (IVF: k-means), seconds
 
     def as_dict(self) -> dict[str, float | int | bool | str]:
         d = asdict(self)
@@ -73,12 +78,20 @@ def run_ujiindoorloc_benchmark(
     min_common: int = 1,
     repeats: int = 5,
     threads: int | None = None,
+    index: str = "exact",
+    ivf_clusters: int | None = None,
+    ivf_probes: int | None = None,
 ) -> UjiBenchResult:
-    """Build the radio map from trainingData, locate every validationData fingerprint."""
+    """Build the radio map from trainingData, locate every validationData fingerprint. With an
+    IVF index, ``recall`` is the fraction of queries whose k neighbours are the exact search's."""
     train = read_ujiindoorloc(find_uji_file(data_dir, TRAIN_FILE))
     test = read_ujiindoorloc(find_uji_file(data_dir, TEST_FILE))
     rm = train.to_radio_map(missing_dbm=missing_dbm, min_rssi_dbm=min_rssi_dbm)
-    locator = KnnLocator(rm, KnnConfig(k=k, weighted=weighted, min_common=min_common), threads=threads)
+    ivf = {"ivf_clusters": ivf_clusters} | ({"ivf_probes": ivf_probes} if ivf_probes is not None else {})
+    config = KnnConfig(k=k, weighted=weighted, min_common=min_common, index=index, **ivf)  # type: ignore[arg-type]
+    t0 = time.perf_counter()
+    locator = KnnLocator(rm, config, threads=threads)
+    build_s = time.perf_counter() - t0
     queries = test.fingerprints(missing_dbm=missing_dbm, min_rssi_dbm=min_rssi_dbm)
     times = []
     res = None
@@ -87,6 +100,11 @@ def run_ujiindoorloc_benchmark(
         res = locator.locate(queries)
         times.append(time.perf_counter() - t0)
     assert res is not None
+    recall = 1.0
+    if locator.index_kind != "exact":
+        ref = KnnLocator(rm, KnnConfig(k=k, weighted=weighted, min_common=min_common), threads=threads).locate(queries)
+        same = (np.sort(ref.neighbours, axis=1) == np.sort(res.neighbours, axis=1)).all(axis=1)
+        recall = float(same.mean())
     ok = res.valid
     err = np.linalg.norm(res.xy[ok] - test.xy[ok], axis=1)
     if (~ok).any():
@@ -113,4 +131,9 @@ def run_ujiindoorloc_benchmark(
         query_time_s=t_med,
         repeats=len(times),
         threads=locator.threads,
+        index=locator.index_kind,
+        ivf_clusters=locator.ivf.n_clusters if locator.ivf is not None else 0,
+        ivf_probes=config.ivf_probes if locator.ivf is not None else 0,
+        recall=recall,
+        build_s=build_s,
     )

@@ -155,3 +155,27 @@ def test_wrong_method_and_path_are_4xx_and_server_survives(client: httpx.Client)
     assert client.get("/v2/nothing").status_code == 404
     assert client.get("/healthz").status_code == 200
     assert client.post("/v1/locate", json={"readings": {"ap1": -50}}).status_code == 200
+
+
+def test_openapi_describes_the_locate_request_and_response(client: httpx.Client) -> None:
+    spec = client.get("/openapi.json").json()
+    post = spec["paths"]["/v1/locate"]["post"]
+    body_schema = post["requestBody"]["content"]["application/json"]["schema"]
+    assert body_schema == {"$ref": "#/components/schemas/LocateRequest"} and post["requestBody"]["required"]
+    schemas = spec["components"]["schemas"]
+    assert {"LocateRequest", "Fingerprint", "LocateResponse", "Position"} <= set(schemas)
+    assert set(schemas["LocateRequest"]["properties"]) == {"readings", "fingerprints"}
+    ok = post["responses"]["200"]["content"]["application/json"]["schema"]
+    assert ok == {"$ref": "#/components/schemas/LocateResponse"}
+
+
+def test_ivf_service_matches_the_ivf_library() -> None:
+    app = create_app(RM, k=3, index="ivf", ivf_clusters=4, ivf_probes=2)
+    q = [{"ap1": -50.0, "ap2": -70.0}, {"ap5": -60, "ap7": -80.5}, {"ap3": -41.5}]
+    expect = KnnLocator(RM, KnnConfig(k=3, index="ivf", ivf_clusters=4, ivf_probes=2)).locate(q)
+    with start_background_server(app) as srv, httpx.Client(base_url=srv.url, timeout=10.0) as c:
+        assert c.get("/v1/radio-map").json()["index"] == "ivf"
+        r = c.post("/v1/locate", json={"fingerprints": [{"readings": s} for s in q]})
+    assert r.status_code == 200
+    got = np.array([[d["x"], d["y"]] for d in r.json()["positions"]])
+    np.testing.assert_allclose(got, expect.xy, rtol=1e-12)

@@ -86,7 +86,19 @@ class FingerprintMatrix:
         floor = max(min_rssi_dbm, missing_dbm + 1e-6)
         if bssids is None:
             bssids = sorted({b for s in scans for b, r in s.items() if r >= floor})
-        index = {b: i for i, b in enumerate(bssids)}
+        return cls.encode(scans, tuple(bssids), {b: i for i, b in enumerate(bssids)}, missing_dbm, min_rssi_dbm)
+
+    @classmethod
+    def encode(
+        cls,
+        scans: Sequence[Mapping[str, float]],
+        bssids: tuple[str, ...],
+        index: Mapping[str, int],
+        missing_dbm: float,
+        min_rssi_dbm: float,
+    ) -> "FingerprintMatrix":
+        """Scans over a given AP index (``index[bssids[j]] == j``, built once by the caller)."""
+        floor = max(min_rssi_dbm, missing_dbm + 1e-6)
         rows: list[int] = []
         cols: list[int] = []
         vals: list[float] = []
@@ -105,7 +117,7 @@ class FingerprintMatrix:
                     cols.append(j)
                     vals.append(r - missing_dbm)
         m = sparse.csr_matrix((vals, (rows, cols)), shape=(len(scans), len(bssids)))
-        return cls(tuple(bssids), m, missing_dbm, extra_sq, extra_n)
+        return cls(bssids, m, missing_dbm, extra_sq, extra_n)
 
     @classmethod
     def from_dense(

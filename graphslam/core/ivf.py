@@ -25,9 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, Iterator
-from contextlib import contextmanager
-import threading
+from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -45,35 +43,19 @@ DEFAULT_KMEANS_ITERATIONS = 25
 DEFAULT_SEED = 0
 
 
-_blas_lock = threading.Lock()
-_blas_users = 0
-_blas_limiter: object | None = None
+def limit_blas_threads(n: int = 1) -> bool:
+    """Set the process's BLAS thread count (``threadpoolctl``); ``False`` if unavailable.
 
-
-@contextmanager
-def _single_threaded_blas() -> Iterator[None]:
-    """One BLAS thread while IVF searches run. Why: the search is hundreds of tiny GEMMs, and
-    OpenBLAS's thread hand-off made them ~15x slower on this 2-core machine; the locator runs
-    query blocks in parallel itself. Reference-counted: BLAS settings are process-wide and
-    several searches may overlap (service threads). No-op without threadpoolctl."""
-    global _blas_users, _blas_limiter
+    Why: an IVF search is hundreds of tiny GEMMs, and OpenBLAS's thread hand-off made them
+    ~15x slower on a 2-core machine (and far worse when two searches overlap, or when the
+    count is toggled per call). A process-wide setting, so it is the caller's decision:
+    ``graphslam serve`` calls this once at start-up; the service parallelises over requests."""
     try:
         from threadpoolctl import threadpool_limits
     except ImportError:  # pragma: no cover - optional speed-up
-        yield
-        return
-    with _blas_lock:
-        if _blas_users == 0:
-            _blas_limiter = threadpool_limits(limits=1, user_api="blas")
-        _blas_users += 1
-    try:
-        yield
-    finally:
-        with _blas_lock:
-            _blas_users -= 1
-            if _blas_users == 0 and _blas_limiter is not None:
-                _blas_limiter.restore_original_limits()  # type: ignore[attr-defined]
-                _blas_limiter = None
+        return False
+    threadpool_limits(limits=n, user_api="blas")
+    return True
 
 
 def default_clusters(n_refs: int) -> int:
@@ -226,13 +208,14 @@ class IvfIndex:
     def n_clusters(self) -> int:
         return len(self.clusters)
 
-    def probe(self, qd: NDArray[np.float64], probes: int) -> NDArray[np.int64]:
+    def probe(self, q: FingerprintMatrix, probes: int) -> NDArray[np.int64]:
         """(Q, P) clusters to search per query: the P nearest centroids (Euclidean)."""
         c = self.n_clusters
         p = min(probes, c)
         if p >= c:
-            return np.broadcast_to(np.arange(c), (len(qd), c)).copy()
-        g = qd.astype(np.float32) @ self.centroids_T
+            return np.broadcast_to(np.arange(c), (len(q), c)).copy()
+        # Sparse query rows (a few dozen APs) times dense centroids: ~25x fewer flops than dense.
+        g = np.asarray(q.values.astype(np.float32) @ self.centroids_T, dtype=np.float32)
         g *= -2.0
         g += self.centroid_sq[None, :]  # |q|^2 is the same for every centroid of a row
         return np.argpartition(g, p - 1, axis=1)[:, :p].astype(np.int64)
@@ -245,8 +228,7 @@ class IvfIndex:
         m = len(q)
         if m == 0 or self.n_clusters == 0:
             return np.full((m, k), -1, np.int64), np.full((m, k), np.inf)
-        with _single_threaded_blas():
-            return self._search(q, k, probes, min_common)
+        return self._search(q, k, probes, min_common)
 
     def _search(
         self, q: FingerprintMatrix, k: int, probes: int, min_common: int
@@ -261,7 +243,7 @@ class IvfIndex:
         qa[:, -2] = q_sq
         qa[:, -1] = 1.0
         qb = (qd > 0).astype(np.float32)
-        probe = self.probe(qd, probes)
+        probe = self.probe(q, probes)
         p = probe.shape[1]
         # Each query's candidates laid out in one row of a (Q, L) buffer, probe after probe.
         sizes = self.sizes[probe]

@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 
+from graphslam.core.types import frozen_array
 from graphslam.core.fingerprints import DEFAULT_MIN_RSSI_DBM, DEFAULT_MISSING_DBM, FingerprintMatrix
 from graphslam.errors import QueryError, RadioMapError
 
@@ -30,11 +31,6 @@ log = logging.getLogger(__name__)
 
 RADIO_MAP_FORMAT_VERSION = 1
 
-
-def _frozen(a: Any, dtype: Any) -> NDArray:
-    arr = np.array(a, dtype=dtype, copy=True)
-    arr.setflags(write=False)
-    return arr
 
 
 def _labels(name: str, labels: Sequence[Any] | NDArray | None, n: int) -> NDArray[np.str_] | None:
@@ -156,9 +152,9 @@ class RadioMap:
                 f"radio map: format version {self.format_version} not supported (expected {RADIO_MAP_FORMAT_VERSION})"
             )
         object.__setattr__(self, "fingerprints", fm)
-        object.__setattr__(self, "xy", _frozen(xy, np.float64))
-        object.__setattr__(self, "session_ids", _frozen(sids, str))
-        object.__setattr__(self, "t_ns", _frozen(t, np.int64))
+        object.__setattr__(self, "xy", frozen_array(xy, np.float64))
+        object.__setattr__(self, "session_ids", frozen_array(sids, str))
+        object.__setattr__(self, "t_ns", frozen_array(t, np.int64))
         object.__setattr__(self, "floors", _labels("floors", self.floors, n))
         object.__setattr__(self, "buildings", _labels("buildings", self.buildings, n))
         object.__setattr__(self, "metadata", _json_metadata(self.metadata))
@@ -247,30 +243,10 @@ class RadioMap:
         with the map's ``missing_dbm`` and ``min_rssi_dbm``. Same result as
         ``FingerprintMatrix.from_scans(scans, bssids=self.bssids, ...)`` without rebuilding the
         BSSID index per call (it dominates single-query latency on large maps)."""
-        index = self._index
-        m = self.missing_dbm
-        floor = max(self.min_rssi_dbm, m + 1e-6)
-        rows: list[int] = []
-        cols: list[int] = []
-        vals: list[float] = []
-        extra_sq = np.zeros(len(scans))
-        extra_n = np.zeros(len(scans), np.int64)
-        for i, s in enumerate(scans):
-            for b, r in s.items():
-                if r < floor:
-                    continue
-                j = index.get(b)
-                if j is None:
-                    extra_sq[i] += (r - m) ** 2
-                    extra_n[i] += 1
-                else:
-                    rows.append(i)
-                    cols.append(j)
-                    vals.append(r - m)
-        if not (np.isfinite(vals).all() and np.isfinite(extra_sq).all()):
+        fm = FingerprintMatrix.encode(scans, self.bssids, self._index, self.missing_dbm, self.min_rssi_dbm)
+        if not (np.isfinite(fm.values.data).all() and np.isfinite(fm.extra_sq).all()):
             raise QueryError("query scans hold a non-finite RSS value")
-        v = sparse.csr_matrix((vals, (rows, cols)), shape=(len(scans), len(index)))
-        return FingerprintMatrix(self.bssids, v, m, extra_sq, extra_n)
+        return fm
 
     def reindex(self, fm: FingerprintMatrix) -> FingerprintMatrix:
         """``fm`` (any AP index, same ``missing_dbm``) re-expressed over this map's AP index,

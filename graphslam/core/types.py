@@ -18,8 +18,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 
-def _frozen(a: NDArray, dtype: type) -> NDArray:
-    arr = np.array(a, dtype=dtype, copy=True)
+def frozen_array(a: object, dtype: object) -> NDArray:
+    """A read-only copy: frozen dataclasses must not share writable arrays with callers."""
+    arr: NDArray = np.array(a, dtype=dtype, copy=True)
     arr.setflags(write=False)
     return arr
 
@@ -38,9 +39,9 @@ class PoseTrack:
     heading: NDArray[np.float64]  # (N,)
 
     def __post_init__(self) -> None:
-        t = _frozen(self.t_ns, np.int64)
-        xy = _frozen(np.reshape(self.xy, (-1, 2)), np.float64)
-        h = _frozen(self.heading, np.float64)
+        t = frozen_array(self.t_ns, np.int64)
+        xy = frozen_array(np.reshape(self.xy, (-1, 2)), np.float64)
+        h = frozen_array(self.heading, np.float64)
         if not (t.ndim == 1 and h.ndim == 1 and len(t) == len(xy) == len(h)):
             raise ValueError("PoseTrack: t_ns, xy and heading must have the same length")
         if not (np.isfinite(xy).all() and np.isfinite(h).all()):

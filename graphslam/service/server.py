@@ -31,17 +31,28 @@ def serve(
     max_batch: int | None = None,
     max_body_bytes: int | None = None,
     log_level: str = "info",
+    index: str = "auto",
+    ivf_clusters: int | None = None,
+    ivf_probes: int | None = None,
 ) -> None:
     """Load the radio map and serve it until interrupted."""
+    from graphslam.core.ivf import limit_blas_threads
     from graphslam.io.radiomap_io import read_radio_map
     from graphslam.service.app import DEFAULT_MAX_BATCH, DEFAULT_MAX_BODY_BYTES, create_app
 
+    # A server process: parallelism comes from concurrent requests and the locator's own
+    # threads; multi-threaded BLAS only slows the IVF index's many small GEMMs.
+    limit_blas_threads(1)
     rm = read_radio_map(radio_map_path)
     app = create_app(
         rm, k=k, weighted=weighted, min_common=min_common,
         max_batch=max_batch or DEFAULT_MAX_BATCH, max_body_bytes=max_body_bytes or DEFAULT_MAX_BODY_BYTES,
+        index=index, ivf_clusters=ivf_clusters, ivf_probes=ivf_probes,  # type: ignore[arg-type]
     )
-    log.info("serving %s (%d fingerprints) on http://%s:%d", radio_map_path, len(rm), host, port)
+    log.info(
+        "serving %s (%d fingerprints, %s search) on http://%s:%d",
+        radio_map_path, len(rm), app.state.locator.index_kind, host, port,
+    )
     uvicorn.run(app, host=host, port=port, log_level=log_level)
 
 

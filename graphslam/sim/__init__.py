@@ -12,6 +12,7 @@ Typical use::
 See docs/simulator.md for the models and their parameters.
 """
 
+from graphslam.sim.cart import CartNoise, CartPath, CartRun, simulate_cart
 from graphslam.sim.floorplan import FloorPlan, Landmark, corridor_plan, office_plan
 from graphslam.sim.radio import (
     AccessPoints,
@@ -35,6 +36,10 @@ from graphslam.sim.stats import SurveyStats, WalkStats, align_by_start, raw_drif
 from graphslam.sim.walker import ImuErrorParams, WalkerParams, WalkSpec, dead_reckon, simulate_walk
 
 __all__ = [
+    "CartNoise",
+    "CartPath",
+    "CartRun",
+    "simulate_cart",
     "AccessPoints",
     "Building",
     "FloorPlan",

@@ -20,6 +20,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from graphslam.core.types import frozen_array
 from graphslam.errors import SimulationError
 
 Side = Literal["S", "N", "W", "E"]
@@ -31,11 +32,6 @@ _ROOM_MARGIN_M = 1.0
 # Corridor centre-line nodes closer than this are merged into one.
 _MERGE_M = 0.5
 
-
-def _frozen(a: NDArray, dtype: type) -> NDArray:
-    arr: NDArray = np.array(a, dtype=dtype, copy=True)
-    arr.setflags(write=False)
-    return arr
 
 
 @dataclass(frozen=True)
@@ -76,14 +72,14 @@ class FloorPlan:
     line: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "walls", _frozen(np.reshape(self.walls, (-1, 4)), np.float64))
-        object.__setattr__(self, "nodes", _frozen(np.reshape(self.nodes, (-1, 2)), np.float64))
-        object.__setattr__(self, "edges", _frozen(np.reshape(self.edges, (-1, 2)), np.int64))
-        object.__setattr__(self, "node_room", _frozen(self.node_room, np.int64))
-        object.__setattr__(self, "rooms", _frozen(np.reshape(self.rooms, (-1, 4)), np.float64))
+        object.__setattr__(self, "walls", frozen_array(np.reshape(self.walls, (-1, 4)), np.float64))
+        object.__setattr__(self, "nodes", frozen_array(np.reshape(self.nodes, (-1, 2)), np.float64))
+        object.__setattr__(self, "edges", frozen_array(np.reshape(self.edges, (-1, 2)), np.int64))
+        object.__setattr__(self, "node_room", frozen_array(self.node_room, np.int64))
+        object.__setattr__(self, "rooms", frozen_array(np.reshape(self.rooms, (-1, 4)), np.float64))
         object.__setattr__(self, "landmarks", tuple(self.landmarks))
         if self.line is not None:
-            object.__setattr__(self, "line", _frozen(np.reshape(self.line, (2, 2)), np.float64))
+            object.__setattr__(self, "line", frozen_array(np.reshape(self.line, (2, 2)), np.float64))
         k = len(self.nodes)
         if k == 0 or len(self.edges) == 0:
             raise SimulationError(f"floor plan {self.name!r}: empty walkable graph")

@@ -1,0 +1,96 @@
+"""Request / response models of the HTTP service (pydantic; they define the OpenAPI schema).
+
+``POST /v1/locate`` bodies are parsed by ``graphslam.service.parsing``, which accepts
+exactly what ``LocateRequest`` accepts and falls back to it for every error message.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
+
+MAX_READINGS = 4096  # per fingerprint; real scans hear a few hundred APs at most
+RSSI_MIN_DBM, RSSI_MAX_DBM = -200.0, 0.0
+
+BSSID_MAX_CHARS = 128
+
+Bssid = Annotated[str, StringConstraints(min_length=1, max_length=BSSID_MAX_CHARS)]
+# strict: "-60" (a string) or true are refused; ints are accepted as numbers.
+Rssi = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=RSSI_MIN_DBM, le=RSSI_MAX_DBM)]
+
+
+class Fingerprint(BaseModel):
+    """One WiFi scan: BSSID -> RSS in dBm (APs not listed were not heard)."""
+
+    model_config = ConfigDict(extra="forbid")
+    readings: dict[Bssid, Rssi] = Field(min_length=1, max_length=MAX_READINGS)
+
+
+class LocateRequest(BaseModel):
+    """Either ``readings`` (one fingerprint) or ``fingerprints`` (a batch), not both."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {"readings": {"00:11:22:33:44:55": -61, "00:11:22:33:44:66": -78.5}},
+                {"fingerprints": [{"readings": {"00:11:22:33:44:55": -61}}, {"readings": {"aa:bb:cc:dd:ee:ff": -70}}]},
+            ]
+        },
+    )
+    readings: dict[Bssid, Rssi] | None = Field(default=None, min_length=1, max_length=MAX_READINGS)
+    fingerprints: list[Fingerprint] | None = Field(default=None, min_length=1)
+
+    @model_validator(mode="after")
+    def _one_form(self) -> "LocateRequest":
+        if (self.readings is None) == (self.fingerprints is None):
+            raise ValueError("give exactly one of 'readings' (one fingerprint) or 'fingerprints' (a batch)")
+        return self
+
+    def scans(self) -> list[dict[str, float]]:
+        if self.readings is not None:
+            return [self.readings]
+        assert self.fingerprints is not None
+        return [f.readings for f in self.fingerprints]
+
+
+class Position(BaseModel):
+    x: float = Field(description="metres, in the radio map's frame")
+    y: float
+    score: float = Field(description="mean eq. 9 RSS distance (dB) of the neighbours used; lower = closer match")
+    spread: float = Field(description="weighted RMS distance (m) of the neighbours' positions to the estimate")
+    n_neighbours: int
+    floor: str | None = None
+    building: str | None = None
+
+
+class LocateResponse(BaseModel):
+    frame: str
+    k: int
+    weighted: bool
+    positions: list[Position]
+
+
+class RadioMapInfo(BaseModel):
+    format_version: int
+    frame: str
+    n_fingerprints: int
+    n_access_points: int
+    n_sessions: int
+    mean_aps_per_fingerprint: float
+    bbox: dict[str, float] | None
+    floors: dict[str, int] | None
+    buildings: dict[str, int] | None
+    missing_dbm: float
+    min_rssi_dbm: float
+    t_ns_range: list[int] | None
+    metadata: dict[str, Any]
+    k: int
+    weighted: bool
+    min_common: int
+    index: str = Field(description="kNN search in use: 'exact' or 'ivf' (approximate inverted file)")
+
+
+class Health(BaseModel):
+    status: str

@@ -1,0 +1,245 @@
+"""``graphslam track``: EKF / UKF tracking of walks on a radio map (steps + WiFi RSSI).
+
+Per session (positions in the radio map's frame, m):
+
+- velocity (eq. 4): each foot-module step interval gives ``v_odo = (p_{k+1} - p_k) / dt`` in the
+  session's odometry frame; it enters as ``y_v = S v_odo`` (``S`` = x/y swap) so that
+  ``y_v = M(theta) v + b`` with ``theta`` the rotation odometry -> map, estimated in the state;
+- RSSI (eq. 6): each /wifi/scan reading of an AP with a fitted model (``ApModels``), at or
+  above the map's ``min_rssi_dbm``; ``R_i = max(sigma_i, rssi_sigma_floor_db)^2`` from the fit;
+  readings beyond ``gate_sigma`` innovation std are skipped (gated);
+- start: position = kNN fix of the first locatable scan (the radio map itself); heading
+  unknown, so a bank of ``n_theta_hypotheses`` filters with theta_0 spread over the circle runs
+  in lock-step and each step reports the one with the highest cumulative innovation
+  likelihood so far (online; gated readings count as a fixed penalty). Never ground truth.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graphslam.core.apmodel import ApModels
+from graphslam.core.filters import FusionModel, GaussianState, KalmanFilter, make_filter
+from graphslam.core.knn import KnnConfig, KnnLocator
+from graphslam.core.radiomap import RadioMap
+from graphslam.core.types import Session
+from graphslam.errors import EstimationError
+from graphslam.io.atomic import atomic_open
+
+log = logging.getLogger(__name__)
+
+TRACK_HEADER = (
+    "session_id", "t_ns", "x", "y", "cov_xx", "cov_xy", "cov_yy", "vx", "vy", "theta", "theta_std", "hypothesis",
+)
+_SWAP = np.array([[0.0, 1.0], [1.0, 0.0]])
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """Filter settings for walking people (SI units; process noise per second)."""
+
+    filter: str = "ekf"
+    w0: float = 0.1  # UKF weight of the central sigma point (Paper 002's value)
+    velocity_sigma_mps: float = 0.15  # step-velocity noise per axis
+    q_position: float = 0.01  # m^2/s
+    q_velocity: float = 1.0  # (m/s)^2/s: walkers turn and stop
+    q_bias: float = 1e-6  # (m/s)^2/s
+    q_theta: float = 1e-4  # rad^2/s: foot-module heading drift
+    init_position_sigma_m: float = 4.0
+    init_velocity_sigma_mps: float = 1.0
+    init_bias_sigma_mps: float = 0.05
+    n_theta_hypotheses: int = 8
+    rssi_sigma_floor_db: float = 4.0
+    gate_sigma: float = 3.0
+    knn_k: int = 3
+
+    def __post_init__(self) -> None:
+        if self.filter not in ("ekf", "ukf"):
+            raise EstimationError(f"track: unknown filter {self.filter!r}; use ekf or ukf")
+        if self.n_theta_hypotheses < 1 or self.velocity_sigma_mps <= 0 or self.rssi_sigma_floor_db <= 0:
+            raise EstimationError("track: n_theta_hypotheses >= 1 and positive noise levels required")
+
+
+@dataclass(frozen=True, eq=False)
+class SessionTrack:
+    """Filtered state at every step (after the step's velocity update): x (N, 7), P (N, 7, 7)."""
+
+    session_id: str
+    t_ns: NDArray[np.int64]
+    x: NDArray[np.float64]
+    P: NDArray[np.float64]
+    hypothesis: NDArray[np.int64]  # theta hypothesis reported at each step
+    n_rssi_used: int  # of the hypothesis reported at the last step
+    n_rssi_gated: int
+
+    @property
+    def xy(self) -> NDArray[np.float64]:
+        return self.x[:, :2]
+
+
+@dataclass(frozen=True, eq=False)
+class TrackRun:
+    tracks: tuple[SessionTrack, ...]
+    out: Path | None
+    n_aps_modelled: int
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "out": None if self.out is None else str(self.out),
+            "sessions": len(self.tracks),
+            "steps": int(sum(len(t.t_ns) for t in self.tracks)),
+            "aps_modelled": self.n_aps_modelled,
+            "rssi_used": int(sum(t.n_rssi_used for t in self.tracks)),
+            "rssi_gated": int(sum(t.n_rssi_gated for t in self.tracks)),
+        }
+
+
+def fusion_model(models: ApModels, cfg: TrackConfig) -> FusionModel:
+    """The papers' model with theta in the state, noise per second (``period_s`` = 1)."""
+    pl = models.path_loss()
+    sig = np.array([max(a.sigma_db, cfg.rssi_sigma_floor_db) for a in models.fitted])
+    return FusionModel(
+        pl,
+        q_diag=np.array([cfg.q_position] * 2 + [cfg.q_velocity] * 2 + [cfg.q_bias] * 2 + [cfg.q_theta]),
+        r_velocity=np.full(2, cfg.velocity_sigma_mps**2),
+        r_rssi=sig**2,
+        period_s=1.0,
+        theta_rad=None,
+    )
+
+
+def _scan_measurements(session: Session, bssids: Sequence[str], min_rssi_dbm: float) -> list[tuple[int, NDArray, NDArray]]:
+    index = {b: i for i, b in enumerate(bssids)}
+    out = []
+    for sc in sorted(session.scans, key=lambda s: s.t_ns):
+        pairs = sorted((index[b], r) for b, r in sc.readings.items() if b in index and r >= min_rssi_dbm)
+        if pairs:
+            out.append((sc.t_ns, np.array([p[0] for p in pairs], np.int64), np.array([p[1] for p in pairs])))
+    return out
+
+
+def track_session(
+    session: Session, model: FusionModel, locator: KnnLocator, cfg: TrackConfig = TrackConfig()
+) -> SessionTrack:
+    """Track one session (see module docstring). ``EstimationError`` if it has < 2 steps or no scan
+    the radio map can locate."""
+    steps = session.steps
+    if len(steps) < 2:
+        raise EstimationError(f"track: session {session.session_id} has {len(steps)} steps (need 2)")
+    filt: KalmanFilter = make_filter(cfg.filter, model, w0=cfg.w0)
+    bssids = model.path_loss.bssids
+    meas = _scan_measurements(session, bssids, locator.radio_map.min_rssi_dbm)
+    fix = locator.locate([sc.readings for sc in session.scans]) if session.scans else None
+    ok = np.flatnonzero(fix.valid) if fix is not None else np.zeros(0, int)
+    if not len(ok):
+        raise EstimationError(f"track: session {session.session_id}: no scan could be located on the radio map")
+    p0 = fix.xy[ok[0]]
+    t = steps.t_ns
+    v_odo = np.diff(steps.xy, axis=0) / (np.diff(t)[:, None] / 1e9)
+    y_v = v_odo @ _SWAP.T
+    H = cfg.n_theta_hypotheses
+    P0 = np.diag(
+        [cfg.init_position_sigma_m**2] * 2 + [cfg.init_velocity_sigma_mps**2] * 2
+        + [cfg.init_bias_sigma_mps**2] * 2 + [(math.pi / H) ** 2]
+    )
+    states = [GaussianState(np.array([p0[0], p0[1], 0, 0, 0, 0, 2 * math.pi * h / H]), P0) for h in range(H)]
+    ll = np.zeros(H)
+    penalty = 0.5 * cfg.gate_sigma**2  # a gated reading costs at least what a 'gate_sigma' one would
+    xs, Ps, best = [], [], []
+    used = np.zeros(H, np.int64)  # per hypothesis: RSSI readings used / gated
+    gated = np.zeros(H, np.int64)
+    j = 0
+    while j < len(meas) and meas[j][0] <= t[0]:
+        j += 1  # scans before the first step: the kNN start already used them
+    for k in range(len(t)):
+        if k < len(t) - 1:
+            for h in range(H):
+                states[h], info = filt.update(states[h], y_v[k], use_velocity=True)
+                ll[h] += info.loglik
+        b = int(np.argmax(ll))
+        xs.append(states[b].x)
+        Ps.append(states[b].P)
+        best.append(b)
+        if k == len(t) - 1:
+            break
+        t_now = t[k]
+        while j < len(meas) and meas[j][0] <= t[k + 1]:
+            ts, idx, rss = meas[j]
+            for h in range(H):
+                s = filt.predict(states[h], (ts - t_now) / 1e9)
+                states[h], info = filt.update(s, rss, use_velocity=False, ap_idx=idx, gate_sigma=cfg.gate_sigma)
+                ll[h] += info.loglik - penalty * info.n_gated
+                used[h] += info.n_used
+                gated[h] += info.n_gated
+            t_now = ts
+            j += 1
+        dt = (t[k + 1] - t_now) / 1e9
+        states = [filt.predict(s, dt) for s in states]
+    return SessionTrack(
+        session.session_id, t.copy(), np.array(xs), np.array(Ps), np.array(best, np.int64),
+        int(used[best[-1]]), int(gated[best[-1]]),
+    )
+
+
+def write_track_csv(tracks: Iterable[SessionTrack], path: str | Path) -> Path:
+    """CSV (``TRACK_HEADER``), one row per step, written atomically. Units: m, m^2, m/s, rad."""
+    path = Path(path)
+    with atomic_open(path, "w", encoding="utf-8", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(TRACK_HEADER)
+        for tr in tracks:
+            for t, x, P, h in zip(tr.t_ns.tolist(), tr.x, tr.P, tr.hypothesis.tolist()):
+                w.writerow((
+                    tr.session_id, t, f"{x[0]:.4f}", f"{x[1]:.4f}", f"{P[0, 0]:.5f}", f"{P[0, 1]:.5f}",
+                    f"{P[1, 1]:.5f}", f"{x[2]:.4f}", f"{x[3]:.4f}", f"{math.remainder(x[6], 2 * math.pi):.5f}",
+                    f"{math.sqrt(max(P[6, 6], 0.0)):.5f}", h,
+                ))
+    return path
+
+
+def track_sessions(
+    sessions: Sequence[Session], rm: RadioMap, models: ApModels, cfg: TrackConfig = TrackConfig()
+) -> tuple[SessionTrack, ...]:
+    """Track every session on ``rm`` with the AP models ``models`` (same frame as ``rm``)."""
+    if models.frame != rm.frame:
+        raise EstimationError(f"track: AP models are in frame {models.frame!r}, radio map in {rm.frame!r}")
+    model = fusion_model(models, cfg)
+    locator = KnnLocator(rm, KnnConfig(k=cfg.knn_k))
+    return tuple(track_session(s, model, locator, cfg) for s in sessions)
+
+
+def track_files(
+    radio_map_path: str | Path,
+    session_paths: Iterable[str | Path],
+    *,
+    ap_models_path: str | Path | None = None,
+    out: str | Path | None = None,
+    cfg: TrackConfig = TrackConfig(),
+) -> TrackRun:
+    """Read the radio map, its AP models (``ap_models_path``, else ``ap_models.json`` beside the map,
+    else fitted now), the sessions (MCAP); track; write ``out`` (CSV)."""
+    from graphslam.core.apmodel import read_ap_models
+    from graphslam.io.mcap_reader import read_survey
+    from graphslam.io.radiomap_io import read_radio_map
+
+    rm = read_radio_map(radio_map_path)
+    beside = Path(radio_map_path).with_name("ap_models.json")
+    if ap_models_path is not None:
+        models = read_ap_models(ap_models_path)
+    elif beside.exists():
+        models = read_ap_models(beside)
+    else:
+        log.info("no AP models beside %s: fitting them now", radio_map_path)
+        models = ApModels.fit(rm)
+    survey = read_survey(list(session_paths))
+    tracks = track_sessions(survey.sessions, rm, models, cfg)
+    written = write_track_csv(tracks, out) if out is not None else None
+    return TrackRun(tracks, written, len(models.fitted))

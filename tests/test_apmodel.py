@@ -1,0 +1,132 @@
+"""Access-point fits (graphslam.core.apmodel) and the track CLI end to end."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+
+from graphslam.core.apmodel import ApFitConfig, ApModel, ApModels, UnfittedAp, fit_ap, read_ap_models, write_ap_models
+from graphslam.core.radiomap import RadioMap
+
+AP = np.array([7.0, 4.0])
+P0, GAMMA = -38.0, 2.4
+
+
+def _readings(rng, n=300, sigma=0.0, outliers=0.0):
+    xy = rng.uniform([-5, -10], [25, 15], (n, 2))
+    d = np.sqrt(((xy - AP) ** 2).sum(1) + 1.0)
+    rss = P0 - 10 * GAMMA * np.log10(d) + rng.normal(0, sigma, n) if sigma else P0 - 10 * GAMMA * np.log10(d)
+    bad = rng.random(n) < outliers
+    rss = np.where(bad, rss + 15.0, rss)  # multipath: abnormally high readings (Paper 000 fig. 4)
+    return xy, rss
+
+
+def test_noiseless_readings_recover_the_ap_exactly():
+    xy, rss = _readings(np.random.default_rng(0))
+    a = fit_ap("ap", xy, rss)
+    assert isinstance(a, ApModel)
+    np.testing.assert_allclose([a.x, a.y, a.p0_dbm, a.gamma], [*AP, P0, GAMMA], atol=1e-4)
+
+
+def test_noisy_readings_with_outliers_recover_the_ap_with_honest_uncertainty():
+    xy, rss = _readings(np.random.default_rng(1), sigma=4.0, outliers=0.05)
+    a = fit_ap("ap", xy, rss)
+    assert isinstance(a, ApModel)
+    assert np.hypot(a.x - AP[0], a.y - AP[1]) < 1.5
+    assert abs(a.gamma - GAMMA) < 0.4 and abs(a.p0_dbm - P0) < 4.0
+    assert 0.05 < a.position_std_m < 2.0
+    assert 3.0 < a.sigma_db < 5.5
+    assert np.all(np.linalg.eigvalsh(np.array(a.cov)) > 0)
+
+
+def test_unfittable_aps_are_reported_with_a_reason():
+    rng = np.random.default_rng(2)
+    xy, rss = _readings(rng, n=10)
+    u = fit_ap("few", xy, rss)
+    assert isinstance(u, UnfittedAp) and "too few" in u.reason and u.n_readings == 10
+    line = np.column_stack([np.linspace(0, 30, 80), np.full(80, 2.0) + rng.normal(0, 0.1, 80)])
+    u = fit_ap("line", line, P0 - 24 * np.log10(np.hypot(*(line - AP).T) + 1))
+    assert isinstance(u, UnfittedAp) and "degenerate" in u.reason
+    # an AP far outside the readings: position at its search bound, not invented
+    far = np.array([200.0, 200.0])
+    xy = rng.uniform(0, 10, (100, 2))
+    u = fit_ap("far", xy, -40 - 25 * np.log10(np.hypot(*(xy - far).T)) + rng.normal(0, 4, 100))
+    assert isinstance(u, UnfittedAp), u
+
+
+def test_radio_map_fit_and_json_round_trip(tmp_path):
+    rng = np.random.default_rng(3)
+    xy, rss = _readings(rng, sigma=2.0)
+    scans = [{"ap": float(np.round(r)), "rare": -50.0} if i < 3 else {"ap": float(np.round(r))} for i, r in enumerate(rss)]
+    rm = RadioMap.from_scans(scans, xy, session_ids="s", t_ns=np.arange(len(xy)), frame="site")
+    models = ApModels.fit(rm, ApFitConfig(min_readings=20))
+    assert [a.bssid for a in models.fitted] == ["ap"]
+    assert [u.bssid for u in models.unfitted] == ["rare"]
+    p = write_ap_models(models, tmp_path / "ap_models.json")
+    back = read_ap_models(p)
+    assert back.fitted == models.fitted and back.unfitted == models.unfitted and back.frame == "site"
+    pl = back.path_loss()
+    assert pl.bssids == ("ap",) and pl.min_distance_m == models.min_distance_m
+
+
+@pytest.fixture(scope="module")
+def tiny_case(tmp_path_factory):
+    """A surveyed radio map of the simulator's paper building (2 walks at their true positions) and
+    the first 80 steps of one held-out walk, as files."""
+    from graphslam.core.evaluate import interpolate_xy
+    from graphslam.core.types import PoseTrack, Session
+    from graphslam.io.mcap_writer import write_session
+    from graphslam.io.radiomap_io import write_radio_map
+    from graphslam.sim import simulate
+
+    sim = simulate("paper", seed=0, test_walks=1)
+    scans, xys = [], []
+    for s in sim.survey.sessions[:2]:
+        t = np.array([sc.t_ns for sc in s.scans], float)
+        xys.append(interpolate_xy(s.ground_truth, t))
+        scans += [dict(sc.readings) for sc in s.scans]
+    rm = RadioMap.from_scans(scans, np.concatenate(xys), session_ids="m", t_ns=np.arange(len(scans)), frame="site")
+    d = tmp_path_factory.mktemp("track")
+    write_radio_map(rm, d / "radio_map.parquet")
+    s = sim.test_sessions[0]
+    n = 80
+    st = PoseTrack(s.steps.t_ns[:n], s.steps.xy[:n], s.steps.heading[:n])
+    gt = s.ground_truth
+    keep = gt.t_ns <= st.t_ns[-1]
+    short = Session(
+        s.session_id, st, tuple(sc for sc in s.scans if sc.t_ns <= st.t_ns[-1]),
+        ground_truth=PoseTrack(gt.t_ns[keep], gt.xy[keep], gt.heading[keep]),
+    )
+    write_session(short, d / "walk.mcap")
+    return d, short
+
+
+def test_fit_aps_and_track_cli_end_to_end(tiny_case):
+    from graphslam.cli import main
+    from graphslam.core.evaluate import interpolate_xy
+
+    d, session = tiny_case
+    main(["fit-aps", "--radio-map", str(d / "radio_map.parquet")])
+    assert (d / "ap_models.json").exists()
+    out = d / "positions.csv"
+    main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--filter", "ekf", "--out", str(out)])
+    rows = list(csv.DictReader(out.open()))
+    assert len(rows) == len(session.steps)
+    assert [int(r["t_ns"]) for r in rows] == session.steps.t_ns.tolist()
+    xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
+    cov = np.array([[float(r["cov_xx"]), float(r["cov_yy"])] for r in rows])
+    assert (cov > 0).all()
+    err = np.linalg.norm(xy - interpolate_xy(session.ground_truth, session.steps.t_ns.astype(float)), axis=1)
+    assert err[len(err) // 2 :].mean() < 4.0, err.mean()  # after the start-up (heading unknown at first)
+
+
+def test_track_cli_rejects_unknown_filter(tiny_case, capsys):
+    from graphslam.cli import main
+
+    d, _ = tiny_case
+    with pytest.raises(SystemExit) as e:
+        main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--filter", "pf", "--out", str(d / "x.csv")])
+    assert e.value.code == 2 and "ekf or ukf" in capsys.readouterr().err
+    assert not (d / "x.csv").exists()
