@@ -273,6 +273,11 @@ def bench_ujiindoorloc(
     """kNN on UJIIndoorLoc (train: trainingData, test: validationData); prints one JSON line."""
     from graphslam.uji_bench import run_ujiindoorloc_benchmark
 
+    if index != "exact":
+        from graphslam.core.ivf import limit_blas_threads
+
+        limit_blas_threads(1)  # the IVF search's small GEMMs (see limit_blas_threads)
+
     r = run_ujiindoorloc_benchmark(
         data_dir, k=k, weighted=weighted, min_rssi_dbm=min_rssi, missing_dbm=missing_dbm,
         min_common=min_common, repeats=repeats, index=index, ivf_clusters=ivf_clusters, ivf_probes=ivf_probes,
@@ -331,6 +336,7 @@ def serve(
     index: str = typer.Option("auto", "--index", help=INDEX_HELP + " Default: auto (IVF from 5,000 references)."),
     ivf_clusters: Optional[int] = typer.Option(None, "--ivf-clusters", min=1, help=IVF_CLUSTERS_HELP),
     ivf_probes: Optional[int] = typer.Option(None, "--ivf-probes", min=1, help=IVF_PROBES_HELP),
+    workers: int = typer.Option(1, "--workers", min=1, help="Server processes (each loads the map; ~1 core each)."),
 ) -> None:
     """Serve kNN positioning over HTTP (POST /v1/locate, GET /v1/radio-map, GET /healthz, /openapi.json)."""
     from graphslam.service.server import serve as serve_map
@@ -338,7 +344,7 @@ def serve(
     serve_map(
         radio_map, host=host, port=port, k=k, weighted=weighted, min_common=min_common,
         max_batch=max_batch, max_body_bytes=max_body_bytes, index=index, ivf_clusters=ivf_clusters,
-        ivf_probes=ivf_probes,
+        ivf_probes=ivf_probes, workers=workers,
     )
 
 

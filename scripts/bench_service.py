@@ -15,7 +15,10 @@ Every loop is bounded in count (--single-requests, --batch-requests) and in time
 (--time-budget seconds per phase); the server process (ours, by its pid) is stopped at
 the end. Prints a summary and one JSON line.
 
-    python scripts/bench_service.py [DATA_DIR] [--k 7] [--batch 1000]
+The server's search is ``--index`` (default ``auto``: the IVF index on this map) and it
+runs ``--workers`` processes (default 1).
+
+    python scripts/bench_service.py [DATA_DIR] [--k 7] [--batch 1000] [--index auto] [--workers 1]
 """
 
 from __future__ import annotations
@@ -137,6 +140,8 @@ def main() -> int:
     ap.add_argument("--batch", type=int, default=1000)
     ap.add_argument("--batch-requests", type=int, default=12)
     ap.add_argument("--time-budget", type=float, default=60.0, help="seconds per phase, at most")
+    ap.add_argument("--index", default="auto", help="kNN search of the server: exact, ivf or auto")
+    ap.add_argument("--workers", type=int, default=1, help="server processes (graphslam serve --workers)")
     args = ap.parse_args()
 
     from graphslam.uji_bench import TEST_FILE, TRAIN_FILE, find_uji_file
@@ -163,14 +168,15 @@ def main() -> int:
     batch_bodies = [batch_of(i * args.batch) for i in range(4)]
 
     out: dict[str, object] = {"n_fingerprints_map": len(rm), "n_aps_map": rm.fingerprints.n_aps, "k": args.k,
-                              "batch": args.batch}
+                              "batch": args.batch, "index": args.index, "workers": args.workers}
     with tempfile.TemporaryDirectory(prefix="graphslam-bench-") as tmp:
         map_path = args.radio_map or write_radio_map(rm, Path(tmp) / "uji.parquet")
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP) as probe:
             probe.bind((LOOPBACK, 0))
             port = probe.getsockname()[1]
         cmd = [sys.executable, "-m", "graphslam.cli", "serve", "--radio-map", str(map_path), "--host", LOOPBACK,
-               "--port", str(port), "--k", str(args.k), "--max-batch", str(max(args.batch, 1))]
+               "--port", str(port), "--k", str(args.k), "--max-batch", str(max(args.batch, 1)),
+               "--index", args.index, "--workers", str(args.workers)]
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         url = f"http://{LOOPBACK}:{port}"
         try:
@@ -186,7 +192,8 @@ def main() -> int:
                 proc.wait(10)
             except subprocess.TimeoutExpired:
                 proc.kill()
-    print(f"radio map: {len(rm)} fingerprints, {rm.fingerprints.n_aps} APs; k={args.k}; server pid {proc.pid}")
+    print(f"radio map: {len(rm)} fingerprints, {rm.fingerprints.n_aps} APs; k={args.k}; index={args.index}; "
+          f"{args.workers} server process(es); server pid {proc.pid}")
     print(f"single fingerprint: p50 {out['p50_ms']:.2f} ms, p99 {out['p99_ms']:.2f} ms, "
           f"max {out['max_ms']:.2f} ms over {out['single_requests']} requests")
     for clients in (1, 2):

@@ -2,20 +2,20 @@
 
 Exact kNN scores every query against every reference (UJIIndoorLoc: ~40 GFlop per
 1,000 queries). The IVF index partitions the references once, by k-means on their
-dense shifted-RSS vectors, and scores a query only against the members of the
-``probes`` clusters whose centroids are nearest to it (Euclidean, one GEMM). Inside
-the probed clusters eq. 9 is evaluated *exactly*, with the same formula as
+dense shifted-RSS vectors (oversized clusters split), and scores a query only against
+the members of the ``probes`` clusters whose centroids are nearest to it (Euclidean).
+Inside the probed clusters eq. 9 is evaluated *exactly*, with the same formula as
 ``DistanceEngine``; the only approximation is which references are looked at. With
 ``probes == clusters`` the answer is the exact search's (tested).
 
 Layout, chosen so that a batch costs a loop over clusters only (never over queries or
 references): per cluster, its members (ascending map rows), the union of the APs
-they heard (``cols``: a cluster is a place, so this is a small subset of the AP
-index) and dense (|cols|, n_c) float64 RSS / float32 heard matrices. For a batch,
-queries are grouped by probed cluster; each group is one small GEMM for the dot
-products and one for the shared-AP counts over the cluster's columns (APs outside
-them add nothing to either), then eq. 9 and a per-cluster top k. The P partial top-k
-lists of every query are merged with one lexsort.
+they heard (``cols``: a cluster is a place, so ~50 of UJIIndoorLoc's 443 APs) and
+dense (|cols|, n_c) matrices. For a batch, (query, probe) pairs are grouped by
+cluster; each group is one small GEMM for eq. 9's numerators and one for the
+shared-AP counts over the cluster's columns (APs outside them add nothing to
+either). Distances go to a (Q, probes x largest cluster) buffer, one row per query,
+and k rounds of ``argmin`` pick the k nearest.
 
 Ties follow the exact path: equal distances are ordered by map row, so with all
 clusters probed the neighbours are the same references in the same order.
@@ -41,6 +41,8 @@ KMEANS_DENSE_MAX_CELLS = 64_000_000
 ASSIGN_BLOCK_CELLS = 8_000_000
 DEFAULT_KMEANS_ITERATIONS = 25
 DEFAULT_SEED = 0
+# Clusters above this multiple of the mean size are split (see split_oversized).
+DEFAULT_MAX_SIZE_RATIO = 2.0
 
 
 def limit_blas_threads(n: int = 1) -> bool:
@@ -58,9 +60,40 @@ def limit_blas_threads(n: int = 1) -> bool:
     return True
 
 
+def split_oversized(
+    x: NDArray | sparse.csr_matrix, cent: NDArray[np.float32], labels: NDArray[np.int64], cap: int
+) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+    """Split clusters of more than ``cap`` members into equal consecutive chunks along their
+    principal axis, and recompute every centroid. Why: k-means leaves a few big clusters (dense
+    survey spots: UJIIndoorLoc's largest holds 10x the median), and a search's candidate buffer
+    is ``probes x largest cluster`` wide; big clusters also cost the most to probe."""
+    sizes = np.bincount(labels, minlength=len(cent))
+    big = np.flatnonzero(sizes > cap)
+    if not len(big):
+        return cent, labels
+    labels = labels.copy()
+    next_label = len(cent)
+    for c in big.tolist():  # build time, a few dozen clusters at most
+        mem = np.flatnonzero(labels == c)
+        sub = x[mem]
+        sub = np.asarray(sub.toarray() if sparse.issparse(sub) else sub, np.float64)
+        sub -= sub.mean(axis=0)
+        axis = np.linalg.svd(sub, full_matrices=False)[2][0]
+        chunks = np.array_split(mem[np.argsort(sub @ axis, kind="stable")], -(-len(mem) // cap))
+        for ch in chunks[1:]:
+            labels[ch] = next_label
+            next_label += 1
+    n = len(labels)
+    counts = np.bincount(labels, minlength=next_label).astype(np.float32)
+    ind = sparse.csr_matrix((np.ones(n, np.float32), (labels, np.arange(n))), shape=(next_label, n))
+    sums = ind @ x
+    sums = np.asarray(sums.toarray() if sparse.issparse(sums) else sums, np.float32)
+    return np.ascontiguousarray(sums / counts[:, None]), labels
+
+
 def default_clusters(n_refs: int) -> int:
     """~2 sqrt(N) clusters: clusters of ~sqrt(N)/2 references (UJIIndoorLoc: 282 of ~71)."""
-    return max(1, int(round(2.0 * math.sqrt(max(1, n_refs)))))
+    return max(1, round(2.0 * math.sqrt(max(1, n_refs))))
 
 
 def _sq_rows(x: NDArray | sparse.csr_matrix) -> NDArray[np.float32]:
@@ -152,12 +185,13 @@ class _Cluster:
 
 class IvfIndex:
     """k-means inverted file over a reference ``FingerprintMatrix``. Read-only after construction
-    (thread-safe). ``clusters``: requested C (``None``: ``default_clusters(N)``); fewer may remain
-    (``n_clusters``) when the references have fewer distinct fingerprints."""
+    (thread-safe). ``clusters``: k-means C (``None``: ``default_clusters(N)``). The index's
+    ``n_clusters`` can differ: clusters left empty (fewer distinct fingerprints than C) are
+    dropped, clusters over ``max_size_ratio`` x the mean size are split."""
 
     def __init__(
         self, ref: FingerprintMatrix, *, clusters: int | None = None, seed: int = DEFAULT_SEED,
-        iterations: int = DEFAULT_KMEANS_ITERATIONS,
+        iterations: int = DEFAULT_KMEANS_ITERATIONS, max_size_ratio: float = DEFAULT_MAX_SIZE_RATIO,
     ) -> None:
         n = len(ref)
         c_req = default_clusters(n) if clusters is None else clusters
@@ -171,7 +205,9 @@ class IvfIndex:
             x = v.toarray().astype(np.float32)
         else:
             x = v.astype(np.float32)
-        self.centroids, self.labels = kmeans(x, min(c_req, max(1, n)), seed=seed, iterations=iterations)
+        cent, labels = kmeans(x, min(c_req, max(1, n)), seed=seed, iterations=iterations)
+        cap = max(1, math.ceil(max_size_ratio * n / max(1, len(cent))))
+        self.centroids, self.labels = split_oversized(x, cent, labels, cap)
         self.centroids_T = np.ascontiguousarray(self.centroids.T)
         self.centroid_sq = np.einsum("ij,ij->i", self.centroids, self.centroids)
         # Same norms / counts as DistanceEngine, so distances agree with the exact path.
@@ -185,6 +221,8 @@ class IvfIndex:
             sub = v[mem]
             cols = np.unique(sub.indices).astype(np.int64)
             dense = sub[:, cols].toarray()
+            # [q, |q|^2, 1] @ [-2 v^T; 1; |v|^2] = |q|^2 + |v|^2 - 2 q.v, eq. 9's numerator, in one
+            # GEMM (a fused block-diagonal GEMM with the counts measured slower: twice the flops).
             a_t = np.empty((len(cols) + 2, len(mem)))
             a_t[:-2] = -2.0 * dense.T
             a_t[-2] = 1.0
@@ -201,6 +239,7 @@ class IvfIndex:
                 )
             )
         self.sizes = np.array([len(c.members) for c in self.clusters], np.int64)
+        self.max_size = int(self.sizes.max()) if len(self.sizes) else 0
         self.starts = np.concatenate([[0], np.cumsum(self.sizes)[:-1]]).astype(np.int64)
         self.members_flat = order.astype(np.int64)  # cluster after cluster, as ``starts`` indexes
 
@@ -237,7 +276,7 @@ class IvfIndex:
         qd = q.values.toarray()
         q_sq = np.asarray(q.values.multiply(q.values).sum(axis=1)).ravel() + q.extra_sq
         q_n = q.heard.astype(np.float64)
-        # Augmented query rows: [v, |v|^2, 1] . [-2 r, 1, |r|^2] = eq. 9's numerator in one GEMM.
+        # Augmented query rows [v, |v|^2, 1] (see _Cluster.aT) and heard flags.
         qa = np.empty((m, qd.shape[1] + 2))
         qa[:, :-2] = qd
         qa[:, -2] = q_sq
@@ -245,93 +284,88 @@ class IvfIndex:
         qb = (qd > 0).astype(np.float32)
         probe = self.probe(q, probes)
         p = probe.shape[1]
-        # Each query's candidates laid out in one row of a (Q, L) buffer, probe after probe.
-        sizes = self.sizes[probe]
-        off = np.zeros_like(sizes)
-        np.cumsum(sizes[:, :-1], axis=1, out=off[:, 1:])
-        width = max(1, int((off[:, -1] + sizes[:, -1]).max()))
-        buf = np.full((m, width), np.inf)
+        width = max(1, self.max_size)
+        # Candidate buffer: row q*p + s holds the distances to the members of query q's s-th probed
+        # cluster (inf past its size), so a query's candidates are one contiguous row of p * width.
+        buf = np.full((m * p, width), np.inf)
         # Group (query, probe slot) pairs by cluster: one sort, then contiguous runs per cluster.
         flat = probe.ravel()
         order = np.argsort(flat, kind="stable")
         bounds = np.searchsorted(flat[order], np.arange(self.n_clusters + 1))
         q_of = order // p
-        off_of = off.ravel()[order]
         need = max(1, min_common)
         with np.errstate(divide="ignore", invalid="ignore"):
             for c in np.flatnonzero(bounds[1:] > bounds[:-1]).tolist():
                 cl = self.clusters[c]
                 lo, hi = bounds[c], bounds[c + 1]
                 rows = q_of[lo:hi]
-                r2 = rows[:, None]
-                num = qa[r2, cl.acols] @ cl.aT
-                com = qb[r2, cl.cols] @ cl.bT
-                den = q_n[r2] + cl.ref_n - com
+                # take(rows) then take(cols): two contiguous gathers, cheaper than one 2-D fancy index
+                num = qa.take(rows, axis=0).take(cl.acols, axis=1) @ cl.aT
+                com = qb.take(rows, axis=0).take(cl.cols, axis=1) @ cl.bT
+                den = q_n[rows, None] + cl.ref_n - com
+                # eq. 9, clamped like the exact path (rounding can leave a tiny negative numerator)
                 np.maximum(num, 0.0, out=num)
                 num /= den
                 np.sqrt(num, out=num)
-                num[com < need] = np.inf
-                buf[r2, off_of[lo:hi, None] + cl.arange] = num
-        pos, dist = _k_smallest(buf, k)
-        # Buffer position -> (probe slot, offset in the cluster) -> map row.
-        slot = (pos[:, :, None] >= off[:, None, :]).sum(axis=2) - 1
-        ci = np.take_along_axis(probe, slot, axis=1)
-        local = pos - np.take_along_axis(off, slot, axis=1)
-        idx = self.members_flat[self.starts[ci] + local]
+                np.copyto(num, np.inf, where=com < need)  # also every 0/0 (den is 0 only if nothing is shared)
+                buf[order[lo:hi], : len(cl.members)] = num
+        buf = buf.reshape(m, p * width)
+        pos, dist, straddle = _k_smallest(buf, k)  # buf now holds the unselected entries only
+        idx = self._rows_at(probe, pos, width)
         bad = ~np.isfinite(dist)
         idx[bad] = -1
+        dist[bad] = np.inf
         # Ties: equal distances ordered by map row, as the exact path does.
         o = np.lexsort((np.where(bad, np.iinfo(np.int64).max, idx), dist), axis=1)
         idx = np.take_along_axis(idx, o, axis=1)
         dist = np.take_along_axis(dist, o, axis=1)
-        _fix_straddling_ties(buf, pos, dist, idx, lambda r, cols: self._rows_of(probe[r], off[r], cols))
+        _fix_straddling_ties(buf, straddle, dist, idx, lambda r, cols: self._rows_at(probe[r : r + 1], cols[None, :], width)[0])
         return idx, dist
 
-    def _rows_of(self, probe_r: NDArray[np.int64], off_r: NDArray[np.int64], pos: NDArray[np.int64]) -> NDArray[np.int64]:
-        slot = np.searchsorted(off_r, pos, side="right") - 1
-        return self.members_flat[self.starts[probe_r[slot]] + pos - off_r[slot]]
+    def _rows_at(self, probe: NDArray[np.int64], pos: NDArray[np.int64], width: int) -> NDArray[np.int64]:
+        """Map rows of candidate-buffer positions (-1 for padding)."""
+        slot, local = np.divmod(pos, width)
+        ci = np.take_along_axis(probe, slot, axis=1)
+        ok = local < self.sizes[ci]
+        return np.where(ok, self.members_flat[np.where(ok, self.starts[ci] + local, 0)], -1)
 
 
-_INT_INF = np.float64(np.inf).view(np.int64)
-
-
-def _k_smallest(buf: NDArray[np.float64], k: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+def _k_smallest(buf: NDArray[np.float64], k: int) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.bool_]]:
     """Positions and values of each row's k smallest entries (first occurrence first among
-    equals). Why k rounds of argmin: argmin is a vectorised streaming pass, much cheaper than
-    argpartition for small k; the int64 view of non-negative floats (and +inf) keeps their order."""
+    equals), and whether an unselected entry ties with the k-th (see ``_fix_straddling_ties``).
+    Why k rounds of argmin: argmin is a vectorised streaming pass, much cheaper than
+    argpartition for small k; the int64 view of non-negative floats (and +inf) keeps their order.
+    In place: selected entries of ``buf`` are overwritten (int64 max, a NaN)."""
     m, w = buf.shape
     kk = min(k, w)
-    x = buf.copy().view(np.int64)
+    x = buf.view(np.int64)
     r = np.arange(m)
-    pos = np.empty((m, k), np.int64)
+    pos = np.zeros((m, k), np.int64)
+    dist = np.full((m, k), np.inf)
     for j in range(kk):
         a = np.argmin(x, axis=1)
         pos[:, j] = a
+        dist[:, j] = buf[r, a]
         x[r, a] = np.iinfo(np.int64).max
-    pos[:, kk:] = pos[:, :1] if kk else 0
-    dist = np.take_along_axis(buf, pos, axis=1)
-    dist[:, kk:] = np.inf
-    return pos, dist
+    # One more round: the best unselected entry ties with the k-th selected one -> tie straddles k.
+    straddle = np.zeros(m, bool)
+    if 0 < kk < w:
+        nxt = buf[r, np.argmin(x, axis=1)]
+        straddle = np.isfinite(dist[:, kk - 1]) & (nxt == dist[:, kk - 1])
+    return pos, dist, straddle
 
 
 def _fix_straddling_ties(
-    buf: NDArray[np.float64], pos: NDArray[np.int64], dist: NDArray[np.float64], idx: NDArray[np.int64],
-    rows_of: "Callable[[int, NDArray[np.int64]], NDArray[np.int64]]",
+    rest: NDArray[np.float64], straddle: NDArray[np.bool_], dist: NDArray[np.float64], idx: NDArray[np.int64],
+    rows_of: Callable[[int, NDArray[np.int64]], NDArray[np.int64]],
 ) -> None:
-    """Rows where references tied at the k-th distance were not all selected: keep the lowest
-    map rows among them (the exact path's rule). Rare; in place."""
+    """Rows where references tied at the k-th distance were left unselected (still in ``rest``,
+    the buffer minus the selected entries): keep the lowest map rows among all the tied ones
+    (the exact path's rule). Rare; in place."""
     k = dist.shape[1]
     tau = dist[:, -1]
-    fin = np.isfinite(tau)
-    if not fin.any():
-        return
-    n_tied = (buf == tau[:, None]).sum(axis=1)
-    straddle = fin & (n_tied > (dist == tau[:, None]).sum(axis=1))
     for r in np.flatnonzero(straddle).tolist():
-        below = np.flatnonzero(buf[r] < tau[r])
-        tied = np.flatnonzero(buf[r] == tau[r])
-        rb, rt = rows_of(r, below), np.sort(rows_of(r, tied))[: k - len(below)]
-        ids = np.concatenate([rb, rt])
-        d = np.concatenate([buf[r, below], np.full(len(rt), tau[r])])
-        o = np.lexsort((ids, d))
+        ids = np.concatenate([idx[r], rows_of(r, np.flatnonzero(rest[r] == tau[r]))])
+        d = np.concatenate([dist[r], np.full(len(ids) - k, tau[r])])
+        o = np.lexsort((ids, d))[:k]
         idx[r], dist[r] = ids[o], d[o]

@@ -268,6 +268,8 @@ class KnnLocator:
             IvfIndex(radio_map.fingerprints, clusters=cfg.ivf_clusters, seed=cfg.ivf_seed)
             if use_ivf and len(radio_map) else None
         )
+        if self.ivf is not None:
+            self.threads = 1  # the IVF loop holds the GIL: see _rows_per_block
         # Sparse products and numpy kernels release the GIL: two blocks in flight use both cores.
         self.threads = max(1, threads if threads is not None else min(2, os.cpu_count() or 1))
         self._floors = _Labels(radio_map.floors) if radio_map.floors is not None else None

@@ -20,7 +20,6 @@ import logging
 from typing import Any, Awaitable, Callable, MutableMapping
 
 import orjson
-
 from fastapi import FastAPI, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
@@ -48,6 +47,7 @@ log = logging.getLogger(__name__)
 DEFAULT_MAX_BATCH = 10_000
 DEFAULT_MAX_BODY_BYTES = 32 * 1024 * 1024
 INLINE_MAX = 8  # batches up to this size are answered on the event loop (see locate())
+PARSE_INLINE_MAX_BYTES = 64 * 1024  # bigger bodies (~100+ fingerprints) are parsed off the event loop
 __all__ = [
     "BSSID_MAX_CHARS", "MAX_READINGS", "RSSI_MAX_DBM", "RSSI_MIN_DBM", "Fingerprint", "Health",
     "LocateRequest", "LocateResponse", "Position", "RadioMapInfo", "create_app",
@@ -216,7 +216,7 @@ def create_app(
         # Parsed here, not by FastAPI: orjson + a vectorised check, with LocateRequest's exact
         # semantics and messages (graphslam.service.parsing); ~10x cheaper on big batches.
         body = await request.body()
-        if len(body) > 64 * 1024:
+        if len(body) > PARSE_INLINE_MAX_BYTES:
             scans = await run_in_threadpool(validated_scans, body, request.headers.get("content-type"))
         else:
             scans = validated_scans(body, request.headers.get("content-type"))

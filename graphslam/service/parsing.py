@@ -28,7 +28,13 @@ import orjson
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 
-from graphslam.service.models import BSSID_MAX_CHARS, MAX_READINGS, RSSI_MAX_DBM, RSSI_MIN_DBM, LocateRequest
+from graphslam.service.models import (
+    BSSID_MAX_CHARS,
+    MAX_READINGS,
+    RSSI_MAX_DBM,
+    RSSI_MIN_DBM,
+    LocateRequest,
+)
 
 Scan = Mapping[str, float]
 _NUMBER_TYPES = frozenset({float, int})
