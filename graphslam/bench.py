@@ -86,7 +86,9 @@ def survey_speed(
             proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "RERUN": "off"})
             walls.append(time.perf_counter() - t)
             if proc.returncode != 0:
-                raise RuntimeError(f"survey failed: {proc.stderr.strip()}")
+                from graphslam.errors import SolverError
+
+                raise SolverError(f"benchmark survey run failed: {proc.stderr.strip()}")
             peak_kb = max(peak_kb, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, before)
             rep = json.loads((out / "report.json").read_text())
             totals.append(rep["timings_s"]["total"])

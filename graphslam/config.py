@@ -120,7 +120,7 @@ def config_from_dict(data: dict[str, Any] | None, source: str = "<dict>") -> Gra
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> GraphSlamConfig:
     """Load a YAML config (a partial file is merged over the defaults)."""
     data: dict[str, Any] = {}
-    source = "<defaults>"
+    source = "--set" if overrides else "<defaults>"
     if path is not None:
         source = str(path)
         try:
@@ -134,6 +134,8 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
         if loaded is not None and not isinstance(loaded, dict):
             raise ConfigError(f"{path}: top level must be a mapping")
         data = loaded or {}
+        if overrides:
+            source += " with --set"
     if overrides:
         data = _merge(data, overrides)
     return config_from_dict(data, source)

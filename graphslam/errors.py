@@ -65,3 +65,7 @@ class VisualizationError(GraphSlamError):
 
 class EstimationError(GraphSlamError):
     """A filter or an access-point fit cannot run (inconsistent model, covariance lost, no usable data)."""
+
+
+class OutputError(GraphSlamError):
+    """An output file or folder cannot be written (permissions, not a folder, disk full)."""

@@ -18,6 +18,7 @@ from graphslam.config import GraphSlamConfig
 from graphslam.core.align import Alignment, ProgressCallback, align
 from graphslam.core.evaluate import Evaluation, evaluate
 from graphslam.core.types import Survey
+from graphslam.errors import InputError, OutputError
 from graphslam.io.atomic import atomic_write_json, atomic_write_text
 from graphslam.io.csv_io import write_trajectories
 from graphslam.io.mcap_reader import read_survey
@@ -95,6 +96,7 @@ def run_survey(
 ) -> SurveyResult:
     """Read ``paths``, align every walk, write the outputs into ``out_dir`` (None: no files)."""
     cfg = config or GraphSlamConfig()
+    _check_outputs(out_dir, rerun_path, floor_plan)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     survey = read_survey(paths)
@@ -136,12 +138,29 @@ def run_survey(
     return SurveyResult(survey, alignment, evaluation, report, Path(out_dir) if out_dir else None, files)
 
 
+def _check_outputs(out_dir: str | Path | None, rerun_path: str | Path | None, floor_plan: str | Path | None) -> None:
+    """Fail before the work, not after it, on outputs that cannot be written or a missing floor plan."""
+    if out_dir is not None and Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise OutputError(f"{out_dir}: exists and is not a folder")
+    if rerun_path is not None and Path(rerun_path).is_dir():
+        raise OutputError(f"{rerun_path}: is a folder, expected an .rrd file path")
+    if floor_plan is not None and not Path(floor_plan).is_file():
+        raise InputError(floor_plan, "floor plan image not found")
+
+
 def write_outputs(
     out_dir: Path, survey: Survey, al: Alignment, report: dict, cfg: GraphSlamConfig, *, surveyed: bool = False
 ) -> dict[str, Path]:
-    """Stage every output in a temporary folder, then move them in: no half-written result."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=".graphslam-", dir=out_dir))
+    """Stage every output in a temporary folder, then move them in: no half-written file.
+
+    Files are moved one by one (each rename is atomic); a crash between two renames can
+    leave a previous run's files beside new ones in a re-used folder.
+    """
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=".graphslam-", dir=out_dir))
+    except OSError as e:
+        raise OutputError(f"{out_dir}: cannot create the output folder ({e.strerror or e})") from None
     try:
         names = {
             "trajectories": "trajectories.csv",

@@ -226,7 +226,7 @@ def track_files(
 ) -> TrackRun:
     """Read the radio map, its AP models (``ap_models_path``, else ``ap_models.json`` beside the map,
     else fitted now), the sessions (MCAP); track; write ``out`` (CSV)."""
-    from graphslam.core.apmodel import read_ap_models
+    from graphslam.io.apmodel_io import read_ap_models
     from graphslam.io.mcap_reader import read_survey
     from graphslam.io.radiomap_io import read_radio_map
 

@@ -7,7 +7,8 @@ import csv
 import numpy as np
 import pytest
 
-from graphslam.core.apmodel import ApFitConfig, ApModel, ApModels, UnfittedAp, fit_ap, read_ap_models, write_ap_models
+from graphslam.core.apmodel import ApFitConfig, ApModel, ApModels, UnfittedAp, fit_ap
+from graphslam.io.apmodel_io import read_ap_models, write_ap_models
 from graphslam.core.radiomap import RadioMap
 
 AP = np.array([7.0, 4.0])

@@ -101,14 +101,18 @@ def _transform_poses(xyh: NDArray, T: NDArray) -> NDArray:
 
 
 def _saturation_radii(cfg: GraphSlamConfig) -> list[float]:
-    """Graduated saturation: start wide (far-off starts still attract), end at d_max (the paper)."""
+    """Graduated saturation: start wide (far-off starts still attract), end at d_max (the paper).
+
+    From the origin start the first stage has no saturation at all; from a registration
+    start the radius shrinks geometrically from 2 d_max to d_max.
+    """
     n = cfg.optimizer.outer_iterations
     d_max = cfg.wifi.d_max_m
-    start = np.inf if cfg.optimizer.initialization == "origin" else 2.0 * d_max
     if n == 1:
         return [d_max]
-    radii = [start] + list(np.geomspace(4.0 * d_max if np.isinf(start) else start, d_max, n - 1))
-    return [float(r) for r in radii]
+    if cfg.optimizer.initialization == "origin":
+        return [float("inf")] + [float(r) for r in np.geomspace(4.0 * d_max, d_max, n - 1)]
+    return [float(r) for r in np.geomspace(2.0 * d_max, d_max, n)]
 
 
 @dataclass(frozen=True, eq=False)
@@ -314,7 +318,12 @@ def solve(
         params.iterationHook = hook
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         values = optimizer.optimize()
-        converged = optimizer.iterations() < cfg.optimizer.max_iterations
+        # LM also stops when it can find no step that lowers the error (lambda at its upper
+        # bound): that is a stall, not convergence
+        converged = (
+            optimizer.iterations() < cfg.optimizer.max_iterations
+            and optimizer.lambda_() < params.getlambdaUpperBound()
+        )
         xyh = _values_to_xyh(values, init_xyh)
         if chains is not None:
             xyh = expand(xyh, init_xyh, chains)

@@ -21,10 +21,8 @@ censored by the phone's floor, which biases gamma slightly low: documented, not 
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
@@ -33,7 +31,7 @@ from scipy.optimize import least_squares
 
 from graphslam.core.filters import PathLossModel
 from graphslam.core.radiomap import RadioMap
-from graphslam.errors import EstimationError, InputError
+from graphslam.errors import EstimationError
 
 log = logging.getLogger(__name__)
 
@@ -220,25 +218,6 @@ def fit_ap(bssid: str, xy: NDArray, rss: NDArray, cfg: ApFitConfig = ApFitConfig
         bssid, float(t[0]), float(t[1]), float(t[2]), float(t[3]), mad, n,
         tuple(tuple(float(x) for x in row) for row in cov),
     )
-
-
-def write_ap_models(models: ApModels, path: str | Path) -> Path:
-    """JSON, written atomically (the file is complete or absent)."""
-    from graphslam.io.atomic import atomic_write_json
-
-    atomic_write_json(path, models.as_dict())
-    return Path(path)
-
-
-def read_ap_models(path: str | Path) -> ApModels:
-    try:
-        d = json.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, ValueError) as e:
-        raise InputError(path, f"cannot read AP models: {e}") from None
-    try:
-        return ApModels.from_dict(d)
-    except (KeyError, TypeError, ValueError) as e:
-        raise InputError(path, f"malformed AP models ({e})") from None
 
 
 def ap_position_errors(models: ApModels, true_bssids: Sequence[str], true_xy: NDArray) -> NDArray[np.float64]:

@@ -111,6 +111,13 @@ def per_walk_rigid_errors(survey: Survey) -> ErrorStats:
     return ErrorStats.of(np.concatenate(errs) if errs else np.zeros(0))
 
 
+def truth_at(truth: PoseTrack, t_ns: NDArray) -> tuple[NDArray, NDArray]:
+    """True (xy, heading) at times ``t_ns``: ground truth may be logged at its own rate."""
+    t = truth.t_ns.astype(float)
+    h = np.interp(t_ns, t, np.unwrap(truth.heading))
+    return interpolate_xy(truth, t_ns), h
+
+
 def heading_alignment_errors(tracks: Mapping[str, PoseTrack], survey: Survey, T: NDArray) -> dict[str, float]:
     """Per walk: mean |heading error| in degrees vs the true poses, after the global fit ``T``."""
     out = {}
@@ -118,7 +125,8 @@ def heading_alignment_errors(tracks: Mapping[str, PoseTrack], survey: Survey, T:
         if s.session_id not in tracks or s.ground_truth is None:
             continue
         a = tracks[s.session_id]
-        err = wrap_angle(a.heading + T[2] - s.ground_truth.heading)
+        _, true_h = truth_at(s.ground_truth, a.t_ns.astype(float))
+        err = wrap_angle(a.heading + T[2] - true_h)
         # the mean heading offset of the walk: what alignment got wrong, not per-step noise
         off = float(np.degrees(np.abs(np.arctan2(np.sin(err).mean(), np.cos(err).mean()))))
         out[s.session_id] = off
@@ -130,7 +138,9 @@ def trajectory_errors(tracks: Mapping[str, PoseTrack], survey: Survey, T: NDArra
     errs = []
     for s in survey:
         if s.session_id in tracks and s.ground_truth is not None:
-            errs.append(np.linalg.norm(se2_apply(T, tracks[s.session_id].xy) - s.ground_truth.xy, axis=1))
+            tr = tracks[s.session_id]
+            true_xy, _ = truth_at(s.ground_truth, tr.t_ns.astype(float))
+            errs.append(np.linalg.norm(se2_apply(T, tr.xy) - true_xy, axis=1))
     return ErrorStats.of(np.concatenate(errs) if errs else np.zeros(0))
 
 
@@ -167,7 +177,7 @@ def evaluate(tracks: Mapping[str, PoseTrack], survey: Survey) -> Evaluation:
         for s in survey:
             if s.session_id in tracks and s.ground_truth is not None:
                 src.append(tracks[s.session_id].xy)
-                dst.append(s.ground_truth.xy)
+                dst.append(truth_at(s.ground_truth, tracks[s.session_id].t_ns.astype(float))[0])
         if src:
             T = fit_se2(np.concatenate(src), np.concatenate(dst))
     heading = heading_alignment_errors(tracks, survey, T)

@@ -52,6 +52,8 @@ def read_trajectories(path: str | Path) -> dict[str, PoseTrack]:
                     raise InputError(path, f"line {n}: malformed row {row!r}") from None
     except OSError as e:
         raise InputError(path, f"cannot read: {e.strerror or e}") from None
+    except (UnicodeDecodeError, csv.Error) as e:
+        raise InputError(path, f"not a readable CSV file ({type(e).__name__})") from None
     out = {}
     for sid, rr in rows.items():
         a = np.array(rr, dtype=float)

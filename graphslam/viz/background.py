@@ -9,12 +9,14 @@ writes its outputs. Where ``fork`` is unavailable the logging runs inline.
 from __future__ import annotations
 
 import multiprocessing as mp
-import traceback
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, Callable
 
 from graphslam.errors import GraphSlamError, VisualizationError
+
+
+WAIT_TIMEOUT_S = 600.0  # far above any survey's logging time (0.2 s for 100k poses)
 
 
 def _child(conn: Connection, fn: Callable[..., Any], args: tuple, kwargs: dict) -> None:
@@ -23,8 +25,8 @@ def _child(conn: Connection, fn: Callable[..., Any], args: tuple, kwargs: dict) 
         conn.send(("ok", float(seconds), ""))
     except GraphSlamError as e:
         conn.send(("error", 0.0, str(e)))
-    except BaseException as e:  # report, never hang the parent
-        conn.send(("error", 0.0, f"{type(e).__name__}: {e}\n{traceback.format_exc(limit=3)}"))
+    except BaseException as e:  # report in one line, never hang the parent
+        conn.send(("error", 0.0, f"{type(e).__name__}: {e}"))
     finally:
         conn.close()
 
@@ -49,9 +51,15 @@ class BackgroundLog:
             fn, args, kwargs = self._inline
             return float(fn(*args, **kwargs))
         try:
-            status, seconds, message = self._recv.recv()
+            if self._recv.poll(WAIT_TIMEOUT_S):
+                status, seconds, message = self._recv.recv()
+            else:  # a child forked from a threaded process could deadlock: do not wait forever
+                self._proc.terminate()
+                status, seconds, message = "error", 0.0, f"no answer from the logging process in {WAIT_TIMEOUT_S:.0f} s"
         except EOFError:
             status, seconds, message = "error", 0.0, "the logging process died"
+        finally:
+            self._recv.close()
         self._proc.join()
         if status != "ok":
             raise VisualizationError(f"rerun logging failed: {message}")

@@ -744,6 +744,9 @@ def _write(path: Path, lg: _Log, blueprint: rrb.Blueprint, t0: float, *, recordi
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
         os.close(fd)
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp_name, 0o666 & ~mask)  # mkstemp's 0600 would make the .rrd private
     except OSError as e:
         raise VisualizationError(f"cannot write {path}: {e.strerror or e}") from None
     tmp = Path(tmp_name)
