@@ -176,3 +176,25 @@ def test_unknown_config_key_fails_before_any_output(tmp_path: Path, capsys: pyte
     assert e.value.code == 2 and "optimiser" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
 
+
+
+def test_evaluation_with_ground_truth_at_its_own_rate() -> None:
+    survey = two_walks()
+    al = align(survey, CFG)
+    full = evaluate_all(al, survey)
+    half = Survey(
+        tuple(
+            replace(s, ground_truth=PoseTrack(s.ground_truth.t_ns[::2], s.ground_truth.xy[::2], s.ground_truth.heading[::2]))
+            for s in survey
+        )
+    )
+    ev = evaluate_all(al, half)
+    # straight segments interpolate exactly; only the corners differ
+    assert abs(ev.steps.mean_m - full.steps.mean_m) < 0.05
+    assert abs(ev.heading_mean_deg - full.heading_mean_deg) < 1.0
+
+
+def evaluate_all(al, survey):  # type: ignore[no-untyped-def]
+    from graphslam.core.evaluate import evaluate
+
+    return evaluate(al.tracks, survey)

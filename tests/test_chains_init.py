@@ -1,0 +1,119 @@
+"""Chain compression (exact first-order marginal), RANSAC registration, forked logging failures."""
+
+from __future__ import annotations
+
+import os
+
+import gtsam
+import numpy as np
+import pytest
+from gtsam.symbol_shorthand import X
+
+from graphslam.core.chains import compress, expand, relative
+from graphslam.core.initialise import fit_se2, ransac_se2, register_walks, se2_apply
+from graphslam.core.types import wrap_angle
+from graphslam.errors import GraphSlamError, VisualizationError
+from graphslam.viz.background import BackgroundLog
+
+
+def chain(n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    xyh = np.zeros((n, 3))
+    for k in range(1, n):
+        h = xyh[k - 1, 2]
+        step = np.array([0.7 + rng.normal(0, 0.05), rng.normal(0, 0.05)])
+        c, s = np.cos(h), np.sin(h)
+        xyh[k, :2] = xyh[k - 1, :2] + [c * step[0] - s * step[1], s * step[0] + c * step[1]]
+        xyh[k, 2] = wrap_angle(h + rng.normal(0, 0.2))
+    return xyh
+
+
+def test_compressed_segment_equals_the_marginal_of_the_chain() -> None:
+    xyh = chain(9, seed=1)
+    step_cov = np.diag([0.05**2, 0.03**2, 0.02**2])
+    keep = np.zeros(9, bool)
+    keep[[0, 8]] = True
+    cc = compress(xyh, np.array([0, 9]), keep, np.array([True]), step_cov)
+    assert cc.pairs.tolist() == [[0, 8]]
+    np.testing.assert_allclose(cc.measured[0], relative(xyh[:1], xyh[8:9])[0], atol=1e-12)
+    # GTSAM's marginal of the last pose given the first, through all the steps
+    g = gtsam.NonlinearFactorGraph()
+    v = gtsam.Values()
+    noise = gtsam.noiseModel.Gaussian.Covariance(step_cov)
+    for k in range(9):
+        v.insert(X(k), gtsam.Pose2(*xyh[k]))
+    g.add(gtsam.PriorFactorPose2(X(0), gtsam.Pose2(*xyh[0]), gtsam.noiseModel.Isotropic.Sigma(3, 1e-9)))
+    for k in range(1, 9):
+        g.add(gtsam.BetweenFactorPose2(X(k - 1), X(k), gtsam.Pose2(*relative(xyh[k - 1 : k], xyh[k : k + 1])[0]), noise))
+    marginal = gtsam.Marginals(g, v).marginalCovariance(X(8))
+    np.testing.assert_allclose(cc.covariance[0], marginal, rtol=1e-6, atol=1e-12)
+
+
+def test_expand_restores_dropped_steps() -> None:
+    xyh = chain(12, seed=2)
+    keep = np.zeros(12, bool)
+    keep[[0, 5, 11]] = True
+    cc = compress(xyh, np.array([0, 12]), keep, np.array([True]), np.eye(3) * 1e-4)
+    # a rigidly moved solution: expand must reproduce the moved chain exactly
+    T = np.array([3.0, -2.0, 0.7])
+    moved = np.column_stack([se2_apply(T, xyh[:, :2]), wrap_angle(xyh[:, 2] + T[2])])
+    opt = np.full_like(xyh, np.nan)
+    opt[cc.kept] = moved[cc.kept]
+    out = expand(opt, xyh, cc)
+    np.testing.assert_allclose(out[:, :2], moved[:, :2], atol=1e-9)
+    np.testing.assert_allclose(np.cos(out[:, 2] - moved[:, 2]), 1.0, atol=1e-12)
+
+
+def test_ransac_recovers_transform_despite_outliers() -> None:
+    rng = np.random.default_rng(3)
+    q = rng.uniform(-20, 20, (40, 2))
+    T = np.array([5.0, -3.0, 1.1])
+    p = se2_apply(T, q) + rng.normal(0, 0.5, q.shape)
+    p[:12] = rng.uniform(-30, 30, (12, 2))  # 30 % wrong matches
+    est, inl = ransac_se2(p, q, inlier_m=2.0, rng=np.random.default_rng(0))
+    np.testing.assert_allclose(est[:2], T[:2], atol=0.5)
+    assert abs(wrap_angle(est[2] - T[2])) < np.radians(2)
+    assert inl[12:].mean() > 0.9 and inl[:12].mean() < 0.3
+    np.testing.assert_allclose(fit_se2(q[12:], se2_apply(T, q[12:])), T, atol=1e-9)
+
+
+def test_register_walks_chains_pairwise_transforms() -> None:
+    rng = np.random.default_rng(4)
+    truth = [np.array([0.0, 0.0, 0.0]), np.array([10.0, 5.0, 0.8]), np.array([-7.0, 12.0, -2.0])]
+    n = 30
+    site = rng.uniform(-15, 15, (n, 2))  # shared places seen by all three walks
+    own = [se2_apply(np.array([-(np.cos(t[2]) * t[0] + np.sin(t[2]) * t[1]),
+                               np.sin(t[2]) * t[0] - np.cos(t[2]) * t[1], -t[2]]), site) for t in truth]
+    node_xy = np.concatenate(own)
+    node_session = np.repeat(np.arange(3), n)
+    # walk 0 <-> 1 and 1 <-> 2 matched; walk 2 reaches the reference only through walk 1
+    a = np.concatenate([np.arange(n), n + np.arange(n)])
+    b = np.concatenate([n + np.arange(n), 2 * n + np.arange(n)])
+    pl = register_walks(3, 0, node_session, node_xy, a, b, inlier_m=1.0)
+    assert pl.placed.all() and pl.parent.tolist() == [-1, 0, 1]
+    for s in (1, 2):
+        np.testing.assert_allclose(pl.transforms[s][:2], truth[s][:2], atol=1e-6)
+        assert abs(wrap_angle(pl.transforms[s][2] - truth[s][2])) < 1e-6
+    lonely = register_walks(3, 0, node_session, node_xy, a[:n], b[:n], inlier_m=1.0)
+    assert lonely.placed.tolist() == [True, True, False]
+
+
+def _fails() -> float:
+    raise GraphSlamError("bad floor plan")
+
+
+def _dies() -> float:
+    os._exit(3)
+
+
+def _works() -> float:
+    return 0.25
+
+
+def test_background_logging_reports_failures_in_one_line() -> None:
+    assert BackgroundLog(_works).wait() == 0.25
+    with pytest.raises(VisualizationError, match="bad floor plan") as e:
+        BackgroundLog(_fails).wait()
+    assert "\n" not in str(e.value)
+    with pytest.raises(VisualizationError, match="died"):
+        BackgroundLog(_dies).wait()
