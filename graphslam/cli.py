@@ -68,6 +68,15 @@ def inspect(
     )
 
 
+def _seeds(text: str) -> list[int]:
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        from graphslam.errors import ConfigError
+
+        raise ConfigError(f"--seeds {text!r}: expected comma-separated integers, e.g. 0,1,2") from None
+
+
 def _config(config: Optional[Path], set_: Optional[List[str]]) -> "GraphSlamConfig":
     """Config file (partial files merge over the defaults) plus ``--set a.b=value`` overrides."""
     import yaml
@@ -80,11 +89,17 @@ def _config(config: Optional[Path], set_: Optional[List[str]]) -> "GraphSlamConf
         key, sep, raw = item.partition("=")
         if not sep or not key:
             raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. wifi.d_min_m=3")
+        try:
+            value = yaml.safe_load(raw)
+        except yaml.YAMLError:
+            raise ConfigError(f"--set {item!r}: the value is not valid YAML") from None
         node = overrides
         *parents, leaf = key.split(".")
         for part in parents:
             node = node.setdefault(part, {})
-        node[leaf] = yaml.safe_load(raw)
+            if not isinstance(node, dict):
+                raise ConfigError(f"--set {item!r}: {part} is set to a value, not a section, by another --set")
+        node[leaf] = value
     cfg: GraphSlamConfig = load_config(config, overrides)
     return cfg
 
@@ -231,7 +246,7 @@ def bench_accuracy(
     """Align simulated surveys; print one JSON line of errors per seed, then the mean over seeds."""
     from graphslam.bench import accuracy
 
-    rows = accuracy(scenario, [int(s) for s in seeds.split(",")], _config(config, set_), size=size)
+    rows = accuracy(scenario, _seeds(seeds), _config(config, set_), size=size)
     for r in rows:
         typer.echo(json.dumps(r))
     keys = ("landmark_mean_m", "landmark_max_m", "heading_mean_deg", "steps_mean_m", "align_s")
@@ -337,6 +352,11 @@ def serve(
     ivf_clusters: Optional[int] = typer.Option(None, "--ivf-clusters", min=1, help=IVF_CLUSTERS_HELP),
     ivf_probes: Optional[int] = typer.Option(None, "--ivf-probes", min=1, help=IVF_PROBES_HELP),
     workers: int = typer.Option(1, "--workers", min=1, help="Server processes (each loads the map; ~1 core each)."),
+    search_processes: Optional[int] = typer.Option(
+        None, "--search-processes", min=0,
+        help="Forked search workers sharing the map; batches of 64+ fingerprints are split over them. "
+        "0 = search in the server process. Default: min(2, cores), 0 with --workers > 1.",
+    ),
 ) -> None:
     """Serve kNN positioning over HTTP (POST /v1/locate, GET /v1/radio-map, GET /healthz, /openapi.json)."""
     from graphslam.service.server import serve as serve_map
@@ -344,7 +364,7 @@ def serve(
     serve_map(
         radio_map, host=host, port=port, k=k, weighted=weighted, min_common=min_common,
         max_batch=max_batch, max_body_bytes=max_body_bytes, index=index, ivf_clusters=ivf_clusters,
-        ivf_probes=ivf_probes, workers=workers,
+        ivf_probes=ivf_probes, workers=workers, search_processes=search_processes,
     )
 
 
@@ -398,7 +418,7 @@ def bench_fig8(
     """The paper's fig. 8: kNN error CDF of held-out walks, crowdsourced vs surveyed radio map."""
     from graphslam.bench import fig8
 
-    typer.echo(json.dumps(fig8(scenario, [int(s) for s in seeds.split(",")], _config(config, None), test_walks=test_walks, k=k, plot=plot)))
+    typer.echo(json.dumps(fig8(scenario, _seeds(seeds), _config(config, None), test_walks=test_walks, k=k, plot=plot)))
 
 
 @app.command()
@@ -446,7 +466,8 @@ def fit_aps(
     min_readings: int = typer.Option(20, "--min-readings", min=5, help="Fit only APs heard this often."),
 ) -> None:
     """Fit position, P0 and gamma of every often-heard AP of a radio map (robust least squares)."""
-    from graphslam.core.apmodel import ApFitConfig, ApModels, write_ap_models
+    from graphslam.core.apmodel import ApFitConfig, ApModels
+    from graphslam.io.apmodel_io import write_ap_models
     from graphslam.io.radiomap_io import read_radio_map
 
     models = ApModels.fit(read_radio_map(radio_map), ApFitConfig(min_readings=min_readings))
@@ -484,7 +505,7 @@ def bench_filters(
     """The filter papers' experiment simulated: RMS error in x and y of EKF and UKF over seeds."""
     from graphslam.bench import filters_cart
 
-    typer.echo(json.dumps(filters_cart([int(s) for s in seeds.split(",")], shadowing_db=shadowing_db, plot_dir=plot_dir)))
+    typer.echo(json.dumps(filters_cart(_seeds(seeds), shadowing_db=shadowing_db, plot_dir=plot_dir)))
 
 
 @bench_app.command("tracking")
@@ -497,7 +518,7 @@ def bench_tracking(
     """Held-out walks: EKF/UKF tracking vs kNN (mean error); AP position error vs the simulator."""
     from graphslam.bench import tracking_paper
 
-    typer.echo(json.dumps(tracking_paper(scenario, [int(s) for s in seeds.split(",")], _config(config, None), test_walks=test_walks)))
+    typer.echo(json.dumps(tracking_paper(scenario, _seeds(seeds), _config(config, None), test_walks=test_walks)))
 
 
 def main(argv: Optional[list[str]] = None) -> None:

@@ -15,10 +15,12 @@ Every loop is bounded in count (--single-requests, --batch-requests) and in time
 (--time-budget seconds per phase); the server process (ours, by its pid) is stopped at
 the end. Prints a summary and one JSON line.
 
-The server's search is ``--index`` (default ``auto``: the IVF index on this map) and it
-runs ``--workers`` processes (default 1).
+The server's search is ``--index`` (default ``auto``: the IVF index on this map); it
+runs ``--workers`` processes (default 1) and ``--search-processes`` search workers (default:
+the server's, min(2, cores) with one server process; 0 = search in the server process).
 
     python scripts/bench_service.py [DATA_DIR] [--k 7] [--batch 1000] [--index auto] [--workers 1]
+                                    [--search-processes N]
 """
 
 from __future__ import annotations
@@ -142,6 +144,8 @@ def main() -> int:
     ap.add_argument("--time-budget", type=float, default=60.0, help="seconds per phase, at most")
     ap.add_argument("--index", default="auto", help="kNN search of the server: exact, ivf or auto")
     ap.add_argument("--workers", type=int, default=1, help="server processes (graphslam serve --workers)")
+    ap.add_argument("--search-processes", type=int, default=None,
+                    help="search workers per server process (graphslam serve --search-processes; default: the server's)")
     args = ap.parse_args()
 
     from graphslam.uji_bench import TEST_FILE, TRAIN_FILE, find_uji_file
@@ -168,7 +172,8 @@ def main() -> int:
     batch_bodies = [batch_of(i * args.batch) for i in range(4)]
 
     out: dict[str, object] = {"n_fingerprints_map": len(rm), "n_aps_map": rm.fingerprints.n_aps, "k": args.k,
-                              "batch": args.batch, "index": args.index, "workers": args.workers}
+                              "batch": args.batch, "index": args.index, "workers": args.workers,
+                              "search_processes": args.search_processes}
     with tempfile.TemporaryDirectory(prefix="graphslam-bench-") as tmp:
         map_path = args.radio_map or write_radio_map(rm, Path(tmp) / "uji.parquet")
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP) as probe:
@@ -177,6 +182,8 @@ def main() -> int:
         cmd = [sys.executable, "-m", "graphslam.cli", "serve", "--radio-map", str(map_path), "--host", LOOPBACK,
                "--port", str(port), "--k", str(args.k), "--max-batch", str(max(args.batch, 1)),
                "--index", args.index, "--workers", str(args.workers)]
+        if args.search_processes is not None:
+            cmd += ["--search-processes", str(args.search_processes)]
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         url = f"http://{LOOPBACK}:{port}"
         try:
@@ -193,7 +200,8 @@ def main() -> int:
             except subprocess.TimeoutExpired:
                 proc.kill()
     print(f"radio map: {len(rm)} fingerprints, {rm.fingerprints.n_aps} APs; k={args.k}; index={args.index}; "
-          f"{args.workers} server process(es); server pid {proc.pid}")
+          f"{args.workers} server process(es); search processes "
+          f"{'default' if args.search_processes is None else args.search_processes}; server pid {proc.pid}")
     print(f"single fingerprint: p50 {out['p50_ms']:.2f} ms, p99 {out['p99_ms']:.2f} ms, "
           f"max {out['max_ms']:.2f} ms over {out['single_requests']} requests")
     for clients in (1, 2):

@@ -11,13 +11,15 @@ Every bad request is a 4xx with a ``detail`` message: malformed JSON, wrong type
 NaN/inf, RSS outside [-200, 0] dBm, empty readings, an empty or too large batch
 (413), a too large body (413), fingerprints with no access point known to the map
 (422, with their indices). The whole batch is refused if any fingerprint is bad, so
-positions always line up with the request.
+positions always line up with the request. 503 if a search worker process (see
+``graphslam.service.pool``) died while answering: retry.
 """
 
 from __future__ import annotations
 
 import logging
-from typing import Any, Awaitable, Callable, MutableMapping
+from contextlib import asynccontextmanager
+from typing import Any, AsyncIterator, Awaitable, Callable, MutableMapping
 
 import orjson
 from fastapi import FastAPI, Request, Response
@@ -25,7 +27,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from graphslam.core.knn import IndexKind, KnnConfig, KnnLocator
+from graphslam.core.knn import IndexKind, KnnConfig, KnnLocator, KnnResult
 from graphslam.core.radiomap import RadioMap
 from graphslam.errors import QueryError
 from graphslam.service.models import (  # re-exported: the service's public models
@@ -40,7 +42,8 @@ from graphslam.service.models import (  # re-exported: the service's public mode
     Position,
     RadioMapInfo,
 )
-from graphslam.service.parsing import validated_scans
+from graphslam.service.parsing import is_json_content_type, validated_scans
+from graphslam.service.pool import BatchTooLargeError, SearchPool, SearchUnavailableError
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +51,8 @@ DEFAULT_MAX_BATCH = 10_000
 DEFAULT_MAX_BODY_BYTES = 32 * 1024 * 1024
 INLINE_MAX = 8  # batches up to this size are answered on the event loop (see locate())
 PARSE_INLINE_MAX_BYTES = 64 * 1024  # bigger bodies (~100+ fingerprints) are parsed off the event loop
+# With search processes, bodies from this size (~50+ fingerprints) are parsed and searched on them.
+POOL_MIN_BODY_BYTES = 16 * 1024
 __all__ = [
     "BSSID_MAX_CHARS", "MAX_READINGS", "RSSI_MAX_DBM", "RSSI_MIN_DBM", "Fingerprint", "Health",
     "LocateRequest", "LocateResponse", "Position", "RadioMapInfo", "create_app",
@@ -132,21 +137,37 @@ def create_app(
     index: IndexKind = "auto",
     ivf_clusters: int | None = None,
     ivf_probes: int | None = None,
+    search_processes: int = 0,
 ) -> FastAPI:
     """The service for ``radio_map``. ``threads``: search threads per large request (default:
     up to 2, the machine's cores; small requests use one). ``index``: kNN search (see
     ``KnnConfig``); ``"auto"`` uses the approximate IVF index on maps of
-    ``IVF_AUTO_MIN_REFS`` references or more, exact search below."""
+    ``IVF_AUTO_MIN_REFS`` references or more, exact search below. ``search_processes``: forked
+    search workers for large batches (``graphslam.service.pool``; 0 = search in this process).
+    The workers are started here and stopped at the app's lifespan shutdown (or by
+    ``app.state.search_pool.close()``), so an app with workers is served once."""
     ivf = {"ivf_clusters": ivf_clusters} | ({"ivf_probes": ivf_probes} if ivf_probes is not None else {})
     config = KnnConfig(k=k, weighted=weighted, min_common=min_common, index=index, **ivf)  # type: ignore[arg-type]
     locator = KnnLocator(radio_map, config, threads=threads)
+    # After the locator: the workers fork a complete copy of it (copy-on-write).
+    pool = SearchPool(locator, search_processes)
     summary = radio_map.summary().as_dict()
+
+    @asynccontextmanager
+    async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+        try:
+            yield
+        finally:
+            pool.close()
+
     app = FastAPI(
         title="graphslam radio map service",
         version="1",
         summary="kNN WiFi fingerprint positioning (eq. 9 RSS distance) against one radio map",
+        lifespan=lifespan,
     )
     app.state.locator = locator
+    app.state.search_pool = pool
     app.add_middleware(BodyLimit, max_bytes=max_body_bytes)
     default_openapi = app.openapi
 
@@ -174,6 +195,10 @@ def create_app(
     async def _on_query_error(request: Request, exc: QueryError) -> JSONResponse:
         return _problem(422, str(exc))
 
+    @app.exception_handler(SearchUnavailableError)
+    async def _on_search_unavailable(request: Request, exc: SearchUnavailableError) -> JSONResponse:
+        return _problem(503, str(exc))
+
     @app.get("/healthz", response_model=Health)
     def healthz() -> dict[str, str]:
         return {"status": "ok"}
@@ -183,9 +208,17 @@ def create_app(
         return {**summary, "k": k, "weighted": weighted, "min_common": min_common, "index": locator.index_kind}
 
     def answer(scans: list[Any]) -> Response:
-        res = locator.locate(scans, strict=True)  # QueryError -> 422 with the bad indices
-        floor = res.floor.tolist() if res.floor is not None else [""] * len(scans)
-        building = res.building.tolist() if res.building is not None else [""] * len(scans)
+        return respond(pool.locate(scans, strict=True))  # QueryError -> 422 with the bad indices
+
+    def answer_body(body: bytes) -> Response | None:
+        # Parsed and searched on the search processes; None: not for the fast path (or no pool).
+        res = pool.locate_body(body, max_batch=max_batch, strict=True)
+        return respond(res) if res is not None else None
+
+    def respond(res: KnnResult) -> Response:
+        n = len(res)
+        floor = res.floor.tolist() if res.floor is not None else [""] * n
+        building = res.building.tolist() if res.building is not None else [""] * n
         positions = [
             {"x": p[0], "y": p[1], "score": s, "spread": sp, "n_neighbours": n, "floor": f or None, "building": b or None}
             for p, s, sp, n, f, b in zip(
@@ -204,6 +237,7 @@ def create_app(
         responses={
             413: {"description": "body or batch too large"},
             422: {"description": "malformed request, or a fingerprint with no access point known to the map"},
+            503: {"description": "a search worker process died while answering (retry)"},
         },
         openapi_extra={
             "requestBody": {
@@ -216,10 +250,18 @@ def create_app(
         # Parsed here, not by FastAPI: orjson + a vectorised check, with LocateRequest's exact
         # semantics and messages (graphslam.service.parsing); ~10x cheaper on big batches.
         body = await request.body()
+        content_type = request.headers.get("content-type")
+        if pool.processes and len(body) >= POOL_MIN_BODY_BYTES and is_json_content_type(content_type):
+            try:
+                done = await run_in_threadpool(answer_body, body)
+            except BatchTooLargeError as e:
+                return _problem(413, str(e))
+            if done is not None:
+                return done
         if len(body) > PARSE_INLINE_MAX_BYTES:
-            scans = await run_in_threadpool(validated_scans, body, request.headers.get("content-type"))
+            scans = await run_in_threadpool(validated_scans, body, content_type)
         else:
-            scans = validated_scans(body, request.headers.get("content-type"))
+            scans = validated_scans(body, content_type)
         if len(scans) > max_batch:
             return _problem(413, f"batch of {len(scans)} fingerprints, at most {max_batch} per request")
         if len(scans) <= INLINE_MAX:

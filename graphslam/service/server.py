@@ -34,7 +34,10 @@ def _build_app(radio_map_path: str | Path, **app_kwargs: object) -> FastAPI:
     limit_blas_threads(1)
     rm = read_radio_map(radio_map_path)
     app = create_app(rm, **app_kwargs)  # type: ignore[arg-type]
-    log.info("loaded %s (%d fingerprints, %s search)", radio_map_path, len(rm), app.state.locator.index_kind)
+    log.info(
+        "loaded %s (%d fingerprints, %s search, %d search processes)", radio_map_path, len(rm),
+        app.state.locator.index_kind, app.state.search_pool.processes,
+    )
     return app
 
 
@@ -59,18 +62,31 @@ def serve(
     ivf_clusters: int | None = None,
     ivf_probes: int | None = None,
     workers: int = 1,
+    search_processes: int | None = None,
 ) -> None:
-    """Load the radio map and serve it until interrupted. ``workers`` > 1: that many server
-    processes on one socket (uvicorn), each with its own copy of the map and index. Why: a
-    search holds the GIL most of the time, so one process uses about one core."""
-    from graphslam.service.app import DEFAULT_MAX_BATCH, DEFAULT_MAX_BODY_BYTES
+    """Load the radio map and serve it until interrupted. Why processes: a search holds the GIL
+    most of the time, so one process searches on about one core.
 
+    ``search_processes``: forked search workers that share the server's map and index
+    (``graphslam.service.pool``); large batches are split over them, whatever the number of
+    client connections. ``None``: ``min(2, cores)`` with one server process, 0 with
+    ``workers`` > 1 (which already runs a process per worker). 0: search in the server process.
+    ``workers`` > 1: that many server processes on one socket (uvicorn), each with its own copy
+    of the map and index; connections, not requests, are spread over them."""
+    from graphslam.service.app import DEFAULT_MAX_BATCH, DEFAULT_MAX_BODY_BYTES
+    from graphslam.service.pool import default_search_processes
+
+    if search_processes is None:
+        search_processes = default_search_processes() if workers <= 1 else 0
     kwargs: dict[str, object] = dict(
         k=k, weighted=weighted, min_common=min_common,
         max_batch=max_batch or DEFAULT_MAX_BATCH, max_body_bytes=max_body_bytes or DEFAULT_MAX_BODY_BYTES,
-        index=index, ivf_clusters=ivf_clusters, ivf_probes=ivf_probes,
+        index=index, ivf_clusters=ivf_clusters, ivf_probes=ivf_probes, search_processes=search_processes,
     )
-    log.info("serving %s on http://%s:%d (%d worker process(es))", radio_map_path, host, port, workers)
+    log.info(
+        "serving %s on http://%s:%d (%d worker process(es), %d search process(es) each)", radio_map_path, host,
+        port, workers, search_processes,
+    )
     if workers <= 1:
         uvicorn.run(_build_app(radio_map_path, **kwargs), host=host, port=port, log_level=log_level)
         return
@@ -89,7 +105,8 @@ def serve(
 
 @dataclass
 class BackgroundServer:
-    """A real uvicorn server on a loopback socket, in a daemon thread."""
+    """A real uvicorn server on a loopback socket, in a daemon thread. ``stop()`` runs the app's
+    lifespan shutdown (stops its search worker processes)."""
 
     server: uvicorn.Server
     thread: threading.Thread
@@ -128,7 +145,8 @@ def start_background_server(
     """Bind ``host:port`` (0 = a free port) now, serve ``app`` in a thread, return once it accepts."""
     sock = _tcp_listener(host, port)  # IPPROTO_TCP: see _tcp_listener
     bound_port = sock.getsockname()[1]
-    config = uvicorn.Config(app, log_level=log_level, lifespan="off")
+    # lifespan on: the app's shutdown stops its search worker processes (see create_app).
+    config = uvicorn.Config(app, log_level=log_level, lifespan="on")
     server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True, name="graphslam-http")
     thread.start()
