@@ -333,15 +333,9 @@ class KnnLocator:
         dist = np.concatenate([p[1] for p in parts]) if parts else np.zeros((0, k))
         n_known = np.diff(q.values.indptr).astype(np.int64)
         res = self._aggregate(idx, dist, n_known)
-        if strict and not res.valid.all():
-            bad = np.flatnonzero(~res.valid)
-            st = res.status
-            detail = ", ".join(f"#{i}: {st[i]}" for i in bad[:5]) + (" ..." if len(bad) > 5 else "")
-            raise QueryError(
-                f"{len(bad)} of {n_q} queries cannot be located ({detail}); "
-                f"a query needs an access point heard by the radio map"
-                + (f" (>= {self.config.min_common} shared APs)" if self.config.min_common > 1 else "")
-            )
+        err = strict_error(res, self.config.min_common) if strict else None
+        if err is not None:
+            raise err
         return res
 
     def _aggregate(self, idx: NDArray[np.int64], dist: NDArray[np.float64], n_known: NDArray[np.int64]) -> KnnResult:
@@ -373,6 +367,21 @@ class KnnLocator:
             building=self._buildings.vote(idx, w) if self._buildings is not None else None,
             config=self.config,
         )
+
+
+def strict_error(res: KnnResult, min_common: int) -> QueryError | None:
+    """The error ``locate(strict=True)`` raises for ``res``, or ``None`` when every query was located
+    (also used by the service, which locates batches in pieces and joins them first)."""
+    if res.valid.all():
+        return None
+    bad = np.flatnonzero(~res.valid)
+    st = res.status
+    detail = ", ".join(f"#{i}: {st[i]}" for i in bad[:5]) + (" ..." if len(bad) > 5 else "")
+    return QueryError(
+        f"{len(bad)} of {len(res)} queries cannot be located ({detail}); "
+        f"a query needs an access point heard by the radio map"
+        + (f" (>= {min_common} shared APs)" if min_common > 1 else "")
+    )
 
 
 @dataclass(frozen=True, eq=False)

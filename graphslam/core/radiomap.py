@@ -23,8 +23,12 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 
+from graphslam.core.fingerprints import (
+    DEFAULT_MIN_RSSI_DBM,
+    DEFAULT_MISSING_DBM,
+    FingerprintMatrix,
+)
 from graphslam.core.types import frozen_array
-from graphslam.core.fingerprints import DEFAULT_MIN_RSSI_DBM, DEFAULT_MISSING_DBM, FingerprintMatrix
 from graphslam.errors import QueryError, RadioMapError
 
 log = logging.getLogger(__name__)
@@ -187,20 +191,17 @@ class RadioMap:
         Readings below ``min_rssi_dbm`` are dropped (the map remembers the threshold and
         applies it to queries too).
         """
-        n = len(scans)
-        if isinstance(session_ids, str):
-            session_ids = [session_ids] * n
         fm = FingerprintMatrix.from_scans(scans, missing_dbm=missing_dbm, min_rssi_dbm=min_rssi_dbm)
-        return cls(
+        return cls.from_fingerprints(
             fm,
-            np.asarray(xy, dtype=np.float64).reshape(-1, 2) if n else np.zeros((0, 2)),
-            np.asarray(list(session_ids), dtype=str),
-            np.asarray(t_ns, dtype=np.int64),
-            frame,
-            floors,
-            buildings,
-            metadata or {},
-            min_rssi_dbm,
+            np.asarray(xy, dtype=np.float64).reshape(-1, 2) if len(scans) else np.zeros((0, 2)),
+            session_ids=session_ids,
+            t_ns=t_ns,
+            frame=frame,
+            floors=floors,
+            buildings=buildings,
+            metadata=metadata,
+            min_rssi_dbm=min_rssi_dbm,
         )
 
     @classmethod

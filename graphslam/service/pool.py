@@ -47,8 +47,8 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.knn import KnnLocator, KnnResult
-from graphslam.errors import GraphSlamError, QueryError
+from graphslam.core.knn import KnnLocator, KnnResult, strict_error
+from graphslam.errors import GraphSlamError
 from graphslam.service.parsing import fast_scans
 
 log = logging.getLogger(__name__)
@@ -160,21 +160,6 @@ def _stop_executor(ex: ProcessPoolExecutor, timeout: float = SHUTDOWN_TIMEOUT_S)
         manager.join(timeout)
     for p in procs:
         p.join(timeout)
-
-
-def strict_error(res: KnnResult, min_common: int) -> QueryError | None:
-    """``KnnLocator.locate(strict=True)``'s error for ``res`` (same message), or ``None``.
-    Why here: workers locate non-strictly; the batch-wide message is built after concatenation."""
-    if res.valid.all():
-        return None
-    bad = np.flatnonzero(~res.valid)
-    st = res.status
-    detail = ", ".join(f"#{i}: {st[i]}" for i in bad[:5]) + (" ..." if len(bad) > 5 else "")
-    return QueryError(
-        f"{len(bad)} of {len(res)} queries cannot be located ({detail}); "
-        f"a query needs an access point heard by the radio map"
-        + (f" (>= {min_common} shared APs)" if min_common > 1 else "")
-    )
 
 
 class SearchPool:
