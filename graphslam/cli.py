@@ -81,7 +81,7 @@ def _config(config: Optional[Path], set_: Optional[List[str]]) -> "GraphSlamConf
     """Config file (partial files merge over the defaults) plus ``--set a.b=value`` overrides."""
     import yaml
 
-    from graphslam.config import GraphSlamConfig, load_config
+    from graphslam.config import load_config
     from graphslam.errors import ConfigError
 
     overrides: dict = {}
@@ -100,8 +100,7 @@ def _config(config: Optional[Path], set_: Optional[List[str]]) -> "GraphSlamConf
             if not isinstance(node, dict):
                 raise ConfigError(f"--set {item!r}: {part} is set to a value, not a section, by another --set")
         node[leaf] = value
-    cfg: GraphSlamConfig = load_config(config, overrides)
-    return cfg
+    return load_config(config, overrides)
 
 
 class _LmProgress:

@@ -8,6 +8,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator, Sequence
 
+import numpy as np
+from numpy.typing import NDArray
+
 from graphslam.core.knn import KnnConfig, KnnLocator, SurveyPositions, locate_survey
 from graphslam.io.atomic import atomic_open
 
@@ -94,11 +97,9 @@ def locate_files(
 __all__: Sequence[str] = ("LocateRun", "locate_files", "write_positions_csv", "POSITIONS_HEADER")
 
 
-def query_truth(query_paths: Iterable[str | Path], positions: SurveyPositions) -> "np.ndarray | None":
+def query_truth(query_paths: Iterable[str | Path], positions: SurveyPositions) -> "NDArray[np.float64] | None":
     """True position (site frame) of every located scan from the queries' ``/ground_truth/pose``,
     interpolated at scan time; None when the queries carry no ground truth. Display/evaluation only."""
-    import numpy as np
-
     from graphslam.core.evaluate import interpolate_xy
     from graphslam.io.mcap_reader import read_survey
 
