@@ -191,6 +191,7 @@ def ilc_floors(site_dir: Path, cfg: GraphSlamConfig, floors: Sequence[str] | Non
         dt = time.perf_counter() - t
         ev = res.evaluation
         lm = ev.landmarks if ev is not None else None
+        pl = res.alignment.placement
         rows.append(
             {
                 "floor": name,
@@ -202,6 +203,8 @@ def ilc_floors(site_dir: Path, cfg: GraphSlamConfig, floors: Sequence[str] | Non
                 "p90_m": round(lm.p90_m, 2) if lm else None,
                 "max_m": round(lm.max_m, 2) if lm else None,
                 "per_walk_rigid_fit_mean_m": round(ev.landmarks_per_walk_fit.mean_m, 2) if ev else None,
+                "loop_consistency": None if pl is None or pl.loop_consistency is None else round(pl.loop_consistency, 3),
+                "reliable": None if pl is None else pl.reliable,
                 "time_s": round(dt, 2),
             }
         )

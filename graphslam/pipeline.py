@@ -69,6 +69,15 @@ def build_report(survey: Survey, al: Alignment, ev: Evaluation | None, cfg: Grap
     }
     if al.placement is not None:
         ids = al.session_ids
+        pl = al.placement
+        c = pl.loop_consistency
+        report["registration"] = {
+            "placed": int(pl.placed.sum()),
+            "loops": pl.loops,
+            "loops_consistent": pl.loops_consistent,
+            "loop_consistency": None if c is None else round(c, 3),
+            "reliable": pl.reliable,
+        }
         report["walks"] = [
             {
                 "session_id": ids[s],

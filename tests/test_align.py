@@ -146,6 +146,10 @@ def test_survey_cli_writes_every_output(tmp_path: Path, capsys: pytest.CaptureFi
     assert report["aligned_sessions"] == 2 and report["edges"]["wifi"] > 0
     assert report["optimizer"]["final_error"] < report["optimizer"]["initial_error"]
     assert report["evaluation"]["landmarks"]["mean_m"] < 0.5
+    # two walks: one tree edge, no loop to check the registration with
+    assert report["registration"] == {
+        "placed": 2, "loops": 0, "loops_consistent": 0, "loop_consistency": None, "reliable": None
+    }
     assert {"associate", "edges", "optimise"} <= {k.split(".")[-1] for k in report["timings_s"]}
     assert load_config(out / "config.yaml").wifi.d_min_m == 0.5
     assert yaml.safe_load((out / "config.yaml").read_text()) == load_config(cfg_file).model_dump(mode="json")

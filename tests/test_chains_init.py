@@ -8,9 +8,16 @@ import gtsam
 import numpy as np
 import pytest
 from gtsam.symbol_shorthand import X
+from numpy.typing import NDArray
 
 from graphslam.core.chains import compress, expand, relative
-from graphslam.core.initialise import fit_se2, ransac_se2, register_walks, se2_apply
+from graphslam.core.initialise import (
+    _inverse,
+    fit_se2,
+    ransac_se2,
+    register_walks,
+    se2_apply,
+)
 from graphslam.core.types import wrap_angle
 from graphslam.errors import GraphSlamError, VisualizationError
 from graphslam.viz.background import BackgroundLog
@@ -96,6 +103,42 @@ def test_register_walks_chains_pairwise_transforms() -> None:
         assert abs(wrap_angle(pl.transforms[s][2] - truth[s][2])) < 1e-6
     lonely = register_walks(3, 0, node_session, node_xy, a[:n], b[:n], inlier_m=1.0)
     assert lonely.placed.tolist() == [True, True, False]
+    assert pl.loops == 0 and pl.loop_consistency is None and pl.reliable is None
+
+
+def _walk_frames(truth: list[NDArray], site: NDArray) -> NDArray:
+    """Site points expressed in each walk's own frame (walk pose ``t`` in the site frame)."""
+    return np.concatenate([se2_apply(_inverse(t), site) for t in truth])
+
+
+def test_registration_loop_check_flags_contradicting_pairs() -> None:
+    """Every pair of 5 walks matched: 6 loops beyond the tree's 4 edges. Right matches close
+    them all; matches of one walk shifted by 20 m for half its partners break some."""
+    rng = np.random.default_rng(7)
+    truth = [np.array([rng.uniform(-20, 20), rng.uniform(-20, 20), rng.uniform(-3, 3)]) for _ in range(5)]
+    truth[0] = np.zeros(3)
+    n = 30
+    site = rng.uniform(-15, 15, (n, 2))
+    node_xy = _walk_frames(truth, site)
+    node_session = np.repeat(np.arange(5), n)
+    pairs = [(u, v) for u in range(5) for v in range(u + 1, 5)]
+    a = np.concatenate([u * n + np.arange(n) for u, v in pairs])
+    b = np.concatenate([v * n + np.arange(n) for u, v in pairs])
+    good = register_walks(5, 0, node_session, node_xy, a, b, inlier_m=1.0)
+    assert good.placed.all() and good.loops == 6 and good.loops_consistent == 6
+    assert good.loop_consistency == 1.0 and good.reliable is None  # too few loops to judge
+    # walks 2 and 3 match walk 4 at other nodes of walk 4, which in truth lie 20 m away from
+    # the places they saw (a wrong but self-consistent match set): appended nodes of walk 4
+    shifted = _walk_frames([truth[4] + np.array([20.0, 0, 0])], site)
+    bad_xy = np.concatenate([node_xy, shifted])
+    sess = np.concatenate([node_session, np.full(n, 4)])
+    bad_b = b.copy()
+    for i, (u, v) in enumerate(pairs):
+        if v == 4 and u in (2, 3):
+            bad_b[i * n:(i + 1) * n] = 5 * n + np.arange(n)
+    bad = register_walks(5, 0, sess, bad_xy, a, bad_b, inlier_m=1.0)
+    assert bad.placed.all() and bad.loops == 6
+    assert bad.loops_consistent < 6
 
 
 def _fails() -> float:
