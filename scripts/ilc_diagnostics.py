@@ -1,0 +1,190 @@
+#!/usr/bin/env python3
+"""What limits walk placement on real crowdsourced phone walks (ILC 2.0 site1): three measurements.
+
+Uses the ground truth (the surveyor's labelled waypoints) to *measure* the information in
+the data; nothing here feeds the solver. Per floor:
+
+1. **Fingerprint resolution**: for every scan, its most similar scan of another walk
+   (eq. 9, and two alternatives from the literature: cosine and Euclidean on "powed"
+   RSS, Torres-Sospedra et al.); the true distance between the two (median, p90).
+2. **Pairwise walk registration**: for every pair of walks, nearest-fingerprint matches
+   both ways, 2-point RANSAC (inliers within 5 m) as ``registration`` does; fraction of
+   pairs whose transform is right (walk displaced < 5 m mean), overall and for the pairs
+   with the best matches (lowest mean RSS distance).
+3. **Walk-to-map bound**: every other walk placed at its TRUE pose (a perfect map); each
+   walk registered to it from its k = 3 nearest fingerprints per scan (RANSAC, Cauchy
+   score). Fraction of walks then within 5 m / 10 m: an upper bound for any method that
+   places a walk by registering it to the others' fingerprints.
+
+Truth per walk: the rigid SE(2) fit of its dead reckoning to its own waypoints (itself
+~1.5-1.9 m off, the drift within a walk).
+
+    python scripts/ilc_diagnostics.py [SITE_DIR] [--floors B1,F1] [--seed 0]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graphslam.core.association import associate
+from graphslam.core.evaluate import interpolate_xy
+from graphslam.core.fingerprints import DistanceEngine
+from graphslam.core.initialise import fit_se2, ransac_se2, se2_apply, se2_compose
+from graphslam.io.mcap_reader import read_survey
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_SITE = Path(os.environ.get("GRAPHSLAM_DATA", REPO.parent / "shared" / "data")) / "ilc20" / "site1"
+INLIER_M = 5.0
+
+
+def _inverse(T: NDArray) -> NDArray:
+    c, s = np.cos(T[2]), np.sin(T[2])
+    return np.array([-(c * T[0] + s * T[1]), s * T[0] - c * T[1], -T[2]])
+
+
+def _true_transforms(survey) -> NDArray:  # noqa: ANN001 - a Survey
+    out = []
+    for w in survey:
+        est = interpolate_xy(w.steps, np.array([m.t_ns for m in w.landmarks], float))
+        out.append(fit_se2(est, np.array([[m.x, m.y] for m in w.landmarks])))
+    return np.array(out)
+
+
+def _pct(x: NDArray) -> dict[str, float]:
+    return {"median_m": round(float(np.median(x)), 2), "p90_m": round(float(np.percentile(x, 90)), 2)}
+
+
+def resolution(D_by_name: dict[str, NDArray], true_d: NDArray) -> dict[str, dict[str, float]]:
+    n = len(true_d)
+    return {name: _pct(true_d[np.arange(n), np.argmin(D, axis=1)]) for name, D in D_by_name.items()}
+
+
+def pairwise(D: NDArray, P: NDArray, ws: NDArray, T: NDArray, rng: np.random.Generator) -> dict[str, float]:
+    W = len(T)
+    idx = [np.flatnonzero(ws == w) for w in range(W)]
+    right, quality = [], []
+    for a in range(W):
+        for b in range(a + 1, W):
+            Dab = D[np.ix_(idx[a], idx[b])]
+            if Dab.size == 0:  # a walk without associated scans
+                continue
+            j, i = np.argmin(Dab, 1), np.argmin(Dab, 0)
+            da, db = Dab[np.arange(len(j)), j], Dab[i, np.arange(Dab.shape[1])]
+            ia, ib = np.flatnonzero(np.isfinite(da)), np.flatnonzero(np.isfinite(db))
+            pa = np.concatenate([idx[a][ia], idx[a][i[ib]]])
+            pb = np.concatenate([idx[b][j[ia]], idx[b][ib]])
+            if len(pa) < 4:
+                continue
+            Tr, inl = ransac_se2(P[pa], P[pb], inlier_m=INLIER_M, rng=rng)
+            if inl.sum() < 4:
+                continue
+            Tt = se2_compose(_inverse(T[a]), T[b])
+            xy = P[idx[b]]
+            right.append(np.linalg.norm(se2_apply(Tr, xy) - se2_apply(Tt, xy), axis=1).mean() < INLIER_M)
+            quality.append(float(np.concatenate([da[ia], db[ib]]).mean()))
+    right_a, q = np.array(right), np.array(quality)
+    out = {"pairs_registered": int(len(right_a)), "right_fraction": round(float(right_a.mean()), 3)}
+    order = np.argsort(q)
+    for top in (25, 100):
+        sel = order[:top]
+        out[f"right_fraction_best_{top}"] = round(float(right_a[sel].mean()), 3)
+    return out
+
+
+def walk_to_map(D: NDArray, P: NDArray, ws: NDArray, T: NDArray, rng: np.random.Generator, k: int = 3) -> dict[str, float]:
+    W = len(T)
+    pt = np.array([se2_apply(T[w], P[i : i + 1])[0] for i, w in enumerate(ws)])
+    errs = []
+    for w in np.unique(ws):
+        mine, ref = np.flatnonzero(ws == w), np.flatnonzero(ws != w)
+        Dw = D[np.ix_(mine, ref)]
+        o = np.argsort(Dw, axis=1)[:, :k]
+        fin = np.isfinite(np.take_along_axis(Dw, o, 1)).ravel()
+        q = np.repeat(P[mine], k, axis=0)[fin]
+        p = pt[ref[o.ravel()][fin]]
+        if len(q) < 2:
+            errs.append(np.inf)
+            continue
+        n = len(q)
+        a, b = rng.integers(0, n, 2000), rng.integers(0, n, 2000)
+        dp, dq = p[b] - p[a], q[b] - q[a]
+        g = (a != b) & (np.linalg.norm(dq, axis=1) > 3)
+        if not g.any():
+            errs.append(np.inf)
+            continue
+        a, b, dp, dq = a[g], b[g], dp[g], dq[g]
+        th = np.arctan2(dp[:, 1], dp[:, 0]) - np.arctan2(dq[:, 1], dq[:, 0])
+        c, s = np.cos(th), np.sin(th)
+        mq, mp = (q[a] + q[b]) / 2, (p[a] + p[b]) / 2
+        tx, ty = mp[:, 0] - (c * mq[:, 0] - s * mq[:, 1]), mp[:, 1] - (s * mq[:, 0] + c * mq[:, 1])
+        px = c[:, None] * q[None, :, 0] - s[:, None] * q[None, :, 1] + tx[:, None]
+        py = s[:, None] * q[None, :, 0] + c[:, None] * q[None, :, 1] + ty[:, None]
+        score = (1.0 / (1.0 + (np.hypot(px - p[None, :, 0], py - p[None, :, 1]) / INLIER_M) ** 2)).sum(1)
+        best = int(np.argmax(score))
+        Tb = np.array([tx[best], ty[best], th[best]])
+        errs.append(float(np.linalg.norm(se2_apply(Tb, P[mine]) - se2_apply(T[w], P[mine]), axis=1).mean()))
+    e = np.array(errs)
+    # walks without scans cannot be registered: they count as misses
+    e = np.concatenate([e, np.full(W - len(np.unique(ws)), np.inf)])
+    return {"walks_without_scans": int(W - len(np.unique(ws))), "within_5m": round(float(np.mean(e < 5)), 3), "within_10m": round(float(np.mean(e < 10)), 3)}
+
+
+def floor(path: Path, seed: int) -> dict:
+    t0 = time.perf_counter()
+    survey = read_survey([path])
+    fp = associate(survey)
+    dr = np.concatenate([w.steps.xyh for w in survey])
+    P, ws = dr[fp.node, :2], fp.session
+    T = _true_transforms(survey)
+    pt = np.array([se2_apply(T[w], P[i : i + 1])[0] for i, w in enumerate(ws)])
+    true_d = np.linalg.norm(pt[:, None] - pt[None], axis=2)
+    same = ws[:, None] == ws[None, :]
+    D, _ = DistanceEngine(fp.fingerprints).block(fp.fingerprints, min_common=3)
+    D[same] = np.inf
+    V = fp.fingerprints.values.toarray()
+    X = (V / -fp.fingerprints.missing_dbm) ** np.e  # powed: ((rss - min) / -min) ** e
+    heard = (V > 0).astype(float)
+    few = heard @ heard.T < 3
+    sq = (X**2).sum(1)
+    eucl = np.sqrt(np.maximum(sq[:, None] + sq[None] - 2 * X @ X.T, 0))
+    nrm = np.linalg.norm(X, axis=1)
+    cos = 1 - (X @ X.T) / np.maximum(np.outer(nrm, nrm), 1e-12)
+    for M in (eucl, cos):
+        M[same | few] = np.inf
+    rng = np.random.default_rng(seed)
+    return {
+        "floor": path.name,
+        "walks": len(survey),
+        "scans": len(fp),
+        "nearest_other_walk_scan": resolution({"eq9": D, "powed_euclidean": eucl, "powed_cosine": cos}, true_d),
+        "pairwise_registration": pairwise(D, P, ws, T, rng),
+        "walk_to_true_map": walk_to_map(D, P, ws, T, rng),
+        "time_s": round(time.perf_counter() - t0, 1),
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("site", nargs="?", type=Path, default=DEFAULT_SITE)
+    ap.add_argument("--floors", default=None, help="comma-separated (default: every floor folder)")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    if not args.site.is_dir():
+        print(f"error: {args.site}: not a folder (ILC site with floor folders)", file=sys.stderr)
+        return 2
+    names = args.floors.split(",") if args.floors else sorted(p.name for p in args.site.iterdir() if p.is_dir())
+    for name in names:
+        print(json.dumps(floor(args.site / name, args.seed)), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
