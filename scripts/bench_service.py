@@ -36,9 +36,12 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from graphslam.core.radiomap import RadioMap
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = Path(os.environ.get("GRAPHSLAM_DATA", REPO.parent / "shared" / "data")) / "ujiindoorloc"
@@ -131,6 +134,32 @@ def batch_throughput(url: str, bodies: list[bytes], batch: int, clients: int, n:
     return sum(done) / (time.perf_counter() - t0)
 
 
+def load_workload(
+    data_dir: Path, radio_map: Path | None, min_rssi: float, missing_dbm: float
+) -> tuple["RadioMap", list[dict[str, float]]]:
+    """The radio map (``radio_map``, or UJIIndoorLoc trainingData) and the validationData
+    fingerprints that hear at least one AP above the map's RSS floor, as scans."""
+    from graphslam.uji_bench import TEST_FILE, TRAIN_FILE, find_uji_file
+    from graphslam.io.radiomap_io import read_radio_map
+    from graphslam.io.ujiindoorloc import read_ujiindoorloc
+
+    test = read_ujiindoorloc(find_uji_file(data_dir, TEST_FILE))
+    if radio_map:
+        rm = read_radio_map(radio_map)
+    else:
+        train = read_ujiindoorloc(find_uji_file(data_dir, TRAIN_FILE))
+        rm = train.to_radio_map(missing_dbm=missing_dbm, min_rssi_dbm=min_rssi)
+    heard = ~np.isnan(test.rssi)
+    queries = [{test.bssids[j]: float(test.rssi[i, j]) for j in np.flatnonzero(heard[i])} for i in range(len(test))]
+    return rm, [q for q in queries if any(r >= rm.min_rssi_dbm for r in q.values())]
+
+
+def batch_body(queries: list[dict[str, float]], start: int, batch: int) -> bytes:
+    """A ``{"fingerprints": [...]}`` body of ``batch`` queries from ``start`` (wrapping around)."""
+    fps = [{"readings": queries[(start + i) % len(queries)]} for i in range(batch)]
+    return json.dumps({"fingerprints": fps}).encode()
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("data_dir", nargs="?", type=Path, default=DEFAULT_DATA)
@@ -145,36 +174,24 @@ def main() -> int:
     ap.add_argument("--index", default="auto", help="kNN search of the server: exact, ivf or auto")
     ap.add_argument("--workers", type=int, default=1, help="server processes (graphslam serve --workers)")
     ap.add_argument("--search-processes", type=int, default=None,
-                    help="search workers per server process (graphslam serve --search-processes; default: the server's)")
+                    help="search workers per server process (graphslam serve --search-processes; "
+                    "default: the server's)")
     args = ap.parse_args()
 
-    from graphslam.uji_bench import TEST_FILE, TRAIN_FILE, find_uji_file
-    from graphslam.io.radiomap_io import read_radio_map, write_radio_map
-    from graphslam.io.ujiindoorloc import read_ujiindoorloc
-
     try:
-        test = read_ujiindoorloc(find_uji_file(args.data_dir, TEST_FILE))
-        if args.radio_map:
-            rm = read_radio_map(args.radio_map)
-        else:
-            train = read_ujiindoorloc(find_uji_file(args.data_dir, TRAIN_FILE))
-            rm = train.to_radio_map(missing_dbm=args.missing_dbm, min_rssi_dbm=args.min_rssi)
+        rm, queries = load_workload(args.data_dir, args.radio_map, args.min_rssi, args.missing_dbm)
     except Exception as e:  # noqa: BLE001 - a script: one line and exit
         print(f"error: {e}", file=sys.stderr)
         return 2
-    heard = ~np.isnan(test.rssi)
-    queries = [{test.bssids[j]: float(test.rssi[i, j]) for j in np.flatnonzero(heard[i])} for i in range(len(test))]
-    queries = [q for q in queries if any(r >= rm.min_rssi_dbm for r in q.values())]
     single_bodies = [json.dumps({"readings": q}).encode() for q in queries]
-    batch_of: Callable[[int], bytes] = lambda start: json.dumps(  # noqa: E731
-        {"fingerprints": [{"readings": queries[(start + i) % len(queries)]} for i in range(args.batch)]}
-    ).encode()
-    batch_bodies = [batch_of(i * args.batch) for i in range(4)]
+    batch_bodies = [batch_body(queries, i * args.batch, args.batch) for i in range(4)]
 
     out: dict[str, object] = {"n_fingerprints_map": len(rm), "n_aps_map": rm.fingerprints.n_aps, "k": args.k,
                               "batch": args.batch, "index": args.index, "workers": args.workers,
                               "search_processes": args.search_processes}
     with tempfile.TemporaryDirectory(prefix="graphslam-bench-") as tmp:
+        from graphslam.io.radiomap_io import write_radio_map
+
         map_path = args.radio_map or write_radio_map(rm, Path(tmp) / "uji.parquet")
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP) as probe:
             probe.bind((LOOPBACK, 0))

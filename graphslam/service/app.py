@@ -44,6 +44,7 @@ from graphslam.service.models import (  # re-exported: the service's public mode
 )
 from graphslam.service.parsing import is_json_content_type, validated_scans
 from graphslam.service.pool import BatchTooLargeError, SearchPool, SearchUnavailableError
+from graphslam.service.render import position_dicts, response_json
 
 log = logging.getLogger(__name__)
 
@@ -152,6 +153,7 @@ def create_app(
     # After the locator: the workers fork a complete copy of it (copy-on-write).
     pool = SearchPool(locator, search_processes)
     summary = radio_map.summary().as_dict()
+    head = {"frame": radio_map.frame, "k": k, "weighted": weighted}  # every answer's fields but "positions"
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
@@ -211,25 +213,17 @@ def create_app(
         return respond(pool.locate(scans, strict=True))  # QueryError -> 422 with the bad indices
 
     def answer_body(body: bytes) -> Response | None:
-        # Parsed and searched on the search processes; None: not for the fast path (or no pool).
-        res = pool.locate_body(body, max_batch=max_batch, strict=True)
-        return respond(res) if res is not None else None
+        # Parsed, searched and rendered on the search processes; None: not for the fast path (or no pool).
+        got = pool.locate_body_json(body, max_batch=max_batch, strict=True)
+        if got is None:
+            return None
+        return Response(response_json(head, got[1]), media_type="application/json")
 
     def respond(res: KnnResult) -> Response:
-        n = len(res)
-        floor = res.floor.tolist() if res.floor is not None else [""] * n
-        building = res.building.tolist() if res.building is not None else [""] * n
-        positions = [
-            {"x": p[0], "y": p[1], "score": s, "spread": sp, "n_neighbours": n, "floor": f or None, "building": b or None}
-            for p, s, sp, n, f, b in zip(
-                res.xy.tolist(), res.score.tolist(), res.spread.tolist(), res.n_neighbours.tolist(), floor, building
-            )
-        ]
-        body = {"frame": radio_map.frame, "k": k, "weighted": weighted, "positions": positions}
         # Serialised here (the shape is LocateResponse, documented in OpenAPI): FastAPI's
         # response-model validation would add a second pass over every position. Every value is
         # finite (strict=True above), so orjson's NaN -> null never applies.
-        return Response(orjson.dumps(body), media_type="application/json")
+        return Response(orjson.dumps({**head, "positions": position_dicts(res)}), media_type="application/json")
 
     @app.post(
         "/v1/locate",

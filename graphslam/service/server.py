@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import json
 import logging
 import os
@@ -34,6 +35,9 @@ def _build_app(radio_map_path: str | Path, **app_kwargs: object) -> FastAPI:
     limit_blas_threads(1)
     rm = read_radio_map(radio_map_path)
     app = create_app(rm, **app_kwargs)  # type: ignore[arg-type]
+    # The map, index and modules live as long as the process: a full collection walking them takes
+    # ~50 ms (UJIIndoorLoc), a pause any request could hit. Frozen, collections skip them.
+    gc.freeze()
     log.info(
         "loaded %s (%d fingerprints, %s search, %d search processes)", radio_map_path, len(rm),
         app.state.locator.index_kind, app.state.search_pool.processes,
