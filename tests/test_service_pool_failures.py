@@ -15,7 +15,6 @@ from typing import Any, Callable, Iterator
 import httpx
 import numpy as np
 import orjson
-import psutil
 import pytest
 from threadpoolctl import threadpool_limits
 
@@ -27,6 +26,7 @@ from graphslam.service.app import create_app
 from graphslam.service.pool import SearchPool, SearchUnavailableError
 from graphslam.service.render import position_rows
 from graphslam.service.server import start_background_server
+from test_service_pool import alive
 
 pytestmark = pytest.mark.skipif(not pool_mod.fork_available(), reason="needs the fork start method")
 
@@ -66,20 +66,10 @@ def one_blas_thread() -> Iterator[None]:
 
 
 def wait_gone(pids: tuple[int, ...], timeout: float = 10.0) -> list[int]:
-    def alive() -> list[int]:
-        out = []
-        for pid in pids:
-            try:
-                if psutil.Process(pid).status() != psutil.STATUS_ZOMBIE:
-                    out.append(pid)
-            except psutil.NoSuchProcess:
-                pass
-        return out
-
     deadline = time.monotonic() + timeout
-    while alive() and time.monotonic() < deadline:
+    while alive(pids) and time.monotonic() < deadline:
         time.sleep(0.05)
-    return alive()
+    return alive(pids)
 
 
 def stalling(marker_dir: Path, then: Callable[..., Any] | None = None) -> Callable[..., Any]:
