@@ -12,7 +12,7 @@ The fit is rigid, so long drifting walks are placed only roughly: LM does the re
 Loop check: every pairwise transform the tree did not use closes a loop. Where the
 placement is right, the tree predicts it (mean displacement of the walk's steps below
 ``inlier_m``); the fraction of such consistent loops is a self-check that needs no
-ground truth. Simulated surveys: ~1; real short phone walks (ILC): ~0.2, i.e. the
+ground truth. Simulated surveys: 0.64-1; real short phone walks (ILC): ~0.3, i.e. the
 pairwise matches are not reliable enough to place walks (docs/benchmarks.md).
 """
 
@@ -31,7 +31,7 @@ log = logging.getLogger(__name__)
 
 # Loop self-check: with this many loops or more, a consistency below the threshold marks the
 # placement unreliable. Simulated surveys close ~all loops, real short phone walks (ILC
-# site1) ~0.2: the threshold sits between the two, not tuned further.
+# site1) ~0.3: the threshold sits between the two, not tuned further.
 MIN_LOOPS_TO_JUDGE = 10
 MIN_LOOP_CONSISTENCY = 0.5
 
@@ -189,10 +189,13 @@ def register_walks(
                 parent[v] = u
                 queue.append(v)
     loops = consistent = 0
+    # each walk's nodes once (not a mask over all nodes per loop: surveys have thousands of loops)
+    by_walk = np.argsort(node_session, kind="stable")
+    bounds = np.searchsorted(node_session[by_walk], np.arange(n_sessions + 1))
     for (u, v), T_uv in rel.items():
         if not (placed[u] and placed[v]) or parent[v] == u or parent[u] == v:
             continue
-        xy = node_xy[node_session == v]
+        xy = node_xy[by_walk[bounds[v] : bounds[v + 1]]]
         moved = se2_apply(se2_compose(transforms[u], T_uv), xy) - se2_apply(transforms[v], xy)
         loops += 1
         consistent += int(np.linalg.norm(moved, axis=1).mean() < inlier_m)
