@@ -82,6 +82,11 @@ class OptimizerConfig(_Strict):
         "registration",
         description="origin: every walk starts at (0,0,0) as in the paper; registration: rigid WiFi-match fit",
     )
+    unreliable_registration: Literal["unalign", "keep"] = Field(
+        "unalign",
+        description="when the registration's loop check contradicts it: unalign: only the reference walk is aligned, "
+        "the others are reported with the reason; keep: align them anyway (a warning)",
+    )
     max_iterations: int = Field(100, ge=1)
     relative_error_tol: float = Field(1e-4, gt=0)
     absolute_error_tol: float = Field(1e-5, ge=0)

@@ -106,6 +106,26 @@ def test_walk_without_common_aps_is_reported_unaligned() -> None:
     assert np.isnan(al.node_xyh[al.fingerprints.offsets[2] :]).all()
 
 
+def test_registration_its_loops_contradict_leaves_walks_unaligned(monkeypatch: pytest.MonkeyPatch) -> None:
+    import graphslam.core.align as align_mod
+    from graphslam.core.initialise import MIN_LOOPS_TO_JUDGE, Placement
+
+    def contradicted(n_sessions: int, reference: int, *args: object, **kwargs: object) -> Placement:
+        # every walk placed (at the origin), but only 1 of the loops agrees with the tree
+        return Placement(
+            np.zeros((n_sessions, 3)), np.ones(n_sessions, bool), np.full(n_sessions, 5, np.int64),
+            np.where(np.arange(n_sessions) == reference, -1, reference), loops=MIN_LOOPS_TO_JUDGE, loops_consistent=1,
+        )
+
+    monkeypatch.setattr(align_mod, "register_walks", contradicted)
+    al = align(two_walks(), CFG)
+    assert set(al.tracks) == {"a"}  # the reference walk only
+    assert "registration unreliable: 1 of 10 loops" in al.unaligned["b"]
+    assert np.isnan(al.node_xyh[al.fingerprints.offsets[1] :]).all()
+    kept = align(two_walks(), load_config(None, {"wifi": {"d_min_m": 0.5}, "optimizer": {"unreliable_registration": "keep"}}))
+    assert set(kept.tracks) == {"a", "b"} and not kept.unaligned
+
+
 def test_ground_truth_never_reaches_the_solver() -> None:
     survey = two_walks()
     garbage = Survey(

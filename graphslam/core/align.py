@@ -178,16 +178,28 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
     if cfg.optimizer.initialization == "registration":
         placement = register_walks(n_s, ref, node_sess, dr_xyh[:, :2], ea, eb)
         included = placement.placed.copy()
-        reason = "no rigid WiFi registration chain to the reference walk"
         transforms = placement.transforms
+        for s in np.flatnonzero(~included):
+            unaligned[survey.sessions[s].session_id] = "no rigid WiFi registration chain to the reference walk"
+        if placement.reliable is False and cfg.optimizer.unreliable_registration == "unalign":
+            # a placement its own loops contradict is mostly wrong (ILC: ~2 % of pairwise
+            # transforms right): report the walks unaligned rather than place them wrong
+            why = (
+                f"registration unreliable: {placement.loops_consistent} of {placement.loops} loops between "
+                "placed walks are consistent; the WiFi matches do not fix where this walk is"
+            )
+            for s in np.flatnonzero(included):
+                if s != ref:
+                    unaligned[survey.sessions[s].session_id] = why
+            included[:] = False
+            included[ref] = True
     else:
         transforms = np.zeros((n_s, 3))
         g = coo_matrix((np.ones(len(ea)), (node_sess[ea], node_sess[eb])), shape=(n_s, n_s))
         _, label = connected_components(g, directed=False)
         included = label == label[ref]
-        reason = "no WiFi edge path to the reference walk"
-    for s in np.flatnonzero(~included):
-        unaligned[survey.sessions[s].session_id] = reason
+        for s in np.flatnonzero(~included):
+            unaligned[survey.sessions[s].session_id] = "no WiFi edge path to the reference walk"
     init_xyh = np.full_like(dr_xyh, np.nan)
     imu_pairs, imu_u = [], []
     for s in np.flatnonzero(included):
