@@ -113,7 +113,7 @@ def pairwise(D: NDArray, P: NDArray, ws: NDArray, T: NDArray, rng: np.random.Gen
 
 def walk_to_map(D: NDArray, P: NDArray, ws: NDArray, T: NDArray, rng: np.random.Generator, k: int = 3) -> dict[str, float]:
     W = len(T)
-    pt = np.array([se2_apply(T[w], P[i : i + 1])[0] for i, w in enumerate(ws)])
+    pt = _placed(P, ws, T)
     errs = []
     for w in np.unique(ws):
         mine, ref = np.flatnonzero(ws == w), np.flatnonzero(ws != w)
@@ -310,7 +310,7 @@ def floor(path: Path, seed: int) -> dict:
     dr = np.concatenate([w.steps.xyh for w in survey])
     P, ws = dr[fp.node, :2], fp.session
     T = _true_transforms(survey)
-    pt = np.array([se2_apply(T[w], P[i : i + 1])[0] for i, w in enumerate(ws)])
+    pt = _placed(P, ws, T)
     true_d = np.linalg.norm(pt[:, None] - pt[None], axis=2)
     same = ws[:, None] == ws[None, :]
     D, _ = DistanceEngine(fp.fingerprints).block(fp.fingerprints, min_common=3)

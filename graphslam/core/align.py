@@ -193,6 +193,10 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
                     unaligned[survey.sessions[s].session_id] = why
             included[:] = False
             included[ref] = True
+            log.warning(
+                "registration unreliable: %d walks reported unaligned (optimizer.unreliable_registration=keep "
+                "would output them anyway)", int(placement.placed.sum()) - 1,
+            )
     else:
         transforms = np.zeros((n_s, 3))
         g = coo_matrix((np.ones(len(ea)), (node_sess[ea], node_sess[eb])), shape=(n_s, n_s))
