@@ -216,31 +216,46 @@ def filters_cart(
     *,
     shadowing_db: float | None = None,
     plot_dir: Path | None = None,
+    smoothers: Sequence[str] = ("rts", "map"),
 ) -> dict[str, Any]:
     """The filter papers' experiment (cart, 5 rounds, 4 APs) simulated per seed; EKF with Paper 000's
     constants, UKF with Paper 002's (each paper's P0/gamma for truth and filter, their Q, R, x0, P0).
 
-    RMS error in x and y per seed and filter; mean / median / p90 over seeds. ``shadowing_db``
-    overrides the documented default (4 dB) for a sensitivity sweep. ``plot_dir``: one PNG per
-    filter (path, |error|, trace P) for the first seed.
+    RMS error in x and y per seed and estimator: the causal filter (``ekf``, ``ukf``) and, per
+    name in ``smoothers``, the same run smoothed offline under the same model (``ekf+rts``,
+    ``ekf+map``, ...; ``graphslam.core.smoother``); mean / median / p90 over seeds and the
+    number of seeds meeting the papers' figures. ``shadowing_db`` overrides the documented
+    default (4 dB) for a sensitivity sweep. ``plot_dir``: one PNG per filter (path, |error|,
+    trace P) for the first seed.
     """
     import dataclasses
 
     import numpy as np
 
-    from graphslam.core.filters import FusionModel, make_filter, run_fixed_rate
+    from graphslam.core.filters import Epochs, FusionModel, make_filter, run_epochs
+    from graphslam.core.smoother import smooth
     from graphslam.sim.cart import PAPER_P0, PAPER_X0, CartNoise, simulate_cart
 
+    targets = {"ekf": (0.86, 1.15), "ukf": (0.75, 1.04)}  # Paper 000 / 002, RMS x / y (m)
     noise = CartNoise() if shadowing_db is None else dataclasses.replace(CartNoise(), shadowing_sigma_db=shadowing_db)
     out: dict[str, Any] = {"seeds": list(seeds), "noise": dataclasses.asdict(noise)}
     for kind, model in (("ekf", FusionModel.paper_ekf()), ("ukf", FusionModel.paper_ukf())):
-        rx, ry, tp = [], [], []
+        rms: dict[str, list[tuple[float, float]]] = {kind: [], **{f"{kind}+{sm}": [] for sm in smoothers}}
+        tp, secs = [], {name: 0.0 for name in rms}
         for i, seed in enumerate(seeds):
             run = simulate_cart(seed, path_loss=model.path_loss, noise=noise)
-            res = run_fixed_rate(make_filter(kind, model), PAPER_X0, PAPER_P0, run.y_velocity, run.y_rssi, run.period_s)
-            e = res.x[:, :2] - run.xy
-            rx.append(float(np.sqrt(np.mean(e[:, 0] ** 2))))
-            ry.append(float(np.sqrt(np.mean(e[:, 1] ** 2))))
+            epochs = Epochs.fixed_rate(run.y_velocity, run.y_rssi, run.period_s)
+            t0 = time.perf_counter()
+            res = run_epochs(make_filter(kind, model), PAPER_X0, PAPER_P0, epochs)
+            secs[kind] += time.perf_counter() - t0
+            ests = {kind: res.x}
+            for sm in smoothers:
+                t0 = time.perf_counter()
+                ests[f"{kind}+{sm}"] = smooth(model, PAPER_X0, PAPER_P0, epochs, res, sm).x
+                secs[f"{kind}+{sm}"] += time.perf_counter() - t0
+            for name, X in ests.items():
+                e = X[:, :2] - run.xy
+                rms[name].append((float(np.sqrt(np.mean(e[:, 0] ** 2))), float(np.sqrt(np.mean(e[:, 1] ** 2)))))
             tp.append(float(res.trace_p[-1]))
             if plot_dir is not None and i == 0:
                 from graphslam.viz.tracking_plots import cart_figure
@@ -249,19 +264,30 @@ def filters_cart(
                     run.t_s, run.xy, res.x[:, :2], res.trace_p, Path(plot_dir) / f"tracking_cart_{kind}.png",
                     f"{kind.upper()}, simulated cart (seed {seed}, shadowing {noise.shadowing_sigma_db:g} dB)",
                 )
-        for axis, r in (("x", rx), ("y", ry)):
+        tx, ty = targets[kind]
+        for name, r in rms.items():
             a = np.array(r)
-            out[f"{kind}_rms_{axis}_m"] = {
-                "mean": round(float(a.mean()), 3), "median": round(float(np.median(a)), 3),
-                "p90": round(float(np.percentile(a, 90)), 3), "min": round(float(a.min()), 3),
-                "max": round(float(a.max()), 3), "per_seed": [round(v, 3) for v in r],
-            }
+            for j, axis in enumerate("xy"):
+                v = a[:, j]
+                out[f"{name}_rms_{axis}_m"] = {
+                    "mean": round(float(v.mean()), 3), "median": round(float(np.median(v)), 3),
+                    "p90": round(float(np.percentile(v, 90)), 3), "min": round(float(v.min()), 3),
+                    "max": round(float(v.max()), 3), "per_seed": [round(float(x), 3) for x in v],
+                }
+            out[f"{name}_seeds_meeting_target"] = int(((a[:, 0] <= tx) & (a[:, 1] <= ty)).sum())
+            out[f"{name}_seconds_per_run"] = round(secs[name] / max(len(seeds), 1), 3)
         out[f"{kind}_final_trace_p_median"] = round(float(np.median(tp)), 4)
     return out
 
 
 def tracking_paper(
-    scenario: str, seeds: Sequence[int], cfg: GraphSlamConfig, *, test_walks: int = 3, filters: Sequence[str] = ("ekf", "ukf")
+    scenario: str,
+    seeds: Sequence[int],
+    cfg: GraphSlamConfig,
+    *,
+    test_walks: int = 3,
+    filters: Sequence[str] = ("ekf", "ukf"),
+    smoothers: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Held-out walks tracked (EKF / UKF, AP models fitted from the crowdsourced radio map) vs kNN
     positioning of the same scans on the same map; AP position errors vs the simulator's APs.
@@ -279,7 +305,8 @@ def tracking_paper(
     from graphslam.sim import simulate
     from graphslam.track import TrackConfig, track_sessions
 
-    errs: dict[str, list] = {"knn": [], **{f: [] for f in filters}}
+    variants = [(f, "none") for f in filters] + [(f, sm) for f in filters for sm in smoothers]
+    errs: dict[str, list] = {"knn": [], **{_variant(f, sm): [] for f, sm in variants}}
     ap_err, per_seed = [], []
     n_unfitted = 0
     for seed in seeds:
@@ -299,16 +326,17 @@ def tracking_paper(
         e = np.linalg.norm(knn.xy - truth, axis=1)
         errs["knn"].append(e[np.isfinite(e)])
         row["knn_mean_m"] = round(float(np.nanmean(e)), 3)
-        for f in filters:
+        for f, sm in variants:
+            name = _variant(f, sm)
             t0 = time.perf_counter()
-            tracks = track_sessions(sessions, rm, models, TrackConfig(filter=f))
+            tracks = track_sessions(sessions, rm, models, TrackConfig(filter=f, smoother=sm))
             est = np.concatenate(
                 [interpolate_xy(PoseTrack(tr.t_ns, tr.xy, np.zeros(len(tr.t_ns))), t) for tr, t in zip(tracks, t_scan)]
             )
             e = np.linalg.norm(est - truth, axis=1)
-            errs[f].append(e)
-            row[f"{f}_mean_m"] = round(float(e.mean()), 3)
-            row[f"{f}_s"] = round(time.perf_counter() - t0, 2)
+            errs[name].append(e)
+            row[f"{name}_mean_m"] = round(float(e.mean()), 3)
+            row[f"{name}_s"] = round(time.perf_counter() - t0, 2)
         per_seed.append(row)
     out: dict[str, Any] = {"scenario": scenario, "seeds": list(seeds), "test_walks_per_seed": test_walks}
     for name, v in errs.items():
@@ -324,3 +352,7 @@ def tracking_paper(
     }
     out["per_seed"] = per_seed
     return out
+
+
+def _variant(filter_kind: str, smoother: str) -> str:
+    return filter_kind if smoother == "none" else f"{filter_kind}+{smoother}"

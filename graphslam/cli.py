@@ -69,12 +69,20 @@ def inspect(
 
 
 def _seeds(text: str) -> list[int]:
+    """'0,1,2' or ranges '0-19' (mixed: '0-3,7')."""
+    out: list[int] = []
     try:
-        return [int(x) for x in text.split(",") if x.strip()]
+        for part in (p.strip() for p in text.split(",")):
+            if "-" in part[1:]:
+                lo, hi = (int(v) for v in part.split("-", 1))
+                out += list(range(lo, hi + 1))
+            elif part:
+                out.append(int(part))
     except ValueError:
         from graphslam.errors import ConfigError
 
-        raise ConfigError(f"--seeds {text!r}: expected comma-separated integers, e.g. 0,1,2") from None
+        raise ConfigError(f"--seeds {text!r}: expected comma-separated integers or ranges, e.g. 0,1,2 or 0-19") from None
+    return out
 
 
 def _config(config: Optional[Path], set_: Optional[List[str]]) -> "GraphSlamConfig":
@@ -487,11 +495,15 @@ def track(
     ap_models: Optional[Path] = typer.Option(
         None, "--ap-models", help="AP models JSON (default: ap_models.json beside the map, else fitted now)."
     ),
+    smooth: str = typer.Option(
+        "none", "--smooth", help="Offline, whole session: none (causal filter), rts, or map (whole-run MAP)."
+    ),
 ) -> None:
     """Track walks on a radio map: EKF/UKF fusion of step velocity and WiFi RSSI (Papers 000/002)."""
     from graphslam.track import TrackConfig, track_files
 
-    run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=TrackConfig(filter=filter_))
+    cfg = TrackConfig(filter=filter_, smoother=smooth)
+    run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg)
     typer.echo(json.dumps(run.as_dict()))
 
 
@@ -500,11 +512,13 @@ def bench_filters(
     seeds: str = typer.Option(",".join(map(str, range(20))), help="Comma-separated seeds."),
     shadowing_db: Optional[float] = typer.Option(None, help="Override the 4 dB shadowing std (sensitivity)."),
     plot_dir: Optional[Path] = typer.Option(None, help="Write tracking_cart_{ekf,ukf}.png here (first seed)."),
+    smoothers: str = typer.Option("rts,map", help="Offline smoothers also reported (comma-separated; '' for none)."),
 ) -> None:
-    """The filter papers' experiment simulated: RMS error in x and y of EKF and UKF over seeds."""
+    """The filter papers' experiment simulated: RMS error in x and y of EKF and UKF (and smoothed) over seeds."""
     from graphslam.bench import filters_cart
 
-    typer.echo(json.dumps(filters_cart(_seeds(seeds), shadowing_db=shadowing_db, plot_dir=plot_dir)))
+    res = filters_cart(_seeds(seeds), shadowing_db=shadowing_db, plot_dir=plot_dir, smoothers=_smoothers(smoothers))
+    typer.echo(json.dumps(res))
 
 
 @bench_app.command("tracking")
@@ -513,11 +527,27 @@ def bench_tracking(
     seeds: str = typer.Option("0,1,2", help="Comma-separated seeds."),
     test_walks: int = typer.Option(3, help="Held-out test walks per seed."),
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
+    smoothers: str = typer.Option("", help="Offline smoothers also reported, e.g. 'rts,map' (default none)."),
 ) -> None:
     """Held-out walks: EKF/UKF tracking vs kNN (mean error); AP position error vs the simulator."""
     from graphslam.bench import tracking_paper
 
-    typer.echo(json.dumps(tracking_paper(scenario, _seeds(seeds), _config(config, None), test_walks=test_walks)))
+    res = tracking_paper(
+        scenario, _seeds(seeds), _config(config, None), test_walks=test_walks, smoothers=_smoothers(smoothers)
+    )
+    typer.echo(json.dumps(res))
+
+
+def _smoothers(text: str) -> list[str]:
+    from graphslam.core.smoother import SMOOTH_METHODS
+
+    names = [v.strip() for v in text.split(",") if v.strip()]
+    bad = [v for v in names if v not in SMOOTH_METHODS]
+    if bad:
+        from graphslam.errors import ConfigError
+
+        raise ConfigError(f"--smoothers: unknown smoother {bad[0]!r}; use {', '.join(SMOOTH_METHODS)}")
+    return names
 
 
 def main(argv: Optional[list[str]] = None) -> None:

@@ -12,6 +12,11 @@ Per session (positions in the radio map's frame, m):
   unknown, so a bank of ``n_theta_hypotheses`` filters with theta_0 spread over the circle runs
   in lock-step and each step reports the one with the highest cumulative innovation
   likelihood so far (online; gated readings count as a fixed penalty). Never ground truth.
+
+``smoother`` (offline, whole session known): ``rts`` runs the RTS pass, ``map`` the whole-run MAP
+(``graphslam.core.smoother``; Huber loss at ``gate_sigma`` on RSSI rows instead of the gate)
+over the hypothesis with the highest final likelihood; the output rows are then that
+smoothed trajectory (``hypothesis`` column constant).
 """
 
 from __future__ import annotations
@@ -27,9 +32,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graphslam.core.apmodel import ApModels
-from graphslam.core.filters import FusionModel, GaussianState, KalmanFilter, make_filter
+from graphslam.core.filters import Epochs, FusionModel, GaussianState, KalmanFilter, make_filter, run_epochs
 from graphslam.core.knn import KnnConfig, KnnLocator
 from graphslam.core.radiomap import RadioMap
+from graphslam.core.smoother import SMOOTH_METHODS, smooth
 from graphslam.core.types import Session
 from graphslam.errors import EstimationError
 from graphslam.io.atomic import atomic_open
@@ -60,10 +66,13 @@ class TrackConfig:
     rssi_sigma_floor_db: float = 4.0
     gate_sigma: float = 3.0
     knn_k: int = 3
+    smoother: str = "none"  # none | rts | map (offline: uses the whole session)
 
     def __post_init__(self) -> None:
         if self.filter not in ("ekf", "ukf"):
             raise EstimationError(f"track: unknown filter {self.filter!r}; use ekf or ukf")
+        if self.smoother != "none" and self.smoother not in SMOOTH_METHODS:
+            raise EstimationError(f"track: unknown smoother {self.smoother!r}; use none, {', '.join(SMOOTH_METHODS)}")
         if self.n_theta_hypotheses < 1 or self.velocity_sigma_mps <= 0 or self.rssi_sigma_floor_db <= 0:
             raise EstimationError("track: n_theta_hypotheses >= 1 and positive noise levels required")
 
@@ -183,10 +192,39 @@ def track_session(
             j += 1
         dt = (t[k + 1] - t_now) / 1e9
         states = [filt.predict(s, dt) for s in states]
+    if cfg.smoother == "none":
+        return SessionTrack(
+            session.session_id, t.copy(), np.array(xs), np.array(Ps), np.array(best, np.int64),
+            int(used[best[-1]]), int(gated[best[-1]]),
+        )
+    h = best[-1]
+    x0 = np.array([p0[0], p0[1], 0, 0, 0, 0, 2 * math.pi * h / H])
+    epochs, step_epoch = _session_epochs(t, y_v, meas)
+    filtered = run_epochs(filt, x0, P0, epochs, gate_sigma=cfg.gate_sigma)
+    sm = smooth(model, x0, P0, epochs, filtered, cfg.smoother, huber_k=cfg.gate_sigma)
     return SessionTrack(
-        session.session_id, t.copy(), np.array(xs), np.array(Ps), np.array(best, np.int64),
-        int(used[best[-1]]), int(gated[best[-1]]),
+        session.session_id, t.copy(), sm.x[step_epoch], sm.P[step_epoch], np.full(len(t), h, np.int64),
+        filtered.n_rssi_used, filtered.n_rssi_gated,
     )
+
+
+def _session_epochs(
+    t_ns: NDArray[np.int64], y_v: NDArray, meas: Sequence[tuple[int, NDArray, NDArray]]
+) -> tuple[Epochs, NDArray[np.int64]]:
+    """The filter loop's readings as ``Epochs``: step times (velocity of the interval that starts
+    there, none at the last step) and scan times in (first step, last step]; returns the epoch
+    of every step too. Times in seconds from the first step."""
+    scans = [m for m in meas if t_ns[0] < m[0] <= t_ns[-1]]
+    times, inv = np.unique(np.concatenate([t_ns, np.array([m[0] for m in scans], np.int64)]), return_inverse=True)
+    step_epoch = inv[: len(t_ns)]
+    scan_epoch = inv[len(t_ns):]
+    n_each = np.array([len(m[1]) for m in scans], np.int64)
+    cat = (lambda parts, dt: np.concatenate(parts) if parts else np.zeros(0, dt))
+    epochs = Epochs(
+        (times - t_ns[0]) / 1e9, step_epoch[:-1], y_v,
+        np.repeat(scan_epoch, n_each), cat([m[1] for m in scans], np.int64), cat([m[2] for m in scans], float),
+    )
+    return epochs, step_epoch
 
 
 def write_track_csv(tracks: Iterable[SessionTrack], path: str | Path) -> Path:

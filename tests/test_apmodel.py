@@ -131,3 +131,35 @@ def test_track_cli_rejects_unknown_filter(tiny_case, capsys):
         main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--filter", "pf", "--out", str(d / "x.csv")])
     assert e.value.code == 2 and "ekf or ukf" in capsys.readouterr().err
     assert not (d / "x.csv").exists()
+
+
+def test_track_cli_smoothed_output_uses_the_whole_walk(tiny_case):
+    # --smooth map: one hypothesis for the whole walk, the start-up no longer lost (the filter
+    # needs ~half the walk to find the heading; the smoother sees it all at once).
+    from graphslam.cli import main
+    from graphslam.core.evaluate import interpolate_xy
+
+    d, session = tiny_case
+    truth = interpolate_xy(session.ground_truth, session.steps.t_ns.astype(float))
+    errs = {}
+    for smooth in ("none", "map"):
+        out = d / f"positions_{smooth}.csv"
+        main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--out", str(out), "--smooth", smooth])
+        rows = list(csv.DictReader(out.open()))
+        assert [int(r["t_ns"]) for r in rows] == session.steps.t_ns.tolist()
+        xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
+        errs[smooth] = np.linalg.norm(xy - truth, axis=1)
+        if smooth == "map":
+            assert len({r["hypothesis"] for r in rows}) == 1
+            assert all(float(r["cov_xx"]) > 0 and float(r["cov_yy"]) > 0 for r in rows)
+    assert errs["map"].mean() < 0.8 * errs["none"].mean(), (errs["map"].mean(), errs["none"].mean())
+
+
+def test_track_cli_rejects_unknown_smoother(tiny_case, capsys):
+    from graphslam.cli import main
+
+    d, _ = tiny_case
+    with pytest.raises(SystemExit) as e:
+        main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--smooth", "ks", "--out", str(d / "y.csv")])
+    assert e.value.code == 2 and "unknown smoother" in capsys.readouterr().err
+    assert not (d / "y.csv").exists()

@@ -117,6 +117,15 @@ class PathLossModel:
         d2 = np.einsum("ak,ak->a", d, d) + self.min_distance_m**2
         return -(10.0 / np.log(10.0)) * self.gamma[idx, None] * d / d2[:, None]
 
+    def rss_pairs(self, xy: NDArray, idx: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Mean RSS (m,) of AP ``idx[j]`` at position ``xy[j]`` (m, 2), and its (m, 2) gradient
+        in (x, y): ``mean_rss`` / ``jacobian`` for many (position, AP) pairs at once."""
+        idx = np.asarray(idx, dtype=np.int64)
+        d = np.asarray(xy, float).reshape(-1, 2) - self.ap_xy[idx]
+        d2 = np.einsum("ak,ak->a", d, d) + self.min_distance_m**2
+        g = self.gamma[idx]
+        return self.p0_dbm[idx] - 5.0 * g * np.log10(d2), -(10.0 / np.log(10.0)) * g[:, None] * d / d2[:, None]
+
 
 _PAPER_APS = np.array([[0.0, 0.0], [0.0, 14.6], [8.2, 14.6], [8.2, 0.0]])
 
@@ -382,6 +391,67 @@ def make_filter(kind: str, model: FusionModel, *, w0: float = 0.1) -> KalmanFilt
 
 
 @dataclass(frozen=True, eq=False)
+class Epochs:
+    """The measurements of one run grouped by epoch: state ``k`` lives at time ``t_s[k]``.
+
+    Velocity readings ``vel_y[i]`` (eq. 4) belong to epoch ``vel_k[i]``; RSSI readings
+    ``rss_y[j]`` (dBm) of access point ``rss_ap[j]`` (a row of the path-loss model) to epoch
+    ``rss_k[j]``. Times strictly increase (readings at one time share an epoch); an epoch may
+    hold no reading. Read-only arrays.
+    """
+
+    t_s: NDArray[np.float64]
+    vel_k: NDArray[np.int64]
+    vel_y: NDArray[np.float64]
+    rss_k: NDArray[np.int64]
+    rss_ap: NDArray[np.int64]
+    rss_y: NDArray[np.float64]
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.t_s, float).ravel()
+        vk, rk, ra = (np.asarray(a, np.int64).ravel() for a in (self.vel_k, self.rss_k, self.rss_ap))
+        vy = np.asarray(self.vel_y, float).reshape(-1, 2)
+        ry = np.asarray(self.rss_y, float).ravel()
+        if not len(t):
+            raise FilterError("epochs: no epoch")
+        if not np.isfinite(t).all() or (np.diff(t) <= 0).any():
+            raise FilterError("epochs: t_s must be finite and strictly increasing")
+        if len(vk) != len(vy) or not (len(rk) == len(ra) == len(ry)):
+            raise FilterError(f"epochs: {len(vk)} velocity epochs for {len(vy)} readings, "
+                              f"{len(rk)}/{len(ra)}/{len(ry)} RSSI epochs/APs/readings")
+        if ((vk < 0) | (vk >= len(t))).any() or ((rk < 0) | (rk >= len(t))).any() or (ra < 0).any():
+            raise FilterError("epochs: an epoch or AP index is out of range")
+        if not (np.isfinite(vy).all() and np.isfinite(ry).all()):
+            raise FilterError("epochs: non-finite reading")
+        if len(np.unique(vk)) != len(vk):
+            raise FilterError("epochs: more than one velocity reading in an epoch")
+        for name, a in (("t_s", t), ("vel_k", vk), ("vel_y", vy), ("rss_k", rk), ("rss_ap", ra), ("rss_y", ry)):
+            object.__setattr__(self, name, _ro(a, a.dtype.type))
+
+    @classmethod
+    def fixed_rate(cls, y_velocity: NDArray, y_rssi: NDArray, dt: float) -> "Epochs":
+        """The papers' loop: epoch ``k`` at ``k dt`` holds ``y_velocity[k]`` and the finite entries
+        of ``y_rssi[k]`` (NaN = AP not heard)."""
+        yv, yr = np.asarray(y_velocity, float), np.asarray(y_rssi, float)
+        if yv.ndim != 2 or yv.shape[1] != 2 or yr.ndim != 2 or len(yr) != len(yv) or dt <= 0:
+            raise FilterError(f"epochs: y_velocity {yv.shape} / y_rssi {yr.shape} / dt {dt} do not fit together")
+        k, a = np.nonzero(np.isfinite(yr))
+        return cls(np.arange(len(yv)) * float(dt), np.arange(len(yv)), yv, k, a, yr[k, a])
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    @property
+    def dt(self) -> NDArray[np.float64]:
+        """(N - 1,) seconds between consecutive epochs."""
+        return np.diff(self.t_s)
+
+    def check_model(self, model: "FusionModel") -> None:
+        if len(self.rss_ap) and int(self.rss_ap.max()) >= len(model.path_loss):
+            raise FilterError(f"epochs: AP index {int(self.rss_ap.max())} but the model has {len(model.path_loss)} APs")
+
+
+@dataclass(frozen=True, eq=False)
 class FilterRun:
     """Filtered states after each epoch's update: ``x`` (N, n), ``P`` (N, n, n)."""
 
@@ -389,10 +459,42 @@ class FilterRun:
     x: NDArray[np.float64]
     P: NDArray[np.float64]
     loglik: float
+    n_rssi_used: int = 0
+    n_rssi_gated: int = 0
 
     @property
     def trace_p(self) -> NDArray[np.float64]:
         return np.trace(self.P, axis1=1, axis2=2)
+
+
+def run_epochs(
+    filt: KalmanFilter, x0: NDArray, P0: NDArray, epochs: Epochs, *, gate_sigma: float | None = None
+) -> FilterRun:
+    """Causal filtering: at every epoch predict from the previous one (k > 0), then one joint
+    update with ``[y_v if any; RSSI of that epoch]``; RSSI rows beyond ``gate_sigma`` dropped."""
+    epochs.check_model(filt.model)
+    n_ep = len(epochs)
+    vel_at = np.full(n_ep, -1, np.int64)
+    vel_at[epochs.vel_k] = np.arange(len(epochs.vel_k))
+    order = np.argsort(epochs.rss_k, kind="stable")
+    bounds = np.searchsorted(epochs.rss_k[order], np.arange(n_ep + 1))
+    dts = epochs.dt
+    s = GaussianState(x0, P0)
+    xs, Ps = np.empty((n_ep, len(s.x))), np.empty((n_ep, len(s.x), len(s.x)))
+    ll, used, gated = 0.0, 0, 0
+    for k in range(n_ep):
+        if k:
+            s = filt.predict(s, float(dts[k - 1]))
+        rows = order[bounds[k]:bounds[k + 1]]
+        use_v = vel_at[k] >= 0
+        if use_v or len(rows):
+            y = np.concatenate([epochs.vel_y[vel_at[k]] if use_v else np.zeros(0), epochs.rss_y[rows]])
+            s, info = filt.update(s, y, use_velocity=bool(use_v), ap_idx=epochs.rss_ap[rows], gate_sigma=gate_sigma)
+            ll += info.loglik
+            used += info.n_used - (2 if use_v else 0)
+            gated += info.n_gated
+        xs[k], Ps[k] = s.x, s.P
+    return FilterRun(filt.kind, xs, Ps, ll, used, gated)
 
 
 def run_fixed_rate(
@@ -400,18 +502,7 @@ def run_fixed_rate(
 ) -> FilterRun:
     """The papers' loop: at every epoch k (period ``dt``) predict (k > 0), then one joint update
     with ``[y_v; RSSI]``. ``y_rssi`` (N, A) may hold NaN for an AP not heard at that epoch."""
-    yv = np.asarray(y_velocity, float)
     yr = np.asarray(y_rssi, float)
-    if yv.ndim != 2 or yv.shape[1] != 2 or yr.shape != (len(yv), len(filt.model.path_loss)):
-        raise FilterError(f"run: y_velocity {yv.shape} / y_rssi {yr.shape} do not match the model")
-    s = GaussianState(x0, P0)
-    xs, Ps, ll = [], [], 0.0
-    for k in range(len(yv)):
-        if k:
-            s = filt.predict(s, dt)
-        heard = np.flatnonzero(np.isfinite(yr[k]))
-        s, info = filt.update(s, np.concatenate([yv[k], yr[k, heard]]), use_velocity=True, ap_idx=heard)
-        ll += info.loglik
-        xs.append(s.x)
-        Ps.append(s.P)
-    return FilterRun(filt.kind, np.array(xs), np.array(Ps), ll)
+    if yr.ndim != 2 or yr.shape[1] != len(filt.model.path_loss):
+        raise FilterError(f"run: y_rssi {yr.shape} does not match the model's {len(filt.model.path_loss)} APs")
+    return run_epochs(filt, x0, P0, Epochs.fixed_rate(y_velocity, yr, dt))
