@@ -288,9 +288,12 @@ def tracking_paper(
     test_walks: int = 3,
     filters: Sequence[str] = ("ekf", "ukf"),
     smoothers: Sequence[str] = (),
+    knn_fixes: bool = False,
 ) -> dict[str, Any]:
     """Held-out walks tracked (EKF / UKF, AP models fitted from the crowdsourced radio map) vs kNN
     positioning of the same scans on the same map; AP position errors vs the simulator's APs.
+    ``smoothers`` adds offline-smoothed variants, ``knn_fixes`` variants that also fuse each
+    scan's kNN fix.
 
     The crowdsourced map is put into the site frame with the landmark SE(2) fit (evaluation only,
     as ``fig8``); errors at scan times (the tracker's step output interpolated there).
@@ -305,8 +308,8 @@ def tracking_paper(
     from graphslam.sim import simulate
     from graphslam.track import TrackConfig, track_sessions
 
-    variants = [(f, "none") for f in filters] + [(f, sm) for f in filters for sm in smoothers]
-    errs: dict[str, list] = {"knn": [], **{_variant(f, sm): [] for f, sm in variants}}
+    variants = [(f, sm, fx) for fx in ((False, True) if knn_fixes else (False,)) for f in filters for sm in ("none", *smoothers)]
+    errs: dict[str, list] = {"knn": [], **{variant_name(*v): [] for v in variants}}
     ap_err, per_seed = [], []
     n_unfitted = 0
     for seed in seeds:
@@ -326,10 +329,10 @@ def tracking_paper(
         e = np.linalg.norm(knn.xy - truth, axis=1)
         errs["knn"].append(e[np.isfinite(e)])
         row["knn_mean_m"] = round(float(np.nanmean(e)), 3)
-        for f, sm in variants:
-            name = _variant(f, sm)
+        for f, sm, fx in variants:
+            name = variant_name(f, sm, fx)
             t0 = time.perf_counter()
-            tracks = track_sessions(sessions, rm, models, TrackConfig(filter=f, smoother=sm))
+            tracks = track_sessions(sessions, rm, models, TrackConfig(filter=f, smoother=sm, knn_fixes=fx))
             est = np.concatenate(
                 [interpolate_xy(PoseTrack(tr.t_ns, tr.xy, np.zeros(len(tr.t_ns))), t) for tr, t in zip(tracks, t_scan)]
             )
@@ -354,5 +357,6 @@ def tracking_paper(
     return out
 
 
-def _variant(filter_kind: str, smoother: str) -> str:
-    return filter_kind if smoother == "none" else f"{filter_kind}+{smoother}"
+def variant_name(filter_kind: str, smoother: str, knn_fixes: bool = False) -> str:
+    """'ekf', 'ekf+map', 'ekf+knn', 'ekf+knn+map', ..."""
+    return "+".join([filter_kind] + (["knn"] if knn_fixes else []) + ([smoother] if smoother != "none" else []))

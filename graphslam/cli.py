@@ -498,11 +498,14 @@ def track(
     smooth: str = typer.Option(
         "none", "--smooth", help="Offline, whole session: none (causal filter), rts, or map (whole-run MAP)."
     ),
+    knn_fixes: bool = typer.Option(
+        True, "--knn-fixes/--no-knn-fixes", help="Also fuse each scan's kNN fix on the radio map (--no-knn-fixes: the papers' RSSI-only model)."
+    ),
 ) -> None:
     """Track walks on a radio map: EKF/UKF fusion of step velocity and WiFi RSSI (Papers 000/002)."""
     from graphslam.track import TrackConfig, track_files
 
-    cfg = TrackConfig(filter=filter_, smoother=smooth)
+    cfg = TrackConfig(filter=filter_, smoother=smooth, knn_fixes=knn_fixes)
     run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg)
     typer.echo(json.dumps(run.as_dict()))
 
@@ -528,12 +531,14 @@ def bench_tracking(
     test_walks: int = typer.Option(3, help="Held-out test walks per seed."),
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
     smoothers: str = typer.Option("", help="Offline smoothers also reported, e.g. 'rts,map' (default none)."),
+    knn_fixes: bool = typer.Option(False, "--knn-fixes", help="Also report every variant with kNN fixes fused."),
 ) -> None:
     """Held-out walks: EKF/UKF tracking vs kNN (mean error); AP position error vs the simulator."""
     from graphslam.bench import tracking_paper
 
     res = tracking_paper(
-        scenario, _seeds(seeds), _config(config, None), test_walks=test_walks, smoothers=_smoothers(smoothers)
+        scenario, _seeds(seeds), _config(config, None), test_walks=test_walks, smoothers=_smoothers(smoothers),
+        knn_fixes=knn_fixes,
     )
     typer.echo(json.dumps(res))
 

@@ -5,9 +5,14 @@ Per session (positions in the radio map's frame, m):
 - velocity (eq. 4): each foot-module step interval gives ``v_odo = (p_{k+1} - p_k) / dt`` in the
   session's odometry frame; it enters as ``y_v = S v_odo`` (``S`` = x/y swap) so that
   ``y_v = M(theta) v + b`` with ``theta`` the rotation odometry -> map, estimated in the state;
+  an interval faster than ``max_step_speed_mps`` is not a walk but an odometry jump (e.g. the
+  ILC converter's origin pose 1 ms before the first step: 0.7 m in 1 ms) and gives no reading;
 - RSSI (eq. 6): each /wifi/scan reading of an AP with a fitted model (``ApModels``), at or
   above the map's ``min_rssi_dbm``; ``R_i = max(sigma_i, rssi_sigma_floor_db)^2`` from the fit;
   readings beyond ``gate_sigma`` innovation std are skipped (gated);
+- kNN fix (``knn_fixes``, default on; not in the papers): the scan's kNN position on the radio
+  map as a 2-D position reading, std ``max(neighbour spread, fix_sigma_floor_m)``, gated as one
+  reading at ``gate_sigma`` (simulator: 1.20 -> 1.03 m, docs/tracking.md);
 - start: position = kNN fix of the first locatable scan (the radio map itself); heading
   unknown, so a bank of ``n_theta_hypotheses`` filters with theta_0 spread over the circle runs
   in lock-step and each step reports the one with the highest cumulative innovation
@@ -32,7 +37,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graphslam.core.apmodel import ApModels
-from graphslam.core.filters import Epochs, FusionModel, GaussianState, KalmanFilter, make_filter, run_epochs
+from graphslam.core.filters import (
+    Epochs, FusionModel, GaussianState, KalmanFilter, make_filter, position_update, run_epochs,
+)
 from graphslam.core.knn import KnnConfig, KnnLocator
 from graphslam.core.radiomap import RadioMap
 from graphslam.core.smoother import SMOOTH_METHODS, smooth
@@ -66,6 +73,9 @@ class TrackConfig:
     rssi_sigma_floor_db: float = 4.0
     gate_sigma: float = 3.0
     knn_k: int = 3
+    max_step_speed_mps: float = 3.0  # faster step intervals are odometry jumps: no velocity reading
+    knn_fixes: bool = True  # also fuse each scan's kNN fix on the radio map as a position reading
+    fix_sigma_floor_m: float = 2.0  # a fix's std = max(kNN neighbour spread, this)
     smoother: str = "none"  # none | rts | map (offline: uses the whole session)
 
     def __post_init__(self) -> None:
@@ -75,6 +85,8 @@ class TrackConfig:
             raise EstimationError(f"track: unknown smoother {self.smoother!r}; use none, {', '.join(SMOOTH_METHODS)}")
         if self.n_theta_hypotheses < 1 or self.velocity_sigma_mps <= 0 or self.rssi_sigma_floor_db <= 0:
             raise EstimationError("track: n_theta_hypotheses >= 1 and positive noise levels required")
+        if self.max_step_speed_mps <= 0 or self.fix_sigma_floor_m <= 0:
+            raise EstimationError("track: max_step_speed_mps and fix_sigma_floor_m must be > 0")
 
 
 @dataclass(frozen=True, eq=False)
@@ -151,9 +163,18 @@ def track_session(
     if not len(ok):
         raise EstimationError(f"track: session {session.session_id}: no scan could be located on the radio map")
     p0 = fix.xy[ok[0]]
+    fixes: dict[int, tuple[NDArray, float]] = {}  # scan time -> (kNN position, std)
+    if cfg.knn_fixes:
+        for i in ok[1:]:  # the first fix is the start position already
+            sigma = float(np.nan_to_num(fix.spread[i], nan=0.0))
+            fixes[session.scans[i].t_ns] = (fix.xy[i], max(sigma, cfg.fix_sigma_floor_m))
     t = steps.t_ns
     v_odo = np.diff(steps.xy, axis=0) / (np.diff(t)[:, None] / 1e9)
     y_v = v_odo @ _SWAP.T
+    walked = np.linalg.norm(v_odo, axis=1) <= cfg.max_step_speed_mps
+    if not walked.all():
+        log.info("track: session %s: %d step interval(s) faster than %.1f m/s skipped (odometry jumps)",
+                 session.session_id, int((~walked).sum()), cfg.max_step_speed_mps)
     H = cfg.n_theta_hypotheses
     P0 = np.diag(
         [cfg.init_position_sigma_m**2] * 2 + [cfg.init_velocity_sigma_mps**2] * 2
@@ -169,7 +190,7 @@ def track_session(
     while j < len(meas) and meas[j][0] <= t[0]:
         j += 1  # scans before the first step: the kNN start already used them
     for k in range(len(t)):
-        if k < len(t) - 1:
+        if k < len(t) - 1 and walked[k]:
             for h in range(H):
                 states[h], info = filt.update(states[h], y_v[k], use_velocity=True)
                 ll[h] += info.loglik
@@ -188,6 +209,9 @@ def track_session(
                 ll[h] += info.loglik - penalty * info.n_gated
                 used[h] += info.n_used
                 gated[h] += info.n_gated
+                if ts in fixes:
+                    states[h], info = position_update(states[h], *fixes[ts], gate_sigma=cfg.gate_sigma)
+                    ll[h] += info.loglik - penalty * info.n_gated
             t_now = ts
             j += 1
         dt = (t[k + 1] - t_now) / 1e9
@@ -199,7 +223,7 @@ def track_session(
         )
     h = best[-1]
     x0 = np.array([p0[0], p0[1], 0, 0, 0, 0, 2 * math.pi * h / H])
-    epochs, step_epoch = _session_epochs(t, y_v, meas)
+    epochs, step_epoch = _session_epochs(t, y_v, walked, meas, fixes)
     filtered = run_epochs(filt, x0, P0, epochs, gate_sigma=cfg.gate_sigma)
     sm = smooth(model, x0, P0, epochs, filtered, cfg.smoother, huber_k=cfg.gate_sigma)
     return SessionTrack(
@@ -209,20 +233,27 @@ def track_session(
 
 
 def _session_epochs(
-    t_ns: NDArray[np.int64], y_v: NDArray, meas: Sequence[tuple[int, NDArray, NDArray]]
+    t_ns: NDArray[np.int64],
+    y_v: NDArray,
+    walked: NDArray[np.bool_],
+    meas: Sequence[tuple[int, NDArray, NDArray]],
+    fixes: dict[int, tuple[NDArray, float]],
 ) -> tuple[Epochs, NDArray[np.int64]]:
     """The filter loop's readings as ``Epochs``: step times (velocity of the interval that starts
-    there, none at the last step) and scan times in (first step, last step]; returns the epoch
-    of every step too. Times in seconds from the first step."""
+    there if ``walked``, none at the last step) and scan times in (first step, last step] with
+    their RSSI and kNN fix; returns the epoch of every step too. Times in s from the first step."""
     scans = [m for m in meas if t_ns[0] < m[0] <= t_ns[-1]]
     times, inv = np.unique(np.concatenate([t_ns, np.array([m[0] for m in scans], np.int64)]), return_inverse=True)
     step_epoch = inv[: len(t_ns)]
     scan_epoch = inv[len(t_ns):]
     n_each = np.array([len(m[1]) for m in scans], np.int64)
     cat = (lambda parts, dt: np.concatenate(parts) if parts else np.zeros(0, dt))
+    fixed = [j for j, m in enumerate(scans) if m[0] in fixes]
     epochs = Epochs(
-        (times - t_ns[0]) / 1e9, step_epoch[:-1], y_v,
+        (times - t_ns[0]) / 1e9, step_epoch[:-1][walked], y_v[walked],
         np.repeat(scan_epoch, n_each), cat([m[1] for m in scans], np.int64), cat([m[2] for m in scans], float),
+        scan_epoch[fixed], np.array([fixes[scans[j][0]][0] for j in fixed]).reshape(-1, 2),
+        np.array([fixes[scans[j][0]][1] for j in fixed]),
     )
     return epochs, step_epoch
 

@@ -123,14 +123,18 @@ def test_fit_aps_and_track_cli_end_to_end(tiny_case):
     assert err[len(err) // 2 :].mean() < 4.0, err.mean()  # after the start-up (heading unknown at first)
 
 
-def test_track_cli_rejects_unknown_filter(tiny_case, capsys):
+@pytest.mark.parametrize(
+    ("option", "value", "message"), [("--filter", "pf", "ekf or ukf"), ("--smooth", "ks", "unknown smoother")]
+)
+def test_track_cli_rejects_unknown_filter_or_smoother(tiny_case, capsys, option, value, message):
     from graphslam.cli import main
 
     d, _ = tiny_case
+    out = d / f"rejected{option}.csv"
     with pytest.raises(SystemExit) as e:
-        main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--filter", "pf", "--out", str(d / "x.csv")])
-    assert e.value.code == 2 and "ekf or ukf" in capsys.readouterr().err
-    assert not (d / "x.csv").exists()
+        main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), option, value, "--out", str(out)])
+    assert e.value.code == 2 and message in capsys.readouterr().err
+    assert not out.exists()
 
 
 def test_track_cli_smoothed_output_uses_the_whole_walk(tiny_case):
@@ -155,11 +159,26 @@ def test_track_cli_smoothed_output_uses_the_whole_walk(tiny_case):
     assert errs["map"].mean() < 0.8 * errs["none"].mean(), (errs["map"].mean(), errs["none"].mean())
 
 
-def test_track_cli_rejects_unknown_smoother(tiny_case, capsys):
-    from graphslam.cli import main
+def test_track_skips_an_odometry_jump_instead_of_flying_off(tiny_case):
+    # ILC's converter puts the origin pose 1 ms before the first step (0.7 m in 1 ms = 700 m/s).
+    # As a velocity reading that throws the estimate hundreds of metres; it must be skipped.
+    from graphslam.core.evaluate import interpolate_xy
+    from graphslam.core.types import PoseTrack, Session
+    from graphslam.io.apmodel_io import read_ap_models
+    from graphslam.io.radiomap_io import read_radio_map
+    from graphslam.track import TrackConfig, track_sessions
 
-    d, _ = tiny_case
-    with pytest.raises(SystemExit) as e:
-        main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--smooth", "ks", "--out", str(d / "y.csv")])
-    assert e.value.code == 2 and "unknown smoother" in capsys.readouterr().err
-    assert not (d / "y.csv").exists()
+    d, s = tiny_case
+    rm = read_radio_map(d / "radio_map.parquet")
+    models = read_ap_models(d / "ap_models.json") if (d / "ap_models.json").exists() else ApModels.fit(rm)
+    st = s.steps
+    jumped = Session(s.session_id, PoseTrack(
+        np.r_[st.t_ns[0] - 1_000_000, st.t_ns], np.vstack([st.xy[:1] - [0.7, 0.0], st.xy]), np.r_[st.heading[:1], st.heading],
+    ), s.scans)
+    truth = interpolate_xy(s.ground_truth, st.t_ns.astype(float))
+    err = {}
+    for limit in (3.0, 1e9):
+        (tr,) = track_sessions([jumped], rm, models, TrackConfig(max_step_speed_mps=limit))
+        err[limit] = np.linalg.norm(tr.xy[1:] - truth, axis=1)[len(truth) // 2 :].mean()
+    assert err[3.0] < 4.0, err
+    assert err[1e9] > 3 * err[3.0], err  # the guard is what keeps it on the map

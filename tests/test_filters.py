@@ -128,3 +128,19 @@ def test_cart_experiment_without_shadowing_tracks_well(kind):
     dr = run.xy[0] + np.cumsum(run.y_velocity @ np.linalg.inv(velocity_matrix(0.1)).T * run.period_s, axis=0)
     assert np.abs(dr[-1] - run.xy[-1]).max() > 5 * rms.max()
     assert res.trace_p[-1] < 1.0
+
+
+def test_position_fix_update_is_the_kalman_update_and_gates_outliers():
+    from graphslam.core.filters import position_update
+
+    rng = np.random.default_rng(8)
+    L = rng.normal(size=(6, 6))
+    s = GaussianState(rng.normal(size=6), L @ L.T + np.eye(6))
+    s2, info = position_update(s, s.x[:2] + [1.0, -2.0], 1.5)
+    H = np.eye(6)[:2]
+    K = s.P @ H.T @ np.linalg.inv(H @ s.P @ H.T + 1.5**2 * np.eye(2))
+    np.testing.assert_allclose(s2.x, s.x + K @ [1.0, -2.0], rtol=1e-10)
+    np.testing.assert_allclose(s2.P, (np.eye(6) - K @ H) @ s.P, rtol=1e-8, atol=1e-10)
+    assert (info.n_used, info.n_gated) == (1, 0)
+    far, info = position_update(s, s.x[:2] + [60.0, 0.0], 1.5, gate_sigma=3.0)
+    assert (info.n_used, info.n_gated) == (0, 1) and far is s

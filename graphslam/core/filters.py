@@ -381,6 +381,26 @@ class UnscentedKalmanFilter:
 KalmanFilter = ExtendedKalmanFilter | UnscentedKalmanFilter
 
 
+def position_update(
+    s: GaussianState, xy: NDArray, sigma_m: float, *, gate_sigma: float | None = None
+) -> tuple[GaussianState, UpdateInfo]:
+    """Update with a position fix ``xy`` (m) of isotropic std ``sigma_m``: linear (H = [I 0]),
+    so the EKF and the UKF update are the same Kalman update. Gated as one 2-D reading: dropped
+    when its Mahalanobis distance exceeds ``gate_sigma``."""
+    n = len(s.x)
+    H = np.zeros((2, n))
+    H[0, 0] = H[1, 1] = 1.0
+    R = np.eye(2) * sigma_m**2
+    nu = np.asarray(xy, float) - s.x[0:2]
+    S = s.P[0:2, 0:2] + R
+    ll, nis = _loglik(nu, S)
+    if gate_sigma is not None and nis > gate_sigma**2:
+        return s, UpdateInfo(0.0, nis, 0, 1)
+    K = _kalman_gain(s.P @ H.T, S)
+    IKH = np.eye(n) - K @ H
+    return GaussianState(s.x + K @ nu, IKH @ s.P @ IKH.T + K @ R @ K.T), UpdateInfo(ll, nis, 1, 0)
+
+
 def make_filter(kind: str, model: FusionModel, *, w0: float = 0.1) -> KalmanFilter:
     """``"ekf"`` or ``"ukf"`` (``FilterError`` otherwise)."""
     if kind == "ekf":
@@ -396,8 +416,9 @@ class Epochs:
 
     Velocity readings ``vel_y[i]`` (eq. 4) belong to epoch ``vel_k[i]``; RSSI readings
     ``rss_y[j]`` (dBm) of access point ``rss_ap[j]`` (a row of the path-loss model) to epoch
-    ``rss_k[j]``. Times strictly increase (readings at one time share an epoch); an epoch may
-    hold no reading. Read-only arrays.
+    ``rss_k[j]``; optional position fixes ``fix_xy[l]`` (m, e.g. a kNN fix on the radio map)
+    with isotropic std ``fix_sigma[l]`` (m) to epoch ``fix_k[l]``. Times strictly increase
+    (readings at one time share an epoch); an epoch may hold no reading. Read-only arrays.
     """
 
     t_s: NDArray[np.float64]
@@ -406,12 +427,22 @@ class Epochs:
     rss_k: NDArray[np.int64]
     rss_ap: NDArray[np.int64]
     rss_y: NDArray[np.float64]
+    fix_k: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    fix_xy: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
+    fix_sigma: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t_s, float).ravel()
         vk, rk, ra = (np.asarray(a, np.int64).ravel() for a in (self.vel_k, self.rss_k, self.rss_ap))
         vy = np.asarray(self.vel_y, float).reshape(-1, 2)
         ry = np.asarray(self.rss_y, float).ravel()
+        fk = np.asarray(self.fix_k, np.int64).ravel()
+        fxy = np.asarray(self.fix_xy, float).reshape(-1, 2)
+        fs = np.asarray(self.fix_sigma, float).ravel()
+        if not (len(fk) == len(fxy) == len(fs)):
+            raise FilterError(f"epochs: {len(fk)}/{len(fxy)}/{len(fs)} fix epochs/positions/sigmas")
+        if ((fk < 0) | (fk >= len(t))).any() or not (np.isfinite(fxy).all() and np.isfinite(fs).all() and (fs > 0).all()):
+            raise FilterError("epochs: a position fix is out of range, non-finite or has sigma <= 0")
         if not len(t):
             raise FilterError("epochs: no epoch")
         if not np.isfinite(t).all() or (np.diff(t) <= 0).any():
@@ -425,7 +456,8 @@ class Epochs:
             raise FilterError("epochs: non-finite reading")
         if len(np.unique(vk)) != len(vk):
             raise FilterError("epochs: more than one velocity reading in an epoch")
-        for name, a in (("t_s", t), ("vel_k", vk), ("vel_y", vy), ("rss_k", rk), ("rss_ap", ra), ("rss_y", ry)):
+        for name, a in (("t_s", t), ("vel_k", vk), ("vel_y", vy), ("rss_k", rk), ("rss_ap", ra), ("rss_y", ry),
+                        ("fix_k", fk), ("fix_xy", fxy), ("fix_sigma", fs)):
             object.__setattr__(self, name, _ro(a, a.dtype.type))
 
     @classmethod
@@ -478,6 +510,8 @@ def run_epochs(
     vel_at[epochs.vel_k] = np.arange(len(epochs.vel_k))
     order = np.argsort(epochs.rss_k, kind="stable")
     bounds = np.searchsorted(epochs.rss_k[order], np.arange(n_ep + 1))
+    f_order = np.argsort(epochs.fix_k, kind="stable")
+    f_bounds = np.searchsorted(epochs.fix_k[f_order], np.arange(n_ep + 1))
     dts = epochs.dt
     s = GaussianState(x0, P0)
     xs, Ps = np.empty((n_ep, len(s.x))), np.empty((n_ep, len(s.x), len(s.x)))
@@ -493,6 +527,9 @@ def run_epochs(
             ll += info.loglik
             used += info.n_used - (2 if use_v else 0)
             gated += info.n_gated
+        for j in f_order[f_bounds[k]:f_bounds[k + 1]]:
+            s, info = position_update(s, epochs.fix_xy[j], float(epochs.fix_sigma[j]), gate_sigma=gate_sigma)
+            ll += info.loglik
         xs[k], Ps[k] = s.x, s.P
     return FilterRun(filt.kind, xs, Ps, ll, used, gated)
 

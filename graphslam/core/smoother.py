@@ -64,8 +64,9 @@ class SmoothedRun:
 class MapProblem:
     """Whitened residuals of a whole run under ``model`` and their sparse Jacobian.
 
-    Row blocks: prior (n), process ((N - 1) n), velocity (2 per reading), RSSI (1 per reading).
-    ``huber_k`` (in standard deviations) turns the RSSI rows' squares into Huber's loss.
+    Row blocks: prior (n), process ((N - 1) n), velocity (2 per reading), then the map rows:
+    RSSI (1 per reading) and position fixes (2 per fix). ``huber_k`` (in standard deviations)
+    turns the map rows' squares into Huber's loss.
     """
 
     def __init__(
@@ -91,7 +92,7 @@ class MapProblem:
         self._sq = np.sqrt(np.outer(self._dt / model.period_s, model.q_diag))  # (N-1, n) process std
         self._sv = np.sqrt(model.r_velocity)
         self._sr = np.sqrt(model.r_rssi[epochs.rss_ap])
-        self._rows = np.cumsum([0, n, (N - 1) * n, 2 * len(epochs.vel_k), len(epochs.rss_k)])
+        self._rows = np.cumsum([0, n, (N - 1) * n, 2 * len(epochs.vel_k), len(epochs.rss_k) + 2 * len(epochs.fix_k)])
         self._pattern = self._structure()
 
     @property
@@ -110,10 +111,11 @@ class MapProblem:
         h, _ = m.path_loss.rss_pairs(X[e.rss_k, 0:2], e.rss_ap)
         return np.concatenate([
             self._W0 @ (X[0] - self.x0), (proc / self._sq).ravel(), (vel / self._sv).ravel(), (e.rss_y - h) / self._sr,
+            ((e.fix_xy - X[e.fix_k, 0:2]) / e.fix_sigma[:, None]).ravel(),
         ])
 
     def weights(self, r: NDArray) -> NDArray[np.float64]:
-        """IRLS square-root weights: 1, except Huber's sqrt(k / |r|) on RSSI rows beyond k."""
+        """IRLS square-root weights: 1, except Huber's sqrt(k / |r|) on map rows beyond k."""
         sw = np.ones(len(r))
         if self.huber_k is not None:
             a = np.abs(r[self._rows[3]:])
@@ -121,7 +123,7 @@ class MapProblem:
         return sw
 
     def cost(self, r: NDArray) -> float:
-        """Sum of squares; Huber 2 k |r| - k^2 beyond k on RSSI rows when robust."""
+        """Sum of squares; Huber 2 k |r| - k^2 beyond k on map rows (RSSI, fixes) when robust."""
         if self.huber_k is None:
             return float(r @ r)
         k, head, a = self.huber_k, r[: self._rows[3]], np.abs(r[self._rows[3]:])
@@ -149,6 +151,9 @@ class MapProblem:
         rr = self._rows[3] + np.arange(len(e.rss_k))
         rows += [rr, rr]
         cols += [e.rss_k * n, e.rss_k * n + 1]
+        fr = self._rows[3] + len(e.rss_k) + np.arange(2 * len(e.fix_k))  # x, y row of each fix
+        rows.append(fr)
+        cols.append((e.fix_k[:, None] * n + np.arange(2)).ravel())
         return np.concatenate(rows), np.concatenate(cols)
 
     def jacobian(self, X: NDArray) -> sp.csr_matrix:
@@ -168,7 +173,7 @@ class MapProblem:
             dM = np.stack([np.stack([-c, -s], -1), np.stack([-s, c], -1)], -2)  # d M / d theta
             vals.append((-np.einsum("mij,mj->mi", dM, xv[:, 2:4]) * inv_sv).ravel())
         _, g = m.path_loss.rss_pairs(X[e.rss_k, 0:2], e.rss_ap)
-        vals += [-g[:, 0] / self._sr, -g[:, 1] / self._sr]
+        vals += [-g[:, 0] / self._sr, -g[:, 1] / self._sr, -np.repeat(1.0 / e.fix_sigma, 2)]
         r, c = self._pattern
         return sp.csr_matrix((np.concatenate(vals), (r, c)), shape=(self._rows[-1], self.size))
 
