@@ -19,7 +19,7 @@ Per session (positions in the radio map's frame, m):
   likelihood so far (online; gated readings count as a fixed penalty). Never ground truth.
 
 ``smoother`` (offline, whole session known): ``rts`` runs the RTS pass, ``map`` the whole-run MAP
-(``graphslam.core.smoother``; Huber loss at ``gate_sigma`` on RSSI rows instead of the gate)
+(``graphslam.core.smoother``; Huber loss at ``gate_sigma`` on RSSI and fix rows instead of the gate)
 over the hypothesis with the highest final likelihood; the output rows are then that
 smoothed trajectory (``hypothesis`` column constant).
 """
@@ -91,7 +91,8 @@ class TrackConfig:
 
 @dataclass(frozen=True, eq=False)
 class SessionTrack:
-    """Filtered state at every step (after the step's velocity update): x (N, 7), P (N, 7, 7)."""
+    """State at every step: x (N, 7), P (N, 7, 7). Filtered (after the step's velocity update), or
+    smoothed over the whole session when ``TrackConfig.smoother`` is set."""
 
     session_id: str
     t_ns: NDArray[np.int64]
