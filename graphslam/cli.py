@@ -501,11 +501,14 @@ def track(
     knn_fixes: bool = typer.Option(
         True, "--knn-fixes/--no-knn-fixes", help="Also fuse each scan's kNN fix on the radio map (--no-knn-fixes: the papers' RSSI-only model)."
     ),
+    adaptive_rssi: bool = typer.Option(
+        True, "--adaptive-rssi/--no-adaptive-rssi", help="Inflate a scan's RSSI noise when its innovations disagree."
+    ),
 ) -> None:
     """Track walks on a radio map: EKF/UKF fusion of step velocity and WiFi RSSI (Papers 000/002)."""
     from graphslam.track import TrackConfig, track_files
 
-    cfg = TrackConfig(filter=filter_, smoother=smooth, knn_fixes=knn_fixes)
+    cfg = TrackConfig(filter=filter_, smoother=smooth, knn_fixes=knn_fixes, adaptive_rssi=adaptive_rssi)
     run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg)
     typer.echo(json.dumps(run.as_dict()))
 

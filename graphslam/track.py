@@ -13,6 +13,9 @@ Per session (positions in the radio map's frame, m):
 - kNN fix (``knn_fixes``, default on; not in the papers): the scan's kNN position on the radio
   map as a 2-D position reading, std ``max(neighbour spread, fix_sigma_floor_m)``, gated as one
   reading at ``gate_sigma`` (simulator: 1.20 -> 1.03 m, docs/tracking.md);
+- adaptive RSSI noise (``adaptive_rssi``, default on; the papers' future work): when a scan's
+  RSSI innovations are larger than their covariance says (NIS per reading > 1), that scan's R
+  is scaled by the ratio (``filters._inflate_rssi_noise``); consistent scans are unchanged;
 - start: position = kNN fix of the first locatable scan (the radio map itself); heading
   unknown, so a bank of ``n_theta_hypotheses`` filters with theta_0 spread over the circle runs
   in lock-step and each step reports the one with the highest cumulative innovation
@@ -76,6 +79,7 @@ class TrackConfig:
     max_step_speed_mps: float = 3.0  # faster step intervals are odometry jumps: no velocity reading
     knn_fixes: bool = True  # also fuse each scan's kNN fix on the radio map as a position reading
     fix_sigma_floor_m: float = 2.0  # a fix's std = max(kNN neighbour spread, this)
+    adaptive_rssi: bool = True  # inflate a scan's RSSI noise when its innovations say so
     smoother: str = "none"  # none | rts | map (offline: uses the whole session)
 
     def __post_init__(self) -> None:
@@ -206,7 +210,9 @@ def track_session(
             ts, idx, rss = meas[j]
             for h in range(H):
                 s = filt.predict(states[h], (ts - t_now) / 1e9)
-                states[h], info = filt.update(s, rss, use_velocity=False, ap_idx=idx, gate_sigma=cfg.gate_sigma)
+                states[h], info = filt.update(
+                    s, rss, use_velocity=False, ap_idx=idx, gate_sigma=cfg.gate_sigma, adaptive_rssi=cfg.adaptive_rssi
+                )
                 ll[h] += info.loglik - penalty * info.n_gated
                 used[h] += info.n_used
                 gated[h] += info.n_gated

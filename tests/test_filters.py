@@ -144,3 +144,22 @@ def test_position_fix_update_is_the_kalman_update_and_gates_outliers():
     assert (info.n_used, info.n_gated) == (1, 0)
     far, info = position_update(s, s.x[:2] + [60.0, 0.0], 1.5, gate_sigma=3.0)
     assert (info.n_used, info.n_gated) == (0, 1) and far is s
+
+
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+def test_adaptive_rssi_noise_changes_nothing_when_consistent_and_distrusts_a_disagreeing_scan(kind):
+    m = FusionModel.paper_ekf()
+    filt = ExtendedKalmanFilter(m) if kind == "ekf" else UnscentedKalmanFilter(m, 0.1)
+    s = GaussianState(np.array([3.0, 5.0, 0.0, 0.1, 0.0, 0.0]), np.diag([4.0, 4.0, 0.1, 0.1, 1e-3, 1e-3]))
+    idx = np.arange(4)
+    y = m.measure(s.x, False, idx)[0] + np.array([2.0, -3.0, 1.0, -2.0])  # well within R = 40 dB^2
+    a, _ = filt.update(s, y, use_velocity=False, ap_idx=idx, adaptive_rssi=True)
+    b, _ = filt.update(s, y, use_velocity=False, ap_idx=idx)
+    np.testing.assert_array_equal(a.P, b.P)
+    np.testing.assert_array_equal(a.x, b.x)
+    y_bad = m.measure(s.x, False, idx)[0] + np.array([25.0, -30.0, 28.0, -26.0])  # ~4 sigma each, all off
+    a, ia = filt.update(s, y_bad, use_velocity=False, ap_idx=idx, adaptive_rssi=True)
+    b, ib = filt.update(s, y_bad, use_velocity=False, ap_idx=idx)
+    assert np.trace(a.P[:2, :2]) > np.trace(b.P[:2, :2])  # less certain than the plain update
+    assert np.linalg.norm(a.x[:2] - s.x[:2]) < np.linalg.norm(b.x[:2] - s.x[:2])  # and moved less
+    assert ia.nis == pytest.approx(4.0, rel=0.35) and ib.nis > 8.0  # ~1 per row after adaptation

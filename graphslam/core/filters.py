@@ -278,6 +278,23 @@ def _gate(nu: NDArray, S: NDArray, n_fixed: int, gate_sigma: float | None) -> ND
     return keep
 
 
+def _inflate_rssi_noise(nu: NDArray, S: NDArray, R: NDArray, n_fixed: int) -> tuple[NDArray, NDArray]:
+    """Innovation-based adaptive R (Papers 000/002's future work): when the RSSI rows' NIS per
+    row exceeds 1, their R is scaled by that ratio, so one scan whose readings disagree with the
+    path-loss models together (correlated model error, a wrong position) cannot make the state
+    more certain than the readings' spread supports. Consistent innovations change nothing."""
+    r = slice(n_fixed, None)
+    m = len(nu) - n_fixed
+    if m <= 0:
+        return S, R
+    ratio = float(nu[r] @ np.linalg.solve(S[r, r], nu[r])) / m
+    if ratio <= 1.0:
+        return S, R
+    dR = np.zeros_like(R)
+    dR[r, r] = (ratio - 1.0) * R[r, r]
+    return S + dR, R + dR
+
+
 def _loglik(nu: NDArray, S: NDArray) -> tuple[float, float]:
     if len(nu) == 0:
         return 0.0, 0.0
@@ -299,7 +316,7 @@ class ExtendedKalmanFilter:
 
     def update(
         self, s: GaussianState, y: NDArray, *, use_velocity: bool, ap_idx: NDArray = _EMPTY_IDX,
-        gate_sigma: float | None = None,
+        gate_sigma: float | None = None, adaptive_rssi: bool = False,
     ) -> tuple[GaussianState, UpdateInfo]:
         m = self.model
         ap_idx = np.asarray(ap_idx, np.int64)
@@ -309,6 +326,8 @@ class ExtendedKalmanFilter:
         S = H @ s.P @ H.T + R
         keep = _gate(nu, S, 2 if use_velocity else 0, gate_sigma)
         H, R, nu, S = H[keep], R[np.ix_(keep, keep)], nu[keep], S[np.ix_(keep, keep)]
+        if adaptive_rssi:
+            S, R = _inflate_rssi_noise(nu, S, R, 2 if use_velocity else 0)
         if not len(nu):
             return s, UpdateInfo(0.0, 0.0, 0, int((~keep).sum()))
         K = _kalman_gain(s.P @ H.T, S)
@@ -358,18 +377,21 @@ class UnscentedKalmanFilter:
 
     def update(
         self, s: GaussianState, y: NDArray, *, use_velocity: bool, ap_idx: NDArray = _EMPTY_IDX,
-        gate_sigma: float | None = None,
+        gate_sigma: float | None = None, adaptive_rssi: bool = False,
     ) -> tuple[GaussianState, UpdateInfo]:
         m = self.model
         ap_idx = np.asarray(ap_idx, np.int64)
         X, w = sigma_points(s.x, s.P, self.w0)  # redrawn from the predicted (x, P): includes Q
         Y = m.measure(X, use_velocity, ap_idx)  # (2n+1, p), vectorised over sigma points
         y_hat, Psi = unscented_transform(Y, w)
-        Psi = Psi + m.measurement_noise(use_velocity, ap_idx)
+        R = m.measurement_noise(use_velocity, ap_idx)
+        Psi = Psi + R
         Phi = ((X - w @ X) * w[:, None]).T @ (Y - y_hat)  # cross covariance (n, p)
         nu = np.asarray(y, float) - y_hat
         keep = _gate(nu, Psi, 2 if use_velocity else 0, gate_sigma)
-        nu, Psi, Phi = nu[keep], Psi[np.ix_(keep, keep)], Phi[:, keep]
+        nu, Psi, Phi, R = nu[keep], Psi[np.ix_(keep, keep)], Phi[:, keep], R[np.ix_(keep, keep)]
+        if adaptive_rssi:
+            Psi, R = _inflate_rssi_noise(nu, Psi, R, 2 if use_velocity else 0)
         if not len(nu):
             return s, UpdateInfo(0.0, 0.0, 0, int((~keep).sum()))
         K = _kalman_gain(Phi, Psi)
