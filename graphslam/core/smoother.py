@@ -86,7 +86,7 @@ class MapProblem:
         except np.linalg.LinAlgError:
             raise EstimationError("map smoothing: P0 is not positive definite") from None
         self.model, self.epochs, self.n, self.N, self.huber_k = model, epochs, n, N, huber_k
-        self.x0 = x0
+        self.x0, self.P0 = x0, np.asarray(P0, float)
         self._W0 = sla.solve_triangular(C, np.eye(n), lower=True)  # C^-1: whitens x - x0
         self._dt = epochs.dt
         self._sq = np.sqrt(np.outer(self._dt / model.period_s, model.q_diag))  # (N-1, n) process std
@@ -282,12 +282,12 @@ def dead_reckoning_starts(
     m, e, x0 = problem.model, problem.epochs, problem.x0
     if not len(e.vel_k) or keep < 1:
         return []
-    P0 = np.linalg.inv(problem._W0.T @ problem._W0)
-    held = np.searchsorted(e.vel_k, np.arange(len(e)), side="right") - 1  # last reading at or before k
-    y = np.where((held >= 0)[:, None], e.vel_y[np.maximum(held, 0)], 0.0)  # (N, 2); none yet: still
+    order = np.argsort(e.vel_k, kind="stable")
+    held = np.searchsorted(e.vel_k[order], np.arange(len(e)), side="right") - 1  # last reading at or before k
+    y = np.where((held >= 0)[:, None], e.vel_y[order][np.maximum(held, 0)], 0.0)  # (N, 2); none yet: still
     theta = x0[6] if m.theta_rad is None else m.theta_rad
     Minv = np.linalg.inv(velocity_matrix(theta))
-    sb = span_sigma * np.sqrt(np.diag(P0)[4:6])
+    sb = span_sigma * np.sqrt(np.diag(problem.P0)[4:6])
     out = []
     for bx in x0[4] + np.linspace(-sb[0], sb[0], grid):
         for by in x0[5] + np.linspace(-sb[1], sb[1], grid):
