@@ -234,9 +234,8 @@ def filters_cart(
 
     from graphslam.core.filters import Epochs, FusionModel, make_filter, run_epochs
     from graphslam.core.smoother import smooth
-    from graphslam.sim.cart import PAPER_P0, PAPER_X0, CartNoise, simulate_cart
+    from graphslam.sim.cart import PAPER_P0, PAPER_RMS_TARGETS_M, PAPER_X0, CartNoise, simulate_cart
 
-    targets = {"ekf": (0.86, 1.15), "ukf": (0.75, 1.04)}  # Paper 000 / 002, RMS x / y (m)
     noise = CartNoise() if shadowing_db is None else dataclasses.replace(CartNoise(), shadowing_sigma_db=shadowing_db)
     out: dict[str, Any] = {"seeds": list(seeds), "noise": dataclasses.asdict(noise)}
     for kind, model in (("ekf", FusionModel.paper_ekf()), ("ukf", FusionModel.paper_ukf())):
@@ -264,7 +263,7 @@ def filters_cart(
                     run.t_s, run.xy, res.x[:, :2], res.trace_p, Path(plot_dir) / f"tracking_cart_{kind}.png",
                     f"{kind.upper()}, simulated cart (seed {seed}, shadowing {noise.shadowing_sigma_db:g} dB)",
                 )
-        tx, ty = targets[kind]
+        tx, ty = PAPER_RMS_TARGETS_M[kind]
         for name, r in rms.items():
             a = np.array(r)
             for j, axis in enumerate("xy"):

@@ -34,9 +34,7 @@ from numpy.typing import NDArray
 
 from graphslam.core.filters import Epochs, FusionModel, make_filter, run_epochs
 from graphslam.core.smoother import MapProblem, map_smooth, smooth
-from graphslam.sim.cart import PAPER_P0, PAPER_X0, simulate_cart
-
-TARGETS = {"ekf": (0.86, 1.15), "ukf": (0.75, 1.04)}
+from graphslam.sim.cart import PAPER_P0, PAPER_RMS_TARGETS_M as TARGETS, PAPER_X0, simulate_cart
 
 
 def _rms(X: NDArray, xy: NDArray) -> list[float]:

@@ -28,6 +28,7 @@ PAPER_PERIOD_S = 4.0
 PAPER_THETA_RAD = 0.1
 PAPER_X0 = np.array([1.0, 1.0, 0.0, 0.1, 0.0, 0.0])
 PAPER_P0 = 1e-3 * np.eye(6)
+PAPER_RMS_TARGETS_M = {"ekf": (0.86, 1.15), "ukf": (0.75, 1.04)}  # the papers' RMS x / y (000 / 002)
 
 
 @dataclass(frozen=True)
