@@ -177,17 +177,14 @@ def fig8(
 
 def ilc_floors(site_dir: Path, cfg: GraphSlamConfig, floors: Sequence[str] | None = None) -> list[dict[str, Any]]:
     """Align every floor of an ILC 2.0 site (real recordings); waypoint errors after one SE(2) fit."""
-    from graphslam.errors import InputError
+    from graphslam.io.mcap_reader import floor_folders
     from graphslam.pipeline import run_survey
 
-    site_dir = Path(site_dir)
-    names = list(floors) if floors else sorted(p.name for p in site_dir.iterdir() if p.is_dir())
-    if not names:
-        raise InputError(site_dir, "no floor folders (e.g. B1, F1) in this site folder")
     rows = []
-    for name in names:
+    for folder in floor_folders(site_dir, floors):
+        name = folder.name
         t = time.perf_counter()
-        res = run_survey([site_dir / name], None, cfg)
+        res = run_survey([folder], None, cfg)
         dt = time.perf_counter() - t
         ev = res.evaluation
         lm = ev.landmarks if ev is not None else None

@@ -50,7 +50,8 @@ from graphslam.core.association import associate
 from graphslam.core.evaluate import interpolate_xy
 from graphslam.core.fingerprints import DistanceEngine
 from graphslam.core.initialise import fit_se2, ransac_se2, se2_apply, se2_compose
-from graphslam.io.mcap_reader import read_survey
+from graphslam.errors import GraphSlamError
+from graphslam.io.mcap_reader import floor_folders, read_survey
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_SITE = Path(os.environ.get("GRAPHSLAM_DATA", REPO.parent / "shared" / "data")) / "ilc20" / "site1"
@@ -347,12 +348,13 @@ def main() -> int:
     ap.add_argument("--floors", default=None, help="comma-separated (default: every floor folder)")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
-    if not args.site.is_dir():
-        print(f"error: {args.site}: not a folder (ILC site with floor folders)", file=sys.stderr)
+    try:
+        folders = floor_folders(args.site, args.floors.split(",") if args.floors else None)
+    except GraphSlamError as e:
+        print(f"error: {e}", file=sys.stderr)
         return 2
-    names = args.floors.split(",") if args.floors else sorted(p.name for p in args.site.iterdir() if p.is_dir())
-    for name in names:
-        print(json.dumps(floor(args.site / name, args.seed)), flush=True)
+    for folder in folders:
+        print(json.dumps(floor(folder, args.seed)), flush=True)
     return 0
 
 

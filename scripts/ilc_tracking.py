@@ -40,7 +40,7 @@ from graphslam.core.knn import KnnConfig, KnnLocator
 from graphslam.core.radiomap import RadioMap
 from graphslam.core.types import PoseTrack
 from graphslam.errors import GraphSlamError
-from graphslam.io.mcap_reader import read_survey
+from graphslam.io.mcap_reader import floor_folders, read_survey
 from graphslam.track import TrackConfig, track_sessions
 
 REPO = Path(__file__).resolve().parents[1]
@@ -112,12 +112,13 @@ def main() -> int:
     ap.add_argument("--folds", type=int, default=5)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
-    if not args.site.is_dir():
-        print(f"error: {args.site}: not a folder (the ILC 2.0 site, e.g. ../shared/data/ilc20/site1)", file=sys.stderr)
+    try:
+        folders = floor_folders(args.site, args.floors.split(",") if args.floors else None)
+    except GraphSlamError as e:
+        print(f"error: {e}", file=sys.stderr)
         return 2
-    names = args.floors.split(",") if args.floors else sorted(p.name for p in args.site.iterdir() if p.is_dir())
-    for name in names:
-        print(json.dumps(floor(args.site / name, args.folds, args.seed)), flush=True)
+    for folder in folders:
+        print(json.dumps(floor(folder, args.folds, args.seed)), flush=True)
     return 0
 
 

@@ -204,3 +204,19 @@ def test_cli_inspect_reports_counts(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert lines[0]["steps"] == 21 and lines[0]["scans"] == 6 and lines[0]["landmarks"] == 1
     assert lines[-1]["totals"]["sessions"] == 2 and lines[-1]["totals"]["steps"] == 30
     assert lines[0]["walked_m"] == pytest.approx(20 * 0.7, rel=1e-6)
+
+
+def test_floor_folders_lists_floors_and_names_what_is_missing(tmp_path: Path) -> None:
+    from graphslam.io.mcap_reader import floor_folders
+
+    for name in ("F1", "B1"):
+        (tmp_path / name).mkdir()
+    (tmp_path / "floor_info.json").write_text("{}")
+    assert [p.name for p in floor_folders(tmp_path)] == ["B1", "F1"]
+    assert [p.name for p in floor_folders(tmp_path, ["F1"])] == ["F1"]
+    with pytest.raises(InputError, match="F9.*no such floor folder"):
+        floor_folders(tmp_path, ["F1", "F9"])
+    with pytest.raises(InputError, match="no floor folders"):
+        floor_folders(tmp_path / "B1")
+    with pytest.raises(InputError, match="not a folder"):
+        floor_folders(tmp_path / "floor_info.json")

@@ -61,6 +61,21 @@ def expand_paths(paths: Iterable[str | Path]) -> list[Path]:
     return unique
 
 
+def floor_folders(site_dir: str | Path, floors: Iterable[str] | None = None) -> list[Path]:
+    """The floor folders of a multi-floor site (e.g. ILC ``site1/{B1,F1,...}``): ``floors`` if
+    given (each must exist), else every sub-folder, sorted."""
+    site = Path(site_dir)
+    if not site.is_dir():
+        raise InputError(site, "not a folder (a site with one folder per floor)")
+    names = list(floors) if floors else sorted(p.name for p in site.iterdir() if p.is_dir())
+    if not names:
+        raise InputError(site, "no floor folders (e.g. B1, F1) in this site folder")
+    missing = [n for n in names if not (site / n).is_dir()]
+    if missing:
+        raise InputError(site / missing[0], "no such floor folder")
+    return [site / n for n in names]
+
+
 def read_survey(paths: Iterable[str | Path]) -> Survey:
     """Read every session under ``paths`` (files or folders). Session ids must be unique."""
     files = expand_paths(paths)
