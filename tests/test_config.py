@@ -41,3 +41,17 @@ def test_bad_values_rejected(tmp_path: Path) -> None:
     p.write_text("- a list\n")
     with pytest.raises(ConfigError, match="mapping"):
         load_config(p)
+
+
+def test_cli_seed_lists_take_ranges_and_reject_garbage(capsys) -> None:
+
+    from graphslam.cli import _seeds, main
+
+    assert _seeds("0-3,7") == [0, 1, 2, 3, 7]
+    assert _seeds("5") == [5]
+    with pytest.raises(SystemExit) as e:
+        main(["bench", "filters", "--seeds", "0-x"])
+    assert e.value.code == 2 and "--seeds '0-x'" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        main(["bench", "filters", "--seeds", "0", "--smoothers", "ks"])
+    assert e.value.code == 2 and "unknown smoother 'ks'" in capsys.readouterr().err
