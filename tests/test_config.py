@@ -44,7 +44,6 @@ def test_bad_values_rejected(tmp_path: Path) -> None:
 
 
 def test_cli_seed_lists_take_ranges_and_reject_garbage(capsys) -> None:
-
     from graphslam.cli import _seeds, main
 
     assert _seeds("0-3,7") == [0, 1, 2, 3, 7]
