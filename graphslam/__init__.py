@@ -36,19 +36,19 @@ _EXPORTS: dict[str, str] = {
     # domain objects
     **{n: "graphslam.core.types" for n in ("PoseTrack", "Scan", "Session", "Survey", "LandmarkMark")},
     # alignment and its evaluation
-    **{n: "graphslam.core.align" for n in ("align", "Alignment")},
-    **{n: "graphslam.core.evaluate" for n in ("evaluate", "Evaluation", "ErrorStats")},
-    **{n: "graphslam.pipeline" for n in ("run_survey", "write_outputs", "SurveyResult")},
+    **{n: "graphslam.core.survey.align" for n in ("align", "Alignment")},
+    **{n: "graphslam.core.survey.evaluate" for n in ("evaluate", "Evaluation", "ErrorStats")},
+    **{n: "graphslam.app.survey" for n in ("run_survey", "write_outputs", "SurveyResult")},
     # radio map, positioning, access points
-    "RadioMap": "graphslam.core.radiomap",
-    **{n: "graphslam.core.knn" for n in ("KnnConfig", "KnnLocator", "KnnResult")},
-    **{n: "graphslam.core.apmodel" for n in ("ApFitConfig", "ApModel", "ApModels", "UnfittedAp")},
+    "RadioMap": "graphslam.core.radiomap.radiomap",
+    **{n: "graphslam.core.radiomap.knn" for n in ("KnnConfig", "KnnLocator", "KnnResult")},
+    **{n: "graphslam.core.tracking.apmodel" for n in ("ApFitConfig", "ApModel", "ApModels", "UnfittedAp")},
     # filters, smoothers, tracking
-    **{n: "graphslam.core.filters" for n in (
+    **{n: "graphslam.core.tracking.filters" for n in (
         "PathLossModel", "FusionModel", "GaussianState", "Epochs", "FilterRun", "make_filter", "run_epochs",
     )},
-    **{n: "graphslam.core.smoother" for n in ("SmoothedRun", "smooth", "rts_smooth", "map_smooth", "MapProblem")},
-    **{n: "graphslam.track" for n in ("TrackConfig", "SessionTrack", "track_sessions")},
+    **{n: "graphslam.core.tracking.smoother" for n in ("SmoothedRun", "smooth", "rts_smooth", "map_smooth", "MapProblem")},
+    **{n: "graphslam.app.track" for n in ("TrackConfig", "SessionTrack", "track_sessions")},
     # files
     **{n: "graphslam.io.mcap_reader" for n in ("read_survey", "read_session")},
     "write_session": "graphslam.io.mcap_writer",
@@ -74,15 +74,15 @@ def __dir__() -> list[str]:
 
 if TYPE_CHECKING:  # static analysers see the real objects
     from graphslam.config import GraphSlamConfig, config_from_dict, load_config
-    from graphslam.core.align import Alignment, align
-    from graphslam.core.apmodel import ApFitConfig, ApModel, ApModels, UnfittedAp
-    from graphslam.core.evaluate import ErrorStats, Evaluation, evaluate
-    from graphslam.core.filters import (
+    from graphslam.core.survey.align import Alignment, align
+    from graphslam.core.tracking.apmodel import ApFitConfig, ApModel, ApModels, UnfittedAp
+    from graphslam.core.survey.evaluate import ErrorStats, Evaluation, evaluate
+    from graphslam.core.tracking.filters import (
         Epochs, FilterRun, FusionModel, GaussianState, PathLossModel, make_filter, run_epochs,
     )
-    from graphslam.core.knn import KnnConfig, KnnLocator, KnnResult
-    from graphslam.core.radiomap import RadioMap
-    from graphslam.core.smoother import MapProblem, SmoothedRun, map_smooth, rts_smooth, smooth
+    from graphslam.core.radiomap.knn import KnnConfig, KnnLocator, KnnResult
+    from graphslam.core.radiomap.radiomap import RadioMap
+    from graphslam.core.tracking.smoother import MapProblem, SmoothedRun, map_smooth, rts_smooth, smooth
     from graphslam.core.types import LandmarkMark, PoseTrack, Scan, Session, Survey
     from graphslam.errors import (
         ConfigError, EstimationError, GraphSlamError, InputError, OutputError, QueryError, RadioMapError,
@@ -92,5 +92,5 @@ if TYPE_CHECKING:  # static analysers see the real objects
     from graphslam.io.mcap_reader import read_session, read_survey
     from graphslam.io.mcap_writer import write_session
     from graphslam.io.radiomap_io import read_radio_map, write_radio_map
-    from graphslam.pipeline import SurveyResult, run_survey, write_outputs
-    from graphslam.track import SessionTrack, TrackConfig, track_sessions
+    from graphslam.app.survey import SurveyResult, run_survey, write_outputs
+    from graphslam.app.track import SessionTrack, TrackConfig, track_sessions

@@ -17,7 +17,7 @@ from graphslam.errors import GraphSlamError
 
 if TYPE_CHECKING:
     from graphslam.config import GraphSlamConfig
-    from graphslam.core.align import IterationRecord
+    from graphslam.core.survey.align import IterationRecord
 
 app = typer.Typer(
     add_completion=False,
@@ -143,7 +143,7 @@ def survey(
 ) -> None:
     """Align every walk into one frame; write trajectories.csv, aligned.mcap, radio_map.parquet,
     report.json and the effective config.yaml into OUT."""
-    from graphslam.pipeline import run_survey
+    from graphslam.app.survey import run_survey
 
     cfg = _config(config, set_)
     bar = _LmProgress(progress and sys.stderr.isatty())
@@ -179,7 +179,7 @@ def evaluate(
     plot: Optional[Path] = typer.Option(None, "--plot", help="Landmark error histogram (PNG, as the paper's fig. 7)."),
 ) -> None:
     """Landmark errors after an SE(2) fit, heading alignment and raw-vs-aligned comparison."""
-    from graphslam.core.evaluate import evaluate as run_evaluation
+    from graphslam.core.survey.evaluate import evaluate as run_evaluation
     from graphslam.errors import InputError
     from graphslam.io.atomic import atomic_write_json, json_safe
     from graphslam.io.csv_io import read_trajectories
@@ -251,7 +251,7 @@ def bench_accuracy(
     set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value."),
 ) -> None:
     """Align simulated surveys; print one JSON line of errors per seed, then the mean over seeds."""
-    from graphslam.bench import accuracy
+    from graphslam.app.bench import accuracy
 
     rows = accuracy(scenario, _seeds(seeds), _config(config, set_), size=size)
     for r in rows:
@@ -269,7 +269,7 @@ def bench_survey(
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
 ) -> None:
     """Time `graphslam survey` end to end on a simulated survey (fresh process per run); peak memory."""
-    from graphslam.bench import survey_speed
+    from graphslam.app.bench import survey_speed
 
     typer.echo(json.dumps(survey_speed(scenario, seed, runs=runs, size=size, config=config)))
 
@@ -293,10 +293,10 @@ def bench_ujiindoorloc(
     ivf_probes: Optional[int] = typer.Option(None, "--ivf-probes", min=1, help=IVF_PROBES_HELP),
 ) -> None:
     """kNN on UJIIndoorLoc (train: trainingData, test: validationData); prints one JSON line."""
-    from graphslam.uji_bench import run_ujiindoorloc_benchmark
+    from graphslam.app.uji_bench import run_ujiindoorloc_benchmark
 
     if index != "exact":
-        from graphslam.core.ivf import limit_blas_threads
+        from graphslam.core.radiomap.ivf import limit_blas_threads
 
         limit_blas_threads(1)  # the IVF search's small GEMMs (see limit_blas_threads)
 
@@ -325,13 +325,13 @@ def locate(
     index: str = typer.Option("exact", "--index", help=INDEX_HELP + " Default: exact."),
 ) -> None:
     """Locate every /wifi/scan of the query sessions by kNN against a radio map."""
-    from graphslam.locate import locate_files
+    from graphslam.app.locate import locate_files
 
     run = locate_files(
         radio_map, query_paths, out=out, k=k, weighted=weighted, min_common=min_common, index=index
     )
     if rerun is not None:
-        from graphslam.locate import query_truth
+        from graphslam.app.locate import query_truth
         from graphslam.viz.rerun_log import log_locate_results
 
         pos = run.positions
@@ -423,7 +423,7 @@ def bench_fig8(
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
 ) -> None:
     """The paper's fig. 8: kNN error CDF of held-out walks, crowdsourced vs surveyed radio map."""
-    from graphslam.bench import fig8
+    from graphslam.app.bench import fig8
 
     typer.echo(json.dumps(fig8(scenario, _seeds(seeds), _config(config, None), test_walks=test_walks, k=k, plot=plot)))
 
@@ -435,7 +435,7 @@ def demo(
     rerun: bool = typer.Option(False, "--rerun", help="Also write OUT/survey.rrd."),
 ) -> None:
     """Simulate the paper's survey, align it, locate held-out walks; print the headline figures."""
-    from graphslam.demo import run_demo
+    from graphslam.app.demo import run_demo
 
     r = run_demo(out, seed=seed, rerun=rerun)
     f = r.figures
@@ -460,7 +460,7 @@ def bench_ilc(
     set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value."),
 ) -> None:
     """Align each real ILC floor; one JSON line per floor with waypoint errors (SE(2) fit) and time."""
-    from graphslam.bench import ilc_floors
+    from graphslam.app.bench import ilc_floors
 
     for row in ilc_floors(site_dir, _config(config, set_), floors.split(",") if floors else None):
         typer.echo(json.dumps(row))
@@ -473,7 +473,7 @@ def fit_aps(
     min_readings: int = typer.Option(20, "--min-readings", min=5, help="Fit only APs heard this often."),
 ) -> None:
     """Fit position, P0 and gamma of every often-heard AP of a radio map (robust least squares)."""
-    from graphslam.core.apmodel import ApFitConfig, ApModels
+    from graphslam.core.tracking.apmodel import ApFitConfig, ApModels
     from graphslam.io.apmodel_io import write_ap_models
     from graphslam.io.radiomap_io import read_radio_map
 
@@ -506,7 +506,7 @@ def track(
     ),
 ) -> None:
     """Track walks on a radio map: EKF/UKF fusion of step velocity and WiFi RSSI (Papers 000/002)."""
-    from graphslam.track import TrackConfig, track_files
+    from graphslam.app.track import TrackConfig, track_files
 
     cfg = TrackConfig(filter=filter_, smoother=smooth, knn_fixes=knn_fixes, adaptive_rssi=adaptive_rssi)
     run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg)
@@ -521,7 +521,7 @@ def bench_filters(
     smoothers: str = typer.Option("rts,map", help="Offline smoothers also reported (comma-separated; '' for none)."),
 ) -> None:
     """The filter papers' experiment simulated: RMS error in x and y of EKF and UKF (and smoothed) over seeds."""
-    from graphslam.bench import filters_cart
+    from graphslam.app.bench import filters_cart
 
     res = filters_cart(_seeds(seeds), shadowing_db=shadowing_db, plot_dir=plot_dir, smoothers=_smoothers(smoothers))
     typer.echo(json.dumps(res))
@@ -537,7 +537,7 @@ def bench_tracking(
     knn_fixes: bool = typer.Option(False, "--knn-fixes", help="Also report every variant with kNN fixes fused."),
 ) -> None:
     """Held-out walks: EKF/UKF tracking vs kNN (mean error); AP position error vs the simulator."""
-    from graphslam.bench import tracking_paper
+    from graphslam.app.bench import tracking_paper
 
     res = tracking_paper(
         scenario, _seeds(seeds), _config(config, None), test_walks=test_walks, smoothers=_smoothers(smoothers),
@@ -547,7 +547,7 @@ def bench_tracking(
 
 
 def _smoothers(text: str) -> list[str]:
-    from graphslam.core.smoother import SMOOTH_METHODS
+    from graphslam.core.tracking.smoother import SMOOTH_METHODS
 
     names = [v.strip() for v in text.split(",") if v.strip()]
     bad = [v for v in names if v not in SMOOTH_METHODS]

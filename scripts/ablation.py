@@ -15,8 +15,8 @@ import time
 import numpy as np
 
 from graphslam.config import load_config
-from graphslam.core.align import align
-from graphslam.core.evaluate import evaluate
+from graphslam.core.survey.align import align
+from graphslam.core.survey.evaluate import evaluate
 from graphslam.sim import simulate
 
 VARIANTS: dict[str, dict] = {

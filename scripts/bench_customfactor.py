@@ -25,9 +25,9 @@ import numpy as np
 from gtsam.symbol_shorthand import X
 
 from graphslam.config import GraphSlamConfig
-from graphslam.core import factors as F
-from graphslam.core.align import Problem, _values_to_xyh, build_problem, lm_params, solve
-from graphslam.core.evaluate import evaluate
+from graphslam.core.survey import factors as F
+from graphslam.core.survey.align import Problem, _values_to_xyh, build_problem, lm_params, solve
+from graphslam.core.survey.evaluate import evaluate
 from graphslam.core.types import PoseTrack
 from graphslam.sim import simulate
 

@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from graphslam.core.radiomap import RadioMap
+    from graphslam.core.radiomap.radiomap import RadioMap
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = Path(os.environ.get("GRAPHSLAM_DATA", REPO.parent / "shared" / "data")) / "ujiindoorloc"
@@ -139,7 +139,7 @@ def load_workload(
 ) -> tuple["RadioMap", list[dict[str, float]]]:
     """The radio map (``radio_map``, or UJIIndoorLoc trainingData) and the validationData
     fingerprints that hear at least one AP above the map's RSS floor, as scans."""
-    from graphslam.uji_bench import TEST_FILE, TRAIN_FILE, find_uji_file
+    from graphslam.app.uji_bench import TEST_FILE, TRAIN_FILE, find_uji_file
     from graphslam.io.radiomap_io import read_radio_map
     from graphslam.io.ujiindoorloc import read_ujiindoorloc
 

@@ -46,8 +46,8 @@ def main() -> int:
 
     from sklearn.neighbors import KNeighborsClassifier, KNeighborsRegressor
 
-    from graphslam.core.knn import KnnConfig, KnnLocator
-    from graphslam.uji_bench import TEST_FILE, TRAIN_FILE, find_uji_file
+    from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
+    from graphslam.app.uji_bench import TEST_FILE, TRAIN_FILE, find_uji_file
     from graphslam.io.ujiindoorloc import read_ujiindoorloc
 
     try:

@@ -10,7 +10,7 @@ the papers' x0, P0, Q, R, path loss), RMS error in x and y of:
   (prior on x0, process residuals with Q, velocity and RSSI residuals with R), by sparse
   Levenberg-Marquardt from several starts (the filter, the RTS output, the four best
   dead-reckoning paths over a grid of constant biases), keeping the lowest cost. No start
-  uses the truth. This is ``graphslam.core.smoother.smooth(..., "map")``, the product's
+  uses the truth. This is ``graphslam.core.tracking.smoother.smooth(..., "map")``, the product's
   ``ekf+map`` / ``ukf+map`` rows of ``graphslam bench filters``;
 - ``batch_oracle``: the same started from the truth, to check the starts above find the
   global minimum (the cost, not the error, decides).
@@ -32,8 +32,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.filters import Epochs, FusionModel, make_filter, run_epochs
-from graphslam.core.smoother import MapProblem, map_smooth, smooth
+from graphslam.core.tracking.filters import Epochs, FusionModel, make_filter, run_epochs
+from graphslam.core.tracking.smoother import MapProblem, map_smooth, smooth
 from graphslam.sim.cart import PAPER_P0, PAPER_RMS_TARGETS_M as TARGETS, PAPER_X0, simulate_cart
 
 

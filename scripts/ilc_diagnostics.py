@@ -46,10 +46,10 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.association import associate
-from graphslam.core.evaluate import interpolate_xy
-from graphslam.core.fingerprints import DistanceEngine
-from graphslam.core.initialise import fit_se2, ransac_se2, se2_apply, se2_compose
+from graphslam.core.survey.association import associate
+from graphslam.core.survey.evaluate import interpolate_xy
+from graphslam.core.radiomap.fingerprints import DistanceEngine
+from graphslam.core.survey.initialise import fit_se2, ransac_se2, se2_apply, se2_compose
 from graphslam.errors import GraphSlamError
 from graphslam.io.mcap_reader import floor_folders, read_survey
 
@@ -267,7 +267,7 @@ def ap_fixed_point(survey, fp, P: NDArray, ws: NDArray, T: NDArray, sweeps: int 
     """As ``truth_fixed_point`` with access points as landmarks (fit-aps model, path-loss likelihood)."""
     from scipy.optimize import least_squares
 
-    from graphslam.core.apmodel import ApModel, fit_ap
+    from graphslam.core.tracking.apmodel import ApModel, fit_ap
 
     V = fp.fingerprints.values
     miss = fp.fingerprints.missing_dbm

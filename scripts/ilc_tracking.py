@@ -32,16 +32,16 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.bench import variant_name
-from graphslam.core.apmodel import ApModels
-from graphslam.core.evaluate import interpolate_xy
-from graphslam.core.initialise import fit_se2, se2_apply
-from graphslam.core.knn import KnnConfig, KnnLocator
-from graphslam.core.radiomap import RadioMap
+from graphslam.app.bench import variant_name
+from graphslam.core.tracking.apmodel import ApModels
+from graphslam.core.survey.evaluate import interpolate_xy
+from graphslam.core.survey.initialise import fit_se2, se2_apply
+from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
+from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.types import PoseTrack
 from graphslam.errors import GraphSlamError
 from graphslam.io.mcap_reader import floor_folders, read_survey
-from graphslam.track import TrackConfig, track_sessions
+from graphslam.app.track import TrackConfig, track_sessions
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_SITE = Path(os.environ.get("GRAPHSLAM_DATA", REPO.parent / "shared" / "data")) / "ilc20" / "site1"

@@ -29,9 +29,9 @@ def main() -> int:
     ap.add_argument("data_dir", nargs="?", type=Path, default=DEFAULT_DATA)
     args = ap.parse_args()
 
-    from graphslam.core.knn import KnnConfig, KnnLocator
+    from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
     from graphslam.io.ujiindoorloc import read_ujiindoorloc
-    from graphslam.uji_bench import TEST_FILE, TRAIN_FILE, find_uji_file
+    from graphslam.app.uji_bench import TEST_FILE, TRAIN_FILE, find_uji_file
 
     train = read_ujiindoorloc(find_uji_file(args.data_dir, TRAIN_FILE))
     test = read_ujiindoorloc(find_uji_file(args.data_dir, TEST_FILE))

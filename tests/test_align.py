@@ -14,8 +14,8 @@ from mcap.reader import make_reader
 
 from graphslam.cli import main
 from graphslam.config import load_config
-from graphslam.core.align import align
-from graphslam.core.initialise import fit_se2, se2_apply
+from graphslam.core.survey.align import align
+from graphslam.core.survey.initialise import fit_se2, se2_apply
 from graphslam.core.types import LandmarkMark, PoseTrack, Scan, Session, Survey
 from graphslam.io.mcap_writer import write_session
 
@@ -107,8 +107,8 @@ def test_walk_without_common_aps_is_reported_unaligned() -> None:
 
 
 def test_registration_its_loops_contradict_leaves_walks_unaligned(monkeypatch: pytest.MonkeyPatch) -> None:
-    import graphslam.core.align as align_mod
-    from graphslam.core.initialise import MIN_LOOPS_TO_JUDGE, Placement
+    import graphslam.core.survey.align as align_mod
+    from graphslam.core.survey.initialise import MIN_LOOPS_TO_JUDGE, Placement
 
     def contradicted(n_sessions: int, reference: int, *args: object, **kwargs: object) -> Placement:
         # every walk placed (at the origin), but only 1 of the loops agrees with the tree
@@ -219,6 +219,6 @@ def test_evaluation_with_ground_truth_at_its_own_rate() -> None:
 
 
 def evaluate_all(al, survey):  # type: ignore[no-untyped-def]
-    from graphslam.core.evaluate import evaluate
+    from graphslam.core.survey.evaluate import evaluate
 
     return evaluate(al.tracks, survey)

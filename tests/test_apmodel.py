@@ -1,4 +1,4 @@
-"""Access-point fits (graphslam.core.apmodel) and the track CLI end to end."""
+"""Access-point fits (graphslam.core.tracking.apmodel) and the track CLI end to end."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import csv
 import numpy as np
 import pytest
 
-from graphslam.core.apmodel import ApFitConfig, ApModel, ApModels, UnfittedAp, fit_ap
+from graphslam.core.tracking.apmodel import ApFitConfig, ApModel, ApModels, UnfittedAp, fit_ap
 from graphslam.io.apmodel_io import read_ap_models, write_ap_models
-from graphslam.core.radiomap import RadioMap
+from graphslam.core.radiomap.radiomap import RadioMap
 
 AP = np.array([7.0, 4.0])
 P0, GAMMA = -38.0, 2.4
@@ -76,7 +76,7 @@ def test_radio_map_fit_and_json_round_trip(tmp_path):
 def tiny_case(tmp_path_factory):
     """A surveyed radio map of the simulator's paper building (2 walks at their true positions) and
     the first 80 steps of one held-out walk, as files."""
-    from graphslam.core.evaluate import interpolate_xy
+    from graphslam.core.survey.evaluate import interpolate_xy
     from graphslam.core.types import PoseTrack, Session
     from graphslam.io.mcap_writer import write_session
     from graphslam.io.radiomap_io import write_radio_map
@@ -106,7 +106,7 @@ def tiny_case(tmp_path_factory):
 
 def test_fit_aps_and_track_cli_end_to_end(tiny_case):
     from graphslam.cli import main
-    from graphslam.core.evaluate import interpolate_xy
+    from graphslam.core.survey.evaluate import interpolate_xy
 
     d, session = tiny_case
     main(["fit-aps", "--radio-map", str(d / "radio_map.parquet")])
@@ -141,7 +141,7 @@ def test_track_cli_smoothed_output_uses_the_whole_walk(tiny_case):
     # --smooth map: one hypothesis for the whole walk, the start-up no longer lost (the filter
     # needs ~half the walk to find the heading; the smoother sees it all at once).
     from graphslam.cli import main
-    from graphslam.core.evaluate import interpolate_xy
+    from graphslam.core.survey.evaluate import interpolate_xy
 
     d, session = tiny_case
     truth = interpolate_xy(session.ground_truth, session.steps.t_ns.astype(float))
@@ -162,11 +162,11 @@ def test_track_cli_smoothed_output_uses_the_whole_walk(tiny_case):
 def test_track_skips_an_odometry_jump_instead_of_flying_off(tiny_case):
     # ILC's converter puts the origin pose 1 ms before the first step (0.7 m in 1 ms = 700 m/s).
     # As a velocity reading that throws the estimate hundreds of metres; it must be skipped.
-    from graphslam.core.evaluate import interpolate_xy
+    from graphslam.core.survey.evaluate import interpolate_xy
     from graphslam.core.types import PoseTrack, Session
     from graphslam.io.apmodel_io import read_ap_models
     from graphslam.io.radiomap_io import read_radio_map
-    from graphslam.track import TrackConfig, track_sessions
+    from graphslam.app.track import TrackConfig, track_sessions
 
     d, s = tiny_case
     rm = read_radio_map(d / "radio_map.parquet")

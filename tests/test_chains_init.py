@@ -10,8 +10,8 @@ import pytest
 from gtsam.symbol_shorthand import X
 from numpy.typing import NDArray
 
-from graphslam.core.chains import compress, expand, relative
-from graphslam.core.initialise import (
+from graphslam.core.survey.chains import compress, expand, relative
+from graphslam.core.survey.initialise import (
     _inverse,
     fit_se2,
     ransac_se2,

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from conftest import T0
 
-from graphslam.core.association import associate
-from graphslam.core.edges import propose_edges, window_thresholds
-from graphslam.core.fingerprints import rss_distance
+from graphslam.core.survey.association import associate
+from graphslam.core.survey.edges import propose_edges, window_thresholds
+from graphslam.core.radiomap.fingerprints import rss_distance
 from graphslam.core.types import PoseTrack, Scan, Session, Survey
 
 STEP_NS = 500_000_000

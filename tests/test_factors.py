@@ -8,7 +8,7 @@ import pytest
 from gtsam.symbol_shorthand import X
 
 from graphslam.config import ImuConfig, WifiFactorConfig
-from graphslam.core import factors as F
+from graphslam.core.survey import factors as F
 from graphslam.core.types import PoseTrack
 
 CFG = WifiFactorConfig(d_min_m=2.0, d_max_m=30.0, e_max=0.3, omega=1.0)

@@ -1,11 +1,11 @@
-"""EKF / UKF (graphslam.core.filters) against known answers, and the papers' cart experiment."""
+"""EKF / UKF (graphslam.core.tracking.filters) against known answers, and the papers' cart experiment."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from graphslam.core.filters import (
+from graphslam.core.tracking.filters import (
     ExtendedKalmanFilter,
     FusionModel,
     GaussianState,
@@ -131,7 +131,7 @@ def test_cart_experiment_without_shadowing_tracks_well(kind):
 
 
 def test_position_fix_update_is_the_kalman_update_and_gates_outliers():
-    from graphslam.core.filters import position_update
+    from graphslam.core.tracking.filters import position_update
 
     rng = np.random.default_rng(8)
     L = rng.normal(size=(6, 6))

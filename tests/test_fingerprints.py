@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from graphslam.core.fingerprints import DistanceEngine, FingerprintMatrix, rss_distance
+from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix, rss_distance
 
 
 def random_scans(n: int, n_aps: int, seed: int) -> list[dict[str, float]]:

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import graphslam.core.knn as knn
-from graphslam.core.fingerprints import FingerprintMatrix
-from graphslam.core.ivf import IvfIndex, default_clusters, kmeans
-from graphslam.core.knn import KnnConfig, KnnLocator
-from graphslam.core.radiomap import RadioMap
+import graphslam.core.radiomap.knn as knn
+from graphslam.core.radiomap.fingerprints import FingerprintMatrix
+from graphslam.core.radiomap.ivf import IvfIndex, default_clusters, kmeans
+from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
+from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import ConfigError, QueryError
 
 

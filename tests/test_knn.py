@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from graphslam.core.fingerprints import DistanceEngine, FingerprintMatrix, rss_distance
-from graphslam.core.knn import KnnConfig, KnnLocator, _candidate_block, _gather_block
-from graphslam.core.radiomap import RadioMap
+from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix, rss_distance
+from graphslam.core.radiomap.knn import KnnConfig, KnnLocator, _candidate_block, _gather_block
+from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import ConfigError, QueryError, RadioMapError
 
 # Four reference fingerprints at the corners of a 10 m square; AP "a" loud at (0,0), "b" at (10,0), ...

@@ -12,11 +12,11 @@ from typer.testing import CliRunner
 
 from conftest import T0
 from graphslam.cli import app
-from graphslam.core.radiomap import RadioMap
+from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.types import PoseTrack, Scan, Session
 from graphslam.io.mcap_writer import write_session
 from graphslam.io.radiomap_io import write_radio_map
-from graphslam.locate import POSITIONS_HEADER, locate_files
+from graphslam.app.locate import POSITIONS_HEADER, locate_files
 
 # A corridor: reference fingerprint every 5 m along x, AP i strongest at x = 10 i.
 XS = np.arange(0.0, 45.0, 5.0)

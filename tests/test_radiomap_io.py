@@ -10,7 +10,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from graphslam.core.radiomap import RadioMap
+from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import RadioMapError
 from graphslam.io.radiomap_io import METADATA_KEY, radio_map_table, read_radio_map, write_radio_map
 

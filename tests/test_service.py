@@ -10,8 +10,8 @@ import httpx
 import numpy as np
 import pytest
 
-from graphslam.core.knn import KnnConfig, KnnLocator
-from graphslam.core.radiomap import RadioMap
+from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
+from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.service.app import create_app
 from graphslam.service.server import BackgroundServer, start_background_server
 

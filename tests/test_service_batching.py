@@ -9,8 +9,8 @@ import numpy as np
 import orjson
 import pytest
 
-from graphslam.core.knn import KnnConfig, KnnLocator, KnnResult
-from graphslam.core.radiomap import RadioMap
+from graphslam.core.radiomap.knn import KnnConfig, KnnLocator, KnnResult
+from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.service.batching import PlaceSplit, ScanEncoder
 from graphslam.service.parsing import flat_scans
 from graphslam.service.render import position_dicts, position_rows, response_json

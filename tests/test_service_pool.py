@@ -15,8 +15,8 @@ import psutil
 import pytest
 from threadpoolctl import threadpool_limits
 
-from graphslam.core.knn import KnnConfig, KnnLocator
-from graphslam.core.radiomap import RadioMap
+from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
+from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.service import pool as pool_mod
 from graphslam.service.app import create_app
 from graphslam.service.pool import SEARCH_POOL_MIN_BATCH, SearchPool

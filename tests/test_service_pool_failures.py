@@ -18,8 +18,8 @@ import orjson
 import pytest
 from threadpoolctl import threadpool_limits
 
-from graphslam.core.knn import KnnConfig, KnnLocator
-from graphslam.core.radiomap import RadioMap
+from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
+from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import QueryError
 from graphslam.service import pool as pool_mod
 from graphslam.service.app import create_app

@@ -1,12 +1,12 @@
-"""Offline smoothers (graphslam.core.smoother): known answers, derivatives, the cart run."""
+"""Offline smoothers (graphslam.core.tracking.smoother): known answers, derivatives, the cart run."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from graphslam.core.filters import Epochs, ExtendedKalmanFilter, FusionModel, PathLossModel, make_filter, run_epochs
-from graphslam.core.smoother import MapProblem, map_smooth, rts_smooth, smooth
+from graphslam.core.tracking.filters import Epochs, ExtendedKalmanFilter, FusionModel, PathLossModel, make_filter, run_epochs
+from graphslam.core.tracking.smoother import MapProblem, map_smooth, rts_smooth, smooth
 from graphslam.errors import EstimationError
 from graphslam.sim.cart import PAPER_P0, PAPER_X0, simulate_cart
 

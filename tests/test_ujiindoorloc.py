@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 
 from conftest import DATA, needs_data
 from graphslam.cli import app
-from graphslam.uji_bench import run_ujiindoorloc_benchmark
+from graphslam.app.uji_bench import run_ujiindoorloc_benchmark
 from graphslam.errors import InputError
 from graphslam.io.ujiindoorloc import read_ujiindoorloc
 

@@ -13,8 +13,8 @@ from rerun.chunk import RrdReader
 
 from graphslam.cli import main as cli_main
 from graphslam.config import GraphSlamConfig
-from graphslam.core.align import Alignment, align
-from graphslam.core.factors import edge_state
+from graphslam.core.survey.align import Alignment, align
+from graphslam.core.survey.factors import edge_state
 from graphslam.core.types import Survey
 from graphslam.errors import ConfigError, InputError, VisualizationError
 from graphslam.io.csv_io import read_trajectories
@@ -333,7 +333,7 @@ def test_view_errors(tmp_path: Path) -> None:
 
 
 def test_top_access_points_and_colours() -> None:
-    from graphslam.core.fingerprints import FingerprintMatrix
+    from graphslam.core.radiomap.fingerprints import FingerprintMatrix
 
     scans = [{"a": -50.0, "b": -80.0}, {"a": -60.0, "c": -40.0}, {"b": -70.0, "c": -45.0}, {"c": -90.0}]
     fm = FingerprintMatrix.from_scans(scans)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from graphslam.core.apmodel import ApModels
+from graphslam.core.tracking.apmodel import ApModels
 from graphslam.errors import InputError
 from graphslam.io.atomic import atomic_write_json
 

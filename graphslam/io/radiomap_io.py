@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 from scipy import sparse
 
-from graphslam.core.fingerprints import FingerprintMatrix
-from graphslam.core.radiomap import RADIO_MAP_FORMAT_VERSION, RadioMap
+from graphslam.core.radiomap.fingerprints import FingerprintMatrix
+from graphslam.core.radiomap.radiomap import RADIO_MAP_FORMAT_VERSION, RadioMap
 from graphslam.errors import RadioMapError
 from graphslam.io.atomic import atomic_open
 

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.fingerprints import DEFAULT_MIN_RSSI_DBM, DEFAULT_MISSING_DBM, FingerprintMatrix
-from graphslam.core.radiomap import RadioMap
+from graphslam.core.radiomap.fingerprints import DEFAULT_MIN_RSSI_DBM, DEFAULT_MISSING_DBM, FingerprintMatrix
+from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import InputError
 
 log = logging.getLogger(__name__)

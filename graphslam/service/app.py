@@ -27,8 +27,8 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from graphslam.core.knn import IndexKind, KnnConfig, KnnLocator, KnnResult
-from graphslam.core.radiomap import RadioMap
+from graphslam.core.radiomap.knn import IndexKind, KnnConfig, KnnLocator, KnnResult
+from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import QueryError
 from graphslam.service.models import (  # re-exported: the service's public models
     BSSID_MAX_CHARS,

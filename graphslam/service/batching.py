@@ -29,9 +29,9 @@ from numpy.typing import NDArray
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 
-from graphslam.core.fingerprints import FingerprintMatrix
-from graphslam.core.knn import KnnLocator
-from graphslam.core.radiomap import RadioMap
+from graphslam.core.radiomap.fingerprints import FingerprintMatrix
+from graphslam.core.radiomap.knn import KnnLocator
+from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import ConfigError, QueryError
 from graphslam.service.parsing import FlatScans
 

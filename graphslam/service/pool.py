@@ -65,7 +65,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.knn import KnnLocator, KnnResult, strict_error
+from graphslam.core.radiomap.knn import KnnLocator, KnnResult, strict_error
 from graphslam.errors import GraphSlamError
 from graphslam.service.batching import PLACE_MAX_CLUSTERS, PlaceSplit, ScanEncoder
 from graphslam.service.parsing import flat_scans
@@ -138,7 +138,7 @@ def _init_worker(parent_pid: int) -> None:
     # Ctrl-C reaches the whole process group: the server shuts the pool down itself, so a
     # worker must not die first (that would show as a crashed pool, with tracebacks).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    from graphslam.core.ivf import limit_blas_threads
+    from graphslam.core.radiomap.ivf import limit_blas_threads
 
     limit_blas_threads(1)  # one search per process; BLAS threads only slow the IVF's small GEMMs
     # The inherited heap (map, index, every module) never becomes garbage: keep the collector

@@ -14,7 +14,7 @@ from typing import Any
 
 import orjson
 
-from graphslam.core.knn import KnnResult
+from graphslam.core.radiomap.knn import KnnResult
 
 # Every position object starts with its first key, and orjson escapes '"' inside strings: this
 # separator occurs between two objects of a serialised list and nowhere else.

@@ -26,7 +26,7 @@ _WORKER_CONFIG_ENV = "GRAPHSLAM_SERVE_WORKER_CONFIG"
 
 
 def _build_app(radio_map_path: str | Path, **app_kwargs: object) -> FastAPI:
-    from graphslam.core.ivf import limit_blas_threads
+    from graphslam.core.radiomap.ivf import limit_blas_threads
     from graphslam.io.radiomap_io import read_radio_map
     from graphslam.service.app import create_app
 

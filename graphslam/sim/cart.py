@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.filters import PathLossModel, velocity_matrix
+from graphslam.core.tracking.filters import PathLossModel, velocity_matrix
 from graphslam.errors import SimulationError
 
 PAPER_PERIOD_S = 4.0

@@ -8,7 +8,7 @@ from typing import Mapping
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.evaluate import HIST_BIN_M, Evaluation
+from graphslam.core.survey.evaluate import HIST_BIN_M, Evaluation
 from graphslam.io.atomic import atomic_open
 
 

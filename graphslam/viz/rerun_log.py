@@ -48,11 +48,11 @@ import rerun.blueprint as rrb
 from numpy.typing import NDArray
 
 from graphslam.config import GraphSlamConfig
-from graphslam.core.align import Alignment, IterationRecord
-from graphslam.core.evaluate import interpolate_xy, landmark_errors
-from graphslam.core.factors import edge_state
-from graphslam.core.fingerprints import FingerprintMatrix
-from graphslam.core.initialise import se2_apply
+from graphslam.core.survey.align import Alignment, IterationRecord
+from graphslam.core.survey.evaluate import interpolate_xy, landmark_errors
+from graphslam.core.survey.factors import edge_state
+from graphslam.core.radiomap.fingerprints import FingerprintMatrix
+from graphslam.core.survey.initialise import se2_apply
 from graphslam.core.types import PoseTrack, Survey
 from graphslam.errors import ConfigError, GraphSlamError, InputError, VisualizationError
 
@@ -83,7 +83,7 @@ OPTIMIZER = "optimizer"
 NOTES = "info/notes"
 CONFIG_TEXT = "info/config"
 
-EDGE_STATES = ("inactive", "ramp", "saturated")  # index = graphslam.core.factors.edge_state value
+EDGE_STATES = ("inactive", "ramp", "saturated")  # index = graphslam.core.survey.factors.edge_state value
 EDGE_COLOURS = np.array([[70, 170, 90, 110], [255, 160, 0, 160], [220, 40, 40, 200]], np.uint8)
 
 # draw order: larger is drawn on top; the floor plan stays under everything
@@ -169,7 +169,7 @@ def log_survey(
     """Write ``survey`` and its ``alignment`` to the ``.rrd`` file ``rerun_path`` (with a blueprint).
 
     Landmarks (when the survey has them) are shown against the aligned walks after the
-    SE(2) fit of ``graphslam.core.evaluate.landmark_errors``: display and evaluation only.
+    SE(2) fit of ``graphslam.core.survey.evaluate.landmark_errors``: display and evaluation only.
     """
     t0 = time.perf_counter()
     cfg = cfg or GraphSlamConfig()

@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 
-from graphslam.core.fingerprints import FingerprintMatrix
+from graphslam.core.radiomap.fingerprints import FingerprintMatrix
 from graphslam.errors import ConfigError
 
 # Dense float32 copy of the references for k-means only when it stays below this many cells

@@ -13,7 +13,7 @@ Velocity measurement (eq. 4)::
 ``M(theta) = S @ Rot(-theta)`` with ``S`` the x/y swap: the velocity sensor reports
 (east, north)-swapped components of the velocity rotated by ``-theta``. A foot
 module's odometry velocity ``v_odo`` therefore enters as ``y_v = S v_odo`` with
-``theta`` = rotation from the odometry frame to the map frame (see ``graphslam.track``).
+``theta`` = rotation from the odometry frame to the map frame (see ``graphslam.app.track``).
 RSSI measurement (eq. 5-6), one row per access point ``i``::
 
     y_i = P0_i - 10 gamma_i log10(sqrt(|p - a_i|^2 + d0^2))

@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 
-from graphslam.core.fingerprints import (
+from graphslam.core.radiomap.fingerprints import (
     DEFAULT_MIN_RSSI_DBM,
     DEFAULT_MISSING_DBM,
     FingerprintMatrix,

@@ -11,7 +11,7 @@ from typing import Iterable, Iterator, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.knn import KnnConfig, KnnLocator, SurveyPositions, locate_survey
+from graphslam.core.radiomap.knn import KnnConfig, KnnLocator, SurveyPositions, locate_survey
 from graphslam.io.atomic import atomic_open
 
 log = logging.getLogger(__name__)
@@ -100,7 +100,7 @@ __all__: Sequence[str] = ("LocateRun", "locate_files", "write_positions_csv", "P
 def query_truth(query_paths: Iterable[str | Path], positions: SurveyPositions) -> "NDArray[np.float64] | None":
     """True position (site frame) of every located scan from the queries' ``/ground_truth/pose``,
     interpolated at scan time; None when the queries carry no ground truth. Display/evaluation only."""
-    from graphslam.core.evaluate import interpolate_xy
+    from graphslam.core.survey.evaluate import interpolate_xy
     from graphslam.io.mcap_reader import read_survey
 
     survey = read_survey(query_paths)

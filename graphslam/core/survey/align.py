@@ -25,11 +25,11 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from graphslam.config import GraphSlamConfig
-from graphslam.core import factors as F
-from graphslam.core.association import FingerprintNodes, associate
-from graphslam.core.chains import CompressedChains, compress, expand
-from graphslam.core.edges import WifiEdges, propose_edges, window_thresholds
-from graphslam.core.initialise import Placement, register_walks, se2_apply
+from graphslam.core.survey import factors as F
+from graphslam.core.survey.association import FingerprintNodes, associate
+from graphslam.core.survey.chains import CompressedChains, compress, expand
+from graphslam.core.survey.edges import WifiEdges, propose_edges, window_thresholds
+from graphslam.core.survey.initialise import Placement, register_walks, se2_apply
 from graphslam.core.types import PoseTrack, Survey, wrap_angle
 from graphslam.errors import SolverError
 
@@ -236,7 +236,7 @@ def native_graph(
     """(IMU factors + reference prior, one WiFi factor per edge, initial values, chains): GTSAM C++ factors only.
 
     With ``optimizer.compress_chains`` the IMU chain between fingerprint poses becomes one
-    between factor per segment (``graphslam.core.chains``); otherwise one per step (eq. 6-8).
+    between factor per segment (``graphslam.core.survey.chains``); otherwise one per step (eq. 6-8).
     """
     imu_graph = gtsam.NonlinearFactorGraph()
     chains = None

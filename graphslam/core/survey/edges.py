@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.association import FingerprintNodes
-from graphslam.core.fingerprints import DistanceEngine
+from graphslam.core.survey.association import FingerprintNodes
+from graphslam.core.radiomap.fingerprints import DistanceEngine
 
 log = logging.getLogger(__name__)
 

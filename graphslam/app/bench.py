@@ -20,8 +20,8 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from graphslam.config import GraphSlamConfig
-from graphslam.core.align import align
-from graphslam.core.evaluate import evaluate
+from graphslam.core.survey.align import align
+from graphslam.core.survey.evaluate import evaluate
 
 log = logging.getLogger(__name__)
 
@@ -126,9 +126,9 @@ def fig8(
     """
     import numpy as np
 
-    from graphslam.core.evaluate import interpolate_xy
-    from graphslam.core.knn import KnnConfig, KnnLocator
-    from graphslam.core.survey_maps import crowdsourced_radio_map, surveyed_radio_map
+    from graphslam.core.survey.evaluate import interpolate_xy
+    from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
+    from graphslam.core.radiomap.survey_maps import crowdsourced_radio_map, surveyed_radio_map
     from graphslam.sim import simulate
 
     errs: dict[str, list] = {"crowdsourced": [], "surveyed": []}
@@ -178,7 +178,7 @@ def fig8(
 def ilc_floors(site_dir: Path, cfg: GraphSlamConfig, floors: Sequence[str] | None = None) -> list[dict[str, Any]]:
     """Align every floor of an ILC 2.0 site (real recordings); waypoint errors after one SE(2) fit."""
     from graphslam.io.mcap_reader import floor_folders
-    from graphslam.pipeline import run_survey
+    from graphslam.app.survey import run_survey
 
     rows = []
     for folder in floor_folders(site_dir, floors):
@@ -220,7 +220,7 @@ def filters_cart(
 
     RMS error in x and y per seed and estimator: the causal filter (``ekf``, ``ukf``) and, per
     name in ``smoothers``, the same run smoothed offline under the same model (``ekf+rts``,
-    ``ekf+map``, ...; ``graphslam.core.smoother``); mean / median / p90 over seeds and the
+    ``ekf+map``, ...; ``graphslam.core.tracking.smoother``); mean / median / p90 over seeds and the
     number of seeds meeting the papers' figures. ``shadowing_db`` overrides the documented
     default (4 dB) for a sensitivity sweep. ``plot_dir``: one PNG per filter (path, |error|,
     trace P) for the first seed.
@@ -229,8 +229,8 @@ def filters_cart(
 
     import numpy as np
 
-    from graphslam.core.filters import Epochs, FusionModel, make_filter, run_epochs
-    from graphslam.core.smoother import smooth
+    from graphslam.core.tracking.filters import Epochs, FusionModel, make_filter, run_epochs
+    from graphslam.core.tracking.smoother import smooth
     from graphslam.sim.cart import PAPER_P0, PAPER_RMS_TARGETS_M, PAPER_X0, CartNoise, simulate_cart
 
     noise = CartNoise() if shadowing_db is None else dataclasses.replace(CartNoise(), shadowing_sigma_db=shadowing_db)
@@ -296,13 +296,13 @@ def tracking_paper(
     """
     import numpy as np
 
-    from graphslam.core.apmodel import ApModels, ap_position_errors
-    from graphslam.core.evaluate import interpolate_xy
-    from graphslam.core.knn import KnnConfig, KnnLocator
-    from graphslam.core.survey_maps import crowdsourced_radio_map
+    from graphslam.core.tracking.apmodel import ApModels, ap_position_errors
+    from graphslam.core.survey.evaluate import interpolate_xy
+    from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
+    from graphslam.core.radiomap.survey_maps import crowdsourced_radio_map
     from graphslam.core.types import PoseTrack
     from graphslam.sim import simulate
-    from graphslam.track import TrackConfig, track_sessions
+    from graphslam.app.track import TrackConfig, track_sessions
 
     variants = [(f, sm, fx) for fx in ((False, True) if knn_fixes else (False,)) for f in filters for sm in ("none", *smoothers)]
     errs: dict[str, list] = {"knn": [], **{variant_name(*v): [] for v in variants}}

@@ -8,10 +8,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graphslam.config import GraphSlamConfig
-from graphslam.core.align import Alignment
-from graphslam.core.evaluate import interpolate_xy
-from graphslam.core.initialise import se2_apply
-from graphslam.core.radiomap import RadioMap
+from graphslam.core.survey.align import Alignment
+from graphslam.core.survey.evaluate import interpolate_xy
+from graphslam.core.survey.initialise import se2_apply
+from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.types import Survey
 from graphslam.errors import SolverError
 

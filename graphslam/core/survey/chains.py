@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.initialise import se2_apply
+from graphslam.core.survey.initialise import se2_apply
 from graphslam.core.types import wrap_angle
 
 

@@ -14,7 +14,7 @@ Fuzzy WiFi-vicinity factor (eq. 10)
     sigma = (d_max - d_min) / (e_max sqrt(Omega_W)) under GTSAM's
     ``L2WithDeadZone(k = d_min / sigma)`` loss: 0.5 (|d|/sigma - k)^2. Beyond d_max
     the paper's error is flat (zero gradient): the optimiser drops such edges from
-    the active set between LM runs (``graphslam.core.align.solve``), so no Python code
+    the active set between LM runs (``graphslam.core.survey.align.solve``), so no Python code
     runs inside GTSAM's inner loop.
 """
 

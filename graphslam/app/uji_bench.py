@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from graphslam.core.fingerprints import DEFAULT_MIN_RSSI_DBM, DEFAULT_MISSING_DBM
-from graphslam.core.knn import KnnConfig, KnnLocator
+from graphslam.core.radiomap.fingerprints import DEFAULT_MIN_RSSI_DBM, DEFAULT_MISSING_DBM
+from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
 from graphslam.errors import InputError
 from graphslam.io.ujiindoorloc import read_ujiindoorloc
 

@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from graphslam.config import GraphSlamConfig
-from graphslam.core.align import Alignment, ProgressCallback, align
-from graphslam.core.evaluate import Evaluation, evaluate
+from graphslam.core.survey.align import Alignment, ProgressCallback, align
+from graphslam.core.survey.evaluate import Evaluation, evaluate
 from graphslam.core.types import Survey
 from graphslam.errors import InputError, OutputError
 from graphslam.io.atomic import atomic_write_json, atomic_write_text
@@ -182,7 +182,7 @@ def write_outputs(
         write_aligned(al.tracks, stage / names["aligned"])
         _write_radio_map(survey, al, cfg, stage / names["radio_map"])
         if surveyed:  # evaluation: the same fingerprints at their ground-truth positions
-            from graphslam.core.survey_maps import surveyed_radio_map
+            from graphslam.core.radiomap.survey_maps import surveyed_radio_map
             from graphslam.io.radiomap_io import write_radio_map
 
             names["radio_map_surveyed"] = "radio_map_surveyed.parquet"
@@ -200,7 +200,7 @@ def write_outputs(
 
 
 def _write_radio_map(survey: Survey, al: Alignment, cfg: GraphSlamConfig, path: Path) -> None:
-    from graphslam.core.survey_maps import crowdsourced_radio_map
+    from graphslam.core.radiomap.survey_maps import crowdsourced_radio_map
     from graphslam.io.radiomap_io import write_radio_map
 
     write_radio_map(crowdsourced_radio_map(survey, al, cfg), path)

@@ -22,7 +22,7 @@ Per session (positions in the radio map's frame, m):
   likelihood so far (online; gated readings count as a fixed penalty). Never ground truth.
 
 ``smoother`` (offline, whole session known): ``rts`` runs the RTS pass, ``map`` the whole-run MAP
-(``graphslam.core.smoother``; Huber loss at ``gate_sigma`` on RSSI and fix rows instead of the gate)
+(``graphslam.core.tracking.smoother``; Huber loss at ``gate_sigma`` on RSSI and fix rows instead of the gate)
 over the hypothesis with the highest final likelihood; the output rows are then that
 smoothed trajectory (``hypothesis`` column constant).
 """
@@ -39,13 +39,13 @@ from typing import Iterable, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.apmodel import ApModels
-from graphslam.core.filters import (
+from graphslam.core.tracking.apmodel import ApModels
+from graphslam.core.tracking.filters import (
     Epochs, FusionModel, GaussianState, KalmanFilter, make_filter, position_update, run_epochs,
 )
-from graphslam.core.knn import KnnConfig, KnnLocator
-from graphslam.core.radiomap import RadioMap
-from graphslam.core.smoother import SMOOTH_METHODS, smooth
+from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
+from graphslam.core.radiomap.radiomap import RadioMap
+from graphslam.core.tracking.smoother import SMOOTH_METHODS, smooth
 from graphslam.core.types import Session
 from graphslam.errors import EstimationError
 from graphslam.io.atomic import atomic_open

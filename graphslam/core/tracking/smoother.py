@@ -1,6 +1,6 @@
 """Offline smoothing of a fusion run: Rauch-Tung-Striebel and whole-run MAP.
 
-The causal filters (``graphslam.core.filters``) estimate each state from the past only. Offline
+The causal filters (``graphslam.core.tracking.filters``) estimate each state from the past only. Offline
 (a survey processed after the walk) every state can use the whole run:
 
 - ``rts_smooth``: the RTS backward pass over a filter's output (the process, eq. 3, is linear);
@@ -30,7 +30,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from graphslam.core.filters import Epochs, FilterRun, FusionModel, velocity_matrix
+from graphslam.core.tracking.filters import Epochs, FilterRun, FusionModel, velocity_matrix
 from graphslam.errors import EstimationError
 
 log = logging.getLogger(__name__)

@@ -15,7 +15,7 @@ from typing import Mapping
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.initialise import fit_se2, se2_apply
+from graphslam.core.survey.initialise import fit_se2, se2_apply
 from graphslam.core.types import PoseTrack, Survey, wrap_angle
 
 HIST_BIN_M = 0.5

@@ -29,9 +29,9 @@ from typing import Literal, Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.fingerprints import DistanceEngine, FingerprintMatrix
-from graphslam.core.ivf import IvfIndex
-from graphslam.core.radiomap import RadioMap
+from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix
+from graphslam.core.radiomap.ivf import IvfIndex
+from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.types import Survey
 from graphslam.errors import ConfigError, QueryError
 
@@ -64,7 +64,7 @@ class KnnConfig:
     ``min_common``: a reference is a candidate only if it shares this many APs with the query.
 
     ``index``: ``"exact"`` scores every reference (the default); ``"ivf"`` searches an inverted
-    file (``graphslam.core.ivf``: k-means clusters of the references, eq. 9 evaluated exactly on
+    file (``graphslam.core.radiomap.ivf``: k-means clusters of the references, eq. 9 evaluated exactly on
     the members of the ``ivf_probes`` clusters nearest to the query; approximate, ~10x faster on
     UJIIndoorLoc); ``"auto"``: IVF from ``IVF_AUTO_MIN_REFS`` references, exact below.
     ``ivf_clusters``: ``None`` = ~2 sqrt(N); ``ivf_seed`` makes the clustering reproducible."""

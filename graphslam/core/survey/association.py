@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.fingerprints import FingerprintMatrix
+from graphslam.core.radiomap.fingerprints import FingerprintMatrix
 from graphslam.core.types import Survey
 
 

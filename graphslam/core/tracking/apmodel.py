@@ -29,8 +29,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from graphslam.core.filters import PathLossModel
-from graphslam.core.radiomap import RadioMap
+from graphslam.core.tracking.filters import PathLossModel
+from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import EstimationError
 
 log = logging.getLogger(__name__)
