@@ -26,7 +26,6 @@ with all its points, never one call per point.
 
 from __future__ import annotations
 
-import colorsys
 import contextlib
 import json
 import logging
@@ -38,7 +37,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 from urllib.parse import quote
 from uuid import uuid4
 
@@ -55,6 +54,7 @@ from graphslam.core.radiomap.fingerprints import FingerprintMatrix
 from graphslam.core.survey.initialise import se2_apply
 from graphslam.core.types import PoseTrack, Survey
 from graphslam.errors import ConfigError, GraphSlamError, InputError, VisualizationError
+from graphslam.viz.common import FloorPlan, load_floor_plan, session_colours
 
 log = logging.getLogger(__name__)
 
@@ -108,16 +108,6 @@ class RerunLogSummary:
     counts: dict[str, int]  # entity path -> points / segments / strips / rows logged
     notes: str
     seconds: float
-
-
-@dataclass(frozen=True)
-class FloorPlan:
-    """A floor plan image and the site-frame rectangle it covers: x in [0, width], y in [0, height]."""
-
-    path: Path
-    width_m: float
-    height_m: float
-    pixels: tuple[int, int]  # (columns, rows)
 
 
 @dataclass
@@ -301,48 +291,6 @@ def write_survey_view(
         lg.static(CONFIG_TEXT, 1, rr.TextDocument(text))
     lg.notes[:0] = _report_summary(d, tracks, report, survey) + [f"- {p}" for p in problems]
     return _write(Path(rerun_path), lg, _blueprint(lg), t0)
-
-
-def load_floor_plan(path: str | Path | None, size: tuple[float, float] | None) -> FloorPlan | None:
-    """The floor plan image and its size in metres.
-
-    Without ``size``, a ``floor_info.json`` beside the image (``{"map_info": {"width": W,
-    "height": H}}``, as in the ILC data) gives it.
-    """
-    if path is None:
-        if size is not None:
-            raise ConfigError("--floor-size given without --floor-plan")
-        return None
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(p, "floor plan image not found")
-    if size is None:
-        info = p.parent / "floor_info.json"
-        try:
-            mi = json.loads(info.read_text(encoding="utf-8"))["map_info"]
-            size = (float(mi["width"]), float(mi["height"]))
-        except (OSError, ValueError, KeyError, TypeError):
-            raise ConfigError(f"floor plan {p}: give --floor-size W H (metres); no usable {info.name} beside it") from None
-    w, h = float(size[0]), float(size[1])
-    if not (np.isfinite(w) and np.isfinite(h) and w > 0 and h > 0):
-        raise ConfigError(f"floor size must be two positive numbers of metres, got {size}")
-    try:
-        from PIL import Image  # a dependency of matplotlib, reads the header only
-
-        with Image.open(p) as im:
-            px = (int(im.size[0]), int(im.size[1]))
-    except Exception as e:  # PIL raises many types for bad images
-        raise InputError(p, f"cannot read the floor plan image ({e})") from None
-    return FloorPlan(p, w, h, px)
-
-
-def session_colours(session_ids: Iterable[str]) -> dict[str, tuple[int, int, int]]:
-    """A distinct colour per session (golden-angle hues): the same in every view."""
-    out = {}
-    for k, sid in enumerate(session_ids):
-        r, g, b = colorsys.hsv_to_rgb((0.61803398875 * k) % 1.0, 0.75 if k % 2 else 0.95, 0.95 if k % 3 else 0.8)
-        out[sid] = (int(r * 255), int(g * 255), int(b * 255))
-    return out
 
 
 def rssi_colours(rssi_dbm: NDArray[np.float64], lo: float = RSSI_RANGE_DBM[0], hi: float = RSSI_RANGE_DBM[1]) -> NDArray[np.uint8]:
