@@ -17,7 +17,6 @@ from graphslam.errors import GraphSlamError
 
 if TYPE_CHECKING:
     from graphslam.config import GraphSlamConfig
-    from graphslam.core.survey.align import IterationRecord
 
 app = typer.Typer(
     add_completion=False,
@@ -31,11 +30,29 @@ EXIT_ERROR = 2
 
 
 @app.callback()
-def _root(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress at INFO level.")) -> None:
+def _root(
+    ctx: typer.Context,
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Log details at INFO level."),
+    quiet: bool = typer.Option(
+        False, "--quiet", "-q", help="No progress: neither bars (terminal) nor progress log lines (batch). "
+        "Also accepted after the command name."
+    ),
+    progress_interval: float = typer.Option(
+        10.0, "--progress-interval", min=0.0, help="Seconds between progress log lines when stderr is not a terminal."
+    ),
+) -> None:
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
     )
+    from graphslam.app.progress import show_progress
+
+    # bars on a terminal, periodic lines in a batch job's log (graphslam.app.progress)
+    if show_progress("off" if quiet else "auto", interval_s=progress_interval) == "bar":
+        from tqdm.contrib.logging import logging_redirect_tqdm
+
+        ctx.with_resource(logging_redirect_tqdm())  # warnings printed above the bars, not through them
+    ctx.call_on_close(lambda: show_progress("off"))
 
 
 @app.command()
@@ -111,22 +128,6 @@ def _config(config: Optional[Path], set_: Optional[List[str]]) -> "GraphSlamConf
     return load_config(config, overrides)
 
 
-class _LmProgress:
-    """One progress line per LM iteration on stderr (tqdm), stage and error in the postfix."""
-
-    def __init__(self, enabled: bool) -> None:
-        from tqdm import tqdm
-
-        self.bar = tqdm(desc="optimise", unit="it", disable=not enabled, leave=False, file=sys.stderr)
-
-    def __call__(self, rec: "IterationRecord") -> None:
-        self.bar.update(1)
-        self.bar.set_postfix(stage=rec.stage, error=f"{rec.error_after:.4g}", edges=rec.active_edges)
-
-    def close(self) -> None:
-        self.bar.close()
-
-
 @app.command()
 def survey(
     paths: List[Path] = typer.Argument(..., help="Recordings (.mcap) or folders of them."),
@@ -136,7 +137,7 @@ def survey(
     rerun: Optional[Path] = typer.Option(None, "--rerun", help="Also log the survey to this .rrd file."),
     floor_plan: Optional[Path] = typer.Option(None, "--floor-plan", help="PNG shown under everything in Rerun."),
     floor_size: Optional[tuple[float, float]] = typer.Option(None, "--floor-size", help="W H of the floor plan (m)."),
-    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show optimiser progress."),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress (--no-progress: as --quiet)."),
     surveyed: bool = typer.Option(
         False, "--surveyed", help="Also write radio_map_surveyed.parquet: fingerprints at ground-truth poses (evaluation)."
     ),
@@ -146,13 +147,13 @@ def survey(
     from graphslam.app.survey import run_survey
 
     cfg = _config(config, set_)
-    bar = _LmProgress(progress and sys.stderr.isatty())
-    try:
-        result = run_survey(
-            paths, out, cfg, progress=bar, rerun_path=rerun, floor_plan=floor_plan, floor_size=floor_size, surveyed=surveyed
-        )
-    finally:
-        bar.close()
+    if not progress:
+        from graphslam.app.progress import show_progress
+
+        show_progress("off")
+    result = run_survey(
+        paths, out, cfg, rerun_path=rerun, floor_plan=floor_plan, floor_size=floor_size, surveyed=surveyed
+    )
     r = result.report
     typer.echo(
         f"aligned {r['aligned_sessions']}/{r['sessions']} walks, {r['nodes']:,} poses, "
@@ -558,10 +559,18 @@ def _smoothers(text: str) -> list[str]:
     return names
 
 
+def _hoist_quiet(argv: list[str]) -> list[str]:
+    """``graphslam survey ... --quiet`` means ``graphslam --quiet survey ...``: --quiet/-q is a
+    root option (every command has progress), but users put it after the command."""
+    end = argv.index("--") if "--" in argv else len(argv)
+    flags = [a for a in argv[:end] if a in ("--quiet", "-q")]
+    return flags + [a for a in argv[:end] if a not in ("--quiet", "-q")] + argv[end:]
+
+
 def main(argv: Optional[list[str]] = None) -> None:
     """Console entry point: run the app, turn ``GraphSlamError`` into one line and exit 2."""
     try:
-        app(args=argv, standalone_mode=False)
+        app(args=_hoist_quiet(sys.argv[1:] if argv is None else argv), standalone_mode=False)
     except GraphSlamError as e:
         typer.echo(f"error: {e}", err=True)
         sys.exit(EXIT_ERROR)
