@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from graphslam.config import GraphSlamConfig
+from graphslam.core.progress import Task
 from graphslam.core.survey.align import Alignment, ProgressCallback, align
 from graphslam.core.survey.evaluate import Evaluation, evaluate
 from graphslam.core.types import Survey
@@ -129,7 +130,8 @@ def run_survey(
     if out_dir is not None:
         t = time.perf_counter()
         try:
-            files = write_outputs(Path(out_dir), survey, alignment, report, cfg, surveyed=surveyed)
+            with Task("write"):
+                files = write_outputs(Path(out_dir), survey, alignment, report, cfg, surveyed=surveyed)
         except BaseException:
             if viz is not None:  # let the child finish (and clean up its temp file) before failing
                 with contextlib.suppress(Exception):

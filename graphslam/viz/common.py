@@ -1,5 +1,6 @@
-"""What every picture shares, whichever library draws it (Rerun or matplotlib): the floor plan
-and one colour per walk. Imports neither library, so a PNG never pays for Rerun's import."""
+"""What every picture shares, whichever library draws it (Rerun or matplotlib): the floor plan,
+one colour per walk, the landmark marks. Imports neither library, so a PNG never pays for
+Rerun's import."""
 
 from __future__ import annotations
 
@@ -7,10 +8,13 @@ import colorsys
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Mapping
 
 import numpy as np
+from numpy.typing import NDArray
 
+from graphslam.core.survey.evaluate import ErrorStats, interpolate_xy, landmark_errors
+from graphslam.core.types import PoseTrack, Survey
 from graphslam.errors import ConfigError, InputError
 
 
@@ -64,3 +68,33 @@ def session_colours(session_ids: Iterable[str]) -> dict[str, tuple[int, int, int
         r, g, b = colorsys.hsv_to_rgb((0.61803398875 * k) % 1.0, 0.75 if k % 2 else 0.95, 0.95 if k % 3 else 0.8)
         out[sid] = (int(r * 255), int(g * 255), int(b * 255))
     return out
+
+
+@dataclass(frozen=True, eq=False)
+class LandmarkMarks:
+    """Landmark marks of aligned walks: the estimate (output frame, interpolated at the mark's
+    time), the surveyed truth (site frame) and the SE(2) site-from-output fit between them
+    (``graphslam.core.survey.evaluate.landmark_errors``: display and evaluation only)."""
+
+    stats: ErrorStats
+    site_from_output: NDArray[np.float64]  # (x, y, theta)
+    estimate_xy: NDArray[np.float64]  # (M, 2) output frame
+    truth_xy: NDArray[np.float64]  # (M, 2) site frame
+    labels: tuple[str, ...]  # "<landmark id> (<session>)"
+
+
+def landmark_marks(tracks: Mapping[str, PoseTrack], survey: Survey | None) -> LandmarkMarks | None:
+    """The marks of ``survey`` on the walks in ``tracks``; None with fewer than 2 (no fit)."""
+    if survey is None or not any(s.landmarks for s in survey):
+        return None
+    stats, T, _ = landmark_errors(tracks, survey)
+    if stats.n < 2:
+        return None
+    est, truth, labels = [], [], []
+    for s in survey:
+        if s.session_id in tracks and s.landmarks:
+            t = np.array([m.t_ns for m in s.landmarks], dtype=float)
+            est.append(interpolate_xy(tracks[s.session_id], t))
+            truth.append(np.array([[m.x, m.y] for m in s.landmarks]))
+            labels += [f"{m.landmark_id} ({s.session_id})" for m in s.landmarks]
+    return LandmarkMarks(stats, np.asarray(T, float), np.concatenate(est), np.concatenate(truth), tuple(labels))

@@ -48,13 +48,12 @@ from numpy.typing import NDArray
 
 from graphslam.config import GraphSlamConfig
 from graphslam.core.survey.align import Alignment, IterationRecord
-from graphslam.core.survey.evaluate import interpolate_xy, landmark_errors
 from graphslam.core.survey.factors import edge_state
 from graphslam.core.radiomap.fingerprints import FingerprintMatrix
 from graphslam.core.survey.initialise import se2_apply
 from graphslam.core.types import PoseTrack, Survey
 from graphslam.errors import ConfigError, GraphSlamError, InputError, VisualizationError
-from graphslam.viz.common import FloorPlan, load_floor_plan, session_colours
+from graphslam.viz.common import FloorPlan, landmark_marks, load_floor_plan, session_colours
 
 log = logging.getLogger(__name__)
 
@@ -388,18 +387,12 @@ def _landmark_layers(lg: _Log, tracks: Mapping[str, PoseTrack], survey: Survey |
     """Truth, estimate and error of every landmark mark of an aligned walk; returns site_from_aligned."""
     if survey is None or not any(s.landmarks for s in survey):
         return None
-    stats, T, _ = landmark_errors(tracks, survey)
-    if stats.n < 2:
+    marks = landmark_marks(tracks, survey)
+    if marks is None:
         lg.notes.append("- landmarks: fewer than 2 marks on aligned walks, no site-frame fit; not shown.")
         return None
-    est, truth, labels = [], [], []
-    for s in survey:
-        if s.session_id in tracks and s.landmarks:
-            t = np.array([m.t_ns for m in s.landmarks], dtype=float)
-            est.append(se2_apply(T, interpolate_xy(tracks[s.session_id], t)))
-            truth.append(np.array([[m.x, m.y] for m in s.landmarks]))
-            labels += [f"{m.landmark_id} ({s.session_id})" for m in s.landmarks]
-    e, tr = np.concatenate(est), np.concatenate(truth)
+    T, stats, labels = marks.site_from_output, marks.stats, list(marks.labels)
+    e, tr = se2_apply(T, marks.estimate_xy), marks.truth_xy
     lg.static(f"{LANDMARKS}/truth", len(tr), _points(tr, [0, 0, 0], 3.5, _Z_LMK, labels))
     lg.static(f"{LANDMARKS}/estimate", len(e), _points(e, [230, 0, 230], 3.0, _Z_LMK + 1, labels))
     lg.static(f"{LANDMARKS}/error", len(e), _segments(np.stack([e, tr], axis=1), [230, 0, 230, 200], 1.0, _Z_LMK))
