@@ -13,6 +13,7 @@ from typing import Iterable, Mapping
 import numpy as np
 from numpy.typing import NDArray
 
+from graphslam.core.radiomap.fingerprints import FingerprintMatrix
 from graphslam.core.survey.evaluate import ErrorStats, interpolate_xy, landmark_errors
 from graphslam.core.types import PoseTrack, Survey
 from graphslam.errors import ConfigError, InputError
@@ -98,3 +99,12 @@ def landmark_marks(tracks: Mapping[str, PoseTrack], survey: Survey | None) -> La
             truth.append(np.array([[m.x, m.y] for m in s.landmarks]))
             labels += [f"{m.landmark_id} ({s.session_id})" for m in s.landmarks]
     return LandmarkMarks(stats, np.asarray(T, float), np.concatenate(est), np.concatenate(truth), tuple(labels))
+
+
+def top_access_points(fm: FingerprintMatrix, rows: NDArray[np.int64], k: int) -> list[int]:
+    """Column indices of the ``k`` APs heard by most of ``rows``; ties: stronger mean RSSI first."""
+    sub = fm.values[rows].tocsc()
+    heard = np.diff(sub.indptr)
+    mean = np.asarray(sub.sum(axis=0)).ravel() / np.maximum(heard, 1)
+    order = np.lexsort((-mean, -heard))
+    return [int(c) for c in order[:k] if heard[c] > 0]

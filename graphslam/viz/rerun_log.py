@@ -53,7 +53,7 @@ from graphslam.core.radiomap.fingerprints import FingerprintMatrix
 from graphslam.core.survey.initialise import se2_apply
 from graphslam.core.types import PoseTrack, Survey
 from graphslam.errors import ConfigError, GraphSlamError, InputError, VisualizationError
-from graphslam.viz.common import FloorPlan, landmark_marks, load_floor_plan, session_colours
+from graphslam.viz.common import FloorPlan, landmark_marks, load_floor_plan, session_colours, top_access_points
 
 log = logging.getLogger(__name__)
 
@@ -298,15 +298,6 @@ def rssi_colours(rssi_dbm: NDArray[np.float64], lo: float = RSSI_RANGE_DBM[0], h
     k = np.minimum(u.astype(int), len(_VIRIDIS) - 2)
     f = (u - k)[:, None]
     return np.round(_VIRIDIS[k] * (1 - f) + _VIRIDIS[k + 1] * f).astype(np.uint8)
-
-
-def top_access_points(fm: FingerprintMatrix, rows: NDArray[np.int64], k: int) -> list[int]:
-    """Column indices of the ``k`` APs heard by most of ``rows``; ties: stronger mean RSSI first."""
-    sub = fm.values[rows].tocsc()
-    heard = np.diff(sub.indptr)
-    mean = np.asarray(sub.sum(axis=0)).ravel() / np.maximum(heard, 1)
-    order = np.lexsort((-mean, -heard))
-    return [int(c) for c in order[:k] if heard[c] > 0]
 
 
 # ---- viewers ---------------------------------------------------------------------------
