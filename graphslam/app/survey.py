@@ -103,10 +103,13 @@ def run_survey(
     floor_plan: str | Path | None = None,
     floor_size: tuple[float, float] | None = None,
     surveyed: bool = False,
+    picture: bool = True,
 ) -> SurveyResult:
-    """Read ``paths``, align every walk, write the outputs into ``out_dir`` (None: no files)."""
+    """Read ``paths``, align every walk, write the outputs into ``out_dir`` (None: no files);
+    ``picture``: also survey.png there (over ``floor_plan`` when given)."""
     cfg = config or GraphSlamConfig()
     _check_outputs(out_dir, rerun_path, floor_plan)
+    png = _start_picture(out_dir, floor_plan, floor_size) if picture and out_dir is not None else None
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     survey = read_survey(paths)
@@ -119,6 +122,8 @@ def run_survey(
     evaluation = evaluate(alignment.tracks, survey) if survey.has_ground_truth else None
     timings["evaluate"] = time.perf_counter() - t
 
+    if png is not None:
+        png.draw(survey, alignment, cfg, evaluation)  # in its worker, while the outputs are written
     viz = None
     if rerun_path is not None:
         from graphslam.viz.background import start_log_survey
@@ -136,8 +141,12 @@ def run_survey(
             if viz is not None:  # let the child finish (and clean up its temp file) before failing
                 with contextlib.suppress(Exception):
                     viz.wait()
+            if png is not None:
+                png.discard()
             raise
         timings["write"] = time.perf_counter() - t
+    if png is not None:
+        _finish_picture(png, files, timings)
     if viz is not None:
         t = time.perf_counter()
         timings["rerun"] = viz.wait()  # log_survey itself, in the child
@@ -147,6 +156,28 @@ def run_survey(
     if out_dir is not None:
         atomic_write_json(Path(out_dir) / "report.json", report)
     return SurveyResult(survey, alignment, evaluation, report, Path(out_dir) if out_dir else None, files)
+
+
+def _start_picture(out_dir: str | Path, floor_plan: str | Path | None, floor_size: tuple[float, float] | None) -> Any:
+    """survey.png's drawing worker, started now (``graphslam.viz.survey_picture.SurveyPictureJob``);
+    a bad floor plan fails here, before the work."""
+    from graphslam.viz.common import load_floor_plan
+    from graphslam.viz.survey_picture import SurveyPictureJob
+
+    return SurveyPictureJob(out_dir, load_floor_plan(floor_plan, floor_size))
+
+
+def _finish_picture(png: Any, files: dict[str, Path], timings: dict[str, float]) -> None:
+    """survey.png into place; a picture that failed is a warning, not a failed survey."""
+    from graphslam.errors import VisualizationError
+
+    t = time.perf_counter()
+    try:
+        with Task("picture"):
+            files["picture"], timings["picture"] = png.finish()  # drawing time, in the worker
+    except VisualizationError as e:
+        log.warning("survey.png not written: %s", e)
+    timings["picture_wait"] = time.perf_counter() - t  # what the survey still waited for it
 
 
 def _check_outputs(out_dir: str | Path | None, rerun_path: str | Path | None, floor_plan: str | Path | None) -> None:
@@ -177,12 +208,14 @@ def write_outputs(
             "trajectories": "trajectories.csv",
             "aligned": "aligned.mcap",
             "radio_map": "radio_map.parquet",
+            "wifi_edges": "wifi_edges.parquet",
             "config": "config.yaml",
             "report": "report.json",
         }
         write_trajectories(al.tracks, stage / names["trajectories"])
         write_aligned(al.tracks, stage / names["aligned"])
         _write_radio_map(survey, al, cfg, stage / names["radio_map"])
+        _write_wifi_edges(al, cfg, stage / names["wifi_edges"])
         if surveyed:  # evaluation: the same fingerprints at their ground-truth positions
             from graphslam.core.radiomap.survey_maps import surveyed_radio_map
             from graphslam.io.radiomap_io import write_radio_map
@@ -199,6 +232,13 @@ def write_outputs(
         return files
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+
+
+def _write_wifi_edges(al: Alignment, cfg: GraphSlamConfig, path: Path) -> None:
+    from graphslam.core.radiomap.survey_maps import crowdsourced_edges
+    from graphslam.io.edges_io import write_wifi_edges
+
+    write_wifi_edges(crowdsourced_edges(al, cfg), path)
 
 
 def _write_radio_map(survey: Survey, al: Alignment, cfg: GraphSlamConfig, path: Path) -> None:
