@@ -141,9 +141,10 @@ def survey(
     surveyed: bool = typer.Option(
         False, "--surveyed", help="Also write radio_map_surveyed.parquet: fingerprints at ground-truth poses (evaluation)."
     ),
+    picture: bool = typer.Option(True, "--picture/--no-picture", help="Write OUT/survey.png (over --floor-plan)."),
 ) -> None:
     """Align every walk into one frame; write trajectories.csv, aligned.mcap, radio_map.parquet,
-    report.json and the effective config.yaml into OUT."""
+    wifi_edges.parquet, report.json, the effective config.yaml and survey.png into OUT."""
     from graphslam.app.survey import run_survey
 
     cfg = _config(config, set_)
@@ -152,7 +153,8 @@ def survey(
 
         show_progress("off")
     result = run_survey(
-        paths, out, cfg, rerun_path=rerun, floor_plan=floor_plan, floor_size=floor_size, surveyed=surveyed
+        paths, out, cfg, rerun_path=rerun, floor_plan=floor_plan, floor_size=floor_size, surveyed=surveyed,
+        picture=picture,
     )
     r = result.report
     typer.echo(
@@ -324,6 +326,7 @@ def locate(
         "evaluation.site_from_aligned), for the truth overlay."
     ),
     index: str = typer.Option("exact", "--index", help=INDEX_HELP + " Default: exact."),
+    picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: answers (and truth)."),
 ) -> None:
     """Locate every /wifi/scan of the query sessions by kNN against a radio map."""
     from graphslam.app.locate import locate_files
@@ -343,7 +346,12 @@ def locate(
             query_ids=[f"{s}@{t}" for s, t in zip(pos.session_ids.tolist(), pos.t_ns.tolist())],
             site_from_map=site_from_map,
         )
-    typer.echo(json.dumps(run.as_dict()))
+    shown = {}
+    if picture:
+        from graphslam.app.pictures import write_locate_picture
+
+        shown["picture"] = str(write_locate_picture(run, radio_map, query_paths, out.with_suffix(".png"), site_from_map))
+    typer.echo(json.dumps(run.as_dict() | shown))
 
 
 @app.command()
@@ -412,6 +420,31 @@ def view(
         server = serve_rrd(result.path, web_port=web_port, grpc_port=grpc_port)
         typer.echo(f"serving {result.path} at {server.url} (Ctrl-C stops)")
         server.wait()
+
+
+@app.command()
+def plot(
+    out_dir: Path = typer.Argument(..., help="A finished `graphslam survey --out` folder."),
+    floor_plan: Optional[Path] = typer.Option(None, "--floor-plan", help="Image drawn under everything (site frame)."),
+    floor_size: Optional[tuple[float, float]] = typer.Option(
+        None, "--floor-size", help="W H of the floor plan (m); default: floor_info.json beside the image."
+    ),
+    recordings: Optional[List[Path]] = typer.Option(
+        None, "--recordings", "-r", help="The survey's .mcap files or folders (repeat): adds the landmark marks."
+    ),
+    ap: Optional[List[str]] = typer.Option(None, "--ap", help="BSSID to map in radio_map.png (repeat); default: --top-aps."),
+    top_aps: int = typer.Option(5, "--top-aps", min=0, help="Map the N most-heard access points."),
+    radio_map: bool = typer.Option(True, "--radio-map/--no-radio-map", help="Also draw OUT/radio_map.png."),
+) -> None:
+    """Redraw OUT/survey.png and draw OUT/radio_map.png (coverage, RSS per access point, fitted APs of
+    OUT/ap_models.json when `fit-aps` has run); prints the files written."""
+    from graphslam.app.pictures import plot_survey_folder
+
+    files = plot_survey_folder(
+        out_dir, floor_plan=floor_plan, floor_size=floor_size, recordings=recordings or (), aps=ap or (),
+        top_aps=top_aps, radio_map=radio_map,
+    )
+    typer.echo(json.dumps({k: str(v) for k, v in files.items()}))
 
 
 @bench_app.command("fig8")
@@ -505,13 +538,20 @@ def track(
     adaptive_rssi: bool = typer.Option(
         True, "--adaptive-rssi/--no-adaptive-rssi", help="Inflate a scan's RSSI noise when its innovations disagree."
     ),
+    picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: the tracks (and truth)."),
 ) -> None:
     """Track walks on a radio map: EKF/UKF fusion of step velocity and WiFi RSSI (Papers 000/002)."""
     from graphslam.app.track import TrackConfig, track_files
 
     cfg = TrackConfig(filter=filter_, smoother=smooth, knn_fixes=knn_fixes, adaptive_rssi=adaptive_rssi)
     run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg)
-    typer.echo(json.dumps(run.as_dict()))
+    shown = {}
+    if picture:
+        from graphslam.app.pictures import write_track_picture
+
+        label = filter_ + ("" if smooth == "none" else f" + {smooth} smoother")
+        shown["picture"] = str(write_track_picture(run, radio_map, sessions, out.with_suffix(".png"), label))
+    typer.echo(json.dumps(run.as_dict() | shown))
 
 
 @bench_app.command("filters")

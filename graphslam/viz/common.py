@@ -108,3 +108,21 @@ def top_access_points(fm: FingerprintMatrix, rows: NDArray[np.int64], k: int) ->
     mean = np.asarray(sub.sum(axis=0)).ravel() / np.maximum(heard, 1)
     order = np.lexsort((-mean, -heard))
     return [int(c) for c in order[:k] if heard[c] > 0]
+
+
+def fitted_site_from_aligned(evaluation: Mapping | None) -> NDArray[np.float64] | None:
+    """A report's ``evaluation.site_from_aligned`` when it is a fit (>= 2 landmark marks, or true
+    poses in a simulation), else None: without ground truth the field is a placeholder."""
+    ev = evaluation if isinstance(evaluation, Mapping) else {}
+    fitted = (ev.get("landmarks") or {}).get("n", 0) >= 2 or (ev.get("steps") or {}).get("n", 0) > 0
+    if not fitted or ev.get("site_from_aligned") is None:
+        return None
+    return np.asarray(ev["site_from_aligned"], float).reshape(3)
+
+
+def site_to_frame(site_from_frame: NDArray, xy: NDArray) -> NDArray[np.float64]:
+    """Site-frame points ``xy`` in the frame that ``site_from_frame`` (x, y, theta) places in the
+    site frame: R(theta)^T (xy - t)."""
+    T = np.asarray(site_from_frame, float)
+    c, s = np.cos(T[2]), np.sin(T[2])
+    return (np.asarray(xy, float).reshape(-1, 2) - T[:2]) @ np.array([[c, -s], [s, c]])

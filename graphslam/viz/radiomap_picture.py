@@ -1,0 +1,188 @@
+"""``radio_map.png``: is the survey good enough? What Anyplace users look at (matplotlib, headless).
+
+Panel 1, coverage: fingerprints per m^2 on a grid of ``cell_m`` cells. Then one panel per
+access point (``aps``, else the ``top`` most-heard, stronger mean RSS first on ties): its
+RSS interpolated over the surveyed area, with the AP's fitted position (``fit-aps``'
+ap_models.json) marked when there is one, and the fingerprints that heard it as dots.
+
+Interpolation: a Gaussian kernel average (Nadaraya-Watson, std ``bandwidth_m``) of every
+fingerprint's reading, where a fingerprint that did not hear the AP counts as the map's
+``min_rssi_dbm`` (the reading floor: it was weaker than that). Binned on the grid and
+filtered (``scipy.ndimage.gaussian_filter``), so the cost is that of the grid, not of the
+fingerprints x cells. Cells where the kernel weight of all fingerprints is below
+``MIN_WEIGHT`` are outside the surveyed area and left blank (the same mask in every panel).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graphslam.core.radiomap.radiomap import RadioMap
+from graphslam.core.survey.initialise import se2_apply
+from graphslam.core.tracking.apmodel import ApModels
+from graphslam.errors import ConfigError
+from graphslam.viz.common import FloorPlan, top_access_points
+from graphslam.viz.figure import draw_floor_plan, new_figure, save_png, scale_bar
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+
+SIZE_PX = (1600, 1000)
+TOP_APS = 5
+MAX_APS = 11  # 12 panels at most: beyond that nothing is readable
+MIN_WEIGHT = 0.05  # kernel weight (in fingerprints) below which a cell is "not surveyed"
+RSS_RANGE_DBM = (-100.0, -30.0)  # fixed colour scale, the same in every panel (and as Rerun's)
+
+
+def grid_cell_m(xy: NDArray) -> float:
+    """A round cell size (0.5, 1, 2, 2.5, 5 m x 10^k) giving about 150 cells along the longer side,
+    never finer than 0.5 m."""
+    span = float(np.ptp(xy, axis=0).max()) if len(xy) else 0.0
+    target = max(0.5, span / 150.0)
+    p = 10.0 ** math.floor(math.log10(target))
+    return min(m * p for m in (1.0, 2.0, 2.5, 5.0, 10.0) if m * p >= target - 1e-9)
+
+
+def draw_radio_map(
+    rm: RadioMap,
+    path: str | Path,
+    *,
+    aps: Sequence[str] = (),
+    top: int = TOP_APS,
+    ap_models: ApModels | None = None,
+    floor_plan: FloorPlan | None = None,
+    site_from_map: NDArray | None = None,
+    cell_m: float | None = None,
+    bandwidth_m: float | None = None,
+    size_px: tuple[int, int] = SIZE_PX,
+    title: str = "",
+) -> Path:
+    """Render the radio map picture to ``path`` (PNG of ``size_px``, written atomically).
+
+    ``site_from_map`` (x, y, theta) draws a map in the aligned frame over a ``floor_plan`` in
+    the site frame (e.g. report.json's landmark fit); without it the plan is drawn as is.
+    """
+    from matplotlib import colormaps
+
+    if not len(rm):
+        raise ConfigError("radio map picture: the radio map has no fingerprint")
+    cols = _ap_columns(rm, aps, top)
+    T = None if site_from_map is None else np.asarray(site_from_map, float).reshape(3)
+    move = (lambda xy: se2_apply(T, xy)) if (T is not None and floor_plan is not None) else (lambda xy: xy)  # noqa: E731
+    xy = move(np.asarray(rm.xy, float))
+    cell = float(cell_m or grid_cell_m(xy))
+    h = float(bandwidth_m or 2.0 * cell)
+    grid = _Grid(xy, cell)
+    weight = grid.smooth(grid.bin(np.ones(len(xy))), h)
+    outside = weight < MIN_WEIGHT
+
+    n_panels = 1 + len(cols)
+    ncols = {1: 1, 2: 2, 3: 3, 4: 2}.get(n_panels, 3 if n_panels <= 9 else 4)
+    nrows = math.ceil(n_panels / ncols)
+    fig = new_figure(*size_px)
+    axes = fig.subplots(nrows, ncols, squeeze=False)
+    for a in axes.ravel()[n_panels:]:
+        a.set_visible(False)
+    frame = f"{rm.frame} frame"
+    if floor_plan is not None:
+        frame = "site frame of the floor plan" if T is not None else f"{rm.frame} frame, floor plan NOT registered to it"
+    floor = rm.min_rssi_dbm
+    fig.suptitle(title or (
+        f"radio map: {len(rm):,} fingerprints, {rm.fingerprints.n_aps:,} APs, {len(set(rm.session_ids.tolist()))} walks; "
+        f"{frame}; {cell:g} m cells, Gaussian kernel {h:g} m; not heard = {floor:g} dBm"
+    ), fontsize=11)
+
+    ax = axes[0, 0]
+    density = np.ma.masked_where(outside, weight / cell**2)  # kernel density: fingerprints per m^2
+    _underlay(ax, floor_plan)
+    im = ax.imshow(density.T, origin="lower", extent=grid.extent, cmap=colormaps["magma_r"], zorder=1,
+                   interpolation="bilinear")
+    fig.colorbar(im, ax=ax, shrink=0.85, label="fingerprints / m²")
+    area = float((~outside).sum()) * cell**2
+    ax.set_title(f"coverage: {len(rm):,} fingerprints over ~{area:,.0f} m²\n"
+                 f"median {np.ma.median(density):.2f} / m² where surveyed", fontsize=8)
+    _frame_axes(ax, grid)
+
+    values = rm.fingerprints.values.tocsc()
+    fitted = {a.bssid: a for a in ap_models.fitted} if ap_models is not None else {}
+    unfitted = {u.bssid: u.reason for u in ap_models.unfitted} if ap_models is not None else {}
+    cmap = colormaps["viridis"].copy()
+    cmap.set_bad(alpha=0.0)
+    for k, c in enumerate(cols, start=1):
+        ax = axes.ravel()[k]
+        rows = values.indices[values.indptr[c] : values.indptr[c + 1]]
+        rss = np.full(len(xy), floor)
+        rss[rows] = values.data[values.indptr[c] : values.indptr[c + 1]] + rm.missing_dbm
+        field = grid.smooth(grid.bin(rss), h) / np.maximum(weight, 1e-12)
+        _underlay(ax, floor_plan)
+        im = ax.imshow(np.ma.masked_where(outside, field).T, origin="lower", extent=grid.extent, cmap=cmap,
+                       vmin=RSS_RANGE_DBM[0], vmax=RSS_RANGE_DBM[1], zorder=1, interpolation="bilinear")
+        ax.scatter(xy[rows, 0], xy[rows, 1], s=1.5, c="black", alpha=0.35, linewidths=0, zorder=2)
+        bssid = rm.bssids[c]
+        note = "no AP model (run fit-aps)" if ap_models is None else "AP model: none"
+        if bssid in fitted:
+            a = fitted[bssid]
+            p = move(np.array([[a.x, a.y]]))[0]
+            ax.scatter([p[0]], [p[1]], marker="*", s=220, c="red", edgecolors="white", linewidths=1.0, zorder=4)
+            note = f"fitted AP (red star): P0 {a.p0_dbm:.0f} dBm, γ {a.gamma:.1f}, ±{a.position_std_m:.1f} m"
+        elif bssid in unfitted:
+            note = f"AP not fitted: {unfitted[bssid].split(' (')[0]}"
+        ax.set_title(f"{bssid}, heard by {len(rows):,} fingerprints\n{note}", fontsize=8)
+        fig.colorbar(im, ax=ax, shrink=0.85, label="RSS (dBm)")
+        _frame_axes(ax, grid)
+    return save_png(fig, path)
+
+
+def _ap_columns(rm: RadioMap, aps: Sequence[str], top: int) -> list[int]:
+    if aps:
+        index = {b: i for i, b in enumerate(rm.bssids)}
+        unknown = [a for a in aps if a not in index]
+        if unknown:
+            raise ConfigError(f"--ap {unknown[0]}: no fingerprint of the radio map heard this access point")
+        cols = [index[a] for a in dict.fromkeys(aps)]
+    else:
+        cols = top_access_points(rm.fingerprints, np.arange(len(rm)), max(0, top))
+    if len(cols) > MAX_APS:
+        raise ConfigError(f"radio map picture: {len(cols)} access points asked for, at most {MAX_APS} fit")
+    return cols
+
+
+class _Grid:
+    """Square cells of ``cell`` m covering ``xy`` with a margin of a few cells."""
+
+    def __init__(self, xy: NDArray, cell: float) -> None:
+        lo, hi = xy.min(axis=0) - 3 * cell, xy.max(axis=0) + 3 * cell
+        self.cell = cell
+        self.n = np.maximum(np.ceil((hi - lo) / cell).astype(int), 1)
+        self.lo = lo
+        self.extent = (lo[0], lo[0] + self.n[0] * cell, lo[1], lo[1] + self.n[1] * cell)
+        self._ij = np.clip(((xy - lo) / cell).astype(int), 0, self.n - 1)
+
+    def bin(self, w: NDArray) -> NDArray:
+        """Sum of ``w`` per cell, shape (nx, ny)."""
+        flat = np.bincount(self._ij[:, 0] * self.n[1] + self._ij[:, 1], weights=w, minlength=int(self.n.prod()))
+        return flat.reshape(self.n[0], self.n[1])
+
+    def smooth(self, g: NDArray, bandwidth_m: float) -> NDArray:
+        from scipy.ndimage import gaussian_filter
+
+        return gaussian_filter(g, bandwidth_m / self.cell, mode="constant")
+
+
+def _underlay(ax: "Axes", plan: FloorPlan | None) -> None:
+    if plan is not None:
+        draw_floor_plan(ax, plan)
+
+
+def _frame_axes(ax: "Axes", grid: _Grid) -> None:
+    x0, x1, y0, y1 = grid.extent
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_aspect("equal")
+    ax.tick_params(labelsize=7)
+    scale_bar(ax, max(x1 - x0, y1 - y0))
