@@ -45,25 +45,28 @@ def plot_survey_folder(
     from graphslam.viz.survey_picture import draw_survey, scene_of_folder
 
     d = Path(out_dir)
-    plan = load_floor_plan(floor_plan, floor_size)  # a bad plan fails before any drawing
-    with Task("plot", unit="pictures") as task:
+    plan = load_floor_plan(floor_plan, floor_size)  # bad input fails before anything is drawn
+    rm_path = d / "radio_map.parquet"
+    rm = None
+    if radio_map and rm_path.exists():
+        from graphslam.io.radiomap_io import read_radio_map
+        from graphslam.viz.radiomap_picture import ap_columns, draw_radio_map
+
+        rm = read_radio_map(rm_path)
+        ap_columns(rm, aps, top_aps)
+    elif aps:
+        raise InputError(rm_path, "no radio map to draw --ap from")
+    with Task("plot", total=1 + (rm is not None), unit="pictures") as task:
         scene = scene_of_folder(d, recordings)
         files = {"survey": draw_survey(scene, d / SURVEY_PNG, floor_plan=plan)}
         task.advance()
-        rm_path = d / "radio_map.parquet"
-        if radio_map and rm_path.exists():
-            from graphslam.io.radiomap_io import read_radio_map
-            from graphslam.viz.radiomap_picture import draw_radio_map
-
-            rm = read_radio_map(rm_path)
+        if rm is not None:
             T = np.zeros(3) if rm.frame == "site" else scene.site_from_output
             files["radio_map"] = draw_radio_map(
                 rm, d / RADIO_MAP_PNG, aps=aps, top=top_aps, ap_models=_ap_models_beside(rm_path), floor_plan=plan,
                 site_from_map=T,
             )
             task.advance()
-        elif aps:
-            raise InputError(rm_path, "no radio map in the folder: --ap has nothing to draw")
     return files
 
 

@@ -55,10 +55,11 @@ class Tick:
 
     def describe(self) -> str:
         """One line: ``edges: 12/30 blocks (40 %), 1.2 s; info`` or ``write: done in 0.4 s``."""
+        unit = f" {self.unit}" if self.unit else ""
         if self.total:
-            count = f" {self.done:,}/{self.total:,} {self.unit} ({100.0 * self.done / self.total:.0f} %)"
+            count = f" {self.done:,}/{self.total:,}{unit} ({100.0 * self.done / self.total:.0f} %)"
         else:
-            count = f" {self.done:,} {self.unit}" if self.done else ""  # a stage without a count
+            count = f" {self.done:,}{unit}" if self.done else ""  # a stage without a count
         when = f" done in {self.elapsed_s:.1f} s" if self.event == "end" else f", {self.elapsed_s:.1f} s"
         return f"{self.name}:{count}{when}" + (f"; {self.info}" if self.info else "")
 

@@ -71,7 +71,7 @@ def draw_radio_map(
 
     if not len(rm):
         raise ConfigError("radio map picture: the radio map has no fingerprint")
-    cols = _ap_columns(rm, aps, top)
+    cols = ap_columns(rm, aps, top)
     T = None if site_from_map is None else np.asarray(site_from_map, float).reshape(3)
     move = (lambda xy: se2_apply(T, xy)) if (T is not None and floor_plan is not None) else (lambda xy: xy)  # noqa: E731
     xy = move(np.asarray(rm.xy, float))
@@ -111,8 +111,7 @@ def draw_radio_map(
     values = rm.fingerprints.values.tocsc()
     fitted = {a.bssid: a for a in ap_models.fitted} if ap_models is not None else {}
     unfitted = {u.bssid: u.reason for u in ap_models.unfitted} if ap_models is not None else {}
-    cmap = colormaps["viridis"].copy()
-    cmap.set_bad(alpha=0.0)
+    cmap = colormaps["viridis"].with_extremes(bad=(0.0, 0.0, 0.0, 0.0))
     for k, c in enumerate(cols, start=1):
         ax = axes.ravel()[k]
         rows = values.indices[values.indptr[c] : values.indptr[c + 1]]
@@ -138,7 +137,8 @@ def draw_radio_map(
     return save_png(fig, path)
 
 
-def _ap_columns(rm: RadioMap, aps: Sequence[str], top: int) -> list[int]:
+def ap_columns(rm: RadioMap, aps: Sequence[str], top: int) -> list[int]:
+    """Columns of ``rm`` to draw: ``aps`` (each must be in the map), else the ``top`` most heard."""
     if aps:
         index = {b: i for i, b in enumerate(rm.bssids)}
         unknown = [a for a in aps if a not in index]

@@ -20,7 +20,7 @@ import json
 import textwrap
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -36,6 +36,9 @@ from graphslam.viz.common import (
     FloorPlan, LandmarkMarks, fitted_site_from_aligned, landmark_marks, session_colours, site_to_frame,
 )
 from graphslam.viz.figure import draw_floor_plan, fit_limits, new_figure, rgb01, save_png, scale_bar, segments
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 SIZE_PX = (1600, 1000)
 MAX_EDGES = 20_000  # drawn; more are subsampled (deterministically), the legend gives both counts
@@ -187,6 +190,11 @@ def draw_survey(
     scene: SurveyScene, path: str | Path, *, floor_plan: FloorPlan | None = None, size_px: tuple[int, int] = SIZE_PX
 ) -> Path:
     """Render ``scene`` to the PNG ``path`` (``size_px`` pixels exactly, written atomically)."""
+    return save_png(survey_figure(scene, floor_plan=floor_plan, size_px=size_px), path)
+
+
+def survey_figure(scene: SurveyScene, *, floor_plan: FloorPlan | None = None, size_px: tuple[int, int] = SIZE_PX) -> "Figure":
+    """The picture as a matplotlib ``Figure`` (Agg canvas): one axes, its legend outside on the right."""
     from matplotlib.collections import LineCollection
     from matplotlib.lines import Line2D
 
@@ -260,7 +268,7 @@ def draw_survey(
     ax.set_title(_title(scene, floor_plan, in_site), fontsize=11, loc="left")
     ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8.5, frameon=False,
               borderaxespad=0.0, handlelength=2.2)
-    return save_png(fig, path)
+    return fig
 
 
 def _title(scene: SurveyScene, plan: FloorPlan | None, in_site: bool) -> str:
