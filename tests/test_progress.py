@@ -29,16 +29,18 @@ def recordings(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return d
 
 
-def _run(args: list[str], **kw: object) -> subprocess.CompletedProcess:
+def _run(args: list[str], python_flags: tuple[str, ...] | list[str] = ()) -> subprocess.CompletedProcess:
     env = {**os.environ, "RERUN": "off"}
-    return subprocess.run([sys.executable, "-m", "graphslam", *args], capture_output=True, text=True, env=env,
-                          timeout=300, **kw)  # type: ignore[call-overload]
+    return subprocess.run([sys.executable, *python_flags, "-m", "graphslam", *args], capture_output=True, text=True,
+                          env=env, timeout=300)
 
 
 def test_batch_log_has_a_line_per_stage(recordings: Path, tmp_path: Path) -> None:
     # stderr is a pipe: periodic log lines; interval 0 = every report (the default 10 s is for nightly jobs)
-    p = _run(["--progress-interval", "0", "survey", str(recordings), "--out", str(tmp_path / "out")])
+    p = _run(["--progress-interval", "0", "survey", str(recordings), "--out", str(tmp_path / "out")],
+             python_flags=["-X", "importtime"])
     assert p.returncode == 0, p.stderr
+    assert "matplotlib" not in p.stderr  # survey.png is drawn without matplotlib's ~0.4 s import
     lines = [ln for ln in p.stderr.splitlines() if " progress " in ln]
     done = {m.group(1) for ln in lines if (m := re.search(r" progress (.+?):.* done in [0-9.]+ s", ln))}
     assert set(SURVEY_STAGES) <= done

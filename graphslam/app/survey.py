@@ -109,7 +109,7 @@ def run_survey(
     ``picture``: also survey.png there (over ``floor_plan`` when given)."""
     cfg = config or GraphSlamConfig()
     _check_outputs(out_dir, rerun_path, floor_plan)
-    png = _start_picture(out_dir, floor_plan, floor_size) if picture and out_dir is not None else None
+    plan = _picture_plan(floor_plan, floor_size) if picture and out_dir is not None else None
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     survey = read_survey(paths)
@@ -122,8 +122,6 @@ def run_survey(
     evaluation = evaluate(alignment.tracks, survey) if survey.has_ground_truth else None
     timings["evaluate"] = time.perf_counter() - t
 
-    if png is not None:
-        png.draw(survey, alignment, cfg, evaluation)  # in its worker, while the outputs are written
     viz = None
     if rerun_path is not None:
         from graphslam.viz.background import start_log_survey
@@ -141,12 +139,10 @@ def run_survey(
             if viz is not None:  # let the child finish (and clean up its temp file) before failing
                 with contextlib.suppress(Exception):
                     viz.wait()
-            if png is not None:
-                png.discard()
             raise
         timings["write"] = time.perf_counter() - t
-    if png is not None:
-        _finish_picture(png, files, timings)
+        if picture:
+            _write_picture(Path(out_dir), survey, alignment, cfg, evaluation, plan, files, timings)
     if viz is not None:
         t = time.perf_counter()
         timings["rerun"] = viz.wait()  # log_survey itself, in the child
@@ -158,26 +154,29 @@ def run_survey(
     return SurveyResult(survey, alignment, evaluation, report, Path(out_dir) if out_dir else None, files)
 
 
-def _start_picture(out_dir: str | Path, floor_plan: str | Path | None, floor_size: tuple[float, float] | None) -> Any:
-    """survey.png's drawing worker, started now (``graphslam.viz.survey_picture.SurveyPictureJob``);
-    a bad floor plan fails here, before the work."""
+def _picture_plan(floor_plan: str | Path | None, floor_size: tuple[float, float] | None) -> Any:
+    """The floor plan survey.png is drawn over; a bad one fails here, before the work."""
     from graphslam.viz.common import load_floor_plan
-    from graphslam.viz.survey_picture import SurveyPictureJob
 
-    return SurveyPictureJob(out_dir, load_floor_plan(floor_plan, floor_size))
+    return load_floor_plan(floor_plan, floor_size)
 
 
-def _finish_picture(png: Any, files: dict[str, Path], timings: dict[str, float]) -> None:
-    """survey.png into place; a picture that failed is a warning, not a failed survey."""
-    from graphslam.errors import VisualizationError
+def _write_picture(
+    out_dir: Path, survey: Survey, al: Alignment, cfg: GraphSlamConfig, ev: Evaluation | None, plan: Any,
+    files: dict[str, Path], timings: dict[str, float],
+) -> None:
+    """survey.png beside the outputs, once they are in place; a picture that fails is a warning,
+    not a failed survey (``graphslam.viz.survey_picture``: Pillow, ~0.05 s for the paper survey)."""
+    from graphslam.errors import GraphSlamError
+    from graphslam.viz.survey_picture import PICTURE, draw_survey, scene_of_alignment
 
     t = time.perf_counter()
     try:
         with Task("picture"):
-            files["picture"], timings["picture"] = png.finish()  # drawing time, in the worker
-    except VisualizationError as e:
-        log.warning("survey.png not written: %s", e)
-    timings["picture_wait"] = time.perf_counter() - t  # what the survey still waited for it
+            files["picture"] = draw_survey(scene_of_alignment(survey, al, cfg, ev), out_dir / PICTURE, floor_plan=plan)
+    except (GraphSlamError, OSError, ValueError) as e:
+        log.warning("%s not written: %s", PICTURE, e)
+    timings["picture"] = time.perf_counter() - t
 
 
 def _check_outputs(out_dir: str | Path | None, rerun_path: str | Path | None, floor_plan: str | Path | None) -> None:

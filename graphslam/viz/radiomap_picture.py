@@ -1,4 +1,4 @@
-"""``radio_map.png``: is the survey good enough? What Anyplace users look at (matplotlib, headless).
+"""``radio_map.png``: is the survey good enough? What Anyplace users look at (``graphslam.viz.canvas``).
 
 Panel 1, coverage: fingerprints per m^2 on a grid of ``cell_m`` cells. Then one panel per
 access point (``aps``, else the ``top`` most-heard, stronger mean RSS first on ties): its
@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,11 +26,8 @@ from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.survey.initialise import se2_apply
 from graphslam.core.tracking.apmodel import ApModels
 from graphslam.errors import ConfigError
+from graphslam.viz.canvas import MAGMA_R, VIRIDIS, Panel, Picture, colour_map
 from graphslam.viz.common import FloorPlan, top_access_points
-from graphslam.viz.figure import draw_floor_plan, new_figure, save_png, scale_bar
-
-if TYPE_CHECKING:
-    from matplotlib.axes import Axes
 
 SIZE_PX = (1600, 1000)
 TOP_APS = 5
@@ -60,81 +57,93 @@ def draw_radio_map(
     cell_m: float | None = None,
     bandwidth_m: float | None = None,
     size_px: tuple[int, int] = SIZE_PX,
-    title: str = "",
 ) -> Path:
     """Render the radio map picture to ``path`` (PNG of ``size_px``, written atomically).
 
     ``site_from_map`` (x, y, theta) draws a map in the aligned frame over a ``floor_plan`` in
     the site frame (e.g. report.json's landmark fit); without it the plan is drawn as is.
     """
-    from matplotlib import colormaps
-
     if not len(rm):
         raise ConfigError("radio map picture: the radio map has no fingerprint")
     cols = ap_columns(rm, aps, top)
     T = None if site_from_map is None else np.asarray(site_from_map, float).reshape(3)
-    move = (lambda xy: se2_apply(T, xy)) if (T is not None and floor_plan is not None) else (lambda xy: xy)  # noqa: E731
-    xy = move(np.asarray(rm.xy, float))
+    registered = T is not None and floor_plan is not None
+    xy = se2_apply(T, np.asarray(rm.xy, float)) if registered else np.asarray(rm.xy, float)  # type: ignore[arg-type]
     cell = float(cell_m or grid_cell_m(xy))
     h = float(bandwidth_m or 2.0 * cell)
     grid = _Grid(xy, cell)
     weight = grid.smooth(grid.bin(np.ones(len(xy))), h)
     outside = weight < MIN_WEIGHT
+    floor = rm.min_rssi_dbm
 
-    n_panels = 1 + len(cols)
-    ncols = {1: 1, 2: 2, 3: 3, 4: 2}.get(n_panels, 3 if n_panels <= 9 else 4)
-    nrows = math.ceil(n_panels / ncols)
-    fig = new_figure(*size_px)
-    axes = fig.subplots(nrows, ncols, squeeze=False)
-    for a in axes.ravel()[n_panels:]:
-        a.set_visible(False)
     frame = f"{rm.frame} frame"
     if floor_plan is not None:
-        frame = "site frame of the floor plan" if T is not None else f"{rm.frame} frame, floor plan NOT registered to it"
-    floor = rm.min_rssi_dbm
-    fig.suptitle(title or (
+        frame = "site frame of the floor plan" if registered else f"{rm.frame} frame, floor plan NOT registered to it"
+    pic = Picture(size_px, title_lines=[
         f"radio map: {len(rm):,} fingerprints, {rm.fingerprints.n_aps:,} APs, {len(set(rm.session_ids.tolist()))} walks; "
-        f"{frame}; {cell:g} m cells, Gaussian kernel {h:g} m; not heard = {floor:g} dBm"
-    ), fontsize=11)
+        f"{frame}; {cell:g} m cells, Gaussian kernel {h:g} m; an AP not heard counts as {floor:g} dBm"
+    ])
+    boxes = _layout(1 + len(cols), size_px, top=36)
+    extent = grid.extent
 
-    ax = axes[0, 0]
-    density = np.ma.masked_where(outside, weight / cell**2)  # kernel density: fingerprints per m^2
-    _underlay(ax, floor_plan)
-    im = ax.imshow(density.T, origin="lower", extent=grid.extent, cmap=colormaps["magma_r"], zorder=1,
-                   interpolation="bilinear")
-    fig.colorbar(im, ax=ax, shrink=0.85, label="fingerprints / m²")
+    density = weight / cell**2  # kernel density: fingerprints per m^2
+    d_hi = float(np.percentile(density[~outside], 99)) if (~outside).any() else 1.0
+    panel = _heat_panel(pic, boxes[0], extent, density, outside, 0.0, d_hi, MAGMA_R, floor_plan, "fingerprints / m²")
     area = float((~outside).sum()) * cell**2
-    ax.set_title(f"coverage: {len(rm):,} fingerprints over ~{area:,.0f} m²\n"
-                 f"median {np.ma.median(density):.2f} / m² where surveyed", fontsize=8)
-    _frame_axes(ax, grid)
+    pic.caption((boxes[0][0], boxes[0][1] - 34), f"coverage: {len(rm):,} fingerprints over ~{area:,.0f} m²\n"
+                f"median {np.median(density[~outside]) if (~outside).any() else 0:.2f} / m² where surveyed", 12)
 
     values = rm.fingerprints.values.tocsc()
     fitted = {a.bssid: a for a in ap_models.fitted} if ap_models is not None else {}
     unfitted = {u.bssid: u.reason for u in ap_models.unfitted} if ap_models is not None else {}
-    cmap = colormaps["viridis"].with_extremes(bad=(0.0, 0.0, 0.0, 0.0))
-    for k, c in enumerate(cols, start=1):
-        ax = axes.ravel()[k]
+    for box, c in zip(boxes[1:], cols):
         rows = values.indices[values.indptr[c] : values.indptr[c + 1]]
         rss = np.full(len(xy), floor)
         rss[rows] = values.data[values.indptr[c] : values.indptr[c + 1]] + rm.missing_dbm
         field = grid.smooth(grid.bin(rss), h) / np.maximum(weight, 1e-12)
-        _underlay(ax, floor_plan)
-        im = ax.imshow(np.ma.masked_where(outside, field).T, origin="lower", extent=grid.extent, cmap=cmap,
-                       vmin=RSS_RANGE_DBM[0], vmax=RSS_RANGE_DBM[1], zorder=1, interpolation="bilinear")
-        ax.scatter(xy[rows, 0], xy[rows, 1], s=1.5, c="black", alpha=0.35, linewidths=0, zorder=2)
+        panel = _heat_panel(pic, box, extent, field, outside, *RSS_RANGE_DBM, VIRIDIS, floor_plan, "RSS (dBm)")
+        panel.dots(xy[rows], (30, 30, 30), size=1)
         bssid = rm.bssids[c]
-        note = "no AP model (run fit-aps)" if ap_models is None else "AP model: none"
+        note = "no AP models (run fit-aps)" if ap_models is None else "no AP model"
         if bssid in fitted:
             a = fitted[bssid]
-            p = move(np.array([[a.x, a.y]]))[0]
-            ax.scatter([p[0]], [p[1]], marker="*", s=220, c="red", edgecolors="white", linewidths=1.0, zorder=4)
+            p = se2_apply(T, np.array([[a.x, a.y]])) if registered else np.array([[a.x, a.y]])  # type: ignore[arg-type]
+            panel.points(p, (255, 0, 0), radius=12, kind="star")
             note = f"fitted AP (red star): P0 {a.p0_dbm:.0f} dBm, γ {a.gamma:.1f}, ±{a.position_std_m:.1f} m"
         elif bssid in unfitted:
             note = f"AP not fitted: {unfitted[bssid].split(' (')[0]}"
-        ax.set_title(f"{bssid}, heard by {len(rows):,} fingerprints\n{note}", fontsize=8)
-        fig.colorbar(im, ax=ax, shrink=0.85, label="RSS (dBm)")
-        _frame_axes(ax, grid)
-    return save_png(fig, path)
+        pic.caption((box[0], box[1] - 34), f"{bssid}, heard by {len(rows):,} fingerprints\n{note}", 12)
+    return pic.save(path)
+
+
+def _layout(n: int, size_px: tuple[int, int], top: int) -> list[tuple[int, int, int, int]]:
+    """Panel boxes on a grid: room above each for a 2-line caption, right for a colour bar, left and
+    below for the ticks."""
+    ncols = {1: 1, 2: 2, 3: 3, 4: 2}.get(n, 3 if n <= 9 else 4)
+    nrows = math.ceil(n / ncols)
+    w, h = size_px
+    cw, ch = w / ncols, (h - top) / nrows
+    return [
+        (int(c * cw + 52), int(top + r * ch + 40), int((c + 1) * cw - 95), int(top + (r + 1) * ch - 24))
+        for r in range(nrows) for c in range(ncols)
+    ][:n]
+
+
+def _heat_panel(
+    pic: Picture, box: tuple[int, int, int, int], extent: tuple[float, float, float, float], field: NDArray,
+    outside: NDArray, lo: float, hi: float, table: NDArray, plan: FloorPlan | None, label: str,
+) -> Panel:
+    x0, x1, y0, y1 = extent
+    panel = pic.panel(box, (x0, y0, x1, y1))
+    if plan is not None:
+        panel.floor_plan(plan)
+    rgba = np.zeros(field.shape + (4,), np.uint8)  # (nx, ny): x along the first axis
+    rgba[..., :3] = colour_map(field, lo, hi, table)
+    rgba[..., 3] = np.where(outside, 0, 235)
+    panel.raster(np.transpose(rgba, (1, 0, 2))[::-1], extent, smooth=True)  # rows from the top
+    panel.scale_bar()
+    pic.colourbar((box[2] + 10, box[1], box[2] + 26, box[3]), table, lo, hi, label)
+    return panel
 
 
 def ap_columns(rm: RadioMap, aps: Sequence[str], top: int) -> list[int]:
@@ -172,17 +181,3 @@ class _Grid:
         from scipy.ndimage import gaussian_filter
 
         return gaussian_filter(g, bandwidth_m / self.cell, mode="constant")
-
-
-def _underlay(ax: "Axes", plan: FloorPlan | None) -> None:
-    if plan is not None:
-        draw_floor_plan(ax, plan)
-
-
-def _frame_axes(ax: "Axes", grid: _Grid) -> None:
-    x0, x1, y0, y1 = grid.extent
-    ax.set_xlim(x0, x1)
-    ax.set_ylim(y0, y1)
-    ax.set_aspect("equal")
-    ax.tick_params(labelsize=7)
-    scale_bar(ax, max(x1 - x0, y1 - y0))

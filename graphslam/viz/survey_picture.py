@@ -1,4 +1,4 @@
-"""``survey.png``: the aligned survey at a glance (matplotlib, headless).
+"""``survey.png``: the aligned survey at a glance (``graphslam.viz.canvas``: Pillow, fast).
 
 Every aligned walk in its own colour (the colours of the Rerun views), the reference walk
 marked at its first pose (the origin of the output frame), the WiFi edges faint by their
@@ -20,7 +20,7 @@ import json
 import textwrap
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,21 +31,20 @@ from graphslam.core.survey.align import Alignment
 from graphslam.core.survey.evaluate import Evaluation
 from graphslam.core.survey.initialise import se2_apply
 from graphslam.core.types import Survey
-from graphslam.errors import InputError, VisualizationError
+from graphslam.errors import InputError
 from graphslam.viz.common import (
     FloorPlan, LandmarkMarks, fitted_site_from_aligned, landmark_marks, session_colours, site_to_frame,
 )
-from graphslam.viz.figure import draw_floor_plan, fit_limits, new_figure, rgb01, save_png, scale_bar, segments
-
-if TYPE_CHECKING:
-    from matplotlib.figure import Figure
+from graphslam.viz.canvas import BLACK, GREY, LegendEntry, Picture, bounds_of
 
 SIZE_PX = (1600, 1000)
 MAX_EDGES = 20_000  # drawn; more are subsampled (deterministically), the legend gives both counts
 MAX_LEGEND_WALKS = 16  # more aligned walks: one legend line for all (the colours still differ)
 MAX_REASONS = 6  # unaligned walks are grouped by reason; at most this many groups listed
-EDGE_COLOURS = ((0.27, 0.67, 0.35), (1.0, 0.63, 0.0), (0.86, 0.16, 0.16))  # inactive, ramp, saturated (as Rerun)
+EDGE_COLOURS = ((70, 170, 90), (255, 160, 0), (220, 40, 40))  # inactive, ramp, saturated (as in Rerun)
+MAGENTA = (215, 0, 215)
 EDGE_NAMES = ("inactive", "ramp", "saturated")
+PICTURE = "survey.png"
 
 
 @dataclass(frozen=True, eq=False)
@@ -190,186 +189,106 @@ def draw_survey(
     scene: SurveyScene, path: str | Path, *, floor_plan: FloorPlan | None = None, size_px: tuple[int, int] = SIZE_PX
 ) -> Path:
     """Render ``scene`` to the PNG ``path`` (``size_px`` pixels exactly, written atomically)."""
-    return save_png(survey_figure(scene, floor_plan=floor_plan, size_px=size_px), path)
+    return survey_picture(scene, floor_plan=floor_plan, size_px=size_px).save(path)
 
 
-def survey_figure(scene: SurveyScene, *, floor_plan: FloorPlan | None = None, size_px: tuple[int, int] = SIZE_PX) -> "Figure":
-    """The picture as a matplotlib ``Figure`` (Agg canvas): one axes, its legend outside on the right."""
-    from matplotlib.collections import LineCollection
-    from matplotlib.lines import Line2D
-
+def survey_picture(scene: SurveyScene, *, floor_plan: FloorPlan | None = None, size_px: tuple[int, int] = SIZE_PX) -> Picture:
+    """The picture, not yet rendered: one panel, the legend in a column on its right."""
     T = scene.site_from_output
     in_site = floor_plan is not None and T is not None
     move = (lambda xy: se2_apply(T, xy)) if in_site else (lambda xy: xy)  # noqa: E731
-    fig = new_figure(*size_px)
-    ax = fig.add_axes((0.05, 0.06, 0.62, 0.84))
-    handles: list[Any] = []
-
-    if floor_plan is not None:
-        draw_floor_plan(ax, floor_plan)
-        handles.append(Line2D([], [], ls="none", marker="s", ms=9, mfc=(0.9, 0.9, 0.9), mec="grey",
-                              label=f"floor plan {floor_plan.path.name} ({floor_plan.width_m:.0f} x {floor_plan.height_m:.0f} m)"))
-
-    n_drawn = len(scene.edge_xy)
-    if n_drawn:
-        seg = move(scene.edge_xy.reshape(-1, 2)).reshape(-1, 2, 2)
-        for k in range(3):  # one compound path per state: 20,000 segments are one draw call
-            segments(ax, seg[scene.edge_state == k], EDGE_COLOURS[k], lw=0.4, alpha=0.22, zorder=1)
-    n_edges = sum(scene.edge_counts)
-    if n_edges:
-        shown = "" if n_drawn == n_edges else f", {n_drawn:,} drawn"
-        for k, name in enumerate(EDGE_NAMES):
-            if scene.edge_counts[k]:
-                handles.append(Line2D([], [], color=EDGE_COLOURS[k], lw=1.5, alpha=0.6,
-                                      label=f"WiFi edges {name}: {scene.edge_counts[k]:,}"))
-        handles[-1].set_label(handles[-1].get_label() + f" (of {n_edges:,}{shown})")
-
     ids = list(scene.tracks)
     lines = [move(scene.tracks[s]) for s in ids]
-    rgb = rgb01([scene.colours[s] for s in ids])
-    lw = 1.6 if len(ids) <= 40 else 1.0
-    ax.add_collection(LineCollection(lines, colors=rgb, linewidths=lw, zorder=3, capstyle="round", joinstyle="round"))
-    if len(ids) <= MAX_LEGEND_WALKS:
-        handles += [Line2D([], [], color=c, lw=2.5, label=s + (" (reference)" if s == scene.reference else ""))
-                    for s, c in zip(ids, rgb)]
-    else:
-        handles.append(Line2D([], [], color=rgb[0], lw=2.5, label=f"{len(ids)} aligned walks, one colour each"))
-
-    if scene.reference in scene.tracks and len(scene.tracks[scene.reference]):
-        ref = lines[ids.index(scene.reference)]
-        # a thin line on top: marks the reference without hiding the walks under it
-        ax.plot(ref[:, 0], ref[:, 1], color="black", lw=0.6, zorder=3.5)
-        ax.plot([ref[0, 0]], [ref[0, 1]], marker="*", ms=18, color="black", mec="white", mew=1.2, zorder=6, ls="none")
-        where = "" if in_site else ", starts at the origin"
-        handles.append(Line2D([], [], marker="*", ms=13, color="black", mec="white", lw=0.6,
-                              label=f"reference {scene.reference} (black line{where})"))
-
-    extent = [np.concatenate(lines)] if lines else []
+    colours = [scene.colours[s] for s in ids]
+    est = truth = None
     if scene.marks is not None:
         m = scene.marks
         est = se2_apply(m.site_from_output, m.estimate_xy) if in_site else m.estimate_xy
         truth = m.truth_xy if in_site else site_to_frame(m.site_from_output, m.truth_xy)
-        segments(ax, np.stack([est, truth], axis=1), (0.85, 0.0, 0.85), lw=0.9, alpha=1.0, zorder=4)
-        ax.scatter(truth[:, 0], truth[:, 1], s=28, marker="x", c="black", linewidths=1.2, zorder=5)
-        ax.scatter(est[:, 0], est[:, 1], s=12, c=[(0.85, 0.0, 0.85)], zorder=5)
-        handles.append(Line2D([], [], ls="none", marker="x", color="black", label="landmark truth"))
-        handles.append(Line2D([], [], color=(0.85, 0.0, 0.85), marker="o", ms=4, lw=0.9,
-                              label=f"landmark estimate, error line ({m.stats.mean_m:.2f} m mean)"))
-        extent.append(truth)
+    plan_box = np.array([[0.0, 0.0], [floor_plan.width_m, floor_plan.height_m]]) if floor_plan is not None else None
+    w, h = size_px
+    pic = Picture(size_px, title_lines=_title(scene, floor_plan, in_site), legend_x=int(0.685 * w))
+    top = 16 + 20 * len(pic.title_lines)
+    panel = pic.panel((62, top, int(0.665 * w), h - 30), bounds_of(*lines, truth, plan_box))
+    legend = pic.legend
 
-    handles += _unaligned_handles(scene.unaligned)
     if floor_plan is not None:
-        extent.append(np.array([[0.0, 0.0], [floor_plan.width_m, floor_plan.height_m]]))
-    span = fit_limits(ax, np.concatenate(extent) if extent else np.zeros((0, 2)))
-    scale_bar(ax, span)
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.grid(alpha=0.2, zorder=0)
-    ax.set_title(_title(scene, floor_plan, in_site), fontsize=11, loc="left")
-    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8.5, frameon=False,
-              borderaxespad=0.0, handlelength=2.2)
-    return fig
+        panel.floor_plan(floor_plan)
+        legend.append(LegendEntry(
+            f"floor plan {floor_plan.path.name} ({floor_plan.width_m:.0f} x {floor_plan.height_m:.0f} m)",
+            (235, 235, 235), "box"))
+    n_drawn, n_edges = len(scene.edge_xy), sum(scene.edge_counts)
+    if n_drawn:
+        seg = move(scene.edge_xy.reshape(-1, 2)).reshape(-1, 2, 2)
+        for k in range(3):
+            panel.faint_segments(seg[scene.edge_state == k], EDGE_COLOURS[k], alpha=0.18)
+    for k, name in enumerate(EDGE_NAMES):
+        if scene.edge_counts[k]:
+            legend.append(LegendEntry(f"WiFi edges {name}: {scene.edge_counts[k]:,}", _faint(EDGE_COLOURS[k]), width=2))
+    if n_edges:
+        shown = "all drawn" if n_drawn == n_edges else f"{n_drawn:,} drawn"
+        legend[-1].text += f" (of {n_edges:,}; {shown})"
+
+    if est is not None and truth is not None:  # under the walks: big errors must not hide them
+        panel.faint_segments(np.stack([est, truth], axis=1), MAGENTA, alpha=0.45)
+    width = 2 if len(ids) <= 40 else 1
+    panel.polylines(lines, colours, width=width)
+    if len(ids) <= MAX_LEGEND_WALKS:
+        legend += [LegendEntry(s + (" (reference)" if s == scene.reference else ""), c, width=4)
+                   for s, c in zip(ids, colours)]
+    else:
+        legend.append(LegendEntry(f"{len(ids)} aligned walks, one colour each", colours[0], width=4))
+
+    if scene.reference in scene.tracks and len(scene.tracks[scene.reference]):
+        ref = lines[ids.index(scene.reference)]
+        panel.polylines([ref], [BLACK], width=1)  # thin, on top: marks the walk without hiding others
+        panel.points(ref[:1], BLACK, radius=11, kind="star")
+        where = "" if in_site else ", starts at the origin"
+        legend.append(LegendEntry(f"reference {scene.reference} (thin black line{where})", BLACK, "star"))
+
+    if est is not None and truth is not None:
+        panel.points(truth, BLACK, radius=4, kind="cross")
+        panel.points(est, MAGENTA, radius=2)
+        legend.append(LegendEntry("landmark truth", BLACK, "cross"))
+        legend.append(LegendEntry(
+            f"landmark estimate and error line ({scene.marks.stats.mean_m:.2f} m mean)", MAGENTA, "point"))  # type: ignore[union-attr]
+    legend += _unaligned_entries(scene.unaligned)
+    panel.scale_bar()
+    return pic
 
 
-def _title(scene: SurveyScene, plan: FloorPlan | None, in_site: bool) -> str:
+def _faint(c: tuple[int, int, int], a: float = 0.55) -> tuple[int, int, int]:
+    return tuple(int(255 - (255 - v) * a) for v in c)  # type: ignore[return-value]
+
+
+def _title(scene: SurveyScene, plan: FloorPlan | None, in_site: bool) -> list[str]:
     n_al = len(scene.tracks)
-    head = (f"{n_al}/{scene.n_sessions} walks aligned, {scene.n_poses:,} poses, {sum(scene.edge_counts):,} WiFi edges"
+    head = (f"{n_al}/{scene.n_sessions} walks aligned, {scene.n_poses:,} poses, "
+            f"{sum(scene.edge_counts):,} WiFi edges between them"
             + (f"; {scene.landmark_text}" if scene.landmark_text else ""))
     if in_site:
         x, y, th = scene.site_from_output  # type: ignore[misc]
         frame = (f"site frame of the floor plan: walks placed by the landmark SE(2) fit (x {x:.1f} m, y {y:.1f} m, "
                  f"{np.degrees(th):.1f} deg; display only)")
     else:
-        frame = "output frame (trajectories.csv): origin = first pose of the reference walk"
+        frame = "output frame (trajectories.csv, metres): origin = first pose of the reference walk"
         if plan is not None:
             frame += "; the floor plan is NOT registered to it (no landmark fit)"
-    lines = [head, frame] + list(scene.notes)
-    return "\n".join(textwrap.fill(s, 130) for s in lines)
+    return [line for s in [head, frame, *scene.notes] for line in textwrap.wrap(s, 150)]
 
 
-def _unaligned_handles(unaligned: Mapping[str, str]) -> list[Any]:
+def _unaligned_entries(unaligned: Mapping[str, str]) -> list[LegendEntry]:
     """One legend entry per reason: how many walks, their ids (the first few)."""
-    from matplotlib.lines import Line2D
-
     if not unaligned:
         return []
     groups: dict[str, list[str]] = {}
     for sid, why in unaligned.items():
         groups.setdefault(why, []).append(sid)
-    out = [Line2D([], [], ls="none", label=f"{len(unaligned)} walks not aligned (not drawn):")]
+    out = [LegendEntry(f"{len(unaligned)} walks not aligned (not drawn):", kind="text")]
     for k, (why, sids) in enumerate(sorted(groups.items(), key=lambda kv: -len(kv[1]))):
         if k == MAX_REASONS:
-            out.append(Line2D([], [], ls="none", label=f"  ... {len(groups) - k} more reasons (report.json)"))
+            out.append(LegendEntry(f"... {len(groups) - k} more reasons (report.json)", kind="text"))
             break
         listed = ", ".join(sids[:4]) + (f" +{len(sids) - 4} more" if len(sids) > 4 else "")
-        text = textwrap.fill(f"{len(sids)}: {why} ({listed})", 60, subsequent_indent="   ")
-        out.append(Line2D([], [], ls="none", marker="x", color="grey", label=text))
+        out.append(LegendEntry(f"{len(sids)}: {why} ({listed})", GREY, "cross"))
     return out
-
-
-# ---- survey.png beside the survey's outputs --------------------------------------------------
-
-PICTURE = "survey.png"
-
-
-def warm_matplotlib() -> None:
-    """Import what ``draw_survey`` uses and load its font: the fixed ~0.5 s a first picture costs."""
-    import matplotlib.backends.backend_agg  # noqa: F401
-    import matplotlib.collections  # noqa: F401
-    import matplotlib.image  # noqa: F401
-    import matplotlib.lines  # noqa: F401
-    import matplotlib.patches  # noqa: F401
-    import mpl_toolkits.axes_grid1.anchored_artists  # noqa: F401
-
-    fig = new_figure(40, 20)
-    fig.text(0.1, 0.1, "m")
-    fig.canvas.draw()
-
-
-class SurveyPictureJob:
-    """``survey.png`` for ``graphslam survey``, drawn so that it does not slow the survey down.
-
-    Made at the survey's start, it forks a worker that imports matplotlib while the survey
-    reads and aligns (``WarmWorker``); ``draw`` sends it the scene (a few MB for 200 walks)
-    and it draws into a hidden file while the outputs are written; ``finish`` renames that
-    file to ``survey.png`` once the other outputs are in place (``discard`` removes it when
-    they could not be written: a failed survey leaves no picture).
-    """
-
-    def __init__(self, out_dir: str | Path, floor_plan: FloorPlan | None = None) -> None:
-        import os
-
-        from graphslam.viz.background import WarmWorker
-
-        self.path = Path(out_dir) / PICTURE
-        self._tmp = self.path.with_name(f".{PICTURE}.{os.getpid()}.{id(self):x}.part")
-        self._plan = floor_plan
-        self._worker = WarmWorker(warm_matplotlib)
-
-    def draw(self, survey: Survey, al: Alignment, cfg: GraphSlamConfig, evaluation: Evaluation | None) -> None:
-        self._worker.submit(_draw_timed, scene_of_alignment(survey, al, cfg, evaluation), self._tmp, self._plan)
-
-    def finish(self) -> tuple[Path, float]:
-        """(survey.png, seconds the worker spent drawing); ``VisualizationError`` if it failed."""
-        try:
-            seconds = self._worker.wait()
-            self._tmp.replace(self.path)
-        except OSError as e:
-            self.discard()
-            raise VisualizationError(f"{self.path}: cannot write ({e.strerror or e})") from None
-        except BaseException:
-            self.discard()
-            raise
-        return self.path, seconds
-
-    def discard(self) -> None:
-        self._worker.close()
-        self._tmp.unlink(missing_ok=True)
-
-
-def _draw_timed(scene: SurveyScene, path: Path, plan: FloorPlan | None) -> float:
-    import time
-
-    t = time.perf_counter()
-    draw_survey(scene, path, floor_plan=plan)
-    return time.perf_counter() - t
