@@ -35,7 +35,9 @@ def side_by_side(data: Path, tmp: Path, runs: int) -> dict:
             cmd = [sys.executable, "-m", "graphslam", "survey", str(data), "--out", str(out), "--no-progress",
                    "--picture" if mode == "picture" else "--no-picture"]
             t = time.perf_counter()
-            subprocess.run(cmd, check=True, capture_output=True, env={**os.environ, "RERUN": "off"})
+            proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "RERUN": "off"})
+            if proc.returncode != 0:
+                raise SystemExit(f"survey failed: {proc.stderr.strip()}")
             walls[mode].append(time.perf_counter() - t)
             if mode == "picture":
                 rep = json.loads((out / "report.json").read_text())

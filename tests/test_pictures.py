@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import run_cli
 from PIL import Image
 
 from graphslam.app.survey import run_survey
-from graphslam.cli import main as cli_main
 from graphslam.config import GraphSlamConfig
 from graphslam.io.mcap_writer import write_session
 from graphslam.sim import simulate
@@ -20,14 +20,6 @@ from graphslam.viz import radiomap_picture, survey_picture, track_picture
 from graphslam.viz.common import session_colours
 
 NO_WIFI = 5  # the corridor walk recorded without WiFi: it cannot be aligned
-
-
-def _cli(args: list[str]) -> int:
-    try:
-        cli_main(args)
-    except SystemExit as e:
-        return int(e.code or 0)
-    return 0
 
 
 def _rgb(path: Path) -> np.ndarray:
@@ -103,7 +95,7 @@ def test_plot_redraws_the_folder_over_a_floor_plan_with_floor_info(corridor_run:
     Image.new("RGB", (300, 40), (255, 220, 120)).save(plan)  # a plan colour no walk has
     (tmp_path / "floor_info.json").write_text(json.dumps({"map_info": {"width": 90.0, "height": 12.0}}))
     before = (out / "survey.png").stat().st_mtime_ns
-    assert _cli(["-q", "plot", str(out), "--floor-plan", str(plan), "--recordings", str(root / "rec")]) == 0
+    assert run_cli(["-q", "plot", str(out), "--floor-plan", str(plan), "--recordings", str(root / "rec")]) == 0
     img = _rgb(out / "survey.png")
     assert (out / "survey.png").stat().st_mtime_ns != before
     assert img.shape[:2] == survey_picture.SIZE_PX[::-1]
@@ -132,14 +124,14 @@ def test_plot_errors_are_one_line_and_exit_2(
     (tmp_path / "not_an_image.png").write_bytes(b"not a png at all")
     Image.new("RGB", (20, 10)).save(tmp_path / "plain.png")
     before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
-    assert _cli(["-q", "plot", str(out)] + [a.format(tmp=tmp_path) for a in extra]) == 2
+    assert run_cli(["-q", "plot", str(out)] + [a.format(tmp=tmp_path) for a in extra]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: ") and message in err[0]
     assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before  # nothing (re)written
 
 
 def test_plot_needs_a_survey_folder(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    assert _cli(["-q", "plot", str(tmp_path)]) == 2
+    assert run_cli(["-q", "plot", str(tmp_path)]) == 2
     assert "no trajectories.csv" in capsys.readouterr().err
 
 
@@ -168,8 +160,8 @@ def test_track_and_locate_draw_one_colour_per_session(corridor_run: tuple) -> No
     ids = sorted(p.stem for p in test_dir.glob("*.mcap"))
     rm = str(out / "radio_map.parquet")
     track = ["-q", "track", str(test_dir), "--radio-map", rm, "--ap-models", str(root / "aps.json"), "--out"]
-    assert _cli(track + [str(out / "track.csv")]) == 0
-    assert _cli(["-q", "locate", str(test_dir), "--radio-map", rm, "--out", str(out / "positions.csv")]) == 0
+    assert run_cli(track + [str(out / "track.csv")]) == 0
+    assert run_cli(["-q", "locate", str(test_dir), "--radio-map", rm, "--out", str(out / "positions.csv")]) == 0
     for name in ("track.png", "positions.png"):
         img = _rgb(out / name)
         assert img.shape[:2] == track_picture.SIZE_PX[::-1]

@@ -126,3 +126,19 @@ def site_to_frame(site_from_frame: NDArray, xy: NDArray) -> NDArray[np.float64]:
     T = np.asarray(site_from_frame, float)
     c, s = np.cos(T[2]), np.sin(T[2])
     return (np.asarray(xy, float).reshape(-1, 2) - T[:2]) @ np.array([[c, -s], [s, c]])
+
+
+def survey_folder_tracks(out_dir: str | Path) -> dict[str, PoseTrack]:
+    """The aligned walks of a finished ``graphslam survey --out`` folder (its trajectories.csv);
+    ``InputError`` when it is not one."""
+    from graphslam.io.csv_io import read_trajectories
+
+    d = Path(out_dir)
+    if not d.is_dir():
+        raise InputError(d, "not a folder (expected a `graphslam survey --out` folder)")
+    if not (d / "trajectories.csv").exists():
+        raise InputError(d, "no trajectories.csv: not a finished survey output folder")
+    tracks = read_trajectories(d / "trajectories.csv")
+    if not tracks:
+        raise InputError(d / "trajectories.csv", "no aligned walk in the file")
+    return tracks

@@ -53,7 +53,9 @@ from graphslam.core.radiomap.fingerprints import FingerprintMatrix
 from graphslam.core.survey.initialise import se2_apply
 from graphslam.core.types import PoseTrack, Survey
 from graphslam.errors import ConfigError, GraphSlamError, InputError, VisualizationError
-from graphslam.viz.common import FloorPlan, landmark_marks, load_floor_plan, session_colours, top_access_points
+from graphslam.viz.common import (
+    FloorPlan, landmark_marks, load_floor_plan, session_colours, survey_folder_tracks, top_access_points,
+)
 
 log = logging.getLogger(__name__)
 
@@ -246,17 +248,9 @@ def write_survey_view(
     and the landmarks. WiFi edges and optimiser iterations are not stored in DIR: log them
     with ``graphslam survey --rerun`` instead.
     """
-    from graphslam.io.csv_io import read_trajectories
-
     t0 = time.perf_counter()
     d = Path(out_dir)
-    if not d.is_dir():
-        raise InputError(d, "not a folder (expected a `graphslam survey --out` folder)")
-    if not (d / "trajectories.csv").exists():
-        raise InputError(d, "no trajectories.csv: not a finished survey output folder")
-    tracks = read_trajectories(d / "trajectories.csv")
-    if not tracks:
-        raise InputError(d / "trajectories.csv", "no aligned walk in the file")
+    tracks = survey_folder_tracks(d)
     plan = load_floor_plan(floor_plan, floor_size)
     report, problems = _read_report(d / "report.json")
     survey = None

@@ -34,6 +34,7 @@ from graphslam.core.types import Survey
 from graphslam.errors import InputError
 from graphslam.viz.common import (
     FloorPlan, LandmarkMarks, fitted_site_from_aligned, landmark_marks, session_colours, site_to_frame,
+    survey_folder_tracks,
 )
 from graphslam.viz.canvas import BLACK, GREY, LegendEntry, Picture, bounds_of
 
@@ -93,16 +94,8 @@ def scene_of_folder(
     the landmark fit), ``radio_map.parquet`` + ``wifi_edges.parquet`` (edges) when present.
     ``recordings`` add the landmark marks and the walks that were not aligned.
     """
-    from graphslam.io.csv_io import read_trajectories
-
     d = Path(out_dir)
-    if not d.is_dir():
-        raise InputError(d, "not a folder (expected a `graphslam survey --out` folder)")
-    if not (d / "trajectories.csv").exists():
-        raise InputError(d, "no trajectories.csv: not a finished survey output folder")
-    pose_tracks = read_trajectories(d / "trajectories.csv")
-    if not pose_tracks:
-        raise InputError(d / "trajectories.csv", "no aligned walk in the file")
+    pose_tracks = survey_folder_tracks(d)
     report = _read_json(d / "report.json")
     notes: list[str] = []
     survey = None
