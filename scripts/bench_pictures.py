@@ -5,8 +5,9 @@ and the drawing time of survey.png for a small and a large survey.
 
 1. Side by side on the simulator's `paper` survey (seed 0, 5 walks): fresh `graphslam survey`
    processes, alternating --picture / --no-picture (so load changes hit both alike); median
-   wall time of each, their ratio, and the median of report.json's `picture` (seconds the
-   survey spent drawing survey.png).
+   wall time and CPU time (user + sys of the process) of each, their ratios, and the median of
+   report.json's `picture` (seconds the survey spent drawing survey.png). On a shared machine
+   the CPU time is the steadier figure: the wall time moves with the other users' load.
 2. Drawing alone, in this process after one warm-up: median of 3 `draw_survey` calls, for
    `paper` (5 walks) and `crowd` scaled to --big-walks walks (aligned once, in memory).
 
@@ -18,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -28,27 +30,35 @@ from pathlib import Path
 
 def side_by_side(data: Path, tmp: Path, runs: int) -> dict:
     walls: dict[str, list[float]] = {"picture": [], "no_picture": []}
+    cpus: dict[str, list[float]] = {"picture": [], "no_picture": []}
     drawn = []
     for r in range(runs):
         for mode in ("picture", "no_picture") if r % 2 == 0 else ("no_picture", "picture"):
             out = tmp / f"{mode}{r}"
             cmd = [sys.executable, "-m", "graphslam", "survey", str(data), "--out", str(out), "--no-progress",
                    "--picture" if mode == "picture" else "--no-picture"]
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
             t = time.perf_counter()
             proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "RERUN": "off"})
             if proc.returncode != 0:
                 raise SystemExit(f"survey failed: {proc.stderr.strip()}")
             walls[mode].append(time.perf_counter() - t)
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpus[mode].append(after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime)
             if mode == "picture":
                 rep = json.loads((out / "report.json").read_text())
                 drawn.append(rep["timings_s"]["picture"])
     med = {k: statistics.median(v) for k, v in walls.items()}
+    cpu = {k: statistics.median(v) for k, v in cpus.items()}
     return {
         "part": "survey paper seed 0, side by side",
         "runs_each": runs,
         "wall_s_median_picture": round(med["picture"], 3),
         "wall_s_median_no_picture": round(med["no_picture"], 3),
         "ratio": round(med["picture"] / med["no_picture"], 4),
+        "cpu_s_median_picture": round(cpu["picture"], 3),
+        "cpu_s_median_no_picture": round(cpu["no_picture"], 3),
+        "cpu_ratio": round(cpu["picture"] / cpu["no_picture"], 4),
         "picture_s_median": round(statistics.median(drawn), 3),
         "walls": {k: [round(x, 3) for x in v] for k, v in walls.items()},
     }

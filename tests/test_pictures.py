@@ -166,3 +166,22 @@ def test_track_and_locate_draw_one_colour_per_session(corridor_run: tuple) -> No
         img = _rgb(out / name)
         assert img.shape[:2] == track_picture.SIZE_PX[::-1]
         assert _colours_present(img, session_colours(ids)) == set(ids)
+
+
+def test_wifi_edges_file_ties_radio_map_rows(corridor_run: tuple, tmp_path: Path) -> None:
+    from graphslam.errors import InputError
+    from graphslam.io.edges_io import read_wifi_edges
+    from graphslam.io.radiomap_io import read_radio_map
+
+    _, out, result = corridor_run
+    xy = np.asarray(read_radio_map(out / "radio_map.parquet").xy)
+    e = read_wifi_edges(out / "wifi_edges.parquet", len(xy))
+    assert len(e.a) > 0
+    np.testing.assert_allclose(np.linalg.norm(xy[e.a] - xy[e.b], axis=1), e.distance_m, atol=1e-4)
+    states = result.report["edges"]["wifi_states"]
+    assert np.bincount(e.state, minlength=3).tolist() == [states["inactive"], states["ramp"], states["saturated"]]
+    with pytest.raises(InputError, match="outside the radio map"):
+        read_wifi_edges(out / "wifi_edges.parquet", int(max(e.a.max(), e.b.max())))
+    (tmp_path / "bad.parquet").write_bytes(b"PAR1 not really")
+    with pytest.raises(InputError, match="cannot read WiFi edges"):
+        read_wifi_edges(tmp_path / "bad.parquet")

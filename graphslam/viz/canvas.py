@@ -33,7 +33,7 @@ Colour = tuple[int, int, int]
 BLACK: Colour = (0, 0, 0)
 GREY: Colour = (120, 120, 120)
 GRID: Colour = (232, 232, 232)
-PNG_COMPRESS_LEVEL = 1  # zlib level: 6 (Pillow's default) costs ~35 % more time for ~20 % smaller files
+PNG_COMPRESS_LEVEL = 1  # zlib level 1: ~4x faster than 6 on these pictures, files ~25 % bigger
 
 # colour maps sampled at 0, 1/8, ..., 1 (matplotlib's viridis and magma, reversed for densities)
 VIRIDIS = np.array([[68, 1, 84], [71, 44, 122], [59, 81, 139], [44, 113, 142], [33, 144, 141],
@@ -351,9 +351,9 @@ class Picture:
 
     def save(self, path: str | Path) -> Path:
         """Render and write the PNG atomically (complete or absent)."""
-        im = self.render()
+        data = png_bytes(np.asarray(self.render()))
         with atomic_open(path, "wb") as fh:
-            im.save(fh, format="PNG", compress_level=PNG_COMPRESS_LEVEL)
+            fh.write(data)
         return Path(path)
 
     def _legend(self, d: Any, f: Any) -> None:
@@ -419,3 +419,25 @@ def bounds_of(*arrays: NDArray | None) -> tuple[float, float, float, float]:
         return (-1.0, -1.0, 1.0, 1.0)
     lo, hi = xy.min(axis=0), xy.max(axis=0)
     return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+
+
+def png_bytes(rgb: NDArray[np.uint8], level: int = PNG_COMPRESS_LEVEL) -> bytes:
+    """An 8-bit RGB PNG of ``rgb`` (H, W, 3), every row with filter type 0 (none).
+
+    Pillow's encoder tries its adaptive row filters and costs ~4x a plain zlib pass on these
+    mostly white pictures for ~the same size (0.11 s vs 0.03 s for 1600 x 1000 px under load):
+    the format is simple enough to write directly (PNG spec: signature, IHDR, IDAT, IEND).
+    """
+    import struct
+    import zlib
+
+    h, w = rgb.shape[:2]
+    rows = np.empty((h, 1 + 3 * w), np.uint8)
+    rows[:, 0] = 0  # filter type: none
+    rows[:, 1:] = np.ascontiguousarray(rgb[..., :3], np.uint8).reshape(h, 3 * w)
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    ihdr = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)  # 8 bits, colour type 2 (RGB), no interlace
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(rows.tobytes(), level)) + chunk(b"IEND", b"")
