@@ -135,8 +135,10 @@ def survey(
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config (see configs/default.yaml)."),
     set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value, e.g. wifi.d_min_m=3."),
     rerun: Optional[Path] = typer.Option(None, "--rerun", help="Also log the survey to this .rrd file."),
-    floor_plan: Optional[Path] = typer.Option(None, "--floor-plan", help="PNG shown under everything in Rerun."),
-    floor_size: Optional[tuple[float, float]] = typer.Option(None, "--floor-size", help="W H of the floor plan (m)."),
+    floor_plan: Optional[Path] = typer.Option(None, "--floor-plan", help="Image drawn under survey.png and in Rerun."),
+    floor_size: Optional[tuple[float, float]] = typer.Option(
+        None, "--floor-size", help="W H of the floor plan (m); default: floor_info.json beside the image."
+    ),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress (--no-progress: as --quiet)."),
     surveyed: bool = typer.Option(
         False, "--surveyed", help="Also write radio_map_surveyed.parquet: fingerprints at ground-truth poses (evaluation)."

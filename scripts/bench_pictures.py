@@ -1,7 +1,7 @@
 """What the pictures cost (issue 19): `graphslam survey` with and without survey.png, side by side,
 and the drawing time of survey.png for a small and a large survey.
 
-    python scripts/bench_pictures.py [--runs 7] [--big-walks 200]
+    python scripts/bench_pictures.py [--runs 7] [--big-walks 200] [--skip-big | --skip-paper]
 
 1. Side by side on the simulator's `paper` survey (seed 0, 5 walks): fresh `graphslam survey`
    processes, alternating --picture / --no-picture (so load changes hit both alike); median
@@ -105,16 +105,18 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=7)
     ap.add_argument("--big-walks", type=int, default=200)
-    ap.add_argument("--skip-big", action="store_true")
+    ap.add_argument("--skip-big", action="store_true", help="only the paper survey")
+    ap.add_argument("--skip-paper", action="store_true", help="only the big survey's drawing time")
     a = ap.parse_args()
     print(json.dumps({"load_average_before": os.getloadavg()}))
-    with tempfile.TemporaryDirectory(prefix="graphslam-pictures-") as tmp:
-        from graphslam.sim import simulate
+    if not a.skip_paper:
+        with tempfile.TemporaryDirectory(prefix="graphslam-pictures-") as tmp:
+            from graphslam.sim import simulate
 
-        data = Path(tmp) / "paper"
-        simulate("paper", seed=0).write(data)
-        print(json.dumps(side_by_side(data, Path(tmp), a.runs)), flush=True)
-    print(json.dumps(draw_time("paper", 1.0)), flush=True)
+            data = Path(tmp) / "paper"
+            simulate("paper", seed=0).write(data)
+            print(json.dumps(side_by_side(data, Path(tmp), a.runs)), flush=True)
+        print(json.dumps(draw_time("paper", 1.0)), flush=True)
     if not a.skip_big:
         print(json.dumps(draw_time("crowd", a.big_walks / 48.0)), flush=True)
     print(json.dumps({"load_average_after": os.getloadavg()}))

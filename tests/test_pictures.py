@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ from PIL import Image
 
 from graphslam.app.survey import run_survey
 from graphslam.config import GraphSlamConfig
+from graphslam.io.mcap_reader import read_survey
 from graphslam.io.mcap_writer import write_session
 from graphslam.sim import simulate
 from graphslam.viz import radiomap_picture, survey_picture, track_picture
@@ -154,14 +156,22 @@ def test_radio_map_picture_marks_fitted_aps(corridor_run: tuple, tmp_path: Path)
     assert _rgb(plain).shape[:2] == radiomap_picture.SIZE_PX[::-1]
 
 
-def test_track_and_locate_draw_one_colour_per_session(corridor_run: tuple) -> None:
+def test_track_and_locate_draw_one_colour_per_session(corridor_run: tuple, capsys: pytest.CaptureFixture) -> None:
     root, out, _ = corridor_run
     test_dir = root / "rec" / "test"
     ids = sorted(p.stem for p in test_dir.glob("*.mcap"))
     rm = str(out / "radio_map.parquet")
-    track = ["-q", "track", str(test_dir), "--radio-map", rm, "--ap-models", str(root / "aps.json"), "--out"]
+    log = ["--progress-interval", "0"]  # stderr is not a terminal here: progress as log lines
+    track = [*log, "track", str(test_dir), "--radio-map", rm, "--ap-models", str(root / "aps.json"), "--out"]
     assert run_cli(track + [str(out / "track.csv")]) == 0
-    assert run_cli(["-q", "locate", str(test_dir), "--radio-map", rm, "--out", str(out / "positions.csv")]) == 0
+    assert run_cli([*log, "locate", str(test_dir), "--radio-map", rm, "--out", str(out / "positions.csv")]) == 0
+    assert run_cli([*log, "fit-aps", "--radio-map", rm, "--out", str(out / "fitted.json")]) == 0
+    err = capsys.readouterr().err
+    n_steps = sum(len(read_survey([test_dir]).sessions[k].steps) for k in range(len(ids)))
+    assert f"progress track: {n_steps:,}/{n_steps:,} steps (100 %) done in" in err
+    assert re.search(r"progress locate: (\d+)/\1 scans \(100 %\) done in", err)
+    assert re.search(r"progress fit-aps: (\d+)/\1 APs \(100 %\) done in", err)
+    assert err.count("progress picture: done in") == 2
     for name in ("track.png", "positions.png"):
         img = _rgb(out / name)
         assert img.shape[:2] == track_picture.SIZE_PX[::-1]

@@ -1,11 +1,12 @@
 """A small map renderer on Pillow, for the pictures a command writes as it runs (survey.png,
 radio_map.png, track.png, positions.png).
 
-Why not matplotlib: importing it costs ~0.4 s on an idle core (1.4 s on this shared machine
-under load) and drawing a 200-walk survey another ~0.8 s, more than "a few percent" of a
-survey. Pillow imports in ~0.05 s and draws a walk as one C call; faint WiFi edges are
-rasterised with numpy (``Panel.faint_segments``: sample points along every segment,
-count them per pixel, blend), so 20,000 edges cost a few milliseconds.
+Why not matplotlib: importing it costs 0.3-0.5 s on an idle core (1.4 s on this shared
+machine under load) and drawing the 5-walk paper survey another 0.3-0.9 s: more than "a
+few percent" of a survey (docs/benchmarks.md, issue 19). Pillow imports in ~0.05 s and
+draws a walk as one C call; faint WiFi edges are rasterised with numpy
+(``Panel.faint_segments``: sample points along every segment, count them per pixel,
+blend), and the PNG is written directly (``png_bytes``).
 
 Layout: a ``Picture`` (the PNG: white, exact pixel size, title lines, legend column) holds
 ``Panel``s (a plot box in metres at equal scale, with a frame, metre ticks, a light grid
