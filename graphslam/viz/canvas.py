@@ -125,29 +125,28 @@ class Panel:
     # ---- layers -------------------------------------------------------------------------
 
     def raster(self, rgba: NDArray[np.uint8], extent: Sequence[float], smooth: bool = False) -> None:
-        """An RGBA image (rows from the top) covering ``extent`` (x0, x1, y0, y1 metres), alpha-blended."""
+        """An RGBA image (rows from the top) covering ``extent`` (x0, x1, y0, y1 metres), alpha-blended.
+        Only its part inside the panel is resized (a floor plan seen through a small survey's window)."""
         from PIL import Image
 
         x0, x1, y0, y1 = (float(v) for v in extent)
-        (a, b), (c, d) = self.px(np.array([[x0, y1], [x1, y0]]))  # top-left, bottom-right
+        rows, cols = rgba.shape[:2]
+        # the source columns / rows in view, one pixel of margin
+        c0 = max(0, math.floor((self.lo[0] - x0) / (x1 - x0) * cols) - 1)
+        c1 = min(cols, math.ceil((self.hi[0] - x0) / (x1 - x0) * cols) + 1)
+        r0 = max(0, math.floor((y1 - self.hi[1]) / (y1 - y0) * rows) - 1)
+        r1 = min(rows, math.ceil((y1 - self.lo[1]) / (y1 - y0) * rows) + 1)
+        if c1 <= c0 or r1 <= r0:
+            return  # entirely outside the panel
+        sx0, sx1 = x0 + c0 / cols * (x1 - x0), x0 + c1 / cols * (x1 - x0)
+        sy0, sy1 = y1 - r1 / rows * (y1 - y0), y1 - r0 / rows * (y1 - y0)
+        (a, b), (c, d) = self.px(np.array([[sx0, sy1], [sx1, sy0]]))  # top-left, bottom-right
         w, h = max(1, round(c - a)), max(1, round(d - b))
-        if w > 8 * self.image.width or h > 8 * self.image.height:  # zoomed far in: crop first
-            return self._raster_cropped(rgba, (x0, x1, y0, y1))
-        im = Image.fromarray(np.ascontiguousarray(rgba), "RGBA").resize(
+        if w * h > 64 * self.image.width * self.image.height:
+            return  # a source pixel far bigger than the panel (a degenerate image): nothing to show
+        im = Image.fromarray(np.ascontiguousarray(rgba[r0:r1, c0:c1]), "RGBA").resize(
             (w, h), Image.BILINEAR if smooth else Image.NEAREST)
         self.image.paste(im, (round(a), round(b)), im)
-
-    def _raster_cropped(self, rgba: NDArray, extent: tuple[float, float, float, float]) -> None:
-        x0, x1, y0, y1 = extent
-        rows, cols = rgba.shape[:2]
-        c0 = int(max(0, math.floor((self.lo[0] - x0) / (x1 - x0) * cols)))
-        c1 = int(min(cols, math.ceil((self.hi[0] - x0) / (x1 - x0) * cols)))
-        r0 = int(max(0, math.floor((y1 - self.hi[1]) / (y1 - y0) * rows)))
-        r1 = int(min(rows, math.ceil((y1 - self.lo[1]) / (y1 - y0) * rows)))
-        if c1 <= c0 or r1 <= r0:
-            return
-        sub = (x0 + c0 / cols * (x1 - x0), x0 + c1 / cols * (x1 - x0), y1 - r1 / rows * (y1 - y0), y1 - r0 / rows * (y1 - y0))
-        self.raster(rgba[r0:r1, c0:c1], sub)
 
     def floor_plan(self, plan: FloorPlan, opacity: float = 0.85) -> None:
         """The plan image over x in [0, W], y in [0, H] of the frame drawn (top row at y = H)."""
@@ -222,10 +221,6 @@ class Panel:
         for k in range(0, len(q) - 1, 2):
             self.draw.line([tuple(q[k]), tuple(q[k + 1])], fill=tuple(colour), width=width)
 
-    def segments(self, seg: NDArray, colour: Colour, width: int = 1) -> None:
-        for (a, b), (c, d) in self.px(np.asarray(seg, float).reshape(-1, 2)).reshape(-1, 2, 2).tolist():
-            self.draw.line([(a, b), (c, d)], fill=tuple(colour), width=width)
-
     def points(self, xy: NDArray, colours: Colour | Sequence[Colour], radius: float = 2.0, kind: str = "point",
                outline: Colour | None = None) -> None:
         """Markers at ``xy``: ``point`` (disc), ``ring``, ``cross`` or ``star``."""
@@ -241,9 +236,6 @@ class Panel:
                 self.draw.ellipse([x - radius, y - radius, x + radius, y + radius], outline=c, width=2)
             else:
                 self.draw.ellipse([x - radius, y - radius, x + radius, y + radius], fill=c, outline=outline)
-
-    def text(self, xy_px: tuple[float, float], text: str, size: int = 12, colour: Colour = BLACK) -> None:
-        self.draw.text(xy_px, text, fill=colour, font=font(size))
 
     def scale_bar(self) -> float:
         """A bar of a round length, lower left; returns the length (m)."""
