@@ -22,6 +22,8 @@ from graphslam.app.locate import LocateRun
 from graphslam.app.track import TrackRun
 from graphslam.core.progress import Task
 from graphslam.core.survey.evaluate import interpolate_xy
+from graphslam.core.tracking.apmodel import ApModels
+from graphslam.core.types import Survey
 from graphslam.errors import InputError
 from graphslam.viz.common import fitted_site_from_aligned, site_to_frame
 
@@ -143,8 +145,8 @@ def site_from_map(
     return T, f"the landmark fit in {rep_path}"
 
 
-def _frame_note(frame: str, truth: dict, why: str, survey: object) -> str:
-    has_truth = any(getattr(s, "ground_truth", None) is not None for s in survey)  # type: ignore[attr-defined]
+def _frame_note(frame: str, truth: dict, why: str, survey: Survey) -> str:
+    has_truth = any(s.ground_truth is not None for s in survey)
     note = f"radio map's {frame} frame"
     if truth:
         return note + f"; truth placed by {why} (display only)"
@@ -153,7 +155,7 @@ def _frame_note(frame: str, truth: dict, why: str, survey: object) -> str:
     return note + "; the recordings carry no ground truth"
 
 
-def _ap_models_beside(rm_path: Path):  # type: ignore[no-untyped-def]
+def _ap_models_beside(rm_path: Path) -> ApModels | None:
     p = rm_path.with_name("ap_models.json")
     if not p.exists():
         return None

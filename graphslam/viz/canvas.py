@@ -225,7 +225,8 @@ class Panel:
                outline: Colour | None = None) -> None:
         """Markers at ``xy``: ``point`` (disc), ``ring``, ``cross`` or ``star``."""
         p = self.px(xy)
-        cs = [tuple(colours)] * len(p) if isinstance(colours[0], (int, np.integer)) else [tuple(c) for c in colours]  # type: ignore[index]
+        one = np.ndim(colours) == 1  # one colour for all, else one per point
+        cs = [tuple(int(v) for v in colours)] * len(p) if one else [tuple(int(v) for v in c) for c in colours]
         for (x, y), c in zip(p.tolist(), cs):
             if kind == "cross":
                 self.draw.line([(x - radius, y - radius), (x + radius, y + radius)], fill=c, width=2)

@@ -1,4 +1,4 @@
-"""What every picture shares, whichever library draws it (Rerun or matplotlib): the floor plan,
+"""What every picture shares, whichever library draws it (Rerun or Pillow): the floor plan,
 one colour per walk, the landmark marks. Imports neither library, so a PNG never pays for
 Rerun's import."""
 
@@ -53,7 +53,7 @@ def load_floor_plan(path: str | Path | None, size: tuple[float, float] | None) -
     if not (np.isfinite(w) and np.isfinite(h) and w > 0 and h > 0):
         raise ConfigError(f"floor size must be two positive numbers of metres, got {size}")
     try:
-        from PIL import Image  # a dependency of matplotlib, reads the header only
+        from PIL import Image  # reads the header only
 
         with Image.open(p) as im:
             px = (int(im.size[0]), int(im.size[1]))

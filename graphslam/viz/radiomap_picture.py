@@ -66,9 +66,13 @@ def draw_radio_map(
     if not len(rm):
         raise ConfigError("radio map picture: the radio map has no fingerprint")
     cols = ap_columns(rm, aps, top)
-    T = None if site_from_map is None else np.asarray(site_from_map, float).reshape(3)
-    registered = T is not None and floor_plan is not None
-    xy = se2_apply(T, np.asarray(rm.xy, float)) if registered else np.asarray(rm.xy, float)  # type: ignore[arg-type]
+    T = None if site_from_map is None or floor_plan is None else np.asarray(site_from_map, float).reshape(3)
+    registered = T is not None  # drawn in the plan's site frame
+
+    def place(points: NDArray) -> NDArray:
+        return se2_apply(T, points) if T is not None else points
+
+    xy = place(np.asarray(rm.xy, float))
     cell = float(cell_m or grid_cell_m(xy))
     h = float(bandwidth_m or 2.0 * cell)
     grid = _Grid(xy, cell)
@@ -107,7 +111,7 @@ def draw_radio_map(
         note = "no AP models (run fit-aps)" if ap_models is None else "no AP model"
         if bssid in fitted:
             a = fitted[bssid]
-            p = se2_apply(T, np.array([[a.x, a.y]])) if registered else np.array([[a.x, a.y]])  # type: ignore[arg-type]
+            p = place(np.array([[a.x, a.y]]))
             panel.points(p, (255, 0, 0), radius=12, kind="star")
             note = f"fitted AP (red star): P0 {a.p0_dbm:.0f} dBm, γ {a.gamma:.1f}, ±{a.position_std_m:.1f} m"
         elif bssid in unfitted:

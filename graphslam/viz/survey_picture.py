@@ -142,14 +142,15 @@ def _scene(
     if edges is None or not len(edges.a):
         seg, state, counts = np.zeros((0, 2, 2)), np.zeros(0, np.int8), (0, 0, 0)
     else:
-        counts = tuple(int(c) for c in np.bincount(edges.state, minlength=3)[:3])
+        c = np.bincount(edges.state, minlength=3)
+        counts = (int(c[0]), int(c[1]), int(c[2]))
         pick = np.arange(len(edges.a))
         if len(pick) > max_edges:  # same sample every time: the picture of a survey does not flicker
             pick = np.sort(np.random.default_rng(0).choice(len(pick), max_edges, replace=False))
         seg = np.stack([rows_xy[edges.a[pick]], rows_xy[edges.b[pick]]], axis=1)
         state = edges.state[pick]
     return SurveyScene(
-        tracks, session_colours(ids), reference, unaligned, seg, state, counts, marks, T, landmark_text,  # type: ignore[arg-type]
+        tracks, session_colours(ids), reference, unaligned, seg, state, counts, marks, T, landmark_text,
         len(ids), n_poses, notes,
     )
 
@@ -239,19 +240,20 @@ def survey_picture(scene: SurveyScene, *, floor_plan: FloorPlan | None = None, s
         where = "" if in_site else ", starts at the origin"
         legend.append(LegendEntry(f"reference {scene.reference} (thin black line{where})", BLACK, "star"))
 
-    if est is not None and truth is not None:
+    if scene.marks is not None and est is not None and truth is not None:
         panel.points(truth, BLACK, radius=4, kind="cross")
         panel.points(est, MAGENTA, radius=2)
         legend.append(LegendEntry("landmark truth", BLACK, "cross"))
         legend.append(LegendEntry(
-            f"landmark estimate and error line ({scene.marks.stats.mean_m:.2f} m mean)", MAGENTA, "point"))  # type: ignore[union-attr]
+            f"landmark estimate and error line ({scene.marks.stats.mean_m:.2f} m mean)", MAGENTA, "point"))
     legend += _unaligned_entries(scene.unaligned)
     panel.scale_bar()
     return pic
 
 
 def _faint(c: tuple[int, int, int], a: float = 0.55) -> tuple[int, int, int]:
-    return tuple(int(255 - (255 - v) * a) for v in c)  # type: ignore[return-value]
+    r, g, b = (int(255 - (255 - v) * a) for v in c)
+    return (r, g, b)
 
 
 def _title(scene: SurveyScene, plan: FloorPlan | None, in_site: bool) -> list[str]:
@@ -259,8 +261,8 @@ def _title(scene: SurveyScene, plan: FloorPlan | None, in_site: bool) -> list[st
     head = (f"{n_al}/{scene.n_sessions} walks aligned, {scene.n_poses:,} poses, "
             f"{sum(scene.edge_counts):,} WiFi edges between them"
             + (f"; {scene.landmark_text}" if scene.landmark_text else ""))
-    if in_site:
-        x, y, th = scene.site_from_output  # type: ignore[misc]
+    if in_site and scene.site_from_output is not None:
+        x, y, th = (float(v) for v in scene.site_from_output)
         frame = (f"site frame of the floor plan: walks placed by the landmark SE(2) fit (x {x:.1f} m, y {y:.1f} m, "
                  f"{np.degrees(th):.1f} deg; display only)")
     else:
