@@ -17,7 +17,6 @@ from graphslam.errors import GraphSlamError
 
 if TYPE_CHECKING:
     from graphslam.config import GraphSlamConfig
-    from graphslam.core.survey.align import IterationRecord
 
 app = typer.Typer(
     add_completion=False,
@@ -31,11 +30,29 @@ EXIT_ERROR = 2
 
 
 @app.callback()
-def _root(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress at INFO level.")) -> None:
+def _root(
+    ctx: typer.Context,
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Log details at INFO level."),
+    quiet: bool = typer.Option(
+        False, "--quiet", "-q", help="No progress: neither bars (terminal) nor progress log lines (batch). "
+        "Also accepted after the command name."
+    ),
+    progress_interval: float = typer.Option(
+        10.0, "--progress-interval", min=0.0, help="Seconds between progress log lines when stderr is not a terminal."
+    ),
+) -> None:
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
     )
+    from graphslam.app.progress import show_progress
+
+    # bars on a terminal, periodic lines in a batch job's log (graphslam.app.progress)
+    if show_progress("off" if quiet else "auto", interval_s=progress_interval) == "bar":
+        from tqdm.contrib.logging import logging_redirect_tqdm
+
+        ctx.with_resource(logging_redirect_tqdm())  # warnings printed above the bars, not through them
+    ctx.call_on_close(lambda: show_progress("off"))
 
 
 @app.command()
@@ -111,22 +128,6 @@ def _config(config: Optional[Path], set_: Optional[List[str]]) -> "GraphSlamConf
     return load_config(config, overrides)
 
 
-class _LmProgress:
-    """One progress line per LM iteration on stderr (tqdm), stage and error in the postfix."""
-
-    def __init__(self, enabled: bool) -> None:
-        from tqdm import tqdm
-
-        self.bar = tqdm(desc="optimise", unit="it", disable=not enabled, leave=False, file=sys.stderr)
-
-    def __call__(self, rec: "IterationRecord") -> None:
-        self.bar.update(1)
-        self.bar.set_postfix(stage=rec.stage, error=f"{rec.error_after:.4g}", edges=rec.active_edges)
-
-    def close(self) -> None:
-        self.bar.close()
-
-
 @app.command()
 def survey(
     paths: List[Path] = typer.Argument(..., help="Recordings (.mcap) or folders of them."),
@@ -134,25 +135,29 @@ def survey(
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config (see configs/default.yaml)."),
     set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value, e.g. wifi.d_min_m=3."),
     rerun: Optional[Path] = typer.Option(None, "--rerun", help="Also log the survey to this .rrd file."),
-    floor_plan: Optional[Path] = typer.Option(None, "--floor-plan", help="PNG shown under everything in Rerun."),
-    floor_size: Optional[tuple[float, float]] = typer.Option(None, "--floor-size", help="W H of the floor plan (m)."),
-    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show optimiser progress."),
+    floor_plan: Optional[Path] = typer.Option(None, "--floor-plan", help="Image drawn under survey.png and in Rerun."),
+    floor_size: Optional[tuple[float, float]] = typer.Option(
+        None, "--floor-size", help="W H of the floor plan (m); default: floor_info.json beside the image."
+    ),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress (--no-progress: as --quiet)."),
     surveyed: bool = typer.Option(
         False, "--surveyed", help="Also write radio_map_surveyed.parquet: fingerprints at ground-truth poses (evaluation)."
     ),
+    picture: bool = typer.Option(True, "--picture/--no-picture", help="Write OUT/survey.png (over --floor-plan)."),
 ) -> None:
     """Align every walk into one frame; write trajectories.csv, aligned.mcap, radio_map.parquet,
-    report.json and the effective config.yaml into OUT."""
+    wifi_edges.parquet, report.json, the effective config.yaml and survey.png into OUT."""
     from graphslam.app.survey import run_survey
 
     cfg = _config(config, set_)
-    bar = _LmProgress(progress and sys.stderr.isatty())
-    try:
-        result = run_survey(
-            paths, out, cfg, progress=bar, rerun_path=rerun, floor_plan=floor_plan, floor_size=floor_size, surveyed=surveyed
-        )
-    finally:
-        bar.close()
+    if not progress:
+        from graphslam.app.progress import show_progress
+
+        show_progress("off")
+    result = run_survey(
+        paths, out, cfg, rerun_path=rerun, floor_plan=floor_plan, floor_size=floor_size, surveyed=surveyed,
+        picture=picture,
+    )
     r = result.report
     typer.echo(
         f"aligned {r['aligned_sessions']}/{r['sessions']} walks, {r['nodes']:,} poses, "
@@ -323,6 +328,7 @@ def locate(
         "evaluation.site_from_aligned), for the truth overlay."
     ),
     index: str = typer.Option("exact", "--index", help=INDEX_HELP + " Default: exact."),
+    picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: answers (and truth)."),
 ) -> None:
     """Locate every /wifi/scan of the query sessions by kNN against a radio map."""
     from graphslam.app.locate import locate_files
@@ -342,7 +348,12 @@ def locate(
             query_ids=[f"{s}@{t}" for s, t in zip(pos.session_ids.tolist(), pos.t_ns.tolist())],
             site_from_map=site_from_map,
         )
-    typer.echo(json.dumps(run.as_dict()))
+    shown = {}
+    if picture:
+        from graphslam.app.pictures import write_locate_picture
+
+        shown["picture"] = str(write_locate_picture(run, radio_map, query_paths, out.with_suffix(".png"), site_from_map))
+    typer.echo(json.dumps(run.as_dict() | shown))
 
 
 @app.command()
@@ -411,6 +422,31 @@ def view(
         server = serve_rrd(result.path, web_port=web_port, grpc_port=grpc_port)
         typer.echo(f"serving {result.path} at {server.url} (Ctrl-C stops)")
         server.wait()
+
+
+@app.command()
+def plot(
+    out_dir: Path = typer.Argument(..., help="A finished `graphslam survey --out` folder."),
+    floor_plan: Optional[Path] = typer.Option(None, "--floor-plan", help="Image drawn under everything (site frame)."),
+    floor_size: Optional[tuple[float, float]] = typer.Option(
+        None, "--floor-size", help="W H of the floor plan (m); default: floor_info.json beside the image."
+    ),
+    recordings: Optional[List[Path]] = typer.Option(
+        None, "--recordings", "-r", help="The survey's .mcap files or folders (repeat): adds the landmark marks."
+    ),
+    ap: Optional[List[str]] = typer.Option(None, "--ap", help="BSSID to map in radio_map.png (repeat); default: --top-aps."),
+    top_aps: int = typer.Option(5, "--top-aps", min=0, help="Map the N most-heard access points."),
+    radio_map: bool = typer.Option(True, "--radio-map/--no-radio-map", help="Also draw OUT/radio_map.png."),
+) -> None:
+    """Redraw OUT/survey.png and draw OUT/radio_map.png (coverage, RSS per access point, fitted APs of
+    OUT/ap_models.json when `fit-aps` has run); prints the files written."""
+    from graphslam.app.pictures import plot_survey_folder
+
+    files = plot_survey_folder(
+        out_dir, floor_plan=floor_plan, floor_size=floor_size, recordings=recordings or (), aps=ap or (),
+        top_aps=top_aps, radio_map=radio_map,
+    )
+    typer.echo(json.dumps({k: str(v) for k, v in files.items()}))
 
 
 @bench_app.command("fig8")
@@ -504,13 +540,20 @@ def track(
     adaptive_rssi: bool = typer.Option(
         True, "--adaptive-rssi/--no-adaptive-rssi", help="Inflate a scan's RSSI noise when its innovations disagree."
     ),
+    picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: the tracks (and truth)."),
 ) -> None:
     """Track walks on a radio map: EKF/UKF fusion of step velocity and WiFi RSSI (Papers 000/002)."""
     from graphslam.app.track import TrackConfig, track_files
 
     cfg = TrackConfig(filter=filter_, smoother=smooth, knn_fixes=knn_fixes, adaptive_rssi=adaptive_rssi)
     run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg)
-    typer.echo(json.dumps(run.as_dict()))
+    shown = {}
+    if picture:
+        from graphslam.app.pictures import write_track_picture
+
+        label = filter_ + ("" if smooth == "none" else f" + {smooth} smoother")
+        shown["picture"] = str(write_track_picture(run, radio_map, sessions, out.with_suffix(".png"), label))
+    typer.echo(json.dumps(run.as_dict() | shown))
 
 
 @bench_app.command("filters")
@@ -558,10 +601,18 @@ def _smoothers(text: str) -> list[str]:
     return names
 
 
+def _hoist_quiet(argv: list[str]) -> list[str]:
+    """``graphslam survey ... --quiet`` means ``graphslam --quiet survey ...``: --quiet/-q is a
+    root option (every command has progress), but users put it after the command."""
+    end = argv.index("--") if "--" in argv else len(argv)
+    flags = [a for a in argv[:end] if a in ("--quiet", "-q")]
+    return flags + [a for a in argv[:end] if a not in ("--quiet", "-q")] + argv[end:]
+
+
 def main(argv: Optional[list[str]] = None) -> None:
     """Console entry point: run the app, turn ``GraphSlamError`` into one line and exit 2."""
     try:
-        app(args=argv, standalone_mode=False)
+        app(args=_hoist_quiet(sys.argv[1:] if argv is None else argv), standalone_mode=False)
     except GraphSlamError as e:
         typer.echo(f"error: {e}", err=True)
         sys.exit(EXIT_ERROR)

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from graphslam.config import GraphSlamConfig
+from graphslam.core.progress import progress_over
 from graphslam.core.survey.align import align
 from graphslam.core.survey.evaluate import evaluate
 
@@ -31,7 +32,7 @@ def accuracy(scenario: str, seeds: Sequence[int], cfg: GraphSlamConfig, *, size:
     from graphslam.sim import simulate
 
     rows = []
-    for seed in seeds:
+    for seed in progress_over(seeds, "bench accuracy", unit="seeds"):
         survey = simulate(scenario, seed=seed, size=size).survey
         t = time.perf_counter()
         al = align(survey, cfg)
@@ -76,7 +77,7 @@ def survey_speed(
         sim.write(data)
         totals, walls, stages = [], [], []
         peak_kb = 0
-        for r in range(runs):
+        for r in progress_over(range(runs), "bench survey", unit="runs"):
             out = Path(tmp) / f"out{r}"
             cmd = [sys.executable, "-m", "graphslam", "survey", str(data), "--out", str(out), "--no-progress"]
             if config:
@@ -133,7 +134,7 @@ def fig8(
 
     errs: dict[str, list] = {"crowdsourced": [], "surveyed": []}
     per_seed = []
-    for seed in seeds:
+    for seed in progress_over(seeds, "bench fig8", unit="seeds"):
         sim = simulate(scenario, seed=seed, test_walks=test_walks)
         al = align(sim.survey, cfg)
         ev = evaluate(al.tracks, sim.survey)
@@ -181,7 +182,7 @@ def ilc_floors(site_dir: Path, cfg: GraphSlamConfig, floors: Sequence[str] | Non
     from graphslam.app.survey import run_survey
 
     rows = []
-    for folder in floor_folders(site_dir, floors):
+    for folder in progress_over(floor_folders(site_dir, floors), "bench ilc", unit="floors"):
         name = folder.name
         t = time.perf_counter()
         res = run_survey([folder], None, cfg)
@@ -238,7 +239,7 @@ def filters_cart(
     for kind, model in (("ekf", FusionModel.paper_ekf()), ("ukf", FusionModel.paper_ukf())):
         rms: dict[str, list[tuple[float, float]]] = {kind: [], **{f"{kind}+{sm}": [] for sm in smoothers}}
         tp, secs = [], {name: 0.0 for name in rms}
-        for i, seed in enumerate(seeds):
+        for i, seed in enumerate(progress_over(seeds, f"bench filters {kind}", unit="seeds")):
             run = simulate_cart(seed, path_loss=model.path_loss, noise=noise)
             epochs = Epochs.fixed_rate(run.y_velocity, run.y_rssi, run.period_s)
             t0 = time.perf_counter()
@@ -308,7 +309,7 @@ def tracking_paper(
     errs: dict[str, list] = {"knn": [], **{variant_name(*v): [] for v in variants}}
     ap_err, per_seed = [], []
     n_unfitted = 0
-    for seed in seeds:
+    for seed in progress_over(seeds, "bench tracking", unit="seeds"):
         sim = simulate(scenario, seed=seed, test_walks=test_walks)
         al = align(sim.survey, cfg)
         ev = evaluate(al.tracks, sim.survey)

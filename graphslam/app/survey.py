@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from graphslam.config import GraphSlamConfig
+from graphslam.core.progress import Task
 from graphslam.core.survey.align import Alignment, ProgressCallback, align
 from graphslam.core.survey.evaluate import Evaluation, evaluate
 from graphslam.core.types import Survey
@@ -102,10 +103,13 @@ def run_survey(
     floor_plan: str | Path | None = None,
     floor_size: tuple[float, float] | None = None,
     surveyed: bool = False,
+    picture: bool = True,
 ) -> SurveyResult:
-    """Read ``paths``, align every walk, write the outputs into ``out_dir`` (None: no files)."""
+    """Read ``paths``, align every walk, write the outputs into ``out_dir`` (None: no files);
+    ``picture``: also survey.png there (over ``floor_plan`` when given)."""
     cfg = config or GraphSlamConfig()
     _check_outputs(out_dir, rerun_path, floor_plan)
+    plan = _picture_plan(floor_plan, floor_size) if picture and out_dir is not None else None
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     survey = read_survey(paths)
@@ -129,13 +133,16 @@ def run_survey(
     if out_dir is not None:
         t = time.perf_counter()
         try:
-            files = write_outputs(Path(out_dir), survey, alignment, report, cfg, surveyed=surveyed)
+            with Task("write"):
+                files = write_outputs(Path(out_dir), survey, alignment, report, cfg, surveyed=surveyed)
         except BaseException:
             if viz is not None:  # let the child finish (and clean up its temp file) before failing
                 with contextlib.suppress(Exception):
                     viz.wait()
             raise
         timings["write"] = time.perf_counter() - t
+        if picture:
+            _write_picture(Path(out_dir), survey, alignment, cfg, evaluation, plan, files, timings)
     if viz is not None:
         t = time.perf_counter()
         timings["rerun"] = viz.wait()  # log_survey itself, in the child
@@ -145,6 +152,31 @@ def run_survey(
     if out_dir is not None:
         atomic_write_json(Path(out_dir) / "report.json", report)
     return SurveyResult(survey, alignment, evaluation, report, Path(out_dir) if out_dir else None, files)
+
+
+def _picture_plan(floor_plan: str | Path | None, floor_size: tuple[float, float] | None) -> Any:
+    """The floor plan survey.png is drawn over; a bad one fails here, before the work."""
+    from graphslam.viz.common import load_floor_plan
+
+    return load_floor_plan(floor_plan, floor_size)
+
+
+def _write_picture(
+    out_dir: Path, survey: Survey, al: Alignment, cfg: GraphSlamConfig, ev: Evaluation | None, plan: Any,
+    files: dict[str, Path], timings: dict[str, float],
+) -> None:
+    """survey.png beside the outputs, once they are in place; a picture that fails is a warning,
+    not a failed survey (``graphslam.viz.survey_picture``: Pillow, ~0.05 s for the paper survey)."""
+    from graphslam.errors import GraphSlamError
+    from graphslam.viz.survey_picture import PICTURE, draw_survey, scene_of_alignment
+
+    t = time.perf_counter()
+    try:
+        with Task("picture"):
+            files["picture"] = draw_survey(scene_of_alignment(survey, al, cfg, ev), out_dir / PICTURE, floor_plan=plan)
+    except (GraphSlamError, OSError, ValueError) as e:
+        log.warning("%s not written: %s", PICTURE, e)
+    timings["picture"] = time.perf_counter() - t
 
 
 def _check_outputs(out_dir: str | Path | None, rerun_path: str | Path | None, floor_plan: str | Path | None) -> None:
@@ -175,12 +207,14 @@ def write_outputs(
             "trajectories": "trajectories.csv",
             "aligned": "aligned.mcap",
             "radio_map": "radio_map.parquet",
+            "wifi_edges": "wifi_edges.parquet",
             "config": "config.yaml",
             "report": "report.json",
         }
         write_trajectories(al.tracks, stage / names["trajectories"])
         write_aligned(al.tracks, stage / names["aligned"])
         _write_radio_map(survey, al, cfg, stage / names["radio_map"])
+        _write_wifi_edges(al, cfg, stage / names["wifi_edges"])
         if surveyed:  # evaluation: the same fingerprints at their ground-truth positions
             from graphslam.core.radiomap.survey_maps import surveyed_radio_map
             from graphslam.io.radiomap_io import write_radio_map
@@ -197,6 +231,13 @@ def write_outputs(
         return files
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+
+
+def _write_wifi_edges(al: Alignment, cfg: GraphSlamConfig, path: Path) -> None:
+    from graphslam.core.radiomap.survey_maps import crowdsourced_edges
+    from graphslam.io.edges_io import write_wifi_edges
+
+    write_wifi_edges(crowdsourced_edges(al, cfg), path)
 
 
 def _write_radio_map(survey: Survey, al: Alignment, cfg: GraphSlamConfig, path: Path) -> None:

@@ -46,6 +46,7 @@ from graphslam.core.tracking.filters import (
 from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.tracking.smoother import SMOOTH_METHODS, smooth
+from graphslam.core.progress import Task
 from graphslam.core.types import Session
 from graphslam.errors import EstimationError
 from graphslam.io.atomic import atomic_open
@@ -153,10 +154,11 @@ def _scan_measurements(session: Session, bssids: Sequence[str], min_rssi_dbm: fl
 
 
 def track_session(
-    session: Session, model: FusionModel, locator: KnnLocator, cfg: TrackConfig = TrackConfig()
+    session: Session, model: FusionModel, locator: KnnLocator, cfg: TrackConfig = TrackConfig(),
+    progress: Task | None = None,
 ) -> SessionTrack:
     """Track one session (see module docstring). ``EstimationError`` if it has < 2 steps or no scan
-    the radio map can locate."""
+    the radio map can locate. ``progress`` advances by one per step."""
     steps = session.steps
     if len(steps) < 2:
         raise EstimationError(f"track: session {session.session_id} has {len(steps)} steps (need 2)")
@@ -203,6 +205,8 @@ def track_session(
         xs.append(states[b].x)
         Ps.append(states[b].P)
         best.append(b)
+        if progress is not None:
+            progress.advance()
         if k == len(t) - 1:
             break
         t_now = t[k]
@@ -289,7 +293,8 @@ def track_sessions(
         raise EstimationError(f"track: AP models are in frame {models.frame!r}, radio map in {rm.frame!r}")
     model = fusion_model(models, cfg)
     locator = KnnLocator(rm, KnnConfig(k=cfg.knn_k))
-    return tuple(track_session(s, model, locator, cfg) for s in sessions)
+    with Task("track", total=sum(len(s.steps) for s in sessions), unit="steps") as task:
+        return tuple(track_session(s, model, locator, cfg, task) for s in sessions)
 
 
 def track_files(

@@ -17,6 +17,7 @@ import orjson
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
+from graphslam.core.progress import progress_over
 from graphslam.core.types import LandmarkMark, PoseTrack, Scan, Session, Survey
 from graphslam.errors import InputError
 from graphslam.io.schemas import (
@@ -79,7 +80,7 @@ def floor_folders(site_dir: str | Path, floors: Iterable[str] | None = None) -> 
 def read_survey(paths: Iterable[str | Path]) -> Survey:
     """Read every session under ``paths`` (files or folders). Session ids must be unique."""
     files = expand_paths(paths)
-    sessions = [read_session(f) for f in files]
+    sessions = [read_session(f) for f in progress_over(files, "read", unit="files")]
     by_id: dict[str, Session] = {}
     for s in sessions:
         if s.session_id in by_id:

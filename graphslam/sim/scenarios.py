@@ -20,6 +20,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from graphslam.core.progress import progress_over
 from graphslam.core.types import Session, Survey
 from graphslam.errors import ConfigError
 from graphslam.io.atomic import atomic_write_text
@@ -194,8 +195,9 @@ class SimulatedSurvey:
         files (``OUT/*.mcap``) when the test walks must stay held out.
         """
         out = Path(out_dir)
-        paths = [write_session(s, out / f"{s.session_id}.mcap") for s in self.survey]
-        paths += [write_session(s, out / "test" / f"{s.session_id}.mcap") for s in self.test_sessions]
+        every = [(s, out / f"{s.session_id}.mcap") for s in self.survey]
+        every += [(s, out / "test" / f"{s.session_id}.mcap") for s in self.test_sessions]
+        paths = [write_session(s, p) for s, p in progress_over(every, "write", unit="walks")]
         info = {
             "scenario": self.scenario.name,
             "seed": self.seed,
@@ -261,7 +263,7 @@ def simulate(
             simulate_walk(
                 spec, building.plan, building.radio, sc.walker, sc.imu, rng, site=building.site, floor=building.floor
             )
-            for spec, rng in specs
+            for spec, rng in progress_over(specs, "simulate", unit="walks")
         ]
 
     sessions = run(_walk_specs(sc, int(seed), n, test=False))

@@ -25,6 +25,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from graphslam.config import GraphSlamConfig
+from graphslam.core.progress import Task
 from graphslam.core.survey import factors as F
 from graphslam.core.survey.association import FingerprintNodes, associate
 from graphslam.core.survey.chains import CompressedChains, compress, expand
@@ -146,6 +147,7 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
         raise SolverError("survey has no sessions")
     timings: dict[str, float] = {}
     t = time.perf_counter()
+    task = Task("associate")
     fp = associate(
         survey,
         max_gap_s=cfg.fingerprint.max_scan_step_gap_s,
@@ -153,6 +155,7 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
         min_rssi_dbm=cfg.fingerprint.min_rssi_dbm,
     )
     timings["associate"] = time.perf_counter() - t
+    task.end()
 
     t = time.perf_counter()
     thr = window_thresholds(fp, cfg.edges.window_steps)
@@ -169,6 +172,7 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
     log.info("%d fingerprints on %d steps, %d WiFi edges", len(fp), fp.offsets[-1], len(edges))
 
     t = time.perf_counter()
+    task = Task("initialise")
     dr_xyh, node_sess = _dr_nodes(survey)
     ref = _reference_index(survey, cfg)
     n_s = len(survey)
@@ -214,6 +218,7 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
         imu_u.append(F.relative_steps(survey.sessions[s].steps))
     use = included[node_sess[ea]] & included[node_sess[eb]]
     timings["initialise"] = time.perf_counter() - t
+    task.end()
     return Problem(
         survey=survey,
         fingerprints=fp,
@@ -297,11 +302,13 @@ def solve(
     t0 = time.perf_counter() if t0 is None else t0
     timings = dict(problem.timings_s)
     t = time.perf_counter()
-    imu_graph, wifi_factors, values, chains = native_graph(problem, cfg)
+    with Task("build graph"):
+        imu_graph, wifi_factors, values, chains = native_graph(problem, cfg)
     ea, eb = problem.wifi_pairs[:, 0], problem.wifi_pairs[:, 1]
     timings["build_graph"] = time.perf_counter() - t
 
     t = time.perf_counter()
+    task = Task("optimise", unit="iterations")
     records: list[IterationRecord] = []
     snapshots: list[tuple[int, NDArray]] = []
 
@@ -328,6 +335,7 @@ def solve(
         def hook(it: int, before: float, after: float, _s: int = stage, _n: int = n_active) -> None:
             rec = IterationRecord(_s, int(it), float(before), float(after), _n)
             records.append(rec)
+            task.advance(info=f"stage {_s}, error {after:.4g}, {_n:,} WiFi edges")
             if progress is not None:
                 progress(rec)
 
@@ -346,6 +354,7 @@ def solve(
         snapshots.append((stage, xyh.copy()))
         prev_active = active
     timings["optimise"] = time.perf_counter() - t
+    task.end()
     final_error = objective(xyh, values)
 
     d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from graphslam.core.progress import Task
 from graphslam.core.survey.association import FingerprintNodes
 from graphslam.core.radiomap.fingerprints import DistanceEngine
 
@@ -111,7 +112,9 @@ def propose_edges(
     # fingerprints are grouped by session: a session's columns are one contiguous range
     bounds = np.searchsorted(fp.session, np.arange(fp.session.max() + 2 if n else 1))
     m = max_per_fingerprint if max_per_fingerprint > 0 else n
+    task = Task("edges", total=n, unit="fingerprints")
     for start, d, common in engine.iter_blocks(fp.fingerprints, min_common=min_common_aps, block_rows=block_rows):
+        task.advance(len(d))
         rows = np.arange(start, start + len(d))
         ok = d < thresholds[rows][:, None]  # NaN threshold -> False
         ok[np.arange(len(rows)), rows] = False
@@ -134,6 +137,7 @@ def propose_edges(
         out_j.append(ci[keep])
         out_d.append(dv[keep])
         out_c.append(common[ri[keep], ci[keep]])
+    task.end()
     if not out_i:
         z = np.zeros(0, np.int64)
         return WifiEdges(z, z, np.zeros(0), z, candidates)
