@@ -477,8 +477,9 @@ def fit_aps(
     from graphslam.io.apmodel_io import write_ap_models
     from graphslam.io.radiomap_io import read_radio_map
 
-    models = ApModels.fit(read_radio_map(radio_map), ApFitConfig(min_readings=min_readings))
-    path = write_ap_models(models, out or radio_map.with_name("ap_models.json"))
+    rm = read_radio_map(radio_map)
+    models = ApModels.fit(rm, ApFitConfig(min_readings=min_readings))
+    path = write_ap_models(models, out or radio_map.with_name("ap_models.json"), radio_map=rm)
     reasons: dict[str, int] = {}
     for u in models.unfitted:
         key = u.reason.split(" (")[0]
