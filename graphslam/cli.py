@@ -19,19 +19,33 @@ if TYPE_CHECKING:
     from graphslam.config import GraphSlamConfig
     from graphslam.core.survey.align import IterationRecord
 
+# no_args_is_help stays off: typer prints the whole help while raising that error; without it,
+# `graphslam` / `graphslam bench` alone is a usage error ("Missing command"), one line like all others.
 app = typer.Typer(
     add_completion=False,
-    no_args_is_help=True,
     help="Factor-graph SLAM for crowdsourced indoor WiFi site survey (foot-mounted IMU + WiFi).",
 )
-bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks on simulated and real data.")
+bench_app = typer.Typer(help="Benchmarks on simulated and real data.")
 app.add_typer(bench_app, name="bench")
 
 EXIT_ERROR = 2
 
 
+def _show_version(value: bool) -> None:
+    if value:
+        from graphslam import __version__
+
+        typer.echo(f"graphslam {__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
-def _root(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress at INFO level.")) -> None:
+def _root(
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress at INFO level."),
+    version: bool = typer.Option(
+        False, "--version", callback=_show_version, is_eager=True, help="Print the version and exit."
+    ),
+) -> None:
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
@@ -559,27 +573,44 @@ def _smoothers(text: str) -> list[str]:
     return names
 
 
+def _one_line(text: str) -> str:
+    return " ".join(line.strip() for line in str(text).splitlines() if line.strip())
+
+
+def _fail(message: str) -> None:
+    typer.echo(f"error: {_one_line(message)}", err=True)
+    sys.exit(EXIT_ERROR)
+
+
+def _usage_message(e: Exception) -> str:
+    """One line for a click usage error: where, what, and where to read more."""
+    ctx = getattr(e, "ctx", None)
+    where = ctx.command_path if ctx is not None else "graphslam"
+    return f"{where}: {e.format_message()} (see '{where} --help')"  # type: ignore[attr-defined]
+
+
+# typer >= 0.2x bundles its own click (typer._click), older typer uses click itself: the base class of
+# typer.BadParameter is the ClickException in use either way (catching click's would miss typer's).
+_CLICK_EXCEPTION: type[Exception] = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
+
+
 def main(argv: Optional[list[str]] = None) -> None:
-    """Console entry point: run the app, turn ``GraphSlamError`` into one line and exit 2."""
+    """Console entry point: run the app; a ``GraphSlamError`` or a usage error (unknown command or
+    option, missing or malformed argument, no arguments) becomes one line on stderr and exit 2."""
     try:
-        app(args=argv, standalone_mode=False)
+        code = app(args=argv, prog_name="graphslam", standalone_mode=False)
     except GraphSlamError as e:
-        typer.echo(f"error: {e}", err=True)
-        sys.exit(EXIT_ERROR)
+        _fail(str(e))
+    except _CLICK_EXCEPTION as e:
+        _fail(_usage_message(e))
+    except typer.Abort:
+        typer.echo("aborted", err=True)
+        sys.exit(1)
     except KeyboardInterrupt:
         typer.echo("interrupted", err=True)
         sys.exit(130)
-    except Exception as e:  # click's usage errors
-        import click
-
-        if isinstance(e, click.exceptions.ClickException):
-            e.show()
-            sys.exit(e.exit_code)
-        if isinstance(e, click.exceptions.Exit):
-            sys.exit(e.exit_code)
-        if isinstance(e, click.exceptions.Abort):
-            sys.exit(1)
-        raise
+    if isinstance(code, int) and code:  # typer.Exit(code) returns its code without standalone mode
+        sys.exit(code)
 
 
 if __name__ == "__main__":
