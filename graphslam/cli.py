@@ -378,14 +378,23 @@ def serve(
         help="Forked search workers sharing the map; batches of 64+ fingerprints are split over them. "
         "0 = search in the server process. Default: min(2, cores), 0 with --workers > 1.",
     ),
+    log_level: str = typer.Option(
+        "info", "--log-level", help="critical, error, warning, info (one access line per request), debug, trace."
+    ),
+    token: Optional[str] = typer.Option(
+        None, "--token", envvar="GRAPHSLAM_SERVE_TOKEN", show_envvar=True,
+        help="Require 'Authorization: Bearer TOKEN' on /v1/ (prefer the environment variable: "
+        "a command line is visible to other users).",
+    ),
 ) -> None:
-    """Serve kNN positioning over HTTP (POST /v1/locate, GET /v1/radio-map, GET /healthz, /openapi.json)."""
+    """Serve kNN positioning over HTTP (POST /v1/locate, GET /v1/radio-map, GET /healthz, /openapi.json, /docs)."""
     from graphslam.service.server import serve as serve_map
 
     serve_map(
         radio_map, host=host, port=port, k=k, weighted=weighted, min_common=min_common,
         max_batch=max_batch, max_body_bytes=max_body_bytes, index=index, ivf_clusters=ivf_clusters,
-        ivf_probes=ivf_probes, workers=workers, search_processes=search_processes,
+        ivf_probes=ivf_probes, workers=workers, search_processes=search_processes, log_level=log_level.lower(),
+        token=token,
     )
 
 
