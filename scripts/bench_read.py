@@ -34,7 +34,9 @@ for _ in range(3):
     best.append((time.perf_counter() - w, time.process_time() - c))
 best.sort()
 n = sum(len(s.steps) + len(s.scans) + len(s.landmarks) + (len(s.ground_truth) if s.ground_truth else 0) for s in survey)
-print(json.dumps({"module": graphslam.__file__, "wall": best[1][0], "cpu": sorted(b[1] for b in best)[1], "sessions": len(survey), "messages": n}))
+cpu = sorted(b[1] for b in best)[1]
+row = {"module": graphslam.__file__, "wall": best[1][0], "cpu": cpu, "sessions": len(survey), "messages": n}
+print(json.dumps(row))
 """
 
 
@@ -61,8 +63,9 @@ def main() -> None:
             new.append(run(REPO, data))
             old.append(run(a.base, data))
         assert new[0]["module"] != old[0]["module"], "both runs imported the same graphslam"
-        med = {k: round(statistics.median(r[m] for r in rows), 4) for k, rows, m in (
-            ("new_wall_s", new, "wall"), ("old_wall_s", old, "wall"), ("new_cpu_s", new, "cpu"), ("old_cpu_s", old, "cpu"))}
+        cols = (("new_wall_s", new, "wall"), ("old_wall_s", old, "wall"), ("new_cpu_s", new, "cpu"),
+                ("old_cpu_s", old, "cpu"))
+        med = {k: round(statistics.median(r[m] for r in rows), 4) for k, rows, m in cols}
         print(json.dumps({
             "data": data, "sessions": new[0]["sessions"], "messages": new[0]["messages"], **med,
             "speedup_wall": round(med["old_wall_s"] / med["new_wall_s"], 2),

@@ -233,7 +233,8 @@ def main() -> None:
     for name, _, _ in variants:
         for c in a.clients:
             rows = results[name][c]
-            med = {k: statistics.median(x[k] for x in rows) for k in ("rps", "p50_ms", "p99_ms", "server_cpu_us_per_req")}
+            keys = ("rps", "p50_ms", "p99_ms", "server_cpu_us_per_req")
+            med = {k: statistics.median(x[k] for x in rows) for k in keys}
             loads = [x["load1_before"] for x in rows]
             print(f"{name:<14} {c:>7} {med['rps']:>8.0f} {med['p50_ms']:>8.2f} {med['p99_ms']:>8.2f} "
                   f"{med['server_cpu_us_per_req']:>10.0f} {sum(x['non_200'] for x in rows):>8} "

@@ -215,11 +215,14 @@ def fuzz(target: Target, flips: int, seed: int, cli: int, tmp: Path) -> dict[str
             code, err = run_cli(target.cli(bad, tmp))
             lines = err.strip().splitlines()
             ok = code == 0 or (code == 2 and len(lines) == 1 and lines[0].startswith("error: "))
-            cli_codes[str(code) if ok else "BAD"] = cli_codes.get(str(code) if ok else "BAD", 0) + 1
+            label = str(code) if ok else "BAD"
+            cli_codes[label] = cli_codes.get(label, 0) + 1
             if not ok and len(findings) < 10:
-                findings.append({"byte": bit // 8, "bit": bit % 8, "outcome": "CLI", "detail": f"exit {code}: {err[-300:]}"})
-    return {"type": target.name, "file_bytes": len(data), "flips": len(positions), **counts, "cli_exit_codes": cli_codes,
-            "findings": findings}
+                findings.append(
+                    {"byte": bit // 8, "bit": bit % 8, "outcome": "CLI", "detail": f"exit {code}: {err[-300:]}"}
+                )
+    return {"type": target.name, "file_bytes": len(data), "flips": len(positions), **counts,
+            "cli_exit_codes": cli_codes, "findings": findings}
 
 
 def main(argv: list[str] | None = None) -> int:

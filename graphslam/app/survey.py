@@ -157,7 +157,10 @@ def run_survey(
 
 
 def _check_outputs(
-    paths: Sequence[str | Path], out_dir: str | Path | None, rerun_path: str | Path | None, floor_plan: str | Path | None
+    paths: Sequence[str | Path],
+    out_dir: str | Path | None,
+    rerun_path: str | Path | None,
+    floor_plan: str | Path | None,
 ) -> None:
     """Fail before the work, not after it: an --out that cannot be replaced as one set (see
     ``write_outputs``), or that is (inside) an input folder, a --rerun file inside --out, a

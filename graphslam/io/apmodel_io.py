@@ -57,7 +57,9 @@ def read_ap_models(path: str | Path, *, radio_map: RadioMap | None = None) -> Ap
         raise InputError(path, "malformed AP models (not a JSON object)")
     stored = d.pop(HASH_KEY, None)
     if stored is None:
-        raise InputError(path, "no content hash (written by an older graphslam?): re-run `graphslam fit-aps`", field=HASH_KEY)
+        raise InputError(
+            path, "no content hash (written by an older graphslam?): re-run `graphslam fit-aps`", field=HASH_KEY
+        )
     try:
         ok = stored == _digest(d)
     except ValueError:  # NaN/inf literals: never written by write_ap_models

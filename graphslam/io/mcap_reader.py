@@ -256,9 +256,8 @@ def _poses(path: Path, topic: str, msgs: TopicMessages) -> PoseTrack:
     bad = np.flatnonzero(np.diff(t) <= 0)
     if bad.size:
         i = int(bad[0]) + 1
-        raise InputError(
-            path, f"message #{i}: time does not increase ({t[i]} ns after {t[i - 1]} ns)", topic=topic, field="timestamp"
-        )
+        problem = f"message #{i}: time does not increase ({t[i]} ns after {t[i - 1]} ns)"
+        raise InputError(path, problem, topic=topic, field="timestamp")
     _log_time_mismatch(path, topic, t, msgs)
     return PoseTrack(t, xy, h)
 
