@@ -198,6 +198,8 @@ def main() -> None:
     ap.add_argument("--bodies", help=argparse.SUPPRESS)
     a = ap.parse_args()
     a.clients = [int(c) for c in str(a.clients).split(",")]
+    if a.radio_map is not None:
+        a.radio_map = a.radio_map.resolve()  # the servers run in their checkouts
     if a.child:
         child(a)
         return

@@ -184,6 +184,22 @@ def test_concurrent_single_requests_each_get_their_own_answer(server: Background
             assert p["floor"] == expect.floor[i]  # type: ignore[index]
 
 
+def test_small_request_fast_path_answers_what_the_route_would(server: BackgroundServer) -> None:
+    import orjson
+
+    from graphslam.service.render import position_dicts
+
+    q = [{"ap1": -50.0, "ap2": -70.0, "unknown": -40.0}, {"ap5": -60, "ap7": -80.5}]
+    expect = orjson.dumps({"frame": "aligned", "k": 3, "weighted": True,
+                           "positions": position_dicts(KnnLocator(RM, KnnConfig(k=3)).locate(q))})
+    r = post(server.url, orjson.dumps({"fingerprints": [{"readings": s} for s in q]}))
+    assert r.status_code == 200 and r.content == expect  # the route's bytes: Response(orjson.dumps(...))
+    assert r.headers["content-type"] == "application/json" and int(r.headers["content-length"]) == len(expect)
+    # declined by the fast path (pydantic's message), or refused by the route (no known AP): as before
+    assert post(server.url, b'{"readings": {"ap1": "-50"}}').status_code == 422
+    assert "no_known_ap" in post(server.url, b'{"readings": {"zz": -50}}').json()["detail"]
+
+
 def test_coalescer_searches_once_per_loop_pass() -> None:
     calls: list[int] = []
     loc = KnnLocator(RM, KnnConfig(k=3))
