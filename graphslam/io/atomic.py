@@ -113,8 +113,10 @@ class FolderStage:
     """The next content of folder ``target``, built in ``path`` (``PARENT/.NAME.stage-XXXX``, same
     filesystem) and swapped in by ``publish()``: two renames (the old folder aside, the stage in),
     then the old folder is deleted. A reader sees the previous set or the new one, never a mix;
-    a failed swap puts the old folder back. A crash between the two renames leaves the old set in
-    ``PARENT/.NAME.old-XXXX``; the next ``create`` for the same target removes such leftovers."""
+    a failed swap puts the old folder back. Only a killed process leaves anything behind: a hidden
+    ``PARENT/.NAME.stage-XXXX`` (a partial new set), or, killed between the two renames, the old
+    set in ``PARENT/.NAME.old-XXXX`` with ``target`` missing. They are not removed automatically:
+    another run into the same folder may be writing its own stage right now."""
 
     def __init__(self, target: Path, path: Path) -> None:
         self.target, self.path = target, path
@@ -127,10 +129,6 @@ class FolderStage:
         target = Path(target).resolve()
         try:
             target.parent.mkdir(parents=True, exist_ok=True)
-            for leftover in target.parent.glob(f".{target.name}{STAGE_TAG}*"):
-                shutil.rmtree(leftover, ignore_errors=True)
-            for leftover in target.parent.glob(f".{target.name}{OLD_TAG}*"):
-                shutil.rmtree(leftover, ignore_errors=True)
             path = Path(tempfile.mkdtemp(prefix=f".{target.name}{STAGE_TAG}", dir=target.parent))
             os.chmod(path, 0o777 & ~_umask())
         except OSError as e:
