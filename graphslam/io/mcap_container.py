@@ -151,7 +151,7 @@ def read_mcap(buf: bytes, topics: Collection[str]) -> McapContents:
     at, stored_crc = data_end
     if stored_crc and zlib.crc32(memoryview(buf)[:at]) != stored_crc:
         raise DamagedMcap("data section CRC mismatch")
-    after_data = at + _RECORD.size + 4
+    after_data = at + _RECORD.size + _RECORD.unpack_from(buf, at)[1]  # the end of the DataEnd record
     if summary_start and not after_data <= summary_start <= footer_at:
         raise DamagedMcap(f"footer: summary start {summary_start} outside the file's summary section")
     if summary_crc:
