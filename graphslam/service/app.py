@@ -239,11 +239,6 @@ def create_app(
     )
     app.state.locator = locator
     app.state.search_pool = pool
-    # Middleware added later runs first: BearerToken, then BodyLimit, then the small-request fast path.
-    app.add_middleware(SmallLocateFastPath, answer=lambda body: answer_small(body))
-    app.add_middleware(BodyLimit, max_bytes=max_body_bytes)
-    if token:
-        app.add_middleware(BearerToken, token=token)  # added last = outermost: before the body is read
     # Concurrent small requests share one search (service/coalesce.py); unlocatable rows are
     # checked per request below.
     coalescer = Coalescer(lambda scans: locator.locate(scans))
@@ -360,4 +355,10 @@ def create_app(
             return respond(res)
         return await run_in_threadpool(answer, scans)  # big batches must not block the event loop
 
+    # Middleware added later runs first: BearerToken (before the body is read), BodyLimit, then
+    # the small-request fast path.
+    app.add_middleware(SmallLocateFastPath, answer=answer_small)
+    app.add_middleware(BodyLimit, max_bytes=max_body_bytes)
+    if token:
+        app.add_middleware(BearerToken, token=token)
     return app
