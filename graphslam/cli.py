@@ -18,15 +18,24 @@ from graphslam.errors import GraphSlamError
 if TYPE_CHECKING:
     from graphslam.config import GraphSlamConfig
 
+# no_args_is_help stays off: typer prints the whole help while raising that error; without it,
+# `graphslam` / `graphslam bench` alone is a usage error ("Missing command"), one line like all others.
 app = typer.Typer(
     add_completion=False,
-    no_args_is_help=True,
     help="Factor-graph SLAM for crowdsourced indoor WiFi site survey (foot-mounted IMU + WiFi).",
 )
-bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks on simulated and real data.")
+bench_app = typer.Typer(help="Benchmarks on simulated and real data.")
 app.add_typer(bench_app, name="bench")
 
 EXIT_ERROR = 2
+
+
+def _show_version(value: bool) -> None:
+    if value:
+        from graphslam import __version__
+
+        typer.echo(f"graphslam {__version__}")
+        raise typer.Exit()
 
 
 @app.callback()
@@ -39,6 +48,9 @@ def _root(
     ),
     progress_interval: float = typer.Option(
         10.0, "--progress-interval", min=0.0, help="Seconds between progress log lines when stderr is not a terminal."
+    ),
+    version: bool = typer.Option(
+        False, "--version", callback=_show_version, is_eager=True, help="Print the version and exit."
     ),
 ) -> None:
     logging.basicConfig(
@@ -375,14 +387,23 @@ def serve(
         help="Forked search workers sharing the map; batches of 64+ fingerprints are split over them. "
         "0 = search in the server process. Default: min(2, cores), 0 with --workers > 1.",
     ),
+    log_level: str = typer.Option(
+        "info", "--log-level", help="critical, error, warning, info (one access line per request), debug, trace."
+    ),
+    token: Optional[str] = typer.Option(
+        None, "--token", envvar="GRAPHSLAM_SERVE_TOKEN", show_envvar=True,
+        help="Require 'Authorization: Bearer TOKEN' on /v1/ (prefer the environment variable: "
+        "a command line is visible to other users).",
+    ),
 ) -> None:
-    """Serve kNN positioning over HTTP (POST /v1/locate, GET /v1/radio-map, GET /healthz, /openapi.json)."""
+    """Serve kNN positioning over HTTP (POST /v1/locate, GET /v1/radio-map, GET /healthz, /openapi.json, /docs)."""
     from graphslam.service.server import serve as serve_map
 
     serve_map(
         radio_map, host=host, port=port, k=k, weighted=weighted, min_common=min_common,
         max_batch=max_batch, max_body_bytes=max_body_bytes, index=index, ivf_clusters=ivf_clusters,
-        ivf_probes=ivf_probes, workers=workers, search_processes=search_processes,
+        ivf_probes=ivf_probes, workers=workers, search_processes=search_processes, log_level=log_level.lower(),
+        token=token,
     )
 
 
@@ -513,8 +534,9 @@ def fit_aps(
     from graphslam.io.apmodel_io import write_ap_models
     from graphslam.io.radiomap_io import read_radio_map
 
-    models = ApModels.fit(read_radio_map(radio_map), ApFitConfig(min_readings=min_readings))
-    path = write_ap_models(models, out or radio_map.with_name("ap_models.json"))
+    rm = read_radio_map(radio_map)
+    models = ApModels.fit(rm, ApFitConfig(min_readings=min_readings))
+    path = write_ap_models(models, out or radio_map.with_name("ap_models.json"), radio_map=rm)
     reasons: dict[str, int] = {}
     for u in models.unfitted:
         key = u.reason.split(" (")[0]
@@ -609,27 +631,44 @@ def _hoist_quiet(argv: list[str]) -> list[str]:
     return flags + [a for a in argv[:end] if a not in ("--quiet", "-q")] + argv[end:]
 
 
+def _one_line(text: str) -> str:
+    return " ".join(line.strip() for line in str(text).splitlines() if line.strip())
+
+
+def _fail(message: str) -> None:
+    typer.echo(f"error: {_one_line(message)}", err=True)
+    sys.exit(EXIT_ERROR)
+
+
+def _usage_message(e: Exception) -> str:
+    """One line for a click usage error: where, what, and where to read more."""
+    ctx = getattr(e, "ctx", None)
+    where = ctx.command_path if ctx is not None else "graphslam"
+    return f"{where}: {e.format_message()} (see '{where} --help')"  # type: ignore[attr-defined]
+
+
+# typer >= 0.2x bundles its own click (typer._click), older typer uses click itself: the base class of
+# typer.BadParameter is the ClickException in use either way (catching click's would miss typer's).
+_CLICK_EXCEPTION: type[Exception] = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
+
+
 def main(argv: Optional[list[str]] = None) -> None:
-    """Console entry point: run the app, turn ``GraphSlamError`` into one line and exit 2."""
+    """Console entry point: run the app; a ``GraphSlamError`` or a usage error (unknown command or
+    option, missing or malformed argument, no arguments) becomes one line on stderr and exit 2."""
     try:
-        app(args=_hoist_quiet(sys.argv[1:] if argv is None else argv), standalone_mode=False)
+        code = app(args=_hoist_quiet(sys.argv[1:] if argv is None else argv), prog_name="graphslam", standalone_mode=False)
     except GraphSlamError as e:
-        typer.echo(f"error: {e}", err=True)
-        sys.exit(EXIT_ERROR)
+        _fail(str(e))
+    except _CLICK_EXCEPTION as e:
+        _fail(_usage_message(e))
+    except typer.Abort:
+        typer.echo("aborted", err=True)
+        sys.exit(1)
     except KeyboardInterrupt:
         typer.echo("interrupted", err=True)
         sys.exit(130)
-    except Exception as e:  # click's usage errors
-        import click
-
-        if isinstance(e, click.exceptions.ClickException):
-            e.show()
-            sys.exit(e.exit_code)
-        if isinstance(e, click.exceptions.Exit):
-            sys.exit(e.exit_code)
-        if isinstance(e, click.exceptions.Abort):
-            sys.exit(1)
-        raise
+    if isinstance(code, int) and code:  # typer.Exit(code) returns its code without standalone mode
+        sys.exit(code)
 
 
 if __name__ == "__main__":

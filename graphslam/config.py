@@ -16,7 +16,9 @@ from graphslam.errors import ConfigError
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan=False: every float knob is finite (inf, .inf, 1e999, nan are errors): an
+    # infinite distance or sigma only fails deep inside GTSAM, after the whole alignment.
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class FingerprintConfig(_Strict):

@@ -55,7 +55,10 @@ def corridor_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, 
     cov = tuple(tuple(float(v) for v in row) for row in np.eye(4) * 0.1)
     fitted = tuple(ApModel(b, float(p[0]), float(p[1]), float(p0), float(g), 4.0, 50, cov)
                    for b, p, p0, g in zip(aps.bssids, xy, aps.p0_dbm, aps.gamma))
-    write_ap_models(ApModels("aligned", 1.0, fitted, ()), root / "aps.json")
+    from graphslam.io.radiomap_io import read_radio_map
+
+    rm = read_radio_map(root / "out" / "radio_map.parquet")
+    write_ap_models(ApModels("aligned", 1.0, fitted, ()), root / "aps.json", radio_map=rm)
     return root, root / "out", result
 
 

@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,7 +18,7 @@ from graphslam.core.survey.align import Alignment, ProgressCallback, align
 from graphslam.core.survey.evaluate import Evaluation, evaluate
 from graphslam.core.types import Survey
 from graphslam.errors import InputError, OutputError
-from graphslam.io.atomic import atomic_write_json, atomic_write_text
+from graphslam.io.atomic import FolderStage, atomic_write_json, atomic_write_text, check_replaceable_folder
 from graphslam.io.csv_io import write_trajectories
 from graphslam.io.mcap_reader import read_survey
 from graphslam.io.mcap_writer import write_aligned
@@ -28,6 +26,20 @@ from graphslam.io.mcap_writer import write_aligned
 log = logging.getLogger(__name__)
 
 REPORT_VERSION = 1
+# What a survey writes into --out, and what later commands add there by default (fit-aps:
+# ap_models.json beside the map). --out may hold only these: it is replaced as a whole.
+OUTPUT_FILES = {
+    "trajectories": "trajectories.csv",
+    "aligned": "aligned.mcap",
+    "radio_map": "radio_map.parquet",
+    "radio_map_surveyed": "radio_map_surveyed.parquet",
+    "wifi_edges": "wifi_edges.parquet",
+    "config": "config.yaml",
+    "report": "report.json",
+}
+# written into --out after the set is in place (a picture that fails is a warning), or later by
+# other commands (fit-aps, plot)
+DERIVED_FILES = ("ap_models.json", "survey.png", "radio_map.png")
 
 
 @dataclass(frozen=True, eq=False)
@@ -108,7 +120,7 @@ def run_survey(
     """Read ``paths``, align every walk, write the outputs into ``out_dir`` (None: no files);
     ``picture``: also survey.png there (over ``floor_plan`` when given)."""
     cfg = config or GraphSlamConfig()
-    _check_outputs(out_dir, rerun_path, floor_plan)
+    _check_outputs(paths, out_dir, rerun_path, floor_plan)
     plan = _picture_plan(floor_plan, floor_size) if picture and out_dir is not None else None
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -179,10 +191,27 @@ def _write_picture(
     timings["picture"] = time.perf_counter() - t
 
 
-def _check_outputs(out_dir: str | Path | None, rerun_path: str | Path | None, floor_plan: str | Path | None) -> None:
-    """Fail before the work, not after it, on outputs that cannot be written or a missing floor plan."""
-    if out_dir is not None and Path(out_dir).exists() and not Path(out_dir).is_dir():
-        raise OutputError(f"{out_dir}: exists and is not a folder")
+def _check_outputs(
+    paths: Sequence[str | Path],
+    out_dir: str | Path | None,
+    rerun_path: str | Path | None,
+    floor_plan: str | Path | None,
+) -> None:
+    """Fail before the work, not after it: an --out that cannot be replaced as one set (see
+    ``write_outputs``), or that is (inside) an input folder, a --rerun file inside --out, a
+    missing floor plan."""
+    if out_dir is not None:
+        out = Path(out_dir).resolve()
+        for p in map(Path, paths):
+            folder = p.resolve() if p.is_dir() else p.resolve().parent
+            # aligned.mcap in a folder of recordings would join the next survey of that folder
+            if out == folder or (p.is_dir() and folder in out.parents):
+                raise OutputError(f"{out_dir}: is {'inside ' if out != folder else ''}the input folder {folder}")
+            if out in p.resolve().parents:
+                raise OutputError(f"{out_dir}: holds the input {p}, and is replaced as a whole")
+        check_replaceable_folder(out, set(OUTPUT_FILES.values()) | set(DERIVED_FILES))
+        if rerun_path is not None and out in Path(rerun_path).resolve().parents:
+            raise OutputError(f"{rerun_path}: inside --out {out_dir}, which is replaced as a whole: put it beside")
     if rerun_path is not None and Path(rerun_path).is_dir():
         raise OutputError(f"{rerun_path}: is a folder, expected an .rrd file path")
     if floor_plan is not None and not Path(floor_plan).is_file():
@@ -192,45 +221,31 @@ def _check_outputs(out_dir: str | Path | None, rerun_path: str | Path | None, fl
 def write_outputs(
     out_dir: Path, survey: Survey, al: Alignment, report: dict, cfg: GraphSlamConfig, *, surveyed: bool = False
 ) -> dict[str, Path]:
-    """Stage every output in a temporary folder, then move them in: no half-written file.
-
-    Files are moved one by one (each rename is atomic); a crash between two renames can
-    leave a previous run's files beside new ones in a re-used folder.
-    """
+    """Write every output into a staging folder beside ``out_dir``, then swap it in as a whole
+    (``FolderStage``): ``out_dir`` holds this run's files and nothing else (no ``ap_models.json``
+    or ``radio_map_surveyed.parquet`` left from an earlier run), or, if anything fails, exactly
+    what it held before."""
+    stage = FolderStage.create(out_dir, set(OUTPUT_FILES.values()) | set(DERIVED_FILES))
     try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        stage = Path(tempfile.mkdtemp(prefix=".graphslam-", dir=out_dir))
-    except OSError as e:
-        raise OutputError(f"{out_dir}: cannot create the output folder ({e.strerror or e})") from None
-    try:
-        names = {
-            "trajectories": "trajectories.csv",
-            "aligned": "aligned.mcap",
-            "radio_map": "radio_map.parquet",
-            "wifi_edges": "wifi_edges.parquet",
-            "config": "config.yaml",
-            "report": "report.json",
-        }
-        write_trajectories(al.tracks, stage / names["trajectories"])
-        write_aligned(al.tracks, stage / names["aligned"])
-        _write_radio_map(survey, al, cfg, stage / names["radio_map"])
-        _write_wifi_edges(al, cfg, stage / names["wifi_edges"])
+        names = {k: v for k, v in OUTPUT_FILES.items() if k != "radio_map_surveyed" or surveyed}
+        write_trajectories(al.tracks, stage.path / names["trajectories"])
+        write_aligned(al.tracks, stage.path / names["aligned"])
+        _write_radio_map(survey, al, cfg, stage.path / names["radio_map"])
+        _write_wifi_edges(al, cfg, stage.path / names["wifi_edges"])
         if surveyed:  # evaluation: the same fingerprints at their ground-truth positions
             from graphslam.core.radiomap.survey_maps import surveyed_radio_map
             from graphslam.io.radiomap_io import write_radio_map
 
-            names["radio_map_surveyed"] = "radio_map_surveyed.parquet"
-            write_radio_map(surveyed_radio_map(survey, al, cfg), stage / names["radio_map_surveyed"])
-        atomic_write_text(stage / names["config"], cfg.to_yaml())
-        atomic_write_json(stage / names["report"], report)
-        files = {}
-        for key, name in names.items():
-            if (stage / name).exists():
-                (stage / name).replace(out_dir / name)
-                files[key] = out_dir / name
-        return files
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
+            write_radio_map(surveyed_radio_map(survey, al, cfg), stage.path / names["radio_map_surveyed"])
+        atomic_write_text(stage.path / names["config"], cfg.to_yaml())
+        atomic_write_json(stage.path / names["report"], report)
+    except BaseException as e:
+        stage.discard()
+        if isinstance(e, OSError):  # e.g. disk full in the middle of a file
+            raise OutputError(f"{out_dir}: cannot write the outputs ({e.strerror or e})") from None
+        raise
+    stage.publish()
+    return {key: out_dir / name for key, name in names.items()}
 
 
 def _write_wifi_edges(al: Alignment, cfg: GraphSlamConfig, path: Path) -> None:

@@ -307,16 +307,20 @@ def track_files(
 ) -> TrackRun:
     """Read the radio map, its AP models (``ap_models_path``, else ``ap_models.json`` beside the map,
     else fitted now), the sessions (MCAP); track; write ``out`` (CSV)."""
-    from graphslam.io.apmodel_io import read_ap_models
+    from graphslam.io.apmodel_io import StaleApModelsError, read_ap_models
     from graphslam.io.mcap_reader import read_survey
     from graphslam.io.radiomap_io import read_radio_map
 
     rm = read_radio_map(radio_map_path)
     beside = Path(radio_map_path).with_name("ap_models.json")
     if ap_models_path is not None:
-        models = read_ap_models(ap_models_path)
+        models = read_ap_models(ap_models_path, radio_map=rm)  # another map's models: an error
     elif beside.exists():
-        models = read_ap_models(beside)
+        try:
+            models = read_ap_models(beside, radio_map=rm)
+        except StaleApModelsError as e:  # e.g. left by an earlier survey into the same folder
+            log.warning("%s; fitting them now", e)
+            models = ApModels.fit(rm)
     else:
         log.info("no AP models beside %s: fitting them now", radio_map_path)
         models = ApModels.fit(rm)

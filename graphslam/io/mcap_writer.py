@@ -66,7 +66,7 @@ def write_session(session: Session, path: str | Path) -> Path:
     """Write ``session`` to ``path`` (atomically), including landmarks and ground truth if present."""
     path = Path(path)
     with atomic_open(path, "wb") as fh:
-        writer = Writer(fh, compression=CompressionType.ZSTD)
+        writer = Writer(fh, compression=CompressionType.ZSTD, enable_data_crcs=True)
         writer.start(profile="", library="graphslam")
         ch = _Channels(writer)
         writer.add_metadata(
@@ -101,7 +101,7 @@ def write_aligned(tracks: dict[str, PoseTrack], path: str | Path, frame_id: str 
     """One ``foxglove.PoseInFrame`` topic per session (``/aligned/<session_id>``), viewable in Foxglove."""
     path = Path(path)
     with atomic_open(path, "wb") as fh:
-        writer = Writer(fh, compression=CompressionType.ZSTD)
+        writer = Writer(fh, compression=CompressionType.ZSTD, enable_data_crcs=True)
         writer.start(profile="", library="graphslam")
         ch = _Channels(writer)
         name, schema = TOPIC_SCHEMAS[TOPIC_POSE]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gc
+import ipaddress
 import json
 import logging
 import os
@@ -51,6 +52,19 @@ def worker_app() -> FastAPI:
     return _build_app(cfg.pop("radio_map_path"), **cfg)
 
 
+LOG_LEVELS = ("critical", "error", "warning", "info", "debug", "trace")  # uvicorn's; info logs every request
+
+
+def is_loopback(host: str) -> bool:
+    """Whether binding ``host`` keeps the service on this machine (``0.0.0.0`` / ``::`` do not)."""
+    if host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:  # a host name: it may resolve anywhere
+        return False
+
+
 def serve(
     radio_map_path: str | Path,
     *,
@@ -67,6 +81,7 @@ def serve(
     ivf_probes: int | None = None,
     workers: int = 1,
     search_processes: int | None = None,
+    token: str | None = None,
 ) -> None:
     """Load the radio map and serve it until interrupted. Why processes: a search holds the GIL
     most of the time, so one process searches on about one core.
@@ -76,9 +91,19 @@ def serve(
     client connections. ``None``: ``min(2, cores)`` with one server process, 0 with
     ``workers`` > 1 (which already runs a process per worker). 0: search in the server process.
     ``workers`` > 1: that many server processes on one socket (uvicorn), each with its own copy
-    of the map and index; connections, not requests, are spread over them."""
+    of the map and index; connections, not requests, are spread over them. ``log_level``: one
+    of ``LOG_LEVELS`` (``warning`` drops the access line per request). ``token``: bearer token
+    required on ``/v1/`` (a warning when ``host`` is not loopback and there is none)."""
     from graphslam.service.app import DEFAULT_MAX_BATCH, DEFAULT_MAX_BODY_BYTES
     from graphslam.service.pool import default_search_processes
+
+    if log_level not in LOG_LEVELS:
+        raise GraphSlamError(f"log level {log_level!r}: use one of {', '.join(LOG_LEVELS)}")
+    if not token and not is_loopback(host):
+        log.warning(
+            "serving on %s without a bearer token: anyone who can reach this address can query the radio map "
+            "(set --token or GRAPHSLAM_SERVE_TOKEN)", host,
+        )
 
     if search_processes is None:
         search_processes = default_search_processes() if workers <= 1 else 0
@@ -86,6 +111,7 @@ def serve(
         k=k, weighted=weighted, min_common=min_common,
         max_batch=max_batch or DEFAULT_MAX_BATCH, max_body_bytes=max_body_bytes or DEFAULT_MAX_BODY_BYTES,
         index=index, ivf_clusters=ivf_clusters, ivf_probes=ivf_probes, search_processes=search_processes,
+        token=token or None,
     )
     log.info(
         "serving %s on http://%s:%d (%d worker process(es), %d search process(es) each)", radio_map_path, host,
