@@ -509,6 +509,21 @@ def demo(
     typer.echo(json.dumps(f))
 
 
+@bench_app.command("real")
+def bench_real(
+    folders: List[Path] = typer.Argument(..., help="Floor folders of recordings with /landmarks, or site folders of floors."),
+    floors: Optional[str] = typer.Option(None, help="Comma-separated floor sub-folders of a site (default: all)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c"),
+    set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value."),
+) -> None:
+    """Align each floor of real recordings; one JSON line per floor: walks aligned, landmark errors
+    (SE(2) fit), time, and how well the per-walk placement figures separate right from wrong walks."""
+    from graphslam.app.bench import real_floors
+
+    for row in real_floors(folders, _config(config, set_), floors.split(",") if floors else None):
+        typer.echo(json.dumps(row))
+
+
 @bench_app.command("ilc")
 def bench_ilc(
     site_dir: Path = typer.Argument(..., help="An ILC 2.0 site folder with one sub-folder per floor."),

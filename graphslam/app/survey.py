@@ -12,6 +12,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
+import numpy as np
+
 from graphslam.config import GraphSlamConfig
 from graphslam.core.progress import Task
 from graphslam.core.survey.align import Alignment, ProgressCallback, align
@@ -63,6 +65,7 @@ def build_report(survey: Survey, al: Alignment, ev: Evaluation | None, cfg: Grap
         "nodes": al.n_nodes,
         "fingerprints": len(fp),
         "scans_dropped": fp.dropped,
+        "scans_standstill": fp.standstill,
         "access_points": fp.fingerprints.n_aps,
         "edges": {
             "imu": int(sum(len(t) - 1 for t in al.tracks.values())),
@@ -81,28 +84,45 @@ def build_report(survey: Survey, al: Alignment, ev: Evaluation | None, cfg: Grap
         "timings_s": {k: round(v, 4) for k, v in timings.items()},
     }
     if al.placement is not None:
-        ids = al.session_ids
-        pl = al.placement
-        c = pl.loop_consistency
-        report["registration"] = {
+        report.update(_placement_report(al))
+    if ev is not None:
+        report["evaluation"] = ev.as_dict()
+    return report
+
+
+def _placement_report(al: Alignment) -> dict[str, Any]:
+    """report.json's ``registration`` block and per-walk rows (how each walk was placed)."""
+    ids = al.session_ids
+    pl = al.placement
+    assert pl is not None
+    c = pl.loop_consistency
+    out: dict[str, Any] = {
+        "registration": {
+            "method": pl.method,
             "placed": int(pl.placed.sum()),
             "loops": pl.loops,
             "loops_consistent": pl.loops_consistent,
             "loop_consistency": None if c is None else round(c, 3),
             "reliable": pl.reliable,
         }
-        report["walks"] = [
-            {
-                "session_id": ids[s],
-                "aligned": ids[s] in al.tracks,
-                "registration_inliers": int(al.placement.inliers[s]),
-                "registered_to": ids[int(al.placement.parent[s])] if al.placement.parent[s] >= 0 else None,
-            }
-            for s in range(len(ids))
-        ]
-    if ev is not None:
-        report["evaluation"] = ev.as_dict()
-    return report
+    }
+
+    def num(a: Any, s: int) -> float | None:
+        return None if a is None or not np.isfinite(a[s]) else round(float(a[s]), 4)
+
+    walks = []
+    for s in range(len(ids)):
+        row: dict[str, Any] = {"session_id": ids[s], "aligned": ids[s] in al.tracks}
+        if pl.method == "growth":
+            # support: vote weight per fingerprint; margin: over the runner-up placement (seed: null);
+            # consistency: share of the walk's match weight whose partners end within placement.consistent_m
+            row.update(support=num(pl.support, s), margin=num(pl.margin, s), consistency=num(pl.consistency, s))
+        else:
+            row["registration_inliers"] = int(pl.inliers[s])
+            row["registered_to"] = ids[int(pl.parent[s])] if pl.parent[s] >= 0 else None
+        walks.append(row)
+    out["walks"] = walks
+    return out
 
 
 def run_survey(

@@ -30,7 +30,9 @@ from graphslam.core.survey import factors as F
 from graphslam.core.survey.association import FingerprintNodes, associate
 from graphslam.core.survey.chains import CompressedChains, compress, expand
 from graphslam.core.survey.edges import WifiEdges, propose_edges, window_thresholds
+from graphslam.core.radiomap.similarity import PowerCosine
 from graphslam.core.survey.initialise import Placement, register_walks, se2_apply
+from graphslam.core.survey.placement import GrowthParams, grow_placement
 from graphslam.core.types import PoseTrack, Survey, wrap_angle
 from graphslam.errors import SolverError
 
@@ -153,6 +155,7 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
         max_gap_s=cfg.fingerprint.max_scan_step_gap_s,
         missing_dbm=cfg.fingerprint.missing_rssi_dbm,
         min_rssi_dbm=cfg.fingerprint.min_rssi_dbm,
+        standstill_max_s=cfg.fingerprint.standstill_max_s,
     )
     timings["associate"] = time.perf_counter() - t
     task.end()
@@ -201,6 +204,14 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
                 "registration unreliable: %d walks reported unaligned (optimizer.unreliable_registration=keep "
                 "would output them anyway)", int(placement.placed.sum()) - 1,
             )
+    elif cfg.optimizer.initialization == "growth":
+        placement = _grow(survey, fp, dr_xyh, cfg)
+        if cfg.optimizer.reference_session is None:
+            ref = int(np.flatnonzero(placement.parent == -2)[0])  # the seed walk defines the frame
+        included = placement.placed.copy()
+        transforms = placement.transforms
+        for s, why in placement_reasons(placement, survey).items():
+            unaligned[s] = why
     else:
         transforms = np.zeros((n_s, 3))
         g = coo_matrix((np.ones(len(ea)), (node_sess[ea], node_sess[eb])), shape=(n_s, n_s))
@@ -233,6 +244,34 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
         wifi_pairs=np.column_stack([ea[use], eb[use]]).astype(np.int64),
         timings_s=timings,
     )
+
+
+def _grow(survey: Survey, fp: FingerprintNodes, dr_xyh: NDArray, cfg: GraphSlamConfig) -> Placement:
+    """Map-growth placement (graphslam.core.survey.placement) as a ``Placement``; the seed walk
+    (the configured reference, else the one with the most match weight) has ``parent == -2``."""
+    pc = cfg.placement
+    sim = PowerCosine.of(fp.fingerprints, pc.similarity_scale_db)
+    matches = sim.top_matches(fp.session, pc.matches_per_fingerprint)
+    params = GrowthParams(
+        weight_power=pc.weight_power, rotation_step_deg=pc.rotation_step_deg, blur_m=pc.blur_m,
+        distinct_m=pc.distinct_m, min_margin=pc.min_margin, refine_scale_m=pc.refine_scale_m,
+        consistent_m=pc.consistent_m,
+    )
+    seed = _reference_index(survey, cfg) if cfg.optimizer.reference_session is not None else None
+    res = grow_placement(len(survey), fp.session, dr_xyh[fp.node, :2], matches, params, seed=seed)
+    parent = np.full(len(survey), -1, np.int64)
+    parent[res.seed] = -2
+    return Placement(
+        res.transforms, res.placed, np.full(len(survey), -1, np.int64), parent,
+        method="growth", support=res.support, margin=res.margin, consistency=res.consistency,
+        unplaced_reasons=res.reasons,
+    )
+
+
+def placement_reasons(placement: Placement, survey: Survey) -> dict[str, str]:
+    """session id -> why the placement left the walk out."""
+    reasons = placement.unplaced_reasons or {}
+    return {survey.sessions[s].session_id: reasons.get(int(s), "not placed") for s in np.flatnonzero(~placement.placed)}
 
 
 def native_graph(
