@@ -82,11 +82,13 @@ def inspect(
             typer.echo(json.dumps(s.as_dict()))
         typer.echo(json.dumps({"totals": summary.totals}))
         return
-    header = f"{'session':<28} {'steps':>6} {'scans':>6} {'APs':>5} {'dur s':>8} {'walk m':>8} {'lmks':>5}"
+    # the id column is as wide as the longest id: truncated ids (IPIN's differ only at the end) are ambiguous
+    w = max([7] + [len(s.session_id) for s in summary.sessions])
+    header = f"{'session':<{w}} {'steps':>6} {'scans':>6} {'APs':>5} {'dur s':>8} {'walk m':>8} {'lmks':>5}"
     typer.echo(header)
     for s in summary.sessions:
         typer.echo(
-            f"{s.session_id[:28]:<28} {s.steps:>6} {s.scans:>6} {s.access_points:>5} "
+            f"{s.session_id:<{w}} {s.steps:>6} {s.scans:>6} {s.access_points:>5} "
             f"{s.duration_s:>8.1f} {s.walked_m:>8.1f} {s.landmarks:>5}"
         )
     t = summary.totals
