@@ -16,7 +16,7 @@ walk at a time:
    that of the best placement that moves the walk by more than ``distinct_m`` on average
    (a walk that matches equally well in two places is not placed on either);
 3. all placed walks are refined jointly (matched fingerprints pulled together, Cauchy loss
-   of scale ``refine_scale_m``; sparse analytic Jacobian, ``scipy.optimize.least_squares``).
+   of scale ``refine_scale_m``; Gauss-Newton on the 3W x 3W normal equations, analytic Jacobian).
 
 Why matches come from the whole survey, not from the placed walks only: a walk whose true
 partners are not placed yet then has few matches into the map and waits, instead of being
@@ -41,7 +41,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter
-from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 
 from graphslam.core.progress import Task
@@ -62,9 +61,9 @@ class GrowthParams:
     distinct_m: float = 5.0  # a runner-up placement must move the walk this much on average
     min_margin: float = 0.25  # vote weight; below this a walk is not placed
     refine_scale_m: float = 3.0
-    refine_max_evaluations: int = 30
+    refine_max_evaluations: int = 30  # Gauss-Newton iterations of the joint rigid refinement
     consistent_m: float = 6.0
-    max_grid_cells: int = 8_000_000  # rotations x cells of one vote grid (memory bound, ~64 MB)
+    max_grid_cells: int = 3_000_000  # rotations x cells of one vote grid (bounds memory and blur time)
 
 
 @dataclass(frozen=True, eq=False)
@@ -113,7 +112,7 @@ def hough_se2(
     flat = (np.arange(n_rot)[:, None] * shape[0] + g[..., 0]) * shape[1] + g[..., 1]
     votes = np.bincount(flat.ravel(), weights=np.broadcast_to(weight, flat.shape).ravel(),
                         minlength=n_rot * shape[0] * shape[1]).reshape(n_rot, shape[0], shape[1])
-    votes = gaussian_filter(votes, sigma=(0.0, params.blur_m / cell, params.blur_m / cell), mode="constant")
+    votes = gaussian_filter(votes, sigma=(0.0, params.blur_m / cell, params.blur_m / cell), mode="constant", truncate=3.0)
     per_rot = votes.reshape(n_rot, -1)
     best_cell = per_rot.argmax(axis=1)
     best_val = per_rot[np.arange(n_rot), best_cell]
@@ -138,22 +137,23 @@ def refine_rigid(
     transforms: NDArray, walks: NDArray, fixed: int, scan_session: NDArray, scan_xy: NDArray,
     i: NDArray, j: NDArray, w: NDArray, params: GrowthParams,
 ) -> NDArray:
-    """Jointly refine the transforms of ``walks`` (``fixed`` held) so matched fingerprints coincide."""
+    """Jointly refine the transforms of ``walks`` (``fixed`` held) so matched fingerprints coincide.
+
+    Gauss-Newton with iteratively reweighted Cauchy weights on each match's 2-D gap (scale
+    ``refine_scale_m``): residual r_m = p_i(T_a) - p_j(T_b), Jacobian d r / d(x, y, theta) of each
+    walk analytic; the normal equations are 3W x 3W (W walks, small), so they are assembled
+    from sparse per-match blocks and solved densely (Levenberg damping on failure).
+    """
     free = np.array([s for s in walks if s != fixed], dtype=np.int64)
     if len(free) == 0 or len(i) == 0:
         return transforms
+    n = 3 * len(free)
     col = np.full(len(transforms), -1, np.int64)
     col[free] = np.arange(len(free))
     sa, sb = scan_session[i], scan_session[j]
     pa, pb = scan_xy[i], scan_xy[j]
-    sw = np.sqrt(w)
+    c2 = params.refine_scale_m**2
     m = len(i)
-    rows2 = np.arange(m)
-
-    def unpack(x: NDArray) -> NDArray:
-        T = transforms.copy()
-        T[free] = x.reshape(-1, 3)
-        return T
 
     def place(T: NDArray, s: NDArray, p: NDArray) -> tuple[NDArray, NDArray]:
         c, sn = np.cos(T[s, 2]), np.sin(T[s, 2])
@@ -161,27 +161,48 @@ def refine_rigid(
         d_theta = np.column_stack([-sn * p[:, 0] - c * p[:, 1], c * p[:, 0] - sn * p[:, 1]])
         return xy, d_theta
 
-    def fun(x: NDArray) -> NDArray:
-        T = unpack(x)
-        return (sw[:, None] * (place(T, sa, pa)[0] - place(T, sb, pb)[0])).ravel()
+    def cost(T: NDArray) -> tuple[float, NDArray, NDArray, NDArray]:
+        qa, da = place(T, sa, pa)
+        qb, db = place(T, sb, pb)
+        r = qa - qb
+        e2 = (r * r).sum(1)
+        return float((w * c2 * np.log1p(e2 / c2)).sum()), r, da, db
 
-    def jac(x: NDArray) -> coo_matrix:
-        T = unpack(x)
-        r, c, v = [], [], []
-        for sign, s, p in ((1.0, sa, pa), (-1.0, sb, pb)):
-            d = place(T, s, p)[1]
+    T = transforms.copy()
+    f, r, da, db = cost(T)
+    lam = 1e-6
+    rows = np.arange(m)
+    for _ in range(params.refine_max_evaluations):
+        irls = w / (1.0 + (r * r).sum(1) / c2)  # Cauchy weight of each match
+        # J (2m x n): rows 2k, 2k+1 of match k; +I, +d_theta for walk a, -I, -d_theta for walk b
+        rr, cc, vv = [], [], []
+        for sign, s, d in ((1.0, sa, da), (-1.0, sb, db)):
             k = col[s]
             ok = k >= 0
             for axis in (0, 1):
-                rr = 2 * rows2[ok] + axis
-                r += [rr, rr]
-                c += [3 * k[ok] + axis, 3 * k[ok] + 2]
-                v += [sign * sw[ok], sign * sw[ok] * d[ok, axis]]
-        return coo_matrix((np.concatenate(v), (np.concatenate(r), np.concatenate(c))), shape=(2 * m, 3 * len(free)))
-
-    res = least_squares(fun, transforms[free].ravel(), jac=jac, loss="cauchy", f_scale=params.refine_scale_m,
-                        max_nfev=params.refine_max_evaluations, x_scale="jac")
-    return unpack(res.x)
+                rr += [2 * rows[ok] + axis] * 2
+                cc += [3 * k[ok] + axis, 3 * k[ok] + 2]
+                vv += [np.full(ok.sum(), sign), sign * d[ok, axis]]
+        J = coo_matrix((np.concatenate(vv), (np.concatenate(rr), np.concatenate(cc))), shape=(2 * m, n)).tocsr()
+        Wd = np.repeat(irls, 2)
+        H = (J.T @ J.multiply(Wd[:, None])).toarray()
+        g = J.T @ (Wd * r.ravel())
+        while True:
+            step = np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-9), -g)
+            T_new = T.copy()
+            T_new[free] += step.reshape(-1, 3)
+            f_new, r_new, da_new, db_new = cost(T_new)
+            if f_new <= f:
+                break
+            lam *= 10.0
+            if lam > 1e6:
+                return T
+        lam = max(lam / 10.0, 1e-9)
+        converged = f - f_new <= 1e-9 * max(f, 1.0) or np.abs(step).max() < 1e-4
+        T, f, r, da, db = T_new, f_new, r_new, da_new, db_new
+        if converged:
+            break
+    return T
 
 
 def grow_placement(
