@@ -91,9 +91,19 @@ class OptimizerConfig(_Strict):
     relative_error_tol: float = Field(1e-4, gt=0)
     absolute_error_tol: float = Field(1e-5, ge=0)
     outer_iterations: int = Field(6, ge=1, description="re-evaluations of the saturated (d > d_max) edge set")
+    solver: Literal["auto", "pardiso", "gtsam"] = Field(
+        "auto",
+        description="pardiso: own LM, vectorised factors, MKL PARDISO with the analysis reused (2-8x faster, same "
+        "minimum, docs/benchmarks.md issue 16); gtsam: GTSAM's LevenbergMarquardtOptimizer; auto: pardiso if MKL loads",
+    )
+    threads: int = Field(
+        1, ge=0, description="solver=pardiso: MKL threads of the factorisation; 0 = MKL's default (all cores). 1 measured "
+        "fastest on the shared 2-core machine (docs/benchmarks.md issue 16)",
+    )
     linear_solver: Literal["auto", "cholesky", "pcg"] = Field(
         "auto",
-        description="cholesky: multifrontal, METIS; pcg: block-Jacobi PCG (large surveys); auto: pcg above pcg_above_poses",
+        description="solver=gtsam only. cholesky: multifrontal, METIS; pcg: block-Jacobi PCG (large surveys); auto: "
+        "pcg above pcg_above_poses",
     )
     pcg_above_poses: int = Field(6000, ge=0, description="auto switches to pcg above this many pose variables")
     compress_chains: bool = Field(
