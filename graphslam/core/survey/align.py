@@ -141,6 +141,14 @@ class Problem:
         return int(self.fingerprints.offsets[self.reference])
 
 
+def edge_candidates(cfg: GraphSlamConfig, n_fingerprints: int) -> str:
+    """``edges.candidates`` resolved: auto takes the IVF index above ``edges.ivf_above_fingerprints``."""
+    c = cfg.edges.candidates
+    if c == "auto":
+        return "ivf" if n_fingerprints > cfg.edges.ivf_above_fingerprints else "exact"
+    return c
+
+
 def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
     """Steps 1-3 of the method: fingerprints on nodes, WiFi edges, initial placement."""
     if len(survey) == 0:
@@ -165,6 +173,9 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
         max_per_fingerprint=cfg.edges.max_per_fingerprint,
         min_common_aps=cfg.edges.min_common_aps,
         block_rows=cfg.edges.chunk_rows,
+        candidates=edge_candidates(cfg, len(fp)),
+        ivf_neighbours=cfg.edges.ivf_neighbours,
+        ivf_probes=cfg.edges.ivf_probes,
     )
     timings["edges"] = time.perf_counter() - t
     log.info("%d fingerprints on %d steps, %d WiFi edges", len(fp), fp.offsets[-1], len(edges))

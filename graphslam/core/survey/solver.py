@@ -158,6 +158,22 @@ def between_error(graph: PoseGraph, xyh: NDArray) -> float:
     return 0.5 * float(np.sum(r * r))
 
 
+def range_hessian(xa: NDArray, xb: NDArray, r: NDArray, Jb: NDArray, sigma: float) -> NDArray:
+    """(E, 3, 3) exact Hessian of 0.5 r^2 w.r.t. b's pose (w.r.t. a's: the same; cross term: minus it).
+
+    J^T J = u u^T / sigma^2 plus the curvature of the distance, r / (sigma d) (I - u u^T), which is
+    positive semi-definite (r >= 0): Newton's model stays convex and converges where Gauss-Newton
+    crawls along the edges' tangential directions (measured: paper seed 1 stalled 0.11 above GTSAM's
+    minimum with Gauss-Newton alone)."""
+    d = np.hypot(*(xb[:, :2] - xa[:, :2]).T)
+    H = np.zeros((len(r), 3, 3))
+    u = Jb[:, :2] * sigma  # unit vector where r > 0, else 0
+    H[:, :2, :2] = Jb[:, :2, None] * Jb[:, None, :2]
+    k = np.where(r > 0, r / (sigma * np.where(d > 0, d, 1.0)), 0.0)
+    H[:, :2, :2] += k[:, None, None] * (np.eye(2) - u[:, :, None] * u[:, None, :])
+    return H
+
+
 # --- normal equations with a fixed pattern ------------------------------------------------
 
 
@@ -324,10 +340,11 @@ class _Objective:
             self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1]), g.range_sigma, g.range_dead_zone_m
         )
         JbaT, JbbT = np.transpose(Jba, (0, 2, 1)), np.transpose(Jbb, (0, 2, 1))
+        Hr = range_hessian(self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1]), rr, Jrb, g.range_sigma)
         H, grad = self.normal.assemble(
-            np.concatenate([JbaT @ Jba, Jra[:, :, None] * Jra[:, None, :]]),
-            np.concatenate([JbbT @ Jbb, Jrb[:, :, None] * Jrb[:, None, :]]),
-            np.concatenate([JbaT @ Jbb, Jra[:, :, None] * Jrb[:, None, :]]),
+            np.concatenate([JbaT @ Jba, Hr]),
+            np.concatenate([JbbT @ Jbb, Hr]),
+            np.concatenate([JbaT @ Jbb, -Hr]),
             np.concatenate([(JbaT @ rb[:, :, None])[:, :, 0], Jra * rr[:, None]]),
             np.concatenate([(JbbT @ rb[:, :, None])[:, :, 0], Jrb * rr[:, None]]),
         )
