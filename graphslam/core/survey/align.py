@@ -16,9 +16,8 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
-import gtsam
 import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
@@ -34,9 +33,17 @@ from graphslam.core.survey.initialise import Placement, register_walks, se2_appl
 from graphslam.core.types import PoseTrack, Survey, wrap_angle
 from graphslam.errors import SolverError
 
+if TYPE_CHECKING:
+    import gtsam
+
 log = logging.getLogger(__name__)
 
-X = gtsam.symbol_shorthand.X  # X(i): step pose i, numbered globally over all walks
+
+def X(i: int) -> int:
+    """GTSAM key of step pose i, numbered globally over all walks (``symbol_shorthand.X``)."""
+    import gtsam  # lazy: ~0.4 s, needed only by the GTSAM back end (optimizer.solver: gtsam)
+
+    return gtsam.symbol_shorthand.X(i)
 
 
 @dataclass(frozen=True)
@@ -250,6 +257,8 @@ def native_graph(
     With ``optimizer.compress_chains`` the IMU chain between fingerprint poses becomes one
     between factor per segment (``graphslam.core.survey.chains``); otherwise one per step (eq. 6-8).
     """
+    import gtsam
+
     imu_graph = gtsam.NonlinearFactorGraph()
     chains = None
     if cfg.optimizer.compress_chains:
@@ -317,6 +326,8 @@ def lm_params(cfg: GraphSlamConfig, n_poses: int = 0) -> gtsam.LevenbergMarquard
     """LM settings. Direct multifrontal Cholesky is fastest on surveys of a few thousand fingerprint
     poses; beyond that the WiFi edges, which tie every revisited place together, make elimination
     cliques grow large and block-Jacobi PCG wins (docs/benchmarks.md)."""
+    import gtsam
+
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(cfg.optimizer.max_iterations)
     params.setRelativeErrorTol(cfg.optimizer.relative_error_tol)
@@ -444,6 +455,8 @@ def _gtsam_lm(
     hook: Callable[[int, float, float], None],
 ) -> tuple[gtsam.Values, bool]:
     """One stage with GTSAM's own LM (``optimizer.solver: gtsam``)."""
+    import gtsam
+
     graph = gtsam.NonlinearFactorGraph(imu_graph)
     for k in np.flatnonzero(active).tolist():
         graph.add(wifi_factors[k])
@@ -461,6 +474,8 @@ def _gtsam_lm(
 
 
 def _values_to_xyh(values: gtsam.Values, template: NDArray) -> NDArray:
+    import gtsam
+
     out = np.full_like(template, np.nan)
     # gtsam.utilities.extractPose2 returns poses in key order
     keys = gtsam.KeyVector(values.keys())
