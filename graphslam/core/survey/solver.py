@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -233,65 +234,100 @@ def _slot(blocks: NDArray, keys: NDArray, ok: NDArray) -> NDArray:
     return np.where(ok, np.searchsorted(blocks, np.where(ok, keys, 0)), -1)
 
 
+_MKL: list = []  # the loaded MKL runtime, once per process
+
+
+def _mkl_runtime():  # noqa: ANN202 - a ctypes.CDLL
+    """MKL's single dynamic library, as the ``mkl`` wheel installs it (``<prefix>/lib``).
+
+    Looked up by file name first: ``ctypes.util.find_library`` runs ldconfig and a compiler
+    (~0.1 s), and pypardiso's import does that search at import time."""
+    if _MKL:
+        return _MKL[0]
+    import ctypes
+    import ctypes.util
+    import glob
+    import site
+    import sys
+
+    dirs = [Path(sys.prefix) / "lib", Path(site.getuserbase()) / "lib", Path(sys.prefix) / "Library" / "bin"]
+    names = ("libmkl_rt.so*", "libmkl_rt*.dylib", "mkl_rt*.dll")
+    found = sorted(p for d in dirs for n in names for p in glob.glob(str(d / n)))
+    lib_path = found[-1] if found else ctypes.util.find_library("mkl_rt")
+    if lib_path is None:
+        raise OSError("MKL runtime (libmkl_rt) not found: pip install mkl")
+    lib = ctypes.CDLL(lib_path)
+    i32p = ctypes.POINTER(ctypes.c_int32)
+    lib.pardiso.argtypes = [ctypes.POINTER(ctypes.c_int64)] + [i32p] * 5 + [ctypes.c_void_p, i32p, i32p, i32p, i32p,
+                                                                             i32p, i32p, ctypes.c_void_p,
+                                                                             ctypes.c_void_p, i32p]
+    lib.pardiso.restype = None
+    _MKL.append(lib)
+    return lib
+
+
 class _Pardiso:
-    """MKL PARDISO for a symmetric positive-definite matrix: analyse once, refactorise numerically."""
+    """MKL PARDISO for a symmetric positive-definite matrix (upper triangle, CSR): the ordering
+    (METIS nested dissection) and symbolic factorisation once, then numeric refactorisations."""
 
     def __init__(self, indptr: NDArray[np.int32], indices: NDArray[np.int32], threads: int = 1) -> None:
-        n = len(indptr) - 1
+        self._lib = _mkl_runtime()
+        self._n = len(indptr) - 1
+        self._ia = (indptr + 1).astype(np.int32)  # PARDISO's default: one-based indices
+        self._ja = (indices + 1).astype(np.int32)
+        self._a = np.zeros(len(indices))
+        self._pt = np.zeros(64, np.int64)  # PARDISO's internal handle
+        self._iparm = np.zeros(64, np.int32)  # iparm[0] = 0: every parameter at its default
         self._threads = threads
-        self._A = sparse.csr_matrix((np.ones(len(indices)), indices, indptr), shape=(n, n))
-        self._s = _new_pardiso()
-        self._s.set_phase(11)  # ordering (METIS) + symbolic factorisation
-        self._call(np.zeros(n))
+        self._live = False
+        self._call(11, np.zeros(1), np.zeros(1))  # analysis
+        self._live = True
 
-    def _call(self, b: NDArray) -> NDArray:
-        import pypardiso
+    def _call(self, phase: int, b: NDArray, x: NDArray) -> None:
+        import ctypes
 
-        lib = self._s.libmkl
+        i32 = ctypes.c_int32
+        err = i32(0)
+        lib = self._lib
         # thread-local MKL thread count: OpenMP spin-waits cost more than they gain on a busy machine
         prev = lib.MKL_Set_Num_Threads_Local(self._threads) if self._threads > 0 else None
         try:
-            return self._s._call_pardiso(self._A, b)
-        except pypardiso.pardiso_wrapper.PyPardisoError as e:
-            raise np.linalg.LinAlgError(str(e)) from None
+            lib.pardiso(
+                self._pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
+                ctypes.byref(i32(1)), ctypes.byref(i32(1)), ctypes.byref(i32(2)),  # maxfct, mnum, mtype: real SPD
+                ctypes.byref(i32(phase)), ctypes.byref(i32(self._n)),
+                self._a.ctypes.data, self._ia.ctypes.data_as(ctypes.POINTER(i32)),
+                self._ja.ctypes.data_as(ctypes.POINTER(i32)), None, ctypes.byref(i32(1)),
+                self._iparm.ctypes.data_as(ctypes.POINTER(i32)), ctypes.byref(i32(0)),
+                b.ctypes.data, x.ctypes.data, ctypes.byref(err),
+            )
         finally:
             if prev is not None:
                 lib.MKL_Set_Num_Threads_Local(prev)
+        if err.value != 0:  # e.g. -4: zero pivot, the matrix is not positive definite
+            raise np.linalg.LinAlgError(f"PARDISO phase {phase} failed with error {err.value}")
 
     def factor(self, data: NDArray) -> None:
-        self._A.data = data
-        self._s.set_phase(22)
-        self._call(np.zeros(self._A.shape[0]))
+        self._a[:] = data
+        self._call(22, np.zeros(1), np.zeros(1))
 
     def solve(self, b: NDArray) -> NDArray:
-        self._s.set_phase(33)
-        return self._call(np.asfortranarray(b))
+        b = np.ascontiguousarray(b, dtype=np.float64)
+        x = np.zeros_like(b)
+        self._call(33, b, x)
+        return x
 
     def free(self) -> None:
-        self._s.free_memory(everything=True)
-
-
-_PROTO: list = []  # one PyPardisoSolver whose MKL handle later solvers share (finding MKL takes ~0.1 s)
-
-
-def _new_pardiso():  # noqa: ANN202 - pypardiso is imported lazily
-    import copy
-
-    import pypardiso  # lazy: MKL is loaded on first use
-
-    if not _PROTO:
-        _PROTO.append(pypardiso.PyPardisoSolver(mtype=2))  # real SPD: upper triangle, no pivoting
-    s = copy.copy(_PROTO[0])
-    s.pt = np.zeros_like(s.pt)  # PARDISO's handle: a fresh one per matrix
-    s.iparm = np.zeros_like(s.iparm)  # all defaults: METIS nested dissection, no pivoting (SPD)
-    return s
+        if self._live:
+            self._live = False
+            self._call(-1, np.zeros(1), np.zeros(1))
 
 
 def pardiso_available() -> bool:
-    """MKL PARDISO loads (pypardiso installed with an MKL for this platform)."""
+    """MKL PARDISO loads (the ``mkl`` wheel exists for x86-64 Linux, Windows and macOS only)."""
     try:
-        _new_pardiso()
-    except (ImportError, OSError):
+        _mkl_runtime()
+    except OSError:
         return False
     return True
 
