@@ -422,7 +422,7 @@ def levenberg_marquardt(
                 try:
                     solver.factor(Hd)
                     step = -solver.solve(grad)
-                except np.linalg.LinAlgError:
+                except np.linalg.LinAlgError:  # not positive definite: damp more
                     lam, nu = lam * nu, nu * 2.0
                     continue
                 # predicted decrease of the Gauss-Newton model, 0.5 |r + J s|^2
@@ -440,6 +440,8 @@ def levenberg_marquardt(
             if not accepted:
                 break  # stall: no lambda gives a lower error
             it += 1
+            log.debug("LM %d: error %.6g -> %.6g, rho %.3f, lambda %.3g, factorisations %d", it, err, err_new, rho, lam,
+                      factorizations)
             if hook is not None:
                 hook(it, err, err_new)
             decrease = err - err_new
