@@ -12,8 +12,8 @@ factorisation than MKL PARDISO with the analysis reused (docs/benchmarks.md, iss
  * IMU-between: e = Log(U^-1 (X_a^-1 X_b)), whitened by an upper-triangular W with
    W^T W = Sigma^-1 (GTSAM's ``BetweenFactorPose2`` with a Gaussian noise model).
  * WiFi range: r = max(d - d_min, 0) / sigma, d = |p_a - p_b| (GTSAM's ``RangeFactorPose2``
-   at range 0 under ``L2WithDeadZone``). Linearised exactly (Gauss-Newton on r), where
-   GTSAM's robust wrapper reweights; the minimum is the same.
+   at range 0 under ``L2WithDeadZone``), with its exact Hessian (``range_hessian``) where
+   GTSAM's robust wrapper reweights a Gauss-Newton one; the minimum is the same.
  * Linear algebra: the normal equations' pattern is fixed for one active edge set, so
    PARDISO's ordering (METIS) and symbolic analysis run once per stage and each lambda try
    or iteration is only a numeric refactorisation. Lambda follows Nielsen's rule, which
