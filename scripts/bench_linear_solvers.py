@@ -56,64 +56,69 @@ def main() -> None:
     os.environ.setdefault("MKL_NUM_THREADS", "1")
     cfg = GraphSlamConfig()
     for size in (float(s) for s in args.sizes.split(",")):
-        problem = build_problem(simulate("paper", seed=args.seed, size=size).survey, cfg)
-        graph, _ = pose_graph(problem, cfg)
-        active = np.ones(len(problem.wifi_pairs), bool)
-        obj = S._Objective(graph, active, problem.init_xyh)
-        v = problem.init_xyh[graph.variables].ravel()
-        H, g, _ = obj.linearise(v)
-        ne = obj.normal
-        H[ne.diag_pos] += 1e-5 * np.clip(H[ne.diag_pos], 1e-9, None)  # LM's damping
-        upper = sparse.csr_matrix((H, ne.indices, ne.indptr), shape=(ne.n, ne.n))
-        full = (upper + upper.T - sparse.diags(H[ne.diag_pos])).tocsc()
-        row: dict = {"size": size, "variables": ne.n, "nnz_upper": int(len(H)), "load_1min": round(os.getloadavg()[0], 2)}
+        print(json.dumps(measure(size, args.seed, args.repeats, skip, cfg)), flush=True)
 
-        def residual(x: np.ndarray) -> float:
-            return float(np.linalg.norm(full @ x + g) / np.linalg.norm(g))
 
-        with threadpool_limits(1):
-            if "pardiso" not in skip:
+def measure(size: float, seed: int, repeats: int, skip: set[str], cfg: GraphSlamConfig) -> dict:
+    """One JSON row: every solver on the stage-0 system of ``paper`` at ``size``."""
+    problem = build_problem(simulate("paper", seed=seed, size=size).survey, cfg)
+    graph, _ = pose_graph(problem, cfg)
+    active = np.ones(len(problem.wifi_pairs), bool)
+    obj = S._Objective(graph, active, problem.init_xyh)
+    v = problem.init_xyh[graph.variables].ravel()
+    H, g, _ = obj.linearise(v)
+    ne = obj.normal
+    H[ne.diag_pos] += 1e-5 * np.clip(H[ne.diag_pos], 1e-9, None)  # LM's damping
+    upper = sparse.csr_matrix((H, ne.indices, ne.indptr), shape=(ne.n, ne.n))
+    full = (upper + upper.T - sparse.diags(H[ne.diag_pos])).tocsc()
+    row: dict = {"size": size, "variables": ne.n, "nnz_upper": len(H), "load_1min": round(os.getloadavg()[0], 2)}
+
+    def residual(x: np.ndarray) -> float:
+        return float(np.linalg.norm(full @ x + g) / np.linalg.norm(g))
+
+    with threadpool_limits(1):
+        if "pardiso" not in skip:
+            t = time.perf_counter()
+            p = S._Pardiso(ne.indptr, ne.indices, threads=1)
+            row["pardiso_analyse_s"] = round(time.perf_counter() - t, 4)
+            row["pardiso_factor_nnz"] = int(p._iparm[17])
+            row["pardiso_factor_gflop"] = round(p._iparm[18] / 1e3, 2)
+            dt, x = best(lambda: (p.factor(H), p.solve(-g))[1], repeats)
+            row["pardiso_refactor_solve_s"] = round(dt, 4)
+            row["pardiso_residual"] = residual(x)
+            p.free()
+        if "gtsam" not in skip:
+            import gtsam
+
+            imu, wifi, values, _ = native_graph(problem, cfg)
+            full_graph = gtsam.NonlinearFactorGraph(imu)
+            for f in wifi:
+                full_graph.add(f)
+            lin = full_graph.linearize(values)
+            dt, _ = best(lambda: lin.optimize(gtsam.Ordering.MetisGaussianFactorGraph(lin)), repeats)
+            row["gtsam_multifrontal_metis_s"] = round(dt, 4)
+        if "cholmod" not in skip:
+            try:
+                from sksparse_minimal import SparseCholesky
+            except ImportError:
+                row["cholmod_s"] = "not installed (pip install sksparse-minimal)"
+            else:
+                dt, x = best(lambda: SparseCholesky(full).solve_A(-g), repeats)
+                row["cholmod_analyse_factor_solve_s"] = round(dt, 4)
+                row["cholmod_residual"] = residual(x)
+        if "qdldl" not in skip:
+            try:
+                import qdldl
+            except ImportError:
+                row["qdldl_s"] = "not installed (pip install qdldl)"
+            else:
                 t = time.perf_counter()
-                p = S._Pardiso(ne.indptr, ne.indices, threads=1)
-                row["pardiso_analyse_s"] = round(time.perf_counter() - t, 4)
-                row["pardiso_factor_nnz"] = int(p._iparm[17])
-                row["pardiso_factor_gflop"] = round(p._iparm[18] / 1e3, 2)
-                dt, x = best(lambda: (p.factor(H), p.solve(-g))[1], args.repeats)
-                row["pardiso_refactor_solve_s"] = round(dt, 4)
-                row["pardiso_residual"] = residual(x)
-                p.free()
-            if "gtsam" not in skip:
-                import gtsam
-
-                imu, wifi, values, _ = native_graph(problem, cfg)
-                full_graph = gtsam.NonlinearFactorGraph(imu)
-                for f in wifi:
-                    full_graph.add(f)
-                lin = full_graph.linearize(values)
-                dt, _ = best(lambda: lin.optimize(gtsam.Ordering.MetisGaussianFactorGraph(lin)), args.repeats)
-                row["gtsam_multifrontal_metis_s"] = round(dt, 4)
-            if "cholmod" not in skip:
-                try:
-                    from sksparse_minimal import SparseCholesky
-                except ImportError:
-                    row["cholmod_s"] = "not installed (pip install sksparse-minimal)"
-                else:
-                    dt, x = best(lambda: SparseCholesky(full).solve_A(-g), args.repeats)
-                    row["cholmod_analyse_factor_solve_s"] = round(dt, 4)
-                    row["cholmod_residual"] = residual(x)
-            if "qdldl" not in skip:
-                try:
-                    import qdldl
-                except ImportError:
-                    row["qdldl_s"] = "not installed (pip install qdldl)"
-                else:
-                    t = time.perf_counter()
-                    q = qdldl.Solver(full)
-                    row["qdldl_first_s"] = round(time.perf_counter() - t, 4)
-                    dt, x = best(lambda: (q.update(full), q.solve(-g))[1], args.repeats)
-                    row["qdldl_refactor_solve_s"] = round(dt, 4)
-                    row["qdldl_residual"] = residual(x)
-        print(json.dumps(row), flush=True)
+                q = qdldl.Solver(full)
+                row["qdldl_first_s"] = round(time.perf_counter() - t, 4)
+                dt, x = best(lambda: (q.update(full), q.solve(-g))[1], repeats)
+                row["qdldl_refactor_solve_s"] = round(dt, 4)
+                row["qdldl_residual"] = residual(x)
+    return row
 
 
 if __name__ == "__main__":

@@ -3,15 +3,14 @@ and the same minimum as GTSAM's optimiser."""
 
 from __future__ import annotations
 
-
 import gtsam
 import numpy as np
 import pytest
 from test_align import CFG, two_walks
 
 from graphslam.core.survey import solver as S
-from graphslam.errors import SolverError
 from graphslam.core.survey.align import build_problem, pose_graph, solve
+from graphslam.errors import SolverError
 
 X = gtsam.symbol_shorthand.X
 pytestmark = pytest.mark.skipif(not S.pardiso_available(), reason="MKL PARDISO not available on this platform")
@@ -62,8 +61,11 @@ def test_range_factor_equals_gtsam_dead_zone_and_its_hessian_the_numerical_one()
         v.insert(X(0), gtsam.Pose2(*xa[k]))
         v.insert(X(1), gtsam.Pose2(*xb[k]))
         assert 0.5 * r[k] ** 2 == pytest.approx(gtsam.RangeFactorPose2(X(0), X(1), 0.0, noise).error(v), abs=1e-12)
-    grad = lambda x: (lambda rr, _a, jb: rr[:, None] * jb)(*S.range_residuals(xa, x, sigma, d0))  # noqa: E731
-    np.testing.assert_allclose(S.range_hessian(xa, xb, r, Jb, sigma), _numerical(grad, xb), atol=1e-5)
+    def grad_b(x: np.ndarray) -> np.ndarray:  # d(0.5 r^2)/d(pose b) = r J_b
+        rr, _, jb = S.range_residuals(xa, x, sigma, d0)
+        return rr[:, None] * jb
+
+    np.testing.assert_allclose(S.range_hessian(xa, xb, r, Jb, sigma), _numerical(grad_b, xb), atol=1e-5)
     np.testing.assert_allclose(Ja, -Jb)
 
 
@@ -74,7 +76,7 @@ def test_normal_equations_equal_the_dense_products() -> None:
     vb = (va + 1 + rng.integers(0, n_vars - 1, m)) % n_vars
     Ja, Jb, res = rng.normal(size=(m, 3, 3)), rng.normal(size=(m, 3, 3)), rng.normal(size=(m, 3))
     ne = S._NormalEquations(n_vars, va, vb)
-    tr = lambda a: np.transpose(a, (0, 2, 1))  # noqa: E731
+    tr = lambda a: np.transpose(a, (0, 2, 1))
     H, g = ne.assemble(tr(Ja) @ Ja, tr(Jb) @ Jb, tr(Ja) @ Jb, (tr(Ja) @ res[:, :, None])[..., 0], (tr(Jb) @ res[:, :, None])[..., 0])
     J = np.zeros((3 * m, 3 * n_vars))
     for k in range(m):

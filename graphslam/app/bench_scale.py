@@ -55,6 +55,7 @@ def _run_once(data: Path, out: Path, pythonpath: str | None, config: Path | None
     rep = json.loads((out / "report.json").read_text())
     return {
         "wall": wall,
+        "cpu": usage.ru_utime + usage.ru_stime,  # less sensitive to other jobs than wall time
         "rss_mb": usage.ru_maxrss / 1024,
         "stages": rep["timings_s"],
         "final_error": rep["optimizer"]["final_error"],
@@ -69,6 +70,7 @@ def _summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
     return {
         "runs": len(runs),
         "wall_s": round(statistics.median(r["wall"] for r in runs), 3),
+        "cpu_s": round(statistics.median(r["cpu"] for r in runs), 3),
         "startup_s": round(statistics.median(r["wall"] - r["stages"]["total"] for r in runs), 3),
         "stages_s": {k: round(statistics.median(r["stages"].get(k, 0.0) for r in runs), 3) for k in keys},
         "peak_rss_mb": round(max(r["rss_mb"] for r in runs), 1),
@@ -127,6 +129,7 @@ def scale(
                 row[side] = _summary(res)
             if "base" in row:
                 row["speedup_wall"] = round(row["base"]["wall_s"] / row["new"]["wall_s"], 2)
+                row["speedup_cpu"] = round(row["base"]["cpu_s"] / row["new"]["cpu_s"], 2)
                 row["speedup_optimise"] = round(
                     row["base"]["stages_s"]["align.optimise"] / max(row["new"]["stages_s"]["align.optimise"], 1e-9), 2
                 )
@@ -151,6 +154,7 @@ def markdown_table(result: dict[str, Any]) -> str:
     for key, name in STAGES:
         lines.append(f"| {name} | " + " | ".join(f"{s['stages_s'].get(key, 0.0):.2f}" for _, s in cols) + " |")
     lines.append("| **wall** | " + " | ".join(f"**{s['wall_s']:.2f}**" for _, s in cols) + " |")
+    lines.append("| CPU (user + sys) | " + " | ".join(f"{s['cpu_s']:.2f}" for _, s in cols) + " |")
     lines.append("| peak RSS (MB) | " + " | ".join(f"{s['peak_rss_mb']:.0f}" for _, s in cols) + " |")
     lines.append("| LM iterations / final error | " + " | ".join(f"{s['iterations']} / {s['final_error']:.2f}" for _, s in cols) + " |")
     lm = " | ".join("-" if s["landmark_mean_m"] is None else f"{s['landmark_mean_m']:.3f}" for _, s in cols)

@@ -22,8 +22,8 @@ from typing import Iterator
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.survey.association import FingerprintNodes
 from graphslam.core.radiomap.fingerprints import DistanceEngine
+from graphslam.core.survey.association import FingerprintNodes
 
 log = logging.getLogger(__name__)
 

@@ -237,7 +237,7 @@ def _slot(blocks: NDArray, keys: NDArray, ok: NDArray) -> NDArray:
 _MKL: list = []  # the loaded MKL runtime, once per process
 
 
-def _mkl_runtime():  # noqa: ANN202 - a ctypes.CDLL
+def _mkl_runtime():  # -> ctypes.CDLL (imported lazily)
     """MKL's single dynamic library, as the ``mkl`` wheel installs it (``<prefix>/lib``).
 
     Looked up by file name first: ``ctypes.util.find_library`` runs ldconfig and a compiler
