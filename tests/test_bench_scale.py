@@ -29,7 +29,7 @@ def test_table_has_a_column_per_side_and_size_and_the_load() -> None:
     assert table.splitlines()[0] == "| stage (wall s) | size 1 base | size 1 new | size 12 new |"
     assert "| optimise | 1.00 | 0.50 | 10.00 |" in table
     assert "| **wall** | **4.00** | **2.00** | **40.00** |" in table
-    assert "size 1: 0.5-0.7" in table and "growth exponent (this checkout): 1.2" in table
+    assert "size 1: 0.5-0.7" in table and "growth exponent (this checkout): 1.2 " in table
 
 
 @pytest.mark.parametrize(

@@ -136,7 +136,9 @@ def scale(
             rows.append(row)
     out: dict[str, Any] = {"scenario": scenario, "seed": seed, "rows": rows}
     if len(rows) >= 2:
-        out["growth_exponent_new"] = round(growth_exponent([r["size"] for r in rows], [r["new"]["wall_s"] for r in rows]), 3)
+        sz = [r["size"] for r in rows]
+        out["growth_exponent_new"] = round(growth_exponent(sz, [r["new"]["wall_s"] for r in rows]), 3)
+        out["growth_exponent_new_cpu"] = round(growth_exponent(sz, [r["new"]["cpu_s"] for r in rows]), 3)
     return out
 
 
@@ -163,5 +165,8 @@ def markdown_table(result: dict[str, Any]) -> str:
     lines.append("")
     lines.append(f"Load average (1 min, before-after): {loads}.")
     if "growth_exponent_new" in result:
-        lines.append(f"Wall-time growth exponent (this checkout): {result['growth_exponent_new']}.")
+        lines.append(
+            f"Wall-time growth exponent (this checkout): {result['growth_exponent_new']} "
+            f"(CPU time: {result.get('growth_exponent_new_cpu')})."
+        )
     return "\n".join(lines)
