@@ -120,3 +120,17 @@ def test_an_unfinite_start_is_an_error() -> None:
     bad[graph.variables[3]] = np.nan
     with pytest.raises(SolverError, match="not finite"):
         S.levenberg_marquardt(graph, bad, np.ones(len(problem.wifi_pairs), bool))
+
+
+def test_auto_falls_back_to_gtsam_where_mkl_does_not_load(monkeypatch: pytest.MonkeyPatch) -> None:
+    from graphslam.core.survey.align import use_pardiso
+
+    assert use_pardiso(CFG)  # MKL loads here (the module is skipped otherwise)
+
+    def no_mkl() -> None:
+        raise OSError("MKL runtime (libmkl_rt) not found")
+
+    monkeypatch.setattr(S, "_mkl_runtime", no_mkl)
+    assert not S.pardiso_available() and not use_pardiso(CFG)
+    gtsam_cfg = CFG.model_copy(update={"optimizer": CFG.optimizer.model_copy(update={"solver": "gtsam"})})
+    assert not use_pardiso(gtsam_cfg)

@@ -256,6 +256,8 @@ def native_graph(
 
     With ``optimizer.compress_chains`` the IMU chain between fingerprint poses becomes one
     between factor per segment (``graphslam.core.survey.chains``); otherwise one per step (eq. 6-8).
+    Only ``optimizer.solver: gtsam`` solves this graph; the default back end solves ``pose_graph``,
+    so a factor type added here needs its vectorised counterpart in ``solver.py`` too.
     """
     import gtsam
 
