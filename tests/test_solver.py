@@ -92,7 +92,7 @@ def test_normal_equations_equal_the_dense_products() -> None:
     np.testing.assert_allclose(S._sym_matvec(ne, H, x), J.T @ J @ x, atol=1e-10)
 
 
-def test_reaches_gtsam_minimum_with_fewer_factorisations() -> None:
+def test_reaches_gtsam_minimum_with_one_factorisation_per_iteration() -> None:
     survey = two_walks()
     cfg_p = CFG.model_copy(update={"optimizer": CFG.optimizer.model_copy(update={"solver": "pardiso"})})
     cfg_g = CFG.model_copy(update={"optimizer": CFG.optimizer.model_copy(update={"solver": "gtsam"})})
