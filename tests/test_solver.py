@@ -3,6 +3,8 @@ and the same minimum as GTSAM's optimiser."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import gtsam
 import numpy as np
 import pytest
@@ -134,3 +136,14 @@ def test_auto_falls_back_to_gtsam_where_mkl_does_not_load(monkeypatch: pytest.Mo
     assert not S.pardiso_available() and not use_pardiso(CFG)
     gtsam_cfg = CFG.model_copy(update={"optimizer": CFG.optimizer.model_copy(update={"solver": "gtsam"})})
     assert not use_pardiso(gtsam_cfg)
+
+
+def test_a_graph_of_the_reference_pose_alone_is_already_solved() -> None:
+    problem = build_problem(two_walks(), CFG)
+    graph, _ = pose_graph(problem, CFG)
+    lonely = replace(graph, variables=graph.variables[:0], between_pairs=graph.between_pairs[:0],
+                     between_measured=graph.between_measured[:0], between_sqrt_info=graph.between_sqrt_info[:0],
+                     range_pairs=graph.range_pairs[:0])
+    res = S.levenberg_marquardt(lonely, problem.init_xyh, np.zeros(0, bool))
+    assert res.converged and res.iterations == 0 and res.error == 0.0
+    np.testing.assert_array_equal(res.xyh, problem.init_xyh)

@@ -403,6 +403,9 @@ def levenberg_marquardt(
     v = np.ascontiguousarray(xyh[graph.variables]).ravel()
     if not np.all(np.isfinite(v)):
         raise SolverError("initial poses of the optimised nodes are not finite")
+    if not len(v):  # only the fixed reference pose: nothing to optimise
+        err = obj.error(v)
+        return LMResult(xyh.copy(), 0, 0, err, err, True)
     ne = obj.normal
     solver = _Pardiso(ne.indptr, ne.indices, settings.threads)
     H, grad, err = obj.linearise(v)
