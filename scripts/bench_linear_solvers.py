@@ -36,7 +36,6 @@ from graphslam.core.survey import solver as S
 from graphslam.core.survey.align import build_problem, native_graph, pose_graph
 from graphslam.sim import simulate
 
-
 CPU: dict[str, float] = {}  # process CPU seconds of the last ``best`` call's fastest run
 
 
