@@ -293,6 +293,40 @@ def bench_survey(
     typer.echo(json.dumps(survey_speed(scenario, seed, runs=runs, size=size, config=config)))
 
 
+@bench_app.command("scale")
+def bench_scale(
+    scenario: str = typer.Argument("paper"),
+    seed: int = typer.Option(0),
+    sizes: str = typer.Option("1", help="Comma-separated simulator sizes, e.g. 1,2,4,8,12."),
+    runs: str = typer.Option("5", help="Rounds per size: one number, or one per size (e.g. 7,5,3,1,1)."),
+    baseline: Optional[Path] = typer.Option(
+        None, "--baseline", help="A graphslam checkout (e.g. a git worktree of the previous main) run alternately."
+    ),
+    baseline_max_size: float = typer.Option(1e9, help="Run the baseline only up to this size (it may be slow)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c"),
+) -> None:
+    """`graphslam survey` per size, alternating with --baseline in fresh processes: stage medians, peak RSS,
+    growth exponent; JSON on stdout, then the markdown stage table."""
+    from graphslam.app.bench_scale import markdown_table, scale
+    from graphslam.errors import ConfigError
+
+    try:
+        size_list = [float(v) for v in sizes.split(",") if v.strip()]
+        run_list = [int(v) for v in runs.split(",") if v.strip()]
+    except ValueError:
+        raise ConfigError(f"--sizes / --runs: numbers separated by commas, got {sizes!r} / {runs!r}") from None
+    if len(run_list) == 1:
+        run_list *= len(size_list)
+    if not size_list or len(run_list) != len(size_list) or min(run_list) < 1 or min(size_list) <= 0:
+        raise ConfigError("--runs: one count >= 1, or one per size; --sizes: positive numbers")
+    result = scale(
+        scenario, seed, size_list, run_list, baseline=baseline, baseline_max_size=baseline_max_size, config=config,
+        progress=lambda msg: typer.echo(msg, err=True),
+    )
+    typer.echo(json.dumps(result))
+    typer.echo(markdown_table(result))
+
+
 INDEX_HELP = "kNN search: exact, ivf (approximate inverted file) or auto."
 IVF_CLUSTERS_HELP = "IVF: k-means clusters (default ~2 sqrt(N))."
 IVF_PROBES_HELP = "IVF: clusters searched per query (default 8)."

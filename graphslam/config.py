@@ -57,6 +57,17 @@ class EdgeConfig(_Strict):
     )
     min_common_aps: int = Field(3, ge=1, description="pairs sharing fewer access points are not compared")
     chunk_rows: int = Field(1024, ge=16, description="fingerprints per block of the distance computation")
+    candidates: Literal["auto", "exact", "ivf"] = Field(
+        "auto",
+        description="pairs compared with the threshold. exact: all (O(F^2)); ivf: each fingerprint's ivf_neighbours "
+        "nearest in an IVF index (recall 99.7-99.9 % of the exact edges on paper sizes 1-12); auto: ivf above "
+        "ivf_above_fingerprints",
+    )
+    ivf_above_fingerprints: int = Field(
+        5000, ge=0, description="auto takes ivf above this many fingerprints (exact: ~1 s at 5k, growing as F^2)"
+    )
+    ivf_neighbours: int = Field(32, ge=1, description="ivf: candidates per fingerprint (the cap keeps 3 of them)")
+    ivf_probes: int = Field(8, ge=1, description="ivf: clusters searched per fingerprint (4: recall 98 %, 8: 99.7-99.9 %)")
 
 
 class ImuConfig(_Strict):
@@ -100,9 +111,19 @@ class OptimizerConfig(_Strict):
     relative_error_tol: float = Field(1e-4, gt=0)
     absolute_error_tol: float = Field(1e-5, ge=0)
     outer_iterations: int = Field(6, ge=1, description="re-evaluations of the saturated (d > d_max) edge set")
+    solver: Literal["auto", "pardiso", "gtsam"] = Field(
+        "auto",
+        description="pardiso: own LM, vectorised factors, MKL PARDISO with the analysis reused (LM 6-7x faster on "
+        "paper sizes 1-4, same or lower minimum, docs/benchmarks.md issue 16); gtsam: GTSAM's LevenbergMarquardtOptimizer; auto: pardiso if MKL loads",
+    )
+    threads: int = Field(
+        1, ge=0, description="solver=pardiso: MKL threads of the factorisation; 0 = MKL's default (all cores). 1 measured "
+        "fastest on the shared 2-core machine (docs/benchmarks.md issue 16)",
+    )
     linear_solver: Literal["auto", "cholesky", "pcg"] = Field(
         "auto",
-        description="cholesky: multifrontal, METIS; pcg: block-Jacobi PCG (large surveys); auto: pcg above pcg_above_poses",
+        description="solver=gtsam only. cholesky: multifrontal, METIS; pcg: block-Jacobi PCG (large surveys); auto: "
+        "pcg above pcg_above_poses",
     )
     pcg_above_poses: int = Field(6000, ge=0, description="auto switches to pcg above this many pose variables")
     compress_chains: bool = Field(

@@ -16,9 +16,8 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
-import gtsam
 import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
@@ -27,6 +26,7 @@ from scipy.sparse.csgraph import connected_components
 from graphslam.config import GraphSlamConfig
 from graphslam.core.progress import Task
 from graphslam.core.survey import factors as F
+from graphslam.core.survey import solver as S
 from graphslam.core.survey.association import FingerprintNodes, associate
 from graphslam.core.survey.chains import CompressedChains, compress, expand
 from graphslam.core.survey.edges import WifiEdges, propose_edges, window_thresholds
@@ -36,9 +36,17 @@ from graphslam.core.survey.placement import GrowthParams, grow_placement
 from graphslam.core.types import PoseTrack, Survey, wrap_angle
 from graphslam.errors import SolverError
 
+if TYPE_CHECKING:
+    import gtsam
+
 log = logging.getLogger(__name__)
 
-X = gtsam.symbol_shorthand.X  # X(i): step pose i, numbered globally over all walks
+
+def X(i: int) -> int:
+    """GTSAM key of step pose i, numbered globally over all walks (``symbol_shorthand.X``)."""
+    import gtsam  # lazy: ~0.4 s, needed only by the GTSAM back end (optimizer.solver: gtsam)
+
+    return gtsam.symbol_shorthand.X(i)
 
 
 @dataclass(frozen=True)
@@ -143,6 +151,14 @@ class Problem:
         return int(self.fingerprints.offsets[self.reference])
 
 
+def edge_candidates(cfg: GraphSlamConfig, n_fingerprints: int) -> str:
+    """``edges.candidates`` resolved: auto takes the IVF index above ``edges.ivf_above_fingerprints``."""
+    c = cfg.edges.candidates
+    if c == "auto":
+        return "ivf" if n_fingerprints > cfg.edges.ivf_above_fingerprints else "exact"
+    return c
+
+
 def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
     """Steps 1-3 of the method: fingerprints on nodes, WiFi edges, initial placement."""
     if len(survey) == 0:
@@ -170,6 +186,9 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
         max_per_fingerprint=cfg.edges.max_per_fingerprint,
         min_common_aps=cfg.edges.min_common_aps,
         block_rows=cfg.edges.chunk_rows,
+        candidates=edge_candidates(cfg, len(fp)),
+        ivf_neighbours=cfg.edges.ivf_neighbours,
+        ivf_probes=cfg.edges.ivf_probes,
     )
     timings["edges"] = time.perf_counter() - t
     log.info("%d fingerprints on %d steps, %d WiFi edges", len(fp), fp.offsets[-1], len(edges))
@@ -281,7 +300,11 @@ def native_graph(
 
     With ``optimizer.compress_chains`` the IMU chain between fingerprint poses becomes one
     between factor per segment (``graphslam.core.survey.chains``); otherwise one per step (eq. 6-8).
+    Only ``optimizer.solver: gtsam`` solves this graph; the default back end solves ``pose_graph``,
+    so a factor type added here needs its vectorised counterpart in ``solver.py`` too.
     """
+    import gtsam
+
     imu_graph = gtsam.NonlinearFactorGraph()
     chains = None
     if cfg.optimizer.compress_chains:
@@ -308,10 +331,49 @@ def native_graph(
     return imu_graph, wifi, values, chains
 
 
+def pose_graph(problem: Problem, cfg: GraphSlamConfig) -> tuple[S.PoseGraph, CompressedChains | None]:
+    """The same graph as ``native_graph``, as arrays for ``solver.levenberg_marquardt`` (vectorised)."""
+    step_cov = np.diag([cfg.imu.sigma_xy_m**2, cfg.imu.sigma_xy_m**2, cfg.imu.sigma_heading_rad**2])
+    r0 = problem.reference_node
+    chains = None
+    if cfg.optimizer.compress_chains:
+        keep = np.zeros(len(problem.init_xyh), bool)
+        keep[problem.wifi_pairs.ravel()] = True
+        keep[r0] = True
+        chains = compress(problem.init_xyh, problem.fingerprints.offsets, keep, problem.included, step_cov)
+        nodes, pairs, measured = chains.kept, chains.pairs, chains.measured
+        sqrt_info = S.sqrt_information(chains.covariance)
+    else:
+        nodes = np.flatnonzero(np.isfinite(problem.init_xyh[:, 0]))
+        pairs, measured = problem.imu_pairs, problem.imu_u
+        sqrt_info = np.broadcast_to(S.sqrt_information(step_cov[None])[0], (len(pairs), 3, 3))
+    graph = S.PoseGraph(
+        n_nodes=len(problem.init_xyh),
+        variables=nodes[nodes != r0].astype(np.int64),
+        reference=r0,
+        between_pairs=pairs,
+        between_measured=measured,
+        between_sqrt_info=sqrt_info,
+        range_pairs=problem.wifi_pairs,
+        range_sigma=F.wifi_sigma(cfg.wifi),
+        range_dead_zone_m=cfg.wifi.d_min_m,
+    )
+    return graph, chains
+
+
+def use_pardiso(cfg: GraphSlamConfig) -> bool:
+    """``optimizer.solver``: auto takes the PARDISO LM where MKL loads (an x86-64 wheel), else GTSAM's."""
+    if cfg.optimizer.solver == "auto":
+        return S.pardiso_available()
+    return cfg.optimizer.solver == "pardiso"
+
+
 def lm_params(cfg: GraphSlamConfig, n_poses: int = 0) -> gtsam.LevenbergMarquardtParams:
     """LM settings. Direct multifrontal Cholesky is fastest on surveys of a few thousand fingerprint
     poses; beyond that the WiFi edges, which tie every revisited place together, make elimination
     cliques grow large and block-Jacobi PCG wins (docs/benchmarks.md)."""
+    import gtsam
+
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(cfg.optimizer.max_iterations)
     params.setRelativeErrorTol(cfg.optimizer.relative_error_tol)
@@ -342,7 +404,17 @@ def solve(
     timings = dict(problem.timings_s)
     t = time.perf_counter()
     with Task("build graph"):
-        imu_graph, wifi_factors, values, chains = native_graph(problem, cfg)
+        pardiso = use_pardiso(cfg)
+        if pardiso:
+            pg, chains = pose_graph(problem, cfg)
+            settings = S.LMSettings(
+                max_iterations=cfg.optimizer.max_iterations,
+                relative_error_tol=cfg.optimizer.relative_error_tol,
+                absolute_error_tol=cfg.optimizer.absolute_error_tol,
+                threads=cfg.optimizer.threads,
+            )
+        else:
+            imu_graph, wifi_factors, values, chains = native_graph(problem, cfg)
     ea, eb = problem.wifi_pairs[:, 0], problem.wifi_pairs[:, 1]
     timings["build_graph"] = time.perf_counter() - t
 
@@ -351,13 +423,14 @@ def solve(
     records: list[IterationRecord] = []
     snapshots: list[tuple[int, NDArray]] = []
 
-    def objective(xyh: NDArray, vals: gtsam.Values) -> float:
+    def objective(xyh: NDArray) -> float:
         d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
-        return float(imu_graph.error(vals) + F.fuzzy_cost(d, cfg.wifi).sum())
+        imu = S.between_error(pg, xyh) if pardiso else imu_graph.error(values)
+        return float(imu + F.fuzzy_cost(d, cfg.wifi).sum())
 
     init_xyh = problem.init_xyh
     xyh = init_xyh.copy()
-    initial_error = objective(xyh, values)
+    initial_error = objective(xyh)
     converged = False
     prev_active: NDArray | None = None
     for stage, radius in enumerate(_saturation_radii(cfg)):
@@ -365,10 +438,6 @@ def solve(
         active = d <= radius
         if prev_active is not None and np.array_equal(active, prev_active) and converged:
             continue  # LM already converged on exactly this graph
-        graph = gtsam.NonlinearFactorGraph(imu_graph)
-        for k in np.flatnonzero(active).tolist():
-            graph.add(wifi_factors[k])
-        params = lm_params(cfg, values.size())
         n_active = int(active.sum())
 
         def hook(it: int, before: float, after: float, _s: int = stage, _n: int = n_active) -> None:
@@ -378,23 +447,20 @@ def solve(
             if progress is not None:
                 progress(rec)
 
-        params.iterationHook = hook
-        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-        values = optimizer.optimize()
-        # LM also stops when it can find no step that lowers the error (lambda at its upper
-        # bound): that is a stall, not convergence
-        converged = (
-            optimizer.iterations() < cfg.optimizer.max_iterations
-            and optimizer.lambda_() < params.getlambdaUpperBound()
-        )
-        xyh = _values_to_xyh(values, init_xyh)
+        if pardiso:
+            res = S.levenberg_marquardt(pg, xyh, active, settings, hook)
+            converged = res.converged
+            xyh = res.xyh
+        else:
+            values, converged = _gtsam_lm(imu_graph, wifi_factors, values, active, cfg, hook)
+            xyh = _values_to_xyh(values, init_xyh)
         if chains is not None:
             xyh = expand(xyh, init_xyh, chains)
         snapshots.append((stage, xyh.copy()))
         prev_active = active
     timings["optimise"] = time.perf_counter() - t
     task.end()
-    final_error = objective(xyh, values)
+    final_error = objective(xyh)
 
     d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
     st = F.edge_state(d, cfg.wifi)
@@ -430,7 +496,36 @@ def solve(
     )
 
 
+def _gtsam_lm(
+    imu_graph: gtsam.NonlinearFactorGraph,
+    wifi_factors: list[gtsam.NonlinearFactor],
+    values: gtsam.Values,
+    active: NDArray[np.bool_],
+    cfg: GraphSlamConfig,
+    hook: Callable[[int, float, float], None],
+) -> tuple[gtsam.Values, bool]:
+    """One stage with GTSAM's own LM (``optimizer.solver: gtsam``)."""
+    import gtsam
+
+    graph = gtsam.NonlinearFactorGraph(imu_graph)
+    for k in np.flatnonzero(active).tolist():
+        graph.add(wifi_factors[k])
+    params = lm_params(cfg, values.size())
+    params.iterationHook = hook
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    values = optimizer.optimize()
+    # LM also stops when it can find no step that lowers the error (lambda at its upper
+    # bound): that is a stall, not convergence
+    converged = (
+        optimizer.iterations() < cfg.optimizer.max_iterations
+        and optimizer.lambda_() < params.getlambdaUpperBound()
+    )
+    return values, converged
+
+
 def _values_to_xyh(values: gtsam.Values, template: NDArray) -> NDArray:
+    import gtsam
+
     out = np.full_like(template, np.nan)
     # gtsam.utilities.extractPose2 returns poses in key order
     keys = gtsam.KeyVector(values.keys())
