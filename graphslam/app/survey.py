@@ -23,6 +23,7 @@ from graphslam.io.atomic import atomic_write_json, atomic_write_text
 from graphslam.io.csv_io import write_trajectories
 from graphslam.io.mcap_reader import read_survey
 from graphslam.io.mcap_writer import write_aligned
+from graphslam.io.survey_state import STATE_FILE, write_survey_state
 
 log = logging.getLogger(__name__)
 
@@ -102,16 +103,29 @@ def run_survey(
     floor_plan: str | Path | None = None,
     floor_size: tuple[float, float] | None = None,
     surveyed: bool = False,
+    update: str | Path | None = None,
 ) -> SurveyResult:
-    """Read ``paths``, align every walk, write the outputs into ``out_dir`` (None: no files)."""
+    """Read ``paths``, align every walk, write the outputs into ``out_dir`` (None: no files).
+
+    ``update``: a previous output folder of this floor; walks solved there start from their
+    solution and only the new walks' neighbourhood is re-solved (``graphslam.app.update``)."""
     cfg = config or GraphSlamConfig()
     _check_outputs(out_dir, rerun_path, floor_plan)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
+    previous = None
+    if update is not None:  # read first: a bad previous output fails before the work
+        from graphslam.app.update import align_update, load_previous
+
+        previous = load_previous(update)
     survey = read_survey(paths)
     timings["read"] = time.perf_counter() - t0
 
-    alignment = align(survey, cfg, progress=progress)
+    update_info = None
+    if previous is not None:
+        alignment, cfg, update_info = align_update(survey, cfg, previous, previous_dir=update, progress=progress)
+    else:
+        alignment = align(survey, cfg, progress=progress)
     timings.update({f"align.{k}": v for k, v in alignment.timings_s.items()})
 
     t = time.perf_counter()
@@ -126,6 +140,8 @@ def run_survey(
         viz = start_log_survey(rerun_path, survey, alignment, cfg, floor_plan=floor_plan, floor_size=floor_size)
     files: dict[str, Path] = {}
     report = build_report(survey, alignment, evaluation, cfg, timings)
+    if update_info is not None:
+        report["update"] = update_info
     if out_dir is not None:
         t = time.perf_counter()
         try:
@@ -177,6 +193,7 @@ def write_outputs(
             "radio_map": "radio_map.parquet",
             "config": "config.yaml",
             "report": "report.json",
+            "state": STATE_FILE,  # what a later `survey --update` starts from
         }
         write_trajectories(al.tracks, stage / names["trajectories"])
         write_aligned(al.tracks, stage / names["aligned"])
@@ -188,6 +205,7 @@ def write_outputs(
             names["radio_map_surveyed"] = "radio_map_surveyed.parquet"
             write_radio_map(surveyed_radio_map(survey, al, cfg), stage / names["radio_map_surveyed"])
         atomic_write_text(stage / names["config"], cfg.to_yaml())
+        write_survey_state(stage / names["state"], survey, al, cfg)
         atomic_write_json(stage / names["report"], report)
         files = {}
         for key, name in names.items():
