@@ -140,16 +140,22 @@ def survey(
     surveyed: bool = typer.Option(
         False, "--surveyed", help="Also write radio_map_surveyed.parquet: fingerprints at ground-truth poses (evaluation)."
     ),
+    update: Optional[Path] = typer.Option(
+        None, "--update", help="A previous survey's OUT folder of this floor: walks solved there start from their "
+        "solution and only the new walks' neighbourhood is re-solved (a full re-solve, said in report.json, if "
+        "the configuration or a walk changed). OUT may be the same folder.",
+    ),
 ) -> None:
     """Align every walk into one frame; write trajectories.csv, aligned.mcap, radio_map.parquet,
-    report.json and the effective config.yaml into OUT."""
+    report.json, survey_state.npz and the effective config.yaml into OUT."""
     from graphslam.app.survey import run_survey
 
     cfg = _config(config, set_)
     bar = _LmProgress(progress and sys.stderr.isatty())
     try:
         result = run_survey(
-            paths, out, cfg, progress=bar, rerun_path=rerun, floor_plan=floor_plan, floor_size=floor_size, surveyed=surveyed
+            paths, out, cfg, progress=bar, rerun_path=rerun, floor_plan=floor_plan, floor_size=floor_size,
+            surveyed=surveyed, update=update,
         )
     finally:
         bar.close()
@@ -168,7 +174,22 @@ def survey(
             f"p90 {lm['p90_m']:.2f} m, max {lm['max_m']:.2f} m"
             + (f"; raw dead reckoning mean {raw['mean_m']:.2f} m" if raw["n"] else "")
         )
+    _echo_update(r.get("update"))
     typer.echo(f"outputs in {out}")
+
+
+def _echo_update(u: Optional[dict]) -> None:
+    """One line on what `survey --update` did (issue 18)."""
+    if not u:
+        return
+    res = u["resolved"]
+    if u["mode"] == "full":
+        typer.echo(f"update: full re-solve ({u['reason']})")
+        return
+    typer.echo(
+        f"update: {len(u['new_walks'])} new walks (+{len(u['placed_again'])} placed again); re-solved "
+        f"{res['nodes']:,} of {res['of_nodes']:,} poses in {len(res['walks'])} walks ({res['hops']} hops)"
+    )
 
 
 @app.command()

@@ -101,12 +101,22 @@ class OptimizerConfig(_Strict):
     )
 
 
+class UpdateConfig(_Strict):
+    """graphslam survey --update: how much of a solved floor is re-solved around new walks."""
+
+    hops: int = Field(
+        1, ge=0, description="re-solve the new walks, the ends of changed edges and nodes this many factors "
+        "from them (paper --size 4 + 5 % walks: 1 hop, same landmark error as a full re-solve)",
+    )
+
+
 class GraphSlamConfig(_Strict):
     fingerprint: FingerprintConfig = FingerprintConfig()
     edges: EdgeConfig = EdgeConfig()
     imu: ImuConfig = ImuConfig()
     wifi: WifiFactorConfig = WifiFactorConfig()
     optimizer: OptimizerConfig = OptimizerConfig()
+    update: UpdateConfig = UpdateConfig()  # issue 18: not part of a solution's identity (app/update.py)
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
