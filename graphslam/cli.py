@@ -192,6 +192,47 @@ def _echo_update(u: Optional[dict]) -> None:
     )
 
 
+@app.command("survey-batch")
+def survey_batch(
+    sites_root: Path = typer.Argument(..., help="Folder whose sub-folders of .mcap recordings are floors."),
+    out: Path = typer.Option(..., "--out", "-o", help="OUT_ROOT: each floor's outputs go to its relative path here."),
+    address: Optional[str] = typer.Option(
+        None, "--address", help="Join a running Dask scheduler (e.g. tcp://host:8786) instead of starting a local "
+        "cluster; its workers must see SITES_ROOT and OUT_ROOT at the same paths.",
+    ),
+    workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Local cluster: worker processes (default: cores)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config for every floor."),
+    set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value, e.g. wifi.d_min_m=3."),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Progress bar over floors."),
+) -> None:
+    """Survey every floor under SITES_ROOT as one task each on Dask; OUT_ROOT/summary.json lists them.
+    Exit code 0: every floor ok; 1: some failed (their error in summary.json); 2: bad arguments."""
+    from tqdm import tqdm
+
+    from graphslam.app.batch import run_batch
+
+    cfg = _config(config, set_)
+    bar = tqdm(desc="floors", unit="floor", disable=not (progress and sys.stderr.isatty()), file=sys.stderr)
+    failed = [0]
+
+    def on_floor(row: object) -> None:
+        failed[0] += getattr(row, "status") != "ok"
+        bar.update(1)
+        bar.set_postfix(failed=failed[0])
+
+    try:
+        res = run_batch(sites_root, out, cfg, address=address, workers=workers, on_floor=on_floor,
+                        on_start=lambda n: bar.reset(total=n))
+    finally:
+        bar.close()
+    typer.echo(f"{len(res.rows) - res.failed}/{len(res.rows)} floors ok in {res.seconds:.1f} s; summary in {res.summary}")
+    for row in res.rows:
+        if row.status != "ok":
+            typer.echo(f"failed: {row.floor}: {row.error}")
+    if res.failed:
+        sys.exit(1)  # not typer.Exit: main() runs click with standalone_mode=False, which returns its code
+
+
 @app.command()
 def evaluate(
     trajectories: Path = typer.Argument(..., help="trajectories.csv written by `graphslam survey`."),
@@ -295,6 +336,21 @@ def bench_survey(
     typer.echo(json.dumps(survey_speed(scenario, seed, runs=runs, size=size, config=config)))
 
 
+@bench_app.command("update")
+def bench_update(
+    scenario: str = typer.Argument("paper"),
+    seed: int = typer.Option(0),
+    size: float = typer.Option(4.0, help="Walks surveyed first, as the simulator's size multiplier."),
+    new_fraction: float = typer.Option(0.05, "--new-fraction", help="Then this many more walks arrive (>= 1)."),
+    hops: str = typer.Option("0,1,2", help="update.hops values to measure (comma-separated)."),
+    runs: int = typer.Option(3, min=1, help="Runs of each variant, alternated (medians reported)."),
+) -> None:
+    """`survey --update` vs a full re-solve of every walk, end to end in fresh processes (issue 18)."""
+    from graphslam.app.bench_update import update_speed
+
+    typer.echo(json.dumps(update_speed(scenario, seed, size=size, new_fraction=new_fraction, hops=_seeds(hops), runs=runs)))
+
+
 INDEX_HELP = "kNN search: exact, ivf (approximate inverted file) or auto."
 IVF_CLUSTERS_HELP = "IVF: k-means clusters (default ~2 sqrt(N))."
 IVF_PROBES_HELP = "IVF: clusters searched per query (default 8)."
@@ -385,6 +441,11 @@ def serve(
         help="Forked search workers sharing the map; batches of 64+ fingerprints are split over them. "
         "0 = search in the server process. Default: min(2, cores), 0 with --workers > 1.",
     ),
+    watch: bool = typer.Option(
+        False, "--watch", help="Reload the radio map when its file changes (SIGHUP always reloads); a map that "
+        "does not load is refused and the old one kept. No request fails during a swap.",
+    ),
+    watch_interval: float = typer.Option(1.0, "--watch-interval", min=0.05, help="--watch: seconds between checks."),
 ) -> None:
     """Serve kNN positioning over HTTP (POST /v1/locate, GET /v1/radio-map, GET /healthz, /openapi.json)."""
     from graphslam.service.server import serve as serve_map
@@ -393,6 +454,7 @@ def serve(
         radio_map, host=host, port=port, k=k, weighted=weighted, min_common=min_common,
         max_batch=max_batch, max_body_bytes=max_body_bytes, index=index, ivf_clusters=ivf_clusters,
         ivf_probes=ivf_probes, workers=workers, search_processes=search_processes,
+        watch=watch_interval if watch else None,
     )
 
 
@@ -590,17 +652,16 @@ def main(argv: Optional[list[str]] = None) -> None:
         typer.echo("interrupted", err=True)
         sys.exit(130)
     except Exception as e:  # click's usage errors
-        import click
-
-        if isinstance(e, click.exceptions.ClickException):
-            e.show()
-            sys.exit(e.exit_code)
-        if isinstance(e, click.exceptions.Exit):
-            sys.exit(e.exit_code)
-        if isinstance(e, click.exceptions.Abort):
+        # by class name: typer >= 0.2x raises its vendored click's (typer._click.exceptions), not click's
+        kinds = {t.__name__ for t in type(e).__mro__ if (t.__module__ or "").endswith("click.exceptions")}
+        if "ClickException" in kinds:
+            e.show()  # type: ignore[attr-defined]
+            sys.exit(e.exit_code)  # type: ignore[attr-defined]
+        if "Exit" in kinds:
+            sys.exit(e.exit_code)  # type: ignore[attr-defined]
+        if "Abort" in kinds:
             sys.exit(1)
         raise
-
 
 if __name__ == "__main__":
     main()
