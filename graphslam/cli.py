@@ -201,6 +201,10 @@ def survey_batch(
         "cluster; its workers must see SITES_ROOT and OUT_ROOT at the same paths.",
     ),
     workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Local cluster: worker processes (default: cores)."),
+    update: bool = typer.Option(
+        False, "--update", help="Floors with a previous output in OUT_ROOT are updated in place (survey --update); "
+        "the others are surveyed in full.",
+    ),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config for every floor."),
     set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value, e.g. wifi.d_min_m=3."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Progress bar over floors."),
@@ -221,7 +225,7 @@ def survey_batch(
         bar.set_postfix(failed=failed[0])
 
     try:
-        res = run_batch(sites_root, out, cfg, address=address, workers=workers, on_floor=on_floor,
+        res = run_batch(sites_root, out, cfg, address=address, workers=workers, update=update, on_floor=on_floor,
                         on_start=lambda n: bar.reset(total=n))
     finally:
         bar.close()
@@ -349,6 +353,20 @@ def bench_update(
     from graphslam.app.bench_update import update_speed
 
     typer.echo(json.dumps(update_speed(scenario, seed, size=size, new_fraction=new_fraction, hops=_seeds(hops), runs=runs)))
+
+
+@bench_app.command("batch")
+def bench_batch(
+    scenario: str = typer.Argument("crowd"),
+    floors: int = typer.Option(16, min=1, help="Simulated floors (seeds 0..N-1)."),
+    size: float = typer.Option(0.5, help="Simulator size multiplier of each floor."),
+    workers: int = typer.Option(2, min=1, help="survey-batch --workers."),
+    runs: int = typer.Option(1, min=1, help="Runs of each variant (medians reported)."),
+) -> None:
+    """`survey-batch` on a local Dask cluster vs the same floors one after another (issue 18)."""
+    from graphslam.app.bench_update import batch_speed
+
+    typer.echo(json.dumps(batch_speed(scenario, floors=floors, size=size, workers=workers, runs=runs)))
 
 
 INDEX_HELP = "kNN search: exact, ivf (approximate inverted file) or auto."

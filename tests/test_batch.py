@@ -54,6 +54,11 @@ def test_batch_surveys_every_floor_and_reports_the_broken_one(
     assert (out / "b1/F1/radio_map.parquet").is_file() and (out / "b1/F2/report.json").is_file()
     assert not (out / "b2/F1/report.json").exists()
     assert f"failed: b2/F1: {bad_file}" in capsys.readouterr().out
+    # the next night: floors surveyed before are updated in place, the broken one is tried in full again
+    assert _run(["survey-batch", str(sites), "--out", str(out), "--workers", "2", "--no-progress", "--update"]) == 1
+    for rel in ("b1/F1", "b1/F2"):
+        u = json.loads((out / rel / "report.json").read_text())["update"]
+        assert u["mode"] == "incremental" and u["new_walks"] == [] and u["resolved"]["nodes"] == 0
 
 
 def test_batch_bad_arguments_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

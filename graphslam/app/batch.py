@@ -13,9 +13,10 @@ makes the scheduler run the floor again on another worker, up to
 fails with "worker lost". The other floors go on. ``OUT_ROOT/summary.json`` lists them all.
 
 Why Dask and not Ray (measured here, docs/benchmarks.md "Issue 18"): 44 MB installed vs 259 MB,
-a 2-worker local cluster up in ~2.5 s vs ~8-12 s on this 2-core machine, and a worker killed
-mid-task was retried transparently by both, but a task that kept killing its worker ended in a
-clear ``KilledWorker`` with Dask and in a dead local raylet with Ray.
+and a 2-worker local cluster up in ~3 s vs ~11 s on this 2-core machine (``survey-batch`` pays
+that on every run). On worker death both do what is needed: a task whose worker is killed
+mid-task is run again, and one that kills every worker ends in a clear error after a few tries
+(Dask ``KilledWorker``, Ray ``WorkerCrashedError``), so that did not decide it.
 """
 
 from __future__ import annotations
@@ -71,9 +72,11 @@ def find_floors(sites_root: Path, out_root: Path) -> list[Path]:
     return sorted(floors)
 
 
-def survey_floor(floor_dir: str, out_dir: str, config_json: str, floor: str) -> dict[str, Any]:
-    """The task: survey one floor, never raise for the floor's own failures (they are its row)."""
+def survey_floor(floor_dir: str, out_dir: str, config_json: str, floor: str, update: bool = False) -> dict[str, Any]:
+    """The task: survey one floor, never raise for the floor's own failures (they are its row).
+    ``update``: a previous output in ``out_dir`` seeds ``survey --update`` (none: a full survey)."""
     from graphslam.app.survey import run_survey
+    from graphslam.io.survey_state import STATE_FILE
 
     t = time.perf_counter()
     walks = aligned = 0
@@ -82,7 +85,8 @@ def survey_floor(floor_dir: str, out_dir: str, config_json: str, floor: str) -> 
         import json
 
         cfg = config_from_dict(json.loads(config_json), "survey-batch configuration")
-        result = run_survey([floor_dir], out_dir, cfg)
+        previous = out_dir if update and (Path(out_dir) / STATE_FILE).is_file() else None
+        result = run_survey([floor_dir], out_dir, cfg, update=previous)
         walks, aligned = result.report["sessions"], result.report["aligned_sessions"]
     except GraphSlamError as e:
         error = str(e)
@@ -110,10 +114,12 @@ def run_batch(
     *,
     address: str | None = None,
     workers: int | None = None,
+    update: bool = False,
     on_floor: Callable[[FloorRow], None] | None = None,
     on_start: Callable[[int], None] | None = None,
 ) -> BatchResult:
-    """Survey every floor under ``sites_root`` into ``out_root``; ``summary.json`` lists them."""
+    """Survey every floor under ``sites_root`` into ``out_root``; ``summary.json`` lists them.
+    ``update``: floors already surveyed into ``out_root`` are updated (``survey --update``)."""
     t0 = time.perf_counter()
     cfg = config or GraphSlamConfig()
     sites, out = Path(sites_root), Path(out_root)
@@ -130,8 +136,8 @@ def run_batch(
         from distributed import as_completed
 
         futures = {
-            client.submit(survey_floor, str(f), str(out / rel), cfg.model_dump_json(), rel, key=f"floor-{k}-{rel}",
-                          pure=False): rel
+            client.submit(survey_floor, str(f), str(out / rel), cfg.model_dump_json(), rel, update,
+                          key=f"floor-{k}-{rel}", pure=False): rel
             for k, (f, rel) in enumerate(zip(floors, rels))
         }
         for fut in as_completed(futures):

@@ -107,3 +107,90 @@ def update_speed(
             result[v] = row
         result["load_average"] = load
         return result
+
+
+_SEQUENTIAL = """
+import json, sys, time
+from graphslam.app.batch import survey_floor
+from graphslam.config import GraphSlamConfig
+sites, out = sys.argv[1], sys.argv[2]
+floors = json.loads(sys.argv[3])
+cfg = GraphSlamConfig().model_dump_json()
+t = time.perf_counter()
+rows = [survey_floor(f"{sites}/{f}", f"{out}/{f}", cfg, f) for f in floors]
+print(json.dumps({"seconds": time.perf_counter() - t, "ok": sum(r["status"] == "ok" for r in rows)}))
+"""
+
+
+_ONE_THREAD = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def batch_speed(
+    scenario: str, *, floors: int, size: float, workers: int, runs: int = 1, corrupt: bool = True
+) -> dict[str, Any]:
+    """``survey-batch --workers N`` vs the same floors one after another in one process (no cluster),
+    and vs ``--workers 1``. The control: N plain processes side by side, each surveying every N-th
+    floor (no Dask), shows what parallelism the (shared) machine gives at that moment. Floors: the
+    scenario with seeds 0..floors-1; with ``corrupt`` one more floor whose one recording is
+    truncated must come out as one failed row naming the file."""
+    from graphslam.io.mcap_writer import write_session
+    from graphslam.sim import simulate
+
+    with tempfile.TemporaryDirectory(prefix="graphslam-bench-batch-") as tmp:
+        root = Path(tmp)
+        sites = root / "sites"
+        names = [f"site{k // 4}/F{k % 4}" for k in range(floors)]
+        for k, name in enumerate(names):
+            for s in simulate(scenario, seed=k, size=size).survey:
+                write_session(s, sites / name / f"{s.session_id}.mcap")
+        load = [_load()]
+        seq, w1, wn, plain = [], [], [], []
+        env = {**os.environ, "RERUN": "off"}
+        for r in range(runs):
+            t = time.perf_counter()
+            proc = subprocess.run([sys.executable, "-c", _SEQUENTIAL, str(sites), str(root / f"seq{r}"), json.dumps(names)],
+                                  capture_output=True, text=True, env=env)
+            if proc.returncode != 0:
+                raise SolverError(f"sequential run failed: {proc.stderr.strip()[-500:]}")
+            seq.append(time.perf_counter() - t)
+            t = time.perf_counter()
+            procs = [subprocess.Popen([sys.executable, "-c", _SEQUENTIAL, str(sites), str(root / f"plain{r}"),
+                                       json.dumps(names[k::workers])], stdout=subprocess.DEVNULL,
+                                      env={**env, **_ONE_THREAD}) for k in range(workers)]
+            if any(p.wait() != 0 for p in procs):
+                raise SolverError("plain parallel run failed")
+            plain.append(time.perf_counter() - t)
+            wn.append(_graphslam("survey-batch", str(sites), "--out", str(root / f"w{workers}_{r}"), "--workers",
+                                 str(workers), "--no-progress"))
+            w1.append(_graphslam("survey-batch", str(sites), "--out", str(root / f"w1_{r}"), "--workers", "1",
+                                 "--no-progress"))
+            load.append(_load())
+        rows = json.loads((root / f"w{workers}_{runs - 1}" / "summary.json").read_text())
+        res: dict[str, Any] = {
+            "scenario": scenario, "size": size, "floors": floors, "workers": workers, "runs": runs,
+            "walks_per_floor": rows[0]["walks"],
+            "floor_seconds_median": round(statistics.median(r["seconds"] for r in rows), 3),
+            "sequential_one_process_wall_s": round(statistics.median(seq), 2),
+            f"batch_workers{workers}_wall_s": round(statistics.median(wn), 2),
+            "batch_workers1_wall_s": round(statistics.median(w1), 2),
+            "throughput_ratio_vs_sequential": round(statistics.median(seq) / statistics.median(wn), 3),
+            "throughput_ratio_vs_workers1": round(statistics.median(w1) / statistics.median(wn), 3),
+            f"control_{workers}_plain_processes_wall_s": round(statistics.median(plain), 2),
+            "control_ratio_vs_sequential": round(statistics.median(seq) / statistics.median(plain), 3),
+            "all_ok": all(r["status"] == "ok" for r in rows),
+        }
+        if corrupt:
+            bad_dir = sites / "broken" / "F0"
+            for s in simulate(scenario, seed=floors, size=size).survey:
+                write_session(s, bad_dir / f"{s.session_id}.mcap")
+            bad = sorted(bad_dir.glob("*.mcap"))[0]
+            bad.write_bytes(bad.read_bytes()[: bad.stat().st_size // 2])
+            proc = subprocess.run([sys.executable, "-m", "graphslam", "survey-batch", str(sites), "--out",
+                                   str(root / "with_broken"), "--workers", str(workers), "--no-progress"],
+                                  capture_output=True, text=True)
+            rows = json.loads((root / "with_broken" / "summary.json").read_text())
+            failed = [r for r in rows if r["status"] != "ok"]
+            res["corrupt_floor"] = {"exit_code": proc.returncode, "rows": len(rows), "failed_rows": failed,
+                                    "names_the_file": len(failed) == 1 and str(bad) in (failed[0]["error"] or "")}
+        res["load_average"] = load
+        return res

@@ -290,8 +290,9 @@ def native_graph(
         pairs, measured = problem.imu_pairs, problem.imu_u
         noises = [F.imu_noise(cfg.imu)] * len(pairs)
     use = np.ones(len(pairs), bool) if free is None else free[pairs].any(axis=1)
-    for k in np.flatnonzero(use).tolist():
-        imu_graph.add(F.imu_factor(X(int(pairs[k, 0])), X(int(pairs[k, 1])), measured[k], noises[k]))
+    idx = np.flatnonzero(use)
+    for k, (i, j) in zip(idx.tolist(), pairs[idx].tolist()):
+        imu_graph.add(F.imu_factor(X(i), X(j), measured[k], noises[k]))
     wifi_pairs = _solved_wifi_pairs(problem)
     if free is None:
         nodes = chains.kept if chains is not None else np.flatnonzero(np.isfinite(problem.init_xyh[:, 0]))
