@@ -2,7 +2,8 @@
 
 Run in a venv that has the engine (Ray is not a graphslam dependency):
 
-    python -m venv /tmp/v-dask && /tmp/v-dask/bin/pip install distributed && du -sh /tmp/v-dask/lib/python3*/site-packages
+    python -m venv /tmp/v-dask && /tmp/v-dask/bin/pip install distributed
+    du -sh /tmp/v-dask/lib/python3*/site-packages
     python -m venv /tmp/v-ray && /tmp/v-ray/bin/pip install ray && du -sh /tmp/v-ray/lib/python3*/site-packages
     /tmp/v-dask/bin/python scripts/bench_engines.py dask --repeats 3
     /tmp/v-ray/bin/python scripts/bench_engines.py ray --repeats 3
@@ -86,7 +87,8 @@ def deaths_dask() -> dict:
         try:
             c.submit(suicide, 1, pure=False).result(timeout=300)
         except Exception as e:  # noqa: BLE001
-            out["always_dies"] = {"error": f"{type(e).__name__}: {e}"[:160], "seconds": round(time.perf_counter() - t, 2)}
+            out["always_dies"] = {"error": f"{type(e).__name__}: {e}"[:160],
+                                  "seconds": round(time.perf_counter() - t, 2)}
     return out
 
 
@@ -131,7 +133,8 @@ def main() -> None:
         return
     runs = []
     for _ in range(args.repeats):
-        p = subprocess.run([sys.executable, __file__, args.engine, "--child"], capture_output=True, text=True, check=True)
+        p = subprocess.run([sys.executable, __file__, args.engine, "--child"],
+                           capture_output=True, text=True, check=True)
         runs.append(json.loads(p.stdout.strip().splitlines()[-1]))
     res = {"engine": args.engine, "repeats": args.repeats, "load_average": [round(v, 2) for v in os.getloadavg()]}
     res["startup_s_median"] = {k: round(statistics.median(r[k] for r in runs), 2) for k in runs[0]}

@@ -75,7 +75,8 @@ def main() -> None:
                 n = 0
                 while not stop.is_set():
                     if n % 4 == 3:
-                        body = {"fingerprints": [{"readings": queries[i]} for i in rng.integers(0, len(queries), args.batch)]}
+                        pick = rng.integers(0, len(queries), args.batch)
+                        body = {"fingerprints": [{"readings": queries[i]} for i in pick]}
                     else:
                         body = {"readings": queries[int(rng.integers(0, len(queries)))]}
                     n += 1

@@ -27,7 +27,7 @@ import numpy as np
 
 from graphslam.app.update import load_previous
 from graphslam.config import GraphSlamConfig
-from graphslam.core.survey.align import X, _dr_nodes, _values_to_xyh, build_problem, native_graph, solve
+from graphslam.core.survey.align import _dr_nodes, _values_to_xyh, build_problem, native_graph, solve
 from graphslam.core.survey.chains import expand
 from graphslam.core.survey.evaluate import evaluate
 from graphslam.core.survey.incremental import warm_start
@@ -46,7 +46,8 @@ def main() -> None:
     previous = load_previous(args.previous_out)
     survey = read_survey([args.recordings])
     base = GraphSlamConfig()
-    cfg = base.model_copy(update={"optimizer": base.optimizer.model_copy(update={"reference_session": previous.reference})})
+    ref = {"reference_session": previous.reference}
+    cfg = base.model_copy(update={"optimizer": base.optimizer.model_copy(update=ref)})
     out: dict = {"load_average": [round(v, 2) for v in os.getloadavg()]}
 
     t = time.perf_counter()

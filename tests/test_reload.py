@@ -40,7 +40,9 @@ def _install(src: Path, dst: Path) -> None:
     os.replace(tmp, dst)
 
 
-def test_watch_swaps_ten_maps_under_load_without_a_failed_request(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+def test_watch_swaps_ten_maps_under_load_without_a_failed_request(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     a, b = _maps(tmp_path)
     live = tmp_path / "radio_map.parquet"
     _install(a, live)

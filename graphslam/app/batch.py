@@ -93,7 +93,8 @@ def survey_floor(floor_dir: str, out_dir: str, config_json: str, floor: str, upd
     except Exception as e:  # noqa: BLE001 - a floor's internal error must not stop the others
         log.exception("floor %s", floor)
         error = f"internal error: {type(e).__name__}: {e}"
-    return asdict(FloorRow(floor, "failed" if error else "ok", error, walks, aligned, round(time.perf_counter() - t, 3)))
+    seconds = round(time.perf_counter() - t, 3)
+    return asdict(FloorRow(floor, "failed" if error else "ok", error, walks, aligned, seconds))
 
 
 @dataclass(frozen=True)

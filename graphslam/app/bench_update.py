@@ -148,8 +148,10 @@ def batch_speed(
         env = {**os.environ, "RERUN": "off"}
         for r in range(runs):
             t = time.perf_counter()
-            proc = subprocess.run([sys.executable, "-c", _SEQUENTIAL, str(sites), str(root / f"seq{r}"), json.dumps(names)],
-                                  capture_output=True, text=True, env=env)
+            proc = subprocess.run(
+                [sys.executable, "-c", _SEQUENTIAL, str(sites), str(root / f"seq{r}"), json.dumps(names)],
+                capture_output=True, text=True, env=env,
+            )
             if proc.returncode != 0:
                 raise SolverError(f"sequential run failed: {proc.stderr.strip()[-500:]}")
             seq.append(time.perf_counter() - t)

@@ -20,7 +20,11 @@ import numpy as np
 from graphslam.config import GraphSlamConfig
 from graphslam.core.survey.align import Alignment, ProgressCallback, align, build_problem, solve
 from graphslam.core.survey.incremental import (
-    PreviousSolution, changed_edges, previous_edge_rows, session_digest, warm_start,
+    PreviousSolution,
+    changed_edges,
+    previous_edge_rows,
+    session_digest,
+    warm_start,
 )
 from graphslam.core.types import Survey
 from graphslam.errors import InputError
@@ -95,7 +99,9 @@ def align_update(
         info.update(mode="full", reason=reason, resolved={"nodes": al.n_nodes, "of_nodes": al.n_nodes})
         return al, cfg, info
     # the previous reference walk stays the reference: the solution keeps its frame
-    eff = cfg.model_copy(update={"optimizer": cfg.optimizer.model_copy(update={"reference_session": previous.reference})})
+    eff = cfg.model_copy(
+        update={"optimizer": cfg.optimizer.model_copy(update={"reference_session": previous.reference})}
+    )
     t0 = time.perf_counter()
     warm = warm_start(previous, survey, cfg.update.hops)
     problem = build_problem(survey, eff, warm)

@@ -267,7 +267,9 @@ def place_new_walks(
     return Placement(transforms, placed, inliers, parent, sub.loops, sub.loops_consistent)
 
 
-def kept_nodes(n_nodes: int, offsets: NDArray, included: NDArray, wifi_pairs: NDArray, reference_node: int) -> NDArray[np.bool_]:
+def kept_nodes(
+    n_nodes: int, offsets: NDArray, included: NDArray, wifi_pairs: NDArray, reference_node: int
+) -> NDArray[np.bool_]:
     """The nodes chain compression keeps as variables (``chains.compress``): WiFi edge ends, the
     reference pose, first and last step of every included walk."""
     keep = np.zeros(n_nodes, bool)
