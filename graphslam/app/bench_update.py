@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -21,13 +22,23 @@ import numpy as np
 from graphslam.errors import SolverError
 
 
+CPU_S: list[float] = []  # user + system seconds of each `_graphslam` run, in order (core-seconds)
+
+
+def _children_cpu() -> float:
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
 def _graphslam(*args: str) -> float:
-    """Run ``graphslam ARGS`` in a fresh process; its wall time (s)."""
-    t = time.perf_counter()
+    """Run ``graphslam ARGS`` in a fresh process; its wall time (s). Its CPU time goes to ``CPU_S``
+    (what the run costs on a dedicated core, whatever else the shared machine runs)."""
+    t, c = time.perf_counter(), _children_cpu()
     proc = subprocess.run([sys.executable, "-m", "graphslam", *args], capture_output=True, text=True,
                           env={**os.environ, "RERUN": "off"})
     if proc.returncode != 0:
         raise SolverError(f"benchmark run `graphslam {' '.join(args)}` failed: {proc.stderr.strip()[-500:]}")
+    CPU_S.append(_children_cpu() - c)
     return time.perf_counter() - t
 
 
@@ -60,6 +71,7 @@ def update_speed(
         prev_wall = _graphslam("survey", str(root / "prev"), "--out", str(root / "prevout"), "--no-progress")
         variants = ["full"] + [f"update_hops{h}" for h in hops]
         walls: dict[str, list[float]] = {v: [] for v in variants}
+        cpus: dict[str, list[float]] = {v: [] for v in variants}
         reports: dict[str, list[dict]] = {v: [] for v in variants}
         for r in range(runs):
             for v in variants if r % 2 == 0 else variants[::-1]:
@@ -68,6 +80,7 @@ def update_speed(
                 if v != "full":
                     args += ["--update", str(root / "prevout"), "--set", f"update.hops={v.removeprefix('update_hops')}"]
                 walls[v].append(_graphslam(*args))
+                cpus[v].append(CPU_S[-1])
                 reports[v].append(json.loads((out / "report.json").read_text()))
             load.append(_load())
         full_tracks = read_trajectories(root / f"full_{runs - 1}" / "trajectories.csv")
@@ -81,6 +94,7 @@ def update_speed(
             rep = reports[v][-1]
             row: dict[str, Any] = {
                 "wall_s_median": round(statistics.median(walls[v]), 3),
+                "cpu_s_median": round(statistics.median(cpus[v]), 3),
                 "pipeline_s_median": round(statistics.median(r["timings_s"]["total"] for r in reports[v]), 3),
                 "optimise_s_median": round(statistics.median(r["timings_s"]["align.optimise"] for r in reports[v]), 3),
                 "lm_iterations": rep["optimizer"]["iterations"],
@@ -98,6 +112,7 @@ def update_speed(
                     "resolved_nodes": u["resolved"]["nodes"],
                     "of_nodes": u["resolved"]["of_nodes"],
                     "wall_ratio_to_full": round(row["wall_s_median"] / full_wall, 3),
+                    "cpu_ratio_to_full": round(row["cpu_s_median"] / statistics.median(cpus["full"]), 3),
                     "pipeline_ratio_to_full": round(row["pipeline_s_median"] / full_total, 3),
                     "landmark_mean_minus_full_m": round(
                         row["landmark_mean_m"] - reports["full"][-1]["evaluation"]["landmarks"]["mean_m"], 3),
@@ -144,10 +159,10 @@ def batch_speed(
             for s in simulate(scenario, seed=k, size=size).survey:
                 write_session(s, sites / name / f"{s.session_id}.mcap")
         load = [_load()]
-        seq, w1, wn, plain = [], [], [], []
+        seq, w1, wn, plain, cpu_seq, cpu_wn = [], [], [], [], [], []
         env = {**os.environ, "RERUN": "off"}
         for r in range(runs):
-            t = time.perf_counter()
+            t, c = time.perf_counter(), _children_cpu()
             proc = subprocess.run(
                 [sys.executable, "-c", _SEQUENTIAL, str(sites), str(root / f"seq{r}"), json.dumps(names)],
                 capture_output=True, text=True, env=env,
@@ -155,6 +170,7 @@ def batch_speed(
             if proc.returncode != 0:
                 raise SolverError(f"sequential run failed: {proc.stderr.strip()[-500:]}")
             seq.append(time.perf_counter() - t)
+            cpu_seq.append(_children_cpu() - c)
             t = time.perf_counter()
             procs = [subprocess.Popen([sys.executable, "-c", _SEQUENTIAL, str(sites), str(root / f"plain{r}"),
                                        json.dumps(names[k::workers])], stdout=subprocess.DEVNULL,
@@ -164,6 +180,7 @@ def batch_speed(
             plain.append(time.perf_counter() - t)
             wn.append(_graphslam("survey-batch", str(sites), "--out", str(root / f"w{workers}_{r}"), "--workers",
                                  str(workers), "--no-progress"))
+            cpu_wn.append(CPU_S[-1])
             w1.append(_graphslam("survey-batch", str(sites), "--out", str(root / f"w1_{r}"), "--workers", "1",
                                  "--no-progress"))
             load.append(_load())
@@ -173,6 +190,8 @@ def batch_speed(
             "walks_per_floor": rows[0]["walks"],
             "floor_seconds_median": round(statistics.median(r["seconds"] for r in rows), 3),
             "sequential_one_process_wall_s": round(statistics.median(seq), 2),
+            "sequential_cpu_s_per_floor": round(statistics.median(cpu_seq) / floors, 3),
+            f"batch_workers{workers}_cpu_s_per_floor": round(statistics.median(cpu_wn) / floors, 3),
             f"batch_workers{workers}_wall_s": round(statistics.median(wn), 2),
             "batch_workers1_wall_s": round(statistics.median(w1), 2),
             "throughput_ratio_vs_sequential": round(statistics.median(seq) / statistics.median(wn), 3),
