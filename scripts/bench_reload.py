@@ -66,7 +66,7 @@ def main() -> None:
         lat: list[tuple[float, float]] = []  # (start time, seconds)
         failures: list[str] = []
         mixed = 0
-        last_b: list[tuple[float, bool]] = []  # (time answered, answer from map B)
+        last_b: list[tuple[float, bool]] = []  # (request start, answer from map B)
 
         def client(k: int) -> None:
             nonlocal mixed
@@ -95,7 +95,7 @@ def main() -> None:
                             continue
                         flags = {p["x"] >= SHIFT / 2 for p in r.json()["positions"]}
                         mixed += len(flags) > 1
-                        last_b.append((time.perf_counter(), flags.pop()))
+                        last_b.append((t, flags.pop()))
 
         t_start = time.perf_counter()
         switch_s = []
@@ -109,8 +109,8 @@ def main() -> None:
                 t_swap = time.perf_counter()
                 install(b if want_b else a)
                 while time.perf_counter() - t_start < MAX_SECONDS:
-                    with lock:
-                        done = bool(last_b) and last_b[-1][0] > t_swap and last_b[-1][1] == want_b
+                    with lock:  # a request that started after the rename got the new map
+                        done = any(t0 > t_swap and is_b == want_b for t0, is_b in last_b[-50:])
                     if done:
                         break
                     time.sleep(0.005)

@@ -143,9 +143,13 @@ class ReloadingApp:
                 app.state.search_pool.close()
                 raise
         except Exception as e:  # noqa: BLE001 - any failure keeps the old map
-            self.refused += 1
             self._seen = sig  # do not retry this file until it changes again
-            log.error("radio map %s refused (%s: %s); still serving the previous map", self.path, type(e).__name__, e)
+            if _signature(self.path) != sig:  # replaced while being read: the next check loads the new one
+                log.info("radio map %s changed while being read; loading it again", self.path)
+            else:
+                self.refused += 1
+                log.error("radio map %s refused (%s: %s); still serving the previous map", self.path,
+                          type(e).__name__, e)
             self._busy.release()
             return
         assert self._loop is not None
