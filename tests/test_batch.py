@@ -10,18 +10,10 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import run_cli as _run
 
-from graphslam.cli import main
 from graphslam.io.mcap_writer import write_session
 from graphslam.sim import simulate
-
-
-def _run(args: list[str]) -> int:
-    try:
-        main(args)
-    except SystemExit as e:
-        return int(e.code or 0)
-    return 0
 
 
 @pytest.fixture(scope="module")

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import run_cli as _run
 
-from graphslam.cli import main
 from graphslam.config import GraphSlamConfig
 from graphslam.core.survey import incremental as inc
 from graphslam.core.survey.align import build_problem, solve
@@ -36,14 +36,6 @@ def floor(tmp_path_factory: pytest.TempPathFactory) -> dict:
             shutil.copy(root / "all" / f"{s.session_id}.mcap", root / "old")
     assert _run(["survey", str(root / "old"), "--out", str(root / "prev"), "--no-progress"]) == 0
     return {"root": root, "sim": sim, "new": sim.survey.sessions[-1].session_id}
-
-
-def _run(args: list[str]) -> int:
-    try:
-        main(args)
-    except SystemExit as e:
-        return int(e.code or 0)
-    return 0
 
 
 def test_update_edges_equal_a_full_recomputation(floor: dict) -> None:
