@@ -25,7 +25,7 @@ import numpy as np
 
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.io.radiomap_io import read_radio_map, write_radio_map
-from graphslam.service.server import _reloading, start_background_server
+from graphslam.service.server import reloading_app, start_background_server
 
 SHIFT = 1000.0
 MAX_SECONDS = 600.0
@@ -60,7 +60,7 @@ def main() -> None:
             os.replace(new, live)
 
         install(a)
-        app = _reloading(live, 0.2, k=3, search_processes=args.search_processes)
+        app = reloading_app(live, 0.2, k=3, search_processes=args.search_processes)
         stop = threading.Event()
         lock = threading.Lock()
         lat: list[tuple[float, float]] = []  # (start time, seconds)

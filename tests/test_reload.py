@@ -17,7 +17,7 @@ import pytest
 
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.io.radiomap_io import write_radio_map
-from graphslam.service.server import _reloading, start_background_server
+from graphslam.service.server import reloading_app, start_background_server
 
 SHIFT = 1000.0  # map B is map A moved by this in x: every answer says which map gave it
 
@@ -46,7 +46,7 @@ def test_watch_swaps_ten_maps_under_load_without_a_failed_request(
     a, b = _maps(tmp_path)
     live = tmp_path / "radio_map.parquet"
     _install(a, live)
-    app = _reloading(live, 0.05, k=3, search_processes=1)  # one forked search process: big batches go there
+    app = reloading_app(live, 0.05, k=3, search_processes=1)  # one forked search process: big batches go there
     one = {"readings": {"ap1": -50.0, "ap2": -70.0, "ap3": -60.0}}
     batch = {"fingerprints": [one] * 80}
     stop = threading.Event()

@@ -162,6 +162,7 @@ class ReloadingApp:
         self._seen = sig
         self.generation += 1
         self._busy.release()
+        # WARNING, not INFO: shown by a plain `graphslam serve`, since every answer changes with it
         log.warning(
             "radio map %s reloaded (generation %d: %d fingerprints, %s search)", self.path, self.generation,
             len(app.state.locator.radio_map), app.state.locator.index_kind,

@@ -50,7 +50,7 @@ def _build_app(radio_map_path: str | Path, **app_kwargs: object) -> FastAPI:
     return app
 
 
-def _reloading(radio_map_path: str | Path, watch: float | None, **app_kwargs: object) -> "ReloadingApp":
+def reloading_app(radio_map_path: str | Path, watch: float | None, **app_kwargs: object) -> "ReloadingApp":
     """The service behind a ``ReloadingApp``: SIGHUP (and ``watch``: polling the file every so many
     seconds) swaps in a new map without failing a request (``graphslam.service.reload``)."""
     from graphslam.service.reload import ReloadingApp
@@ -64,7 +64,7 @@ def _reloading(radio_map_path: str | Path, watch: float | None, **app_kwargs: ob
 def worker_app() -> "ReloadingApp":
     """App factory for uvicorn worker processes (``serve(workers=N)``)."""
     cfg = json.loads(os.environ[_WORKER_CONFIG_ENV])
-    return _reloading(cfg.pop("radio_map_path"), cfg.pop("watch"), **cfg)
+    return reloading_app(cfg.pop("radio_map_path"), cfg.pop("watch"), **cfg)
 
 
 def serve(
@@ -110,7 +110,7 @@ def serve(
         port, workers, search_processes,
     )
     if workers <= 1:
-        uvicorn.run(_reloading(radio_map_path, watch, **kwargs), host=host, port=port, log_level=log_level)
+        uvicorn.run(reloading_app(radio_map_path, watch, **kwargs), host=host, port=port, log_level=log_level)
         return
     from uvicorn.supervisors import Multiprocess
 
