@@ -158,9 +158,14 @@ def survey(
         False, "--surveyed", help="Also write radio_map_surveyed.parquet: fingerprints at ground-truth poses (evaluation)."
     ),
     picture: bool = typer.Option(True, "--picture/--no-picture", help="Write OUT/survey.png (over --floor-plan)."),
+    update: Optional[Path] = typer.Option(
+        None, "--update", help="A previous survey's OUT folder of this floor: walks solved there start from their "
+        "solution and only the new walks' neighbourhood is re-solved (a full re-solve, said in report.json, if "
+        "the configuration or a walk changed). OUT may be the same folder.",
+    ),
 ) -> None:
     """Align every walk into one frame; write trajectories.csv, aligned.mcap, radio_map.parquet,
-    wifi_edges.parquet, report.json, the effective config.yaml and survey.png into OUT."""
+    wifi_edges.parquet, report.json, survey_state.npz, the effective config.yaml and survey.png into OUT."""
     from graphslam.app.survey import run_survey
 
     cfg = _config(config, set_)
@@ -170,7 +175,7 @@ def survey(
         show_progress("off")
     result = run_survey(
         paths, out, cfg, rerun_path=rerun, floor_plan=floor_plan, floor_size=floor_size, surveyed=surveyed,
-        picture=picture,
+        picture=picture, update=update,
     )
     r = result.report
     typer.echo(
@@ -187,7 +192,67 @@ def survey(
             f"p90 {lm['p90_m']:.2f} m, max {lm['max_m']:.2f} m"
             + (f"; raw dead reckoning mean {raw['mean_m']:.2f} m" if raw["n"] else "")
         )
+    _echo_update(r.get("update"))
     typer.echo(f"outputs in {out}")
+
+
+def _echo_update(u: Optional[dict]) -> None:
+    """One line on what `survey --update` did (issue 18)."""
+    if not u:
+        return
+    res = u["resolved"]
+    if u["mode"] == "full":
+        typer.echo(f"update: full re-solve ({u['reason']})")
+        return
+    typer.echo(
+        f"update: {len(u['new_walks'])} new walks (+{len(u['placed_again'])} placed again); re-solved "
+        f"{res['nodes']:,} of {res['of_nodes']:,} poses in {len(res['walks'])} walks ({res['hops']} hops)"
+    )
+
+
+@app.command("survey-batch")
+def survey_batch(
+    sites_root: Path = typer.Argument(..., help="Folder whose sub-folders of .mcap recordings are floors."),
+    out: Path = typer.Option(..., "--out", "-o", help="OUT_ROOT: each floor's outputs go to its relative path here."),
+    address: Optional[str] = typer.Option(
+        None, "--address", help="Join a running Dask scheduler (e.g. tcp://host:8786) instead of starting a local "
+        "cluster; its workers must see SITES_ROOT and OUT_ROOT at the same paths.",
+    ),
+    workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Local cluster: worker processes (default: cores)."),
+    update: bool = typer.Option(
+        False, "--update", help="Floors with a previous output in OUT_ROOT are updated in place (survey --update); "
+        "the others are surveyed in full.",
+    ),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config for every floor."),
+    set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value, e.g. wifi.d_min_m=3."),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Progress bar over floors."),
+) -> None:
+    """Survey every floor under SITES_ROOT as one task each on Dask; OUT_ROOT/summary.json lists them.
+    Exit code 0: every floor ok; 1: some failed (their error in summary.json); 2: bad arguments."""
+    from tqdm import tqdm
+
+    from graphslam.app.batch import run_batch
+
+    cfg = _config(config, set_)
+    bar = tqdm(desc="floors", unit="floor", disable=not (progress and sys.stderr.isatty()), file=sys.stderr)
+    failed = [0]
+
+    def on_floor(row: object) -> None:
+        failed[0] += getattr(row, "status") != "ok"
+        bar.update(1)
+        bar.set_postfix(failed=failed[0])
+
+    try:
+        res = run_batch(sites_root, out, cfg, address=address, workers=workers, update=update, on_floor=on_floor,
+                        on_start=lambda n: bar.reset(total=n))
+    finally:
+        bar.close()
+    typer.echo(f"{len(res.rows) - res.failed}/{len(res.rows)} floors ok in {res.seconds:.1f} s; summary in {res.summary}")
+    for row in res.rows:
+        if row.status != "ok":
+            typer.echo(f"failed: {row.floor}: {row.error}")
+    if res.failed:
+        sys.exit(1)  # not typer.Exit: main() runs click with standalone_mode=False, which returns its code
 
 
 @app.command()
@@ -327,6 +392,35 @@ def bench_scale(
     typer.echo(markdown_table(result))
 
 
+@bench_app.command("update")
+def bench_update(
+    scenario: str = typer.Argument("paper"),
+    seed: int = typer.Option(0),
+    size: float = typer.Option(4.0, help="Walks surveyed first, as the simulator's size multiplier."),
+    new_fraction: float = typer.Option(0.05, "--new-fraction", help="Then this many more walks arrive (>= 1)."),
+    hops: str = typer.Option("0,1,2", help="update.hops values to measure (comma-separated)."),
+    runs: int = typer.Option(3, min=1, help="Runs of each variant, alternated (medians reported)."),
+) -> None:
+    """`survey --update` vs a full re-solve of every walk, end to end in fresh processes (issue 18)."""
+    from graphslam.app.bench_update import update_speed
+
+    typer.echo(json.dumps(update_speed(scenario, seed, size=size, new_fraction=new_fraction, hops=_seeds(hops), runs=runs)))
+
+
+@bench_app.command("batch")
+def bench_batch(
+    scenario: str = typer.Argument("crowd"),
+    floors: int = typer.Option(16, min=1, help="Simulated floors (seeds 0..N-1)."),
+    size: float = typer.Option(0.5, help="Simulator size multiplier of each floor."),
+    workers: int = typer.Option(2, min=1, help="survey-batch --workers."),
+    runs: int = typer.Option(1, min=1, help="Runs of each variant (medians reported)."),
+) -> None:
+    """`survey-batch` on a local Dask cluster vs the same floors one after another (issue 18)."""
+    from graphslam.app.bench_update import batch_speed
+
+    typer.echo(json.dumps(batch_speed(scenario, floors=floors, size=size, workers=workers, runs=runs)))
+
+
 INDEX_HELP = "kNN search: exact, ivf (approximate inverted file) or auto."
 IVF_CLUSTERS_HELP = "IVF: k-means clusters (default ~2 sqrt(N))."
 IVF_PROBES_HELP = "IVF: clusters searched per query (default 8)."
@@ -431,6 +525,11 @@ def serve(
         help="Require 'Authorization: Bearer TOKEN' on /v1/ (prefer the environment variable: "
         "a command line is visible to other users).",
     ),
+    watch: bool = typer.Option(
+        False, "--watch", help="Reload the radio map when its file changes (SIGHUP always reloads); a map that "
+        "does not load is refused and the old one kept. No request fails during a swap.",
+    ),
+    watch_interval: float = typer.Option(1.0, "--watch-interval", min=0.05, help="--watch: seconds between checks."),
 ) -> None:
     """Serve kNN positioning over HTTP (POST /v1/locate, GET /v1/radio-map, GET /healthz, /openapi.json, /docs)."""
     from graphslam.service.server import serve as serve_map
@@ -440,6 +539,7 @@ def serve(
         max_batch=max_batch, max_body_bytes=max_body_bytes, index=index, ivf_clusters=ivf_clusters,
         ivf_probes=ivf_probes, workers=workers, search_processes=search_processes, log_level=log_level.lower(),
         token=token,
+        watch=watch_interval if watch else None,
     )
 
 
@@ -720,7 +820,6 @@ def main(argv: Optional[list[str]] = None) -> None:
         sys.exit(130)
     if isinstance(code, int) and code:  # typer.Exit(code) returns its code without standalone mode
         sys.exit(code)
-
 
 if __name__ == "__main__":
     main()

@@ -61,7 +61,8 @@ def test_rerun_replaces_the_whole_set_and_track_refits_stale_models(
     survey(recordings, out, "--set", "wifi.d_max_m=25")  # another run: no --surveyed, no fit-aps
     second = snapshot(out)
     assert set(second) == {
-        "trajectories.csv", "aligned.mcap", "radio_map.parquet", "wifi_edges.parquet", "config.yaml", "report.json", "survey.png"
+        "trajectories.csv", "aligned.mcap", "radio_map.parquet", "wifi_edges.parquet", "config.yaml", "report.json",
+        "survey.png", "survey_state.npz",
     }
     assert second["config.yaml"] != first["config.yaml"] and b"d_max_m: 25" in second["config.yaml"]
     assert no_leftovers(tmp_path)

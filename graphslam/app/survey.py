@@ -24,6 +24,7 @@ from graphslam.io.atomic import FolderStage, atomic_write_json, atomic_write_tex
 from graphslam.io.csv_io import write_trajectories
 from graphslam.io.mcap_reader import read_survey
 from graphslam.io.mcap_writer import write_aligned
+from graphslam.io.survey_state import STATE_FILE, write_survey_state
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +37,7 @@ OUTPUT_FILES = {
     "radio_map": "radio_map.parquet",
     "radio_map_surveyed": "radio_map_surveyed.parquet",
     "wifi_edges": "wifi_edges.parquet",
+    "state": STATE_FILE,  # what a later `survey --update` starts from
     "config": "config.yaml",
     "report": "report.json",
 }
@@ -136,18 +138,31 @@ def run_survey(
     floor_size: tuple[float, float] | None = None,
     surveyed: bool = False,
     picture: bool = True,
+    update: str | Path | None = None,
 ) -> SurveyResult:
     """Read ``paths``, align every walk, write the outputs into ``out_dir`` (None: no files);
-    ``picture``: also survey.png there (over ``floor_plan`` when given)."""
+    ``picture``: also survey.png there (over ``floor_plan`` when given).
+
+    ``update``: a previous output folder of this floor; walks solved there start from their
+    solution and only the new walks' neighbourhood is re-solved (``graphslam.app.update``)."""
     cfg = config or GraphSlamConfig()
     _check_outputs(paths, out_dir, rerun_path, floor_plan)
     plan = _picture_plan(floor_plan, floor_size) if picture and out_dir is not None else None
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
+    previous = None
+    if update is not None:  # read first: a bad previous output fails before the work
+        from graphslam.app.update import align_update, load_previous
+
+        previous = load_previous(update)
     survey = read_survey(paths)
     timings["read"] = time.perf_counter() - t0
 
-    alignment = align(survey, cfg, progress=progress)
+    update_info = None
+    if previous is not None:
+        alignment, cfg, update_info = align_update(survey, cfg, previous, previous_dir=update, progress=progress)
+    else:
+        alignment = align(survey, cfg, progress=progress)
     timings.update({f"align.{k}": v for k, v in alignment.timings_s.items()})
 
     t = time.perf_counter()
@@ -162,6 +177,8 @@ def run_survey(
         viz = start_log_survey(rerun_path, survey, alignment, cfg, floor_plan=floor_plan, floor_size=floor_size)
     files: dict[str, Path] = {}
     report = build_report(survey, alignment, evaluation, cfg, timings)
+    if update_info is not None:
+        report["update"] = update_info
     if out_dir is not None:
         t = time.perf_counter()
         try:
@@ -258,6 +275,7 @@ def write_outputs(
 
             write_radio_map(surveyed_radio_map(survey, al, cfg), stage.path / names["radio_map_surveyed"])
         atomic_write_text(stage.path / names["config"], cfg.to_yaml())
+        write_survey_state(stage.path / names["state"], survey, al, cfg)
         atomic_write_json(stage.path / names["report"], report)
     except BaseException as e:
         stage.discard()

@@ -27,6 +27,7 @@ from graphslam.config import GraphSlamConfig
 from graphslam.core.progress import Task
 from graphslam.core.survey import factors as F
 from graphslam.core.survey import solver as S
+from graphslam.core.survey import incremental
 from graphslam.core.survey.association import FingerprintNodes, associate
 from graphslam.core.survey.chains import CompressedChains, compress, expand
 from graphslam.core.survey.edges import WifiEdges, propose_edges, window_thresholds
@@ -145,6 +146,9 @@ class Problem:
     imu_u: NDArray[np.float64]  # (M, 3) measured body-frame step (eq. 6)
     wifi_pairs: NDArray[np.int64]  # (E, 2) nodes of WiFi edges between included walks
     timings_s: dict[str, float]
+    # --update (issue 18): nodes re-solved; the others keep init_xyh (their previous solution).
+    # None: every node of an included walk is a variable (a full solve).
+    free: NDArray[np.bool_] | None = None
 
     @property
     def reference_node(self) -> int:
@@ -159,8 +163,13 @@ def edge_candidates(cfg: GraphSlamConfig, n_fingerprints: int) -> str:
     return c
 
 
-def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
-    """Steps 1-3 of the method: fingerprints on nodes, WiFi edges, initial placement."""
+def build_problem(survey: Survey, cfg: GraphSlamConfig, warm: incremental.WarmStart | None = None) -> Problem:
+    """Steps 1-3 of the method: fingerprints on nodes, WiFi edges, initial placement.
+
+    ``warm`` (``graphslam survey --update``, see ``graphslam.core.survey.incremental``): walks
+    solved before start from their previous solution, only the new walks' fingerprints are
+    compared, the new walks are registered to the solved ones, and ``Problem.free`` marks the
+    neighbourhood that ``solve`` re-solves."""
     if len(survey) == 0:
         raise SolverError("survey has no sessions")
     timings: dict[str, float] = {}
@@ -178,18 +187,21 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
 
     t = time.perf_counter()
     thr = window_thresholds(fp, cfg.edges.window_steps)
-    edges = propose_edges(
-        fp,
-        thr,
-        exclude_same_session_s=cfg.edges.exclude_same_session_s,
-        exclude_same_session_m=cfg.edges.exclude_same_session_m,
-        max_per_fingerprint=cfg.edges.max_per_fingerprint,
-        min_common_aps=cfg.edges.min_common_aps,
-        block_rows=cfg.edges.chunk_rows,
-        candidates=edge_candidates(cfg, len(fp)),
-        ivf_neighbours=cfg.edges.ivf_neighbours,
-        ivf_probes=cfg.edges.ivf_probes,
-    )
+    if warm is not None:  # --update: the same edges, computed from the new walks' rows only
+        edges = incremental.update_edges(fp, thr, warm, cfg.edges)
+    else:
+        edges = propose_edges(
+            fp,
+            thr,
+            exclude_same_session_s=cfg.edges.exclude_same_session_s,
+            exclude_same_session_m=cfg.edges.exclude_same_session_m,
+            max_per_fingerprint=cfg.edges.max_per_fingerprint,
+            min_common_aps=cfg.edges.min_common_aps,
+            block_rows=cfg.edges.chunk_rows,
+            candidates=edge_candidates(cfg, len(fp)),
+            ivf_neighbours=cfg.edges.ivf_neighbours,
+            ivf_probes=cfg.edges.ivf_probes,
+        )
     timings["edges"] = time.perf_counter() - t
     log.info("%d fingerprints on %d steps, %d WiFi edges", len(fp), fp.offsets[-1], len(edges))
 
@@ -201,7 +213,20 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
     ea, eb = fp.node[edges.i], fp.node[edges.j]
     placement = None
     unaligned: dict[str, str] = {}
-    if cfg.optimizer.initialization == "registration":
+    if warm is not None:  # --update: solved walks keep their solution, the others are registered to them
+        placement = incremental.place_new_walks(warm, n_s, node_sess, dr_xyh[:, :2], ea, eb)
+        included = placement.placed.copy()
+        transforms = placement.transforms
+        for s in np.flatnonzero(~included):
+            unaligned[survey.sessions[s].session_id] = "no rigid WiFi registration chain to the walks solved before"
+        if placement.reliable is False and cfg.optimizer.unreliable_registration == "unalign":
+            for s in np.flatnonzero(included & ~warm.solved_walks(node_sess, n_s)):
+                unaligned[survey.sessions[s].session_id] = (
+                    f"registration unreliable: {placement.loops_consistent} of {placement.loops} loops "
+                    "between the walks placed anew are consistent"
+                )
+                included[s] = False
+    elif cfg.optimizer.initialization == "registration":
         placement = register_walks(n_s, ref, node_sess, dr_xyh[:, :2], ea, eb)
         included = placement.placed.copy()
         transforms = placement.transforms
@@ -247,6 +272,15 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
         imu_pairs.append(np.column_stack([k - 1, k]))
         imu_u.append(F.relative_steps(survey.sessions[s].steps))
     use = included[node_sess[ea]] & included[node_sess[eb]]
+    wifi_pairs = np.column_stack([ea[use], eb[use]]).astype(np.int64)
+    free = None
+    if warm is not None:  # --update: solved walks start from their solution; only their neighbourhood moves
+        init_xyh = np.where(warm.solved[:, None], warm.xyh, init_xyh)
+        prev = incremental.previous_edge_rows(fp, warm)
+        free = incremental.free_nodes(
+            warm, fp.offsets, included, wifi_pairs, fp.node[prev], int(fp.offsets[ref]),
+            compressed=cfg.optimizer.compress_chains,
+        )
     timings["initialise"] = time.perf_counter() - t
     task.end()
     return Problem(
@@ -260,8 +294,9 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
         init_xyh=init_xyh,
         imu_pairs=np.concatenate(imu_pairs).astype(np.int64),
         imu_u=np.concatenate(imu_u),
-        wifi_pairs=np.column_stack([ea[use], eb[use]]).astype(np.int64),
+        wifi_pairs=wifi_pairs,
         timings_s=timings,
+        free=free,
     )
 
 
@@ -300,34 +335,47 @@ def native_graph(
 
     With ``optimizer.compress_chains`` the IMU chain between fingerprint poses becomes one
     between factor per segment (``graphslam.core.survey.chains``); otherwise one per step (eq. 6-8).
-    Only ``optimizer.solver: gtsam`` solves this graph; the default back end solves ``pose_graph``,
+    Only ``optimizer.solver: gtsam`` solves this graph; the default back end solves ``pose_graph``
+    (except --update, which solves this graph),
     so a factor type added here needs its vectorised counterpart in ``solver.py`` too.
+    With ``problem.free`` (--update) only factors touching a free node are built; the other
+    nodes they touch are held at their previous solution by priors as tight as the reference's.
     """
     import gtsam
 
     imu_graph = gtsam.NonlinearFactorGraph()
     chains = None
+    free = problem.free
     if cfg.optimizer.compress_chains:
         keep = np.zeros(len(problem.init_xyh), bool)
         keep[problem.wifi_pairs.ravel()] = True
         keep[problem.reference_node] = True
         step_cov = np.diag([cfg.imu.sigma_xy_m**2, cfg.imu.sigma_xy_m**2, cfg.imu.sigma_heading_rad**2])
-        chains = compress(problem.init_xyh, problem.fingerprints.offsets, keep, problem.included, step_cov)
-        for (i, j), u, cov in zip(chains.pairs.tolist(), chains.measured, chains.covariance):
-            imu_graph.add(F.imu_factor(X(i), X(j), u, gtsam.noiseModel.Gaussian.Covariance(cov)))
-        nodes = chains.kept
+        # measured from the dead reckoning (rigid-invariant): init_xyh is not one with a warm start
+        chains = compress(_dr_nodes(problem.survey)[0], problem.fingerprints.offsets, keep, problem.included, step_cov)
+        pairs, measured, noises = chains.pairs, chains.measured, [gtsam.noiseModel.Gaussian.Covariance(c) for c in chains.covariance]
     else:
-        imu_nm = F.imu_noise(cfg.imu)
-        for (i, j), u in zip(problem.imu_pairs.tolist(), problem.imu_u):
-            imu_graph.add(F.imu_factor(X(i), X(j), u, imu_nm))
-        nodes = np.flatnonzero(np.isfinite(problem.init_xyh[:, 0]))
+        pairs, measured = problem.imu_pairs, problem.imu_u
+        noises = [F.imu_noise(cfg.imu)] * len(pairs)
+    use = np.ones(len(pairs), bool) if free is None else free[pairs].any(axis=1)
+    idx = np.flatnonzero(use)
+    for k, (i, j) in zip(idx.tolist(), pairs[idx].tolist()):
+        imu_graph.add(F.imu_factor(X(i), X(j), measured[k], noises[k]))
+    wifi_pairs = _solved_wifi_pairs(problem)
+    if free is None:
+        nodes = chains.kept if chains is not None else np.flatnonzero(np.isfinite(problem.init_xyh[:, 0]))
+    else:
+        nodes = np.unique(np.concatenate([pairs[use].ravel(), wifi_pairs.ravel()]))
+        for n in nodes[~free[nodes]].tolist():  # the neighbourhood's border keeps its previous solution
+            imu_graph.add(gtsam.PriorFactorPose2(X(n), gtsam.Pose2(*problem.init_xyh[n]), F.reference_prior_noise()))
     r0 = problem.reference_node
-    imu_graph.add(gtsam.PriorFactorPose2(X(r0), gtsam.Pose2(*problem.init_xyh[r0]), F.reference_prior_noise()))
+    if free is None or free[r0]:
+        imu_graph.add(gtsam.PriorFactorPose2(X(r0), gtsam.Pose2(*problem.init_xyh[r0]), F.reference_prior_noise()))
     values = gtsam.Values()
     for n in nodes.tolist():
         values.insert(X(n), gtsam.Pose2(*problem.init_xyh[n]))
     wifi_nm = F.wifi_noise(cfg.wifi)
-    wifi = [F.wifi_factor(X(i), X(j), wifi_nm) for i, j in problem.wifi_pairs.tolist()]
+    wifi = [F.wifi_factor(X(i), X(j), wifi_nm) for i, j in wifi_pairs.tolist()]
     return imu_graph, wifi, values, chains
 
 
@@ -340,7 +388,7 @@ def pose_graph(problem: Problem, cfg: GraphSlamConfig) -> tuple[S.PoseGraph, Com
         keep = np.zeros(len(problem.init_xyh), bool)
         keep[problem.wifi_pairs.ravel()] = True
         keep[r0] = True
-        chains = compress(problem.init_xyh, problem.fingerprints.offsets, keep, problem.included, step_cov)
+        chains = compress(_dr_nodes(problem.survey)[0], problem.fingerprints.offsets, keep, problem.included, step_cov)
         nodes, pairs, measured = chains.kept, chains.pairs, chains.measured
         sqrt_info = S.sqrt_information(chains.covariance)
     else:
@@ -361,11 +409,21 @@ def pose_graph(problem: Problem, cfg: GraphSlamConfig) -> tuple[S.PoseGraph, Com
     return graph, chains
 
 
-def use_pardiso(cfg: GraphSlamConfig) -> bool:
-    """``optimizer.solver``: auto takes the PARDISO LM where MKL loads (an x86-64 wheel), else GTSAM's."""
+def use_pardiso(cfg: GraphSlamConfig, problem: Problem | None = None) -> bool:
+    """``optimizer.solver``: auto takes the PARDISO LM where MKL loads (an x86-64 wheel), else GTSAM's.
+    A local re-solve (--update: ``problem.free``) always takes GTSAM's (``native_graph`` builds it)."""
+    if problem is not None and problem.free is not None:
+        return False
     if cfg.optimizer.solver == "auto":
         return S.pardiso_available()
     return cfg.optimizer.solver == "pardiso"
+
+
+def _solved_wifi_pairs(problem: Problem) -> NDArray[np.int64]:
+    """The WiFi edges in the graph ``solve`` optimises: all, or those touching a free node (--update)."""
+    if problem.free is None:
+        return problem.wifi_pairs
+    return problem.wifi_pairs[problem.free[problem.wifi_pairs].any(axis=1)]
 
 
 def lm_params(cfg: GraphSlamConfig, n_poses: int = 0) -> gtsam.LevenbergMarquardtParams:
@@ -388,11 +446,17 @@ def lm_params(cfg: GraphSlamConfig, n_poses: int = 0) -> gtsam.LevenbergMarquard
     return params
 
 
-def align(survey: Survey, config: GraphSlamConfig | None = None, progress: ProgressCallback | None = None) -> Alignment:
-    """Align all walks of ``survey`` into the frame of the reference walk's first pose."""
+def align(
+    survey: Survey,
+    config: GraphSlamConfig | None = None,
+    progress: ProgressCallback | None = None,
+    warm: incremental.WarmStart | None = None,
+) -> Alignment:
+    """Align all walks of ``survey`` into the frame of the reference walk's first pose
+    (``warm``: re-solve only around the walks new since a previous solution, see ``build_problem``)."""
     cfg = config or GraphSlamConfig()
     t0 = time.perf_counter()
-    problem = build_problem(survey, cfg)
+    problem = build_problem(survey, cfg, warm)
     return solve(problem, cfg, progress, t0=t0)
 
 
@@ -404,7 +468,7 @@ def solve(
     timings = dict(problem.timings_s)
     t = time.perf_counter()
     with Task("build graph"):
-        pardiso = use_pardiso(cfg)
+        pardiso = use_pardiso(cfg, problem)
         if pardiso:
             pg, chains = pose_graph(problem, cfg)
             settings = S.LMSettings(
@@ -415,7 +479,8 @@ def solve(
             )
         else:
             imu_graph, wifi_factors, values, chains = native_graph(problem, cfg)
-    ea, eb = problem.wifi_pairs[:, 0], problem.wifi_pairs[:, 1]
+    solved_pairs = problem.wifi_pairs if pardiso else _solved_wifi_pairs(problem)
+    ea, eb = solved_pairs[:, 0], solved_pairs[:, 1]
     timings["build_graph"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -429,6 +494,7 @@ def solve(
         return float(imu + F.fuzzy_cost(d, cfg.wifi).sum())
 
     init_xyh = problem.init_xyh
+    dr_xyh = _dr_nodes(problem.survey)[0] if chains is not None else init_xyh
     xyh = init_xyh.copy()
     initial_error = objective(xyh)
     converged = False
@@ -455,14 +521,16 @@ def solve(
             values, converged = _gtsam_lm(imu_graph, wifi_factors, values, active, cfg, hook)
             xyh = _values_to_xyh(values, init_xyh)
         if chains is not None:
-            xyh = expand(xyh, init_xyh, chains)
+            xyh = expand(xyh, dr_xyh, chains)
+        if problem.free is not None:  # --update: outside the neighbourhood, the previous solution
+            xyh = np.where(problem.free[:, None], xyh, init_xyh)
         snapshots.append((stage, xyh.copy()))
         prev_active = active
     timings["optimise"] = time.perf_counter() - t
     task.end()
     final_error = objective(xyh)
 
-    d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
+    d = np.linalg.norm(xyh[problem.wifi_pairs[:, 0], :2] - xyh[problem.wifi_pairs[:, 1], :2], axis=1)
     st = F.edge_state(d, cfg.wifi)
     survey = problem.survey
     fp = problem.fingerprints
