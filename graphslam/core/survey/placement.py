@@ -64,7 +64,7 @@ class GrowthParams:
     refine_scale_m: float = 3.0
     refine_max_evaluations: int = 10  # Gauss-Newton iterations per refinement (each start is already close)
     consistent_m: float = 6.0
-    max_grid_cells: int = 3_000_000  # rotations x cells of one vote grid (bounds memory and blur time)
+    max_grid_cells: int = 1_000_000  # rotations x cells of one vote grid (bounds memory and blur time)
 
 
 @dataclass(frozen=True, eq=False)
@@ -114,6 +114,8 @@ def hough_se2(
     votes = np.bincount(flat.ravel(), weights=np.broadcast_to(weight, flat.shape).ravel(),
                         minlength=n_rot * shape[0] * shape[1]).reshape(n_rot, shape[0], shape[1])
     votes = gaussian_filter(votes, sigma=(0.0, params.blur_m / cell, params.blur_m / cell), mode="constant", truncate=3.0)
+    # per cell_m^2 of translation, so support and margins mean the same whatever cell a wide grid took
+    votes *= (params.cell_m / cell) ** 2
     per_rot = votes.reshape(n_rot, -1)
     best_cell = per_rot.argmax(axis=1)
     best_val = per_rot[np.arange(n_rot), best_cell]
