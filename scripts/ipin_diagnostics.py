@@ -728,7 +728,8 @@ def register_routes(
         sub = np.arange(0, len(B), AP_SCAN_STRIDE)
         th_ap, g_ap = rotation_set(T0[2], theta_axes, AP_ROT_STEP_DEG)
         score, T = ap_search(f, aps, P[sub], B[sub], Q, th_ap)
-        out["ap"] = summarise(score, T, g_ap, P, f.xy[B], T0[2]) | {"aps_fitted": len(aps.col)}
+        out["ap"] = summarise(score, T, g_ap, P, f.xy[B], T0[2])
+        out["ap_fitted_aps"] = len(aps.col)
     return out
 
 
