@@ -5,16 +5,17 @@ from __future__ import annotations
 
 import importlib.util
 import sys
+from types import ModuleType
 
 import numpy as np
 import pytest
-
 from conftest import REPO
+
 from graphslam.core.survey.initialise import se2_apply
 
 
 @pytest.fixture(scope="module")
-def diag():  # noqa: ANN201 - the script as a module
+def diag() -> ModuleType:
     spec = importlib.util.spec_from_file_location("ipin_diagnostics", REPO / "scripts" / "ipin_diagnostics.py")
     mod = importlib.util.module_from_spec(spec)
     sys.modules["ipin_diagnostics"] = mod
@@ -30,7 +31,7 @@ def _scene(rng: np.random.Generator, T: np.ndarray, n: int = 60) -> tuple[np.nda
     return np.column_stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]]), Q
 
 
-def test_se2_search_finds_the_transform_that_puts_matches_together(diag) -> None:  # noqa: ANN001
+def test_se2_search_finds_the_transform_that_puts_matches_together(diag: ModuleType) -> None:
     rng = np.random.default_rng(1)
     T_true = np.array([5.3, -2.7, 0.7])
     P, Q = _scene(rng, T_true)
@@ -38,14 +39,12 @@ def test_se2_search_finds_the_transform_that_puts_matches_together(diag) -> None
     i = np.concatenate([np.arange(len(P)), rng.integers(0, len(P), len(P))])
     j = np.concatenate([np.arange(len(Q)), rng.integers(0, len(Q), len(Q))])
     thetas = np.array([0.0, 0.7, 1.5, np.pi])
-    ((score, T),) = diag.se2_search(
-        P, Q, i, j, np.zeros(len(i), np.int64), None, [diag.gaussian_kernel(1.5)], thetas
-    )
+    ((score, T),) = diag.se2_search(P, Q, i, j, np.zeros(len(i), np.int64), None, [diag.gaussian_kernel(1.5)], thetas)
     assert int(np.argmax(score)) == 1
     assert np.linalg.norm(se2_apply(T[1], P) - Q, axis=1).max() < 0.8  # one 1 m grid cell
 
 
-def test_se2_search_score_is_the_composite_likelihood(diag) -> None:  # noqa: ANN001
+def test_se2_search_score_is_the_composite_likelihood(diag: ModuleType) -> None:
     """The FFT score at the returned placement equals the direct sum over all pairs."""
     rng = np.random.default_rng(2)
     T_true = np.array([1.0, 2.0, -0.4])
@@ -65,7 +64,7 @@ def test_se2_search_score_is_the_composite_likelihood(diag) -> None:  # noqa: AN
         assert score[k] == pytest.approx(diag.composite(L, S, d), abs=0.01 * scale)
 
 
-def test_auc_from_histograms_matches_the_rank_statistic(diag) -> None:  # noqa: ANN001
+def test_auc_from_histograms_matches_the_rank_statistic(diag: ModuleType) -> None:
     rng = np.random.default_rng(3)
     near, far = rng.integers(0, 50, 300), rng.integers(0, 50, 500)  # many ties
     h_near, h_far = np.bincount(near, minlength=50), np.bincount(far, minlength=50)
