@@ -37,8 +37,12 @@ o_leg = a constant offset for the way back (the phone is held differently after 
 turn), w = a slow random walk per step, n = white noise per step. The track is
 re-expressed to start at (0, 0, 0): its frame is the phone's initial heading.
 
-Scans (``PhoneModel``): every 2 s or 4 s by phone model, small jitter, an occasional
-skipped scan, and a constant RSS offset per model (added before the detection floor).
+Scans (``PhoneModel``, ``sweep_scans``): every 2 s or 4 s by phone model, small jitter,
+an occasional skipped scan; each AP read at a random moment of the scan's 2 s sweep.
+Added to the radio model's mean before its noise and floor: the model's constant RSS
+offset, a small per-walk per-AP offset, fading correlated over seconds (AR(1) per AP)
+and the walker's body (APs behind read lower). All defaults were calibrated on floor -2
+(docs/simulator.md, "The museum scenario").
 """
 
 from __future__ import annotations
@@ -62,7 +66,7 @@ log = logging.getLogger(__name__)
 # The template: IPIN 2023 floor -2 routes (trials 21-27) and stair/lift walks (51-53),
 # vertices = the surveyed landmarks in the order walked out, in the building's own axes
 # (east/north rotated by -20.65 deg, the floor's corridor direction), rounded to 0.1 m.
-# The lift walks' third field lists vertices that are not landmarks.
+# The stair/lift walks' third field lists vertices that are not landmarks.
 _TEMPLATE: tuple[tuple[str, tuple[tuple[float, float], ...], tuple[int, ...]], ...] = (
     ("route1", ((32.6, 4.6), (32.6, 1.2), (36.2, 1.2), (48.8, 0.2), (54.8, 0.2)), ()),
     ("route2", ((22.4, 7.1), (28.4, 7.1), (28.4, 1.4), (21.4, 1.4), (13.4, 1.5), (13.4, 7.1)), ()),
@@ -89,9 +93,9 @@ _TEMPLATE: tuple[tuple[str, tuple[tuple[float, float], ...], tuple[int, ...]], .
         (),
     ),
     ("route7", ((-33.5, 1.5), (-38.5, 1.4), (-43.5, 1.4), (-47.5, 1.4), (-47.5, -2.8), (-47.4, -11.8)), ()),
-    ("lift1", ((32.6, 4.6), (32.6, 6.1)), (1,)),
-    ("lift2", ((-52.7, -6.8), (-47.5, 1.4)), ()),
-    ("lift3", ((-14.4, 4.2), (-10.5, 1.5)), ()),
+    ("stairs1", ((32.6, 4.6), (32.6, 6.1)), (1,)),
+    ("stairs2", ((-52.7, -6.8), (-47.5, 1.4)), ()),
+    ("stairs3", ((-14.4, 4.2), (-10.5, 1.5)), ()),
 )
 # Template vertices within this band around the spine's y lie on the spine corridor.
 _SPINE_Y, _SPINE_BAND = 1.45, 1.5
@@ -136,7 +140,7 @@ class MuseumWalkerParams:
     lateral_corr_steps: float = 12.0
     start_stand_s: tuple[float, float] = (0.5, 1.5)  # standing at the start, first landmark pressed then
     pause_s: tuple[float, float] = (20.0, 40.0)  # standing at the far end of a route ...
-    lift_pause_s: tuple[float, float] = (7.0, 24.0)  # ... of a stair/lift walk (waiting at the stairs/lift)
+    stairs_pause_s: tuple[float, float] = (7.0, 24.0)  # ... of a stair/lift walk (waiting at the stairs/lift)
     pause_spells_p: tuple[float, ...] = (0.45, 0.3, 0.1, 0.15)  # P(1, 2, 3, 4 standing spells)
     shuffle_steps: tuple[int, int] = (1, 3)  # steps between two standing spells
     turn_steps: tuple[int, int] = (2, 4)  # steps to turn round at the far end
@@ -145,7 +149,7 @@ class MuseumWalkerParams:
     start_heading_spread_rad: float = math.radians(10)  # phone heading at the start vs the route direction
 
     def __post_init__(self) -> None:
-        for name in ("step_period_s", "step_length_m", "start_stand_s", "pause_s", "lift_pause_s", "spot_step_s"):
+        for name in ("step_period_s", "step_length_m", "start_stand_s", "pause_s", "stairs_pause_s", "spot_step_s"):
             lo, hi = getattr(self, name)
             if not 0 < lo <= hi:
                 raise ConfigError(f"MuseumWalkerParams.{name}: need 0 < low <= high, got {(lo, hi)}")
@@ -218,16 +222,17 @@ class MuseumParams:
     walker: MuseumWalkerParams = field(default_factory=MuseumWalkerParams)
     pdr: PhonePdrParams = field(default_factory=PhonePdrParams)
     phones: tuple[PhoneModel, ...] = field(default_factory=_default_phones)
-    # Real walks differ more from each other than scans within a walk do (floor -2: same
-    # place, other walk, same phone 4.1 dB mean |difference|; same standstill 3.0 dB):
-    # per walk and AP a constant RSS offset (people, doors, another day) ...
+    # Per walk and AP, a constant RSS offset (people, doors, another day); kept small: the
+    # fading and the body below already give floor -2's difference between two walks.
     walk_rss_sigma_db: float = 0.5
-    # ... and the walker's body: an AP straight behind reads this much lower (opposite
-    # walking directions at the same place differ more than equal ones on floor -2).
-    body_loss_db: float = 3.0
-    # Fading correlated over seconds (per walk and AP, correlation exp(-dt / fading_corr_s)):
-    # scans of one standstill agree better than scans of two walks at the same place.
-    fading_sigma_db: float = 2.8
+    # The walker's body: an AP straight behind reads this much lower (on floor -2, co-located
+    # scans of two walks differ by 4.56 dB going opposite ways, 3.96 dB going the same way).
+    body_loss_db: float = 5.0
+    # Fading correlated over seconds (per walk and AP, correlation exp(-dt / fading_corr_s)),
+    # on top of the radio model's white noise: one AP's squared difference on floor -2 is
+    # 11.2 dB^2 between consecutive scans of a standstill, 28.2 dB^2 between two walks' scans
+    # at one place (scripts/sim_vs_real_shape.py).
+    fading_sigma_db: float = 2.4
     fading_corr_s: float = 15.0
 
     def __post_init__(self) -> None:
@@ -249,7 +254,7 @@ class Route:
     """A designed walk, walked out and back: vertices from the start to the far end (site frame, m)."""
 
     name: str
-    kind: Literal["route", "lift"]
+    kind: Literal["route", "stairs"]
     xy: NDArray[np.float64]  # (K, 2)
     landmark_ids: tuple[str | None, ...]  # per vertex: the landmark marked there, or None
 
@@ -374,7 +379,7 @@ def museum_layout(lp: LayoutParams, rng: np.random.Generator) -> MuseumLayout:
                 hit = f"M{len(ids) + 1:02d}"
                 ids.append((p, hit))
             lids.append(hit)
-        routes.append(Route(name, "lift" if name.startswith("lift") else "route", vs, tuple(lids)))
+        routes.append(Route(name, "stairs" if name.startswith("stairs") else "route", vs, tuple(lids)))
     # A landmark sits where it first occurs; every route passing it goes exactly there.
     site_of: dict[str, NDArray] = {}
     for r in routes:
@@ -610,7 +615,7 @@ def simulate_museum_walk(
     st.pause_s[1] = stand
     n_out = len(st.xy)  # poses 0 .. n_out-1: start and the way out
     h_in = st.heading[-1]
-    pause = rng.uniform(*(wp.lift_pause_s if route.kind == "lift" else wp.pause_s))
+    pause = rng.uniform(*(wp.stairs_pause_s if route.kind == "stairs" else wp.pause_s))
     _far_end(st, h_in, math.atan2(d1[1], d1[0]), pause, wp, rng)
     n_spot = len(st.xy)
     s_back = _leg(back, st, mean_len, period, wp, rng, back=True)

@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from graphslam.core.progress import progress_over
 from graphslam.core.types import Session, Survey
-from graphslam.errors import ConfigError
+from graphslam.errors import ConfigError, SimulationError
 from graphslam.io.atomic import atomic_write_text
 from graphslam.io.mcap_writer import write_session
 from graphslam.sim.floorplan import FloorPlan, Landmark, corridor_plan, office_plan
@@ -136,7 +136,7 @@ SCENARIOS: dict[str, Scenario] = {
         walk_spacing_s=300.0,
         # Calibrated on IPIN 2023 floor -2 (scripts/sim_vs_real_shape.py): ~14 APs heard almost everywhere
         # (here: on the floor above, no walls in the way), the rest weak and local behind thick walls;
-        # phones miss many weak beacons. Gives ~16 readings per scan of 139 APs and a real-like
+        # phones miss many weak beacons. Gives ~15 readings per scan of 139 APs and a real-like
         # fingerprint resolution (the nearest fingerprint of another walk a few metres away).
         radio=RadioParams(
             p0_dbm_range=(-80.0, -55.0),
@@ -313,7 +313,8 @@ def _museum_sessions(
         start = day0 + 30 * _DAY_NS + int(i * sc.walk_spacing_s * 1e9) + int(rng.integers(0, 60_000)) * 1_000_000
         route = b.routes[i % len(b.routes)]
         jobs.append((f"{sc.name}-s{seed}-t{i:0{width}d}", start, route, mp.phones[i % len(mp.phones)], rng))
-    assert b.heading_field is not None
+    if b.heading_field is None:
+        raise SimulationError(f"scenario {sc.name!r}: the building has no heading-disturbance field")
     sessions = [
         simulate_museum_walk(
             sid, start, route, b.plan, b.radio, b.heading_field, mp, phone, rng, site=b.site, floor=b.floor
@@ -347,9 +348,6 @@ def simulate(
     t0 = time.perf_counter()
     building = build_building(sc, seed)
     n = max(1, int(round(sc.n_walks * size)))
-    if sc.route == "out_and_back":
-        museum, museum_tests = _museum_sessions(sc, int(seed), size, test_walks, building)
-        return SimulatedSurvey(sc, int(seed), float(size), building, Survey(tuple(museum)), tuple(museum_tests))
 
     def run(specs: list[tuple[WalkSpec, np.random.Generator]]) -> list[Session]:
         return [
@@ -359,8 +357,11 @@ def simulate(
             for spec, rng in progress_over(specs, "simulate", unit="walks")
         ]
 
-    sessions = run(_walk_specs(sc, int(seed), n, test=False))
-    tests = run(_walk_specs(sc, int(seed), test_walks, test=True)) if test_walks else []
+    if sc.route == "out_and_back":
+        sessions, tests = _museum_sessions(sc, int(seed), size, test_walks, building)
+    else:
+        sessions = run(_walk_specs(sc, int(seed), n, test=False))
+        tests = run(_walk_specs(sc, int(seed), test_walks, test=True)) if test_walks else []
     log.info(
         "simulated %s seed=%d size=%g: %d walks, %d test walks in %.1f s",
         sc.name,

@@ -8,7 +8,7 @@ so a simulated survey and a real one are measured the same way; pass
 
 Walks are grouped by route: ``route_of`` knows the real file names
 (``IPIN2023_T3_TrainingTrial21_repetition01`` -> ``route1``, trials 21-27 are routes
-1-7 and 51-53 the stair/lift spots ``lift1``-``lift3``) and the simulator's ids
+1-7 and 51-53 the stair/lift spots ``stairs1``-``stairs3``) and the simulator's ids
 (``museum-s0-route1-rep01``).
 """
 
@@ -30,11 +30,13 @@ from graphslam.core.types import Session, Survey
 STANDSTILL_GAP_S = 3.0  # a gap between steps longer than this is the walker standing
 OVERLAP_RADIUS_M = 3.0  # a scan "overlaps" another walk's scans within this distance
 PHONE_PAIR_M = 2.0  # scans of two phones this close are compared for the RSS offset
+COLOCATED_M = 1.5  # scans of two walks this close are "at one place"
+HEADING_SPAN_S = 1.5  # walking direction at a scan: displacement from t - span to t + span
 
 
 def route_of(session_id: str) -> str | None:
-    """``routeN`` / ``liftN`` of a real IPIN 2023 floor -2 file or a simulated museum walk; None otherwise."""
-    m = re.search(r"-(route\d+|lift\d+)-rep\d+$", session_id)
+    """``routeN`` / ``stairsN`` of a real IPIN 2023 floor -2 file or a simulated museum walk; None otherwise."""
+    m = re.search(r"-(route\d+|stairs\d+)-rep\d+$", session_id)
     if m:
         return m.group(1)
     m = re.search(r"TrainingTrial(\d+)_repetition", session_id)
@@ -43,7 +45,7 @@ def route_of(session_id: str) -> str | None:
         if 21 <= trial <= 27:
             return f"route{trial - 20}"
         if 51 <= trial <= 53:
-            return f"lift{trial - 50}"
+            return f"stairs{trial - 50}"
     return None
 
 
@@ -66,6 +68,8 @@ class WalkShape:
     pdr_scale: float  # least-squares scale that would fit the PDR to its landmarks after that fit
     segment_heading_err_deg: NDArray[np.float64]  # per landmark-to-landmark leg >= 3 m, minus the walk's mean
     scan_xy: NDArray[np.float64]  # (S, 2) scan positions (fitted PDR, or truth)
+    scan_heading: NDArray[np.float64]  # (S,) walking direction (rad, same frame), nan when not moving
+    scan_standstill: NDArray[np.int64]  # (S,) index of the standstill the scan lies in, -1 if none
     readings: NDArray[np.int64]  # (S,) readings per scan
 
 
@@ -97,10 +101,18 @@ def walk_shape(s: Session, route: str, *, truth: bool = False) -> WalkShape:
     legs = np.linalg.norm(dt, axis=1) >= 3.0
     ang = np.arctan2(de[legs, 1], de[legs, 0]) - np.arctan2(dt[legs, 1], dt[legs, 0])
     ang = np.angle(np.exp(1j * ang) * np.exp(-1j * np.angle(np.mean(np.exp(1j * ang))))) if len(ang) else ang
-    if truth and s.ground_truth is not None:
-        xy = interpolate_xy(s.ground_truth, t_scan.astype(float))
-    else:
-        xy = se2_apply(T, interpolate_xy(s.steps, t_scan.astype(float)))
+    track = s.ground_truth if truth and s.ground_truth is not None else s.steps
+    fit = np.zeros(3) if track is s.ground_truth else T
+
+    def at(dt_s: float) -> NDArray:
+        return se2_apply(fit, interpolate_xy(track, t_scan.astype(float) + dt_s * 1e9))
+
+    xy = at(0.0)
+    ahead = at(HEADING_SPAN_S) - at(-HEADING_SPAN_S)  # moving >= 1.5 m in 3 s: walking
+    heading = np.where(np.hypot(ahead[:, 0], ahead[:, 1]) >= 1.5, np.arctan2(ahead[:, 1], ahead[:, 0]), np.nan)
+    still = np.full(len(t_scan), -1, np.int64)
+    for j, k in enumerate(long_gaps):
+        still[(t_scan > t_steps[k]) & (t_scan < t_steps[k + 1])] = j
     dts = np.diff(t_scan) / 1e9
     med = float(np.median(dts)) if len(dts) else math.nan
     steps = np.linalg.norm(np.diff(s.steps.xy, axis=0), axis=1)
@@ -120,6 +132,8 @@ def walk_shape(s: Session, route: str, *, truth: bool = False) -> WalkShape:
         pdr_scale=scale,
         segment_heading_err_deg=np.degrees(ang),
         scan_xy=xy,
+        scan_heading=heading,
+        scan_standstill=still,
         readings=np.array([len(x) for x in s.scans], dtype=np.int64),
     )
 
@@ -171,6 +185,54 @@ def phone_offset_db(survey: Survey, walks: Mapping[str, WalkShape]) -> float:
         if len(common) >= 3:
             diffs.append(np.mean([ra[k] - rb[k] for k in common]))
     return float(np.mean(diffs)) if diffs else math.nan
+
+
+def ap_prevalence(survey: Survey, walks: Mapping[str, WalkShape]) -> tuple[int, int, int]:
+    """How many APs are heard in > 60 %, > 10 % and < 1 % of all scans."""
+    counts: dict[str, int] = {}
+    n = 0
+    for s in survey:
+        if s.session_id in walks:
+            n += len(s.scans)
+            for x in s.scans:
+                for b in x.readings:
+                    counts[b] = counts.get(b, 0) + 1
+    f = np.array(list(counts.values())) / max(n, 1)
+    return int(np.sum(f > 0.6)), int(np.sum(f > 0.1)), int(np.sum(f < 0.01))
+
+
+def rss_differences(survey: Survey, walks: Mapping[str, WalkShape]) -> tuple[float, float, float, float]:
+    """One AP's RSS difference (dB) between two scans (same phone model): mean square between
+    consecutive scans of one standstill and between co-located scans (< COLOCATED_M) of two walks;
+    mean |difference| of co-located walking scans of two walks going the same / opposite ways."""
+    rows = [(i, w, x.readings) for i, s in enumerate(survey) if (w := walks.get(s.session_id)) for x in s.scans]
+    if not rows:
+        return (math.nan,) * 4
+    owner = np.array([i for i, _, _ in rows])
+    xy = np.vstack([w.scan_xy for s in survey if (w := walks.get(s.session_id))])
+    hd = np.concatenate([w.scan_heading for s in survey if (w := walks.get(s.session_id))])
+    still = np.concatenate([w.scan_standstill for s in survey if (w := walks.get(s.session_id))])
+    fast = np.array([w.scan_interval_s < 3.0 for _, w, _ in rows])
+
+    def diffs(pairs: Iterable[tuple[int, int]]) -> NDArray:
+        out = [ra[b] - rb[b] for a, c in pairs for ra, rb in [(rows[a][2], rows[c][2])] for b in ra.keys() & rb.keys()]
+        return np.array(out, dtype=float)
+
+    nxt = np.arange(1, len(rows))
+    same_still = (owner[:-1] == owner[1:]) & (still[:-1] == still[1:]) & (still[:-1] >= 0)
+    standstill = diffs(zip(nxt[same_still] - 1, nxt[same_still]))
+    d = np.linalg.norm(xy[:, None, :] - xy[None, :, :], axis=2)
+    pair = (d < COLOCATED_M) & (owner[:, None] < owner[None, :]) & (fast[:, None] == fast[None, :])
+    a, c = np.nonzero(pair)
+    two_walks = diffs(zip(a, c))
+    turn = np.abs(np.angle(np.exp(1j * (hd[a] - hd[c]))))  # nan when either stands
+    same_way = diffs(zip(a[turn < math.pi / 4], c[turn < math.pi / 4]))
+    opposite = diffs(zip(a[turn > 3 * math.pi / 4], c[turn > 3 * math.pi / 4]))
+
+    def mean(v: NDArray) -> float:
+        return float(v.mean()) if len(v) else math.nan
+
+    return mean(standstill**2), mean(two_walks**2), mean(np.abs(same_way)), mean(np.abs(opposite))
 
 
 def fingerprint_resolution(survey: Survey, walks: Mapping[str, WalkShape]) -> tuple[float, float, float]:
@@ -251,7 +313,7 @@ def survey_shape(survey: Survey, walks: Mapping[str, WalkShape]) -> dict[str, ob
     """The shape statistics (label -> number or tuple), in the order of docs/simulator.md's table."""
     ws = list(walks.values())
     routes = [w for w in ws if w.route.startswith("route")]
-    lifts = [w for w in ws if w.route.startswith("lift")]
+    stairs = [w for w in ws if w.route.startswith("stairs")]
     by: dict[str, int] = {}
     for w in ws:
         by[w.route] = by.get(w.route, 0) + 1
@@ -271,6 +333,7 @@ def survey_shape(survey: Survey, walks: Mapping[str, WalkShape]) -> dict[str, ob
     between = [max((ov[(a, b)] for b in by if b != a), default=0.0) for a in names]
     adjacent = tuple(round(ov[(a, b)], 2) for a, b in zip(names[:-1], names[1:]))
     fp_med, fp_p90, fp_5 = fingerprint_resolution(survey, walks)
+    d_still, d_walks, d_same, d_opposite = rss_differences(survey, walks)
     h_tot, h_shared, h_own = _heading_shares(ws)
     rigid = np.array([w.rigid_fit_m for w in ws])
     rigid_r = np.array([w.rigid_fit_m for w in routes])
@@ -279,11 +342,11 @@ def survey_shape(survey: Survey, walks: Mapping[str, WalkShape]) -> dict[str, ob
     long_stand = float(np.mean([max(w.standstills_s, default=0.0) >= 10.0 for w in routes]))
     mm = lambda v: (round(float(np.min(v)), 1), round(float(np.max(v)), 1))  # noqa: E731
     return {
-        "walks (routes + stair/lift)": (len(routes), len(lifts)),
-        "routes, stair/lift spots": (len(names), len({w.route for w in lifts})),
+        "walks (routes + stair/lift)": (len(routes), len(stairs)),
+        "routes, stair/lift spots": (len(names), len({w.route for w in stairs})),
         "walks per route (min, max)": (min(by.values()), max(by.values())),
         "route walk duration s (min, max)": mm([w.duration_s for w in routes]),
-        "stair/lift walk duration s (min, max)": mm([w.duration_s for w in lifts]) if lifts else (),
+        "stair/lift walk duration s (min, max)": mm([w.duration_s for w in stairs]) if stairs else (),
         "route walk PDR length m (min, max)": mm([w.pdr_length_m for w in routes]),
         "PDR step length m (median of walks)": round(float(np.median([w.pdr_step_m for w in ws])), 2),
         "landmarks per route walk (min, max)": mm(marks_r),
@@ -305,7 +368,14 @@ def survey_shape(survey: Survey, walks: Mapping[str, WalkShape]) -> dict[str, ob
         "readings per scan (p10, median, p90)": tuple(float(v) for v in np.percentile(readings, [10, 50, 90])),
         "RSS dBm (p5, median, p95)": tuple(float(v) for v in np.percentile(rss, [5, 50, 95])),
         "APs heard (all, per walk min, max)": (len({b for s in sessions for b in s.access_points}), min(aps), max(aps)),
+        "APs heard in > 60 %, > 10 %, < 1 % of scans": ap_prevalence(survey, walks),
         "RSS of the 2 s phone minus the 4 s phone dB": round(phone_offset_db(survey, walks), 1),
+        "one AP's squared RSS difference dB^2: standstill, two walks at one place": (
+            round(d_still, 1), round(d_walks, 1)
+        ),
+        "  mean abs RSS difference dB, two walks at one place: same way, opposite ways": (
+            round(d_same, 2), round(d_opposite, 2)
+        ),
         "PDR rigid fit per walk m (mean, median, max)": (
             round(float(rigid.mean()), 2), round(float(np.median(rigid)), 2), round(float(rigid.max()), 2)
         ),
