@@ -21,6 +21,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix
 from graphslam.core.survey.evaluate import interpolate_xy
@@ -142,8 +143,8 @@ def _near_count(a: NDArray, b: NDArray, r: float) -> int:
     """How many points of ``a`` lie within ``r`` of some point of ``b``."""
     if len(a) == 0 or len(b) == 0:
         return 0
-    d2 = np.min(np.sum((a[:, None, :] - b[None, :, :]) ** 2, axis=2), axis=1)
-    return int(np.sum(d2 < r * r))
+    d, _ = cKDTree(b).query(a, distance_upper_bound=r)
+    return int(np.sum(np.isfinite(d)))
 
 
 def overlaps(walks: Iterable[WalkShape], radius_m: float = OVERLAP_RADIUS_M) -> dict[tuple[str, str], float]:
@@ -164,40 +165,60 @@ def overlaps(walks: Iterable[WalkShape], radius_m: float = OVERLAP_RADIUS_M) -> 
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class _Scans:
+    """Every scan of the shaped walks, in survey order."""
+
+    owner: NDArray[np.int64]  # walk index in the survey
+    xy: NDArray[np.float64]
+    heading: NDArray[np.float64]
+    still: NDArray[np.int64]
+    fast: NDArray[np.bool_]  # the phone scanning every ~2 s
+    readings: list[Mapping[str, float]]
+
+    @classmethod
+    def of(cls, survey: Survey, walks: Mapping[str, WalkShape]) -> "_Scans":
+        pairs = [(i, w, s) for i, s in enumerate(survey) if (w := walks.get(s.session_id)) is not None]
+        n = [len(w.scan_xy) for _, w, _ in pairs]
+        return cls(
+            owner=np.repeat([i for i, _, _ in pairs], n).astype(np.int64),
+            xy=np.vstack([w.scan_xy for _, w, _ in pairs] or [np.zeros((0, 2))]),
+            heading=np.concatenate([w.scan_heading for _, w, _ in pairs] or [np.zeros(0)]),
+            still=np.concatenate([w.scan_standstill for _, w, _ in pairs] or [np.zeros(0, np.int64)]),
+            fast=np.repeat([w.scan_interval_s < 3.0 for _, w, _ in pairs], n).astype(bool),
+            readings=[x.readings for _, _, s in pairs for x in s.scans],
+        )
+
+    def diffs(self, a: NDArray, b: NDArray) -> NDArray[np.float64]:
+        """RSS differences of the APs two scans share, over the pairs (a[i], b[i])."""
+        r = self.readings
+        return np.array([r[i][k] - r[j][k] for i, j in zip(a, b) for k in r[i].keys() & r[j].keys()], dtype=float)
+
+
 def phone_offset_db(survey: Survey, walks: Mapping[str, WalkShape]) -> float:
     """Mean RSS of the 2 s phone minus the 4 s phone, over the common APs of scans < PHONE_PAIR_M apart."""
-    groups: dict[bool, list[tuple[NDArray, Mapping[str, float]]]] = {True: [], False: []}
-    for s in survey:
-        w = walks.get(s.session_id)
-        if w is None:
-            continue
-        fast = w.scan_interval_s < 3.0
-        groups[fast] += list(zip(w.scan_xy, (x.readings for x in s.scans)))
-    if not groups[True] or not groups[False]:
+    sc = _Scans.of(survey, walks)
+    fa, fb = np.flatnonzero(sc.fast), np.flatnonzero(~sc.fast)
+    if len(fa) == 0 or len(fb) == 0:
         return math.nan
-    pa = np.array([p for p, _ in groups[True]])
-    pb = np.array([p for p, _ in groups[False]])
-    d = np.linalg.norm(pa[:, None] - pb[None], axis=2)
+    near = cKDTree(sc.xy[fa]).query_ball_tree(cKDTree(sc.xy[fb]), PHONE_PAIR_M)
     diffs = []
-    for i, j in zip(*np.nonzero(d < PHONE_PAIR_M)):
-        ra, rb = groups[True][i][1], groups[False][j][1]
-        common = ra.keys() & rb.keys()
-        if len(common) >= 3:
-            diffs.append(np.mean([ra[k] - rb[k] for k in common]))
+    for i, js in zip(fa, near):
+        for j in fb[js]:
+            common = sc.readings[i].keys() & sc.readings[j].keys()
+            if len(common) >= 3:
+                diffs.append(np.mean([sc.readings[i][k] - sc.readings[j][k] for k in common]))
     return float(np.mean(diffs)) if diffs else math.nan
 
 
 def ap_prevalence(survey: Survey, walks: Mapping[str, WalkShape]) -> tuple[int, int, int]:
     """How many APs are heard in > 60 %, > 10 % and < 1 % of all scans."""
     counts: dict[str, int] = {}
-    n = 0
-    for s in survey:
-        if s.session_id in walks:
-            n += len(s.scans)
-            for x in s.scans:
-                for b in x.readings:
-                    counts[b] = counts.get(b, 0) + 1
-    f = np.array(list(counts.values())) / max(n, 1)
+    readings = _Scans.of(survey, walks).readings
+    for r in readings:
+        for b in r:
+            counts[b] = counts.get(b, 0) + 1
+    f = np.array(list(counts.values())) / max(len(readings), 1)
     return int(np.sum(f > 0.6)), int(np.sum(f > 0.1)), int(np.sum(f < 0.01))
 
 
@@ -205,56 +226,45 @@ def rss_differences(survey: Survey, walks: Mapping[str, WalkShape]) -> tuple[flo
     """One AP's RSS difference (dB) between two scans (same phone model): mean square between
     consecutive scans of one standstill and between co-located scans (< COLOCATED_M) of two walks;
     mean |difference| of co-located walking scans of two walks going the same / opposite ways."""
-    rows = [(i, w, x.readings) for i, s in enumerate(survey) if (w := walks.get(s.session_id)) for x in s.scans]
-    if not rows:
+    sc = _Scans.of(survey, walks)
+    if len(sc.owner) < 2:
         return (math.nan,) * 4
-    owner = np.array([i for i, _, _ in rows])
-    xy = np.vstack([w.scan_xy for s in survey if (w := walks.get(s.session_id))])
-    hd = np.concatenate([w.scan_heading for s in survey if (w := walks.get(s.session_id))])
-    still = np.concatenate([w.scan_standstill for s in survey if (w := walks.get(s.session_id))])
-    fast = np.array([w.scan_interval_s < 3.0 for _, w, _ in rows])
-
-    def diffs(pairs: Iterable[tuple[int, int]]) -> NDArray:
-        out = [ra[b] - rb[b] for a, c in pairs for ra, rb in [(rows[a][2], rows[c][2])] for b in ra.keys() & rb.keys()]
-        return np.array(out, dtype=float)
-
-    nxt = np.arange(1, len(rows))
-    same_still = (owner[:-1] == owner[1:]) & (still[:-1] == still[1:]) & (still[:-1] >= 0)
-    standstill = diffs(zip(nxt[same_still] - 1, nxt[same_still]))
-    d = np.linalg.norm(xy[:, None, :] - xy[None, :, :], axis=2)
-    pair = (d < COLOCATED_M) & (owner[:, None] < owner[None, :]) & (fast[:, None] == fast[None, :])
-    a, c = np.nonzero(pair)
-    two_walks = diffs(zip(a, c))
-    turn = np.abs(np.angle(np.exp(1j * (hd[a] - hd[c]))))  # nan when either stands
-    same_way = diffs(zip(a[turn < math.pi / 4], c[turn < math.pi / 4]))
-    opposite = diffs(zip(a[turn > 3 * math.pi / 4], c[turn > 3 * math.pi / 4]))
+    o, st = sc.owner, sc.still
+    k = np.flatnonzero((o[:-1] == o[1:]) & (st[:-1] == st[1:]) & (st[:-1] >= 0))
+    standstill = sc.diffs(k, k + 1)
+    pairs = cKDTree(sc.xy).query_pairs(COLOCATED_M, output_type="ndarray")
+    keep = (o[pairs[:, 0]] != o[pairs[:, 1]]) & (sc.fast[pairs[:, 0]] == sc.fast[pairs[:, 1]])
+    a, b = pairs[keep, 0], pairs[keep, 1]
+    turn = np.abs(np.angle(np.exp(1j * (sc.heading[a] - sc.heading[b]))))  # nan when either stands
+    same, opposite = turn < math.pi / 4, turn > 3 * math.pi / 4
 
     def mean(v: NDArray) -> float:
         return float(v.mean()) if len(v) else math.nan
 
-    return mean(standstill**2), mean(two_walks**2), mean(np.abs(same_way)), mean(np.abs(opposite))
+    return (
+        mean(standstill**2),
+        mean(sc.diffs(a, b) ** 2),
+        mean(np.abs(sc.diffs(a[same], b[same]))),
+        mean(np.abs(sc.diffs(a[opposite], b[opposite]))),
+    )
 
 
 def fingerprint_resolution(survey: Survey, walks: Mapping[str, WalkShape]) -> tuple[float, float, float]:
     """Each scan's most similar scan of another walk (eq. 9, -110 dBm fill, readings >= -100 dBm, >= 3
     common APs): (median, p90) of their distance apart (m) and the fraction within 5 m."""
-    scans, xy, owner = [], [], []
-    for i, s in enumerate(survey):
-        w = walks.get(s.session_id)
-        if w is None:
-            continue
-        scans += [x.readings for x in s.scans]
-        xy.append(w.scan_xy)
-        owner += [i] * len(s.scans)
-    fp = FingerprintMatrix.from_scans(scans, missing_dbm=-110.0, min_rssi_dbm=-100.0)
-    D, _ = DistanceEngine(fp).block(fp, min_common=3)
-    own = np.array(owner)
-    D[own[:, None] == own[None, :]] = np.inf
-    ok = np.isfinite(D).any(axis=1)
-    best = np.argmin(D[ok], axis=1)
-    p = np.vstack(xy)
-    dist = np.linalg.norm(p[ok] - p[best], axis=1)
-    return float(np.median(dist)), float(np.percentile(dist, 90)), float(np.mean(dist < 5.0))
+    sc = _Scans.of(survey, walks)
+    fp = FingerprintMatrix.from_scans(sc.readings, missing_dbm=-110.0, min_rssi_dbm=-100.0)
+    dist = []
+    for start, D, _ in DistanceEngine(fp).iter_blocks(fp, min_common=3):
+        rows = np.arange(start, start + len(D))
+        D[sc.owner[rows][:, None] == sc.owner[None, :]] = np.inf  # not the walk's own scans
+        ok = np.isfinite(D).any(axis=1)
+        best = np.argmin(D[ok], axis=1)
+        dist.append(np.linalg.norm(sc.xy[rows[ok]] - sc.xy[best], axis=1))
+    d = np.concatenate(dist) if dist else np.zeros(0)
+    if len(d) == 0:
+        return math.nan, math.nan, math.nan
+    return float(np.median(d)), float(np.percentile(d, 90)), float(np.mean(d < 5.0))
 
 
 def manhattan(survey: Survey) -> tuple[float, float, float, float]:
