@@ -292,7 +292,7 @@ def evaluate(
 
 @app.command()
 def simulate(
-    scenario: str = typer.Argument(..., help="Scenario: paper, corridor or crowd (see docs/simulator.md)."),
+    scenario: str = typer.Argument(..., help="Scenario: paper, corridor, crowd or museum (see docs/simulator.md)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (created); existing files are replaced."),
     seed: int = typer.Option(0, "--seed", min=0, help="Random seed; same seed, same recordings."),
     size: float = typer.Option(1.0, "--size", help="Multiplies the number of walks (paper --size 12: ~100k steps)."),
