@@ -70,3 +70,27 @@ def test_auc_from_histograms_matches_the_rank_statistic(diag: ModuleType) -> Non
     h_near, h_far = np.bincount(near, minlength=50), np.bincount(far, minlength=50)
     wins = (near[:, None] > far[None]).sum() + 0.5 * (near[:, None] == far[None]).sum()
     assert diag._auc(h_near, h_far) == pytest.approx(wins / (300 * 500), abs=1e-3)
+
+
+def test_calibration_perturbation_moves_each_route_rigidly(diag: ModuleType) -> None:
+    """ipin_calibration's stand-in placement: every route moved as a rigid body (distances within a
+    route kept, between routes changed), reproducibly per seed."""
+    import types
+
+    spec = importlib.util.spec_from_file_location("ipin_calibration", REPO / "scripts" / "ipin_calibration.py")
+    C = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(C)
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 50, (40, 2))
+    route = np.repeat(np.array(["a", "b"]), 20)
+    f = types.SimpleNamespace(xy=xy, scan_route=route, routes=["a", "b"])
+    out = C.perturbed_positions(f, 5.0, 5.0, seed=3)
+    for r in ("a", "b"):
+        m = route == r
+        d0 = np.linalg.norm(xy[m][:, None] - xy[m][None], axis=2)
+        d1 = np.linalg.norm(out[m][:, None] - out[m][None], axis=2)
+        assert np.allclose(d0, d1)
+    assert not np.allclose(np.linalg.norm(xy[:20, None] - xy[None, 20:], axis=2),
+                           np.linalg.norm(out[:20, None] - out[None, 20:], axis=2))
+    assert np.array_equal(out, C.perturbed_positions(f, 5.0, 5.0, seed=3))
