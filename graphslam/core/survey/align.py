@@ -31,9 +31,7 @@ from graphslam.core.survey import incremental
 from graphslam.core.survey.association import FingerprintNodes, associate
 from graphslam.core.survey.chains import CompressedChains, compress, expand
 from graphslam.core.survey.edges import WifiEdges, propose_edges, window_thresholds
-from graphslam.core.radiomap.similarity import PowerCosine
 from graphslam.core.survey.initialise import Placement, register_walks, se2_apply
-from graphslam.core.survey.placement import GrowthParams, grow_placement
 from graphslam.core.types import PoseTrack, Survey, wrap_angle
 from graphslam.errors import SolverError
 
@@ -303,6 +301,10 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig, warm: incremental.WarmSt
 def _grow(survey: Survey, fp: FingerprintNodes, dr_xyh: NDArray, cfg: GraphSlamConfig) -> Placement:
     """Map-growth placement (graphslam.core.survey.placement) as a ``Placement``; the seed walk
     (the configured reference, else the one with the most match weight) has ``parent == -2``."""
+    # imported here: scipy.ndimage etc. only for surveys that use this placement
+    from graphslam.core.radiomap.similarity import PowerCosine
+    from graphslam.core.survey.placement import GrowthParams, grow_placement
+
     pc = cfg.placement
     sim = PowerCosine.of(fp.fingerprints, pc.similarity_scale_db)
     matches = sim.top_matches(fp.session, pc.matches_per_fingerprint)
