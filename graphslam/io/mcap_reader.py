@@ -27,7 +27,10 @@ from graphslam.io.schemas import (
     TOPIC_POSE,
     TOPIC_SCAN,
     TOPIC_SCHEMAS,
+    TOPIC_UWB_RANGE,
+    UWB_ANCHORS_METADATA,
 )
+from graphslam.io import uwb_io
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +92,7 @@ def read_survey(paths: Iterable[str | Path]) -> Survey:
                 field="graphslam.session.session_id",
             )
         by_id[s.session_id] = s
+    uwb_io.check_survey(sessions)  # UWB (issue 15): anchors agree between files, uwb_id unique
     return Survey(tuple(sessions))
 
 
@@ -284,9 +288,13 @@ def read_session(path: str | Path) -> Session:
 def _read(path: Path, fh: Any) -> Session:
     reader = make_reader(fh)
     meta: dict[str, str] = {}
+    anchor_meta: dict[str, str] = {}
     for m in reader.iter_metadata():
         if m.name == SESSION_METADATA:
             meta = dict(m.metadata)
+        elif m.name == UWB_ANCHORS_METADATA:
+            anchor_meta = dict(m.metadata)
+    uwb_rows: list[uwb_io.UwbRow] = []
     steps: list[tuple[int, float, float, float]] = []
     truth: list[tuple[int, float, float, float]] = []
     scans: list[Scan] = []
@@ -319,9 +327,13 @@ def _read(path: Path, fh: Any) -> Session:
         elif topic == TOPIC_LANDMARKS:
             t = p.stamp(msg, message.log_time)
             marks.append(LandmarkMark(t, p.string(msg, "landmark_id"), p.number(msg, "x"), p.number(msg, "y")))
+        elif topic == TOPIC_UWB_RANGE:
+            uwb_rows.append(uwb_io.decode_range(path, i, msg))
     if not steps:
         raise InputError(path, "no step poses: topic missing or empty", topic=TOPIC_POSE)
     session_id = str(meta.get("session_id") or path.stem)
+    anchors = uwb_io.parse_anchors(path, anchor_meta)
+    tag_id = uwb_io.uwb_id(path, meta)
     return Session(
         session_id=session_id,
         steps=_track(path, TOPIC_POSE, steps),
@@ -331,6 +343,9 @@ def _read(path: Path, fh: Any) -> Session:
         site=str(meta.get("site", "")),
         floor=str(meta.get("floor", "")),
         source=str(path),
+        uwb_id=tag_id,
+        uwb_ranges=uwb_io.ranges(path, uwb_rows, anchors, tag_id),
+        uwb_anchors=anchors,
     )
 
 
