@@ -18,9 +18,13 @@ height, so the vertical axis is dropped (anchors keep their height in the range 
   the paper's exact expression did not survive in our copy). The second term, the
   neighbour's variance along the line of sight, is ours: without it a neighbour whose estimate
   is isotropically poor (kappa = 1) would count as much as an anchor.
-- Residual bound: a range whose residual exceeds ``residual_bound_m`` is rejected (the paper
-  "bounds the accepted readings"), as is a trilateration whose RMS exceeds its own bound.
-- No measurement: prediction only (the state drifts; its covariance grows with Q).
+- Residual bound: a range whose residual exceeds ``residual_bound_m`` (plus 3 sigma of the
+  predicted range) is rejected (the paper "bounds the accepted readings"), as is a
+  trilateration whose RMS exceeds its own bound. A trilateration that fits its ranges but lies
+  outside the filter's 99 % ellipse restarts the filter there (a tag that drifted in a zone
+  without anchors is found again when it sees three; ours, the paper does not say).
+- No measurement: prediction only (the state drifts; its covariance grows with Q). With eq. 7
+  the last velocity carries on: ``velocity_decay_s`` (ours, default off) lets it relax to zero.
 
 Decision flow per slot (the paper's Fig. 3): >= 3 anchors -> trilateration; else each anchor
 range, then each neighbour range (neighbours only without trilateration: it is the least
@@ -42,22 +46,24 @@ from graphslam.core.uwb.ranging import trilaterate
 from graphslam.errors import EstimationError
 
 MEASUREMENT_TYPES = ("none", "neighbour", "anchor", "trilateration")
+CHI2_2DOF_99 = 9.21  # 99 % quantile of chi-square with 2 degrees of freedom
 NONE, NEIGHBOUR, ANCHOR, TRILATERATION = range(4)
 
 
 @dataclass(frozen=True)
 class UwbEkfConfig:
-    """Noise and bounds (SI units; process noise per second). Defaults chosen on the simulated
-    seven-tag experiment (docs/uwb.md): walkers at ~0.5-1 m/s who stop at goals."""
+    """Noise and bounds (SI units; process noise per second). Defaults chosen on seeds 0-3 of the
+    simulated seven-tag experiment (docs/uwb.md): walkers at 0.5-1 m/s who stop at goals."""
 
     q_position: float = 0.002  # m^2/s
-    q_velocity: float = 0.25  # (m/s)^2/s: walkers turn and stop
+    q_velocity: float = 0.1  # (m/s)^2/s: walkers turn and stop (0.05-0.25 within 1 cm in zones A/B)
     sigma_trilateration_m: float = 0.05  # eq. 13 (the paper measured its doPositioning standing still)
-    sigma_range_m: float = 0.06  # eq. 14 anchor ranges (the simulator's LOS noise is 0.05)
+    sigma_range_m: float = 0.1  # eq. 14: the simulator's LOS noise is 0.05; 0.1 is better in the 2/0-anchor zones
     range_age_tau_s: float = 1.0  # anchor-range R doubles for a range this old
-    residual_bound_m: float = 0.5  # larger range residuals are rejected (NLOS, multipath)
+    residual_bound_m: float = 0.5  # range residuals beyond this (+ the prediction's 3 sigma) are rejected
     trilateration_max_rms_m: float = 0.25  # a trilateration fitting its ranges worse is not used
     init_velocity_sigma_mps: float = 1.0
+    velocity_decay_s: float | None = None  # None: eq. 7; else the velocity mean relaxes to 0 with this time constant
     tag_height_m: float = 1.0  # every tag's antenna height (m, site frame)
     neighbour_los_variance: bool = True  # add u^T P_j u to a neighbour range's R (see module docstring)
 
@@ -66,6 +72,8 @@ class UwbEkfConfig:
                 self.range_age_tau_s, self.residual_bound_m, self.trilateration_max_rms_m, self.init_velocity_sigma_mps)
         if not all(np.isfinite(v) and v > 0 for v in vals):
             raise EstimationError("UWB EKF: noise levels, bounds and tau must be finite and > 0")
+        if self.velocity_decay_s is not None and not self.velocity_decay_s > 0:
+            raise EstimationError("UWB EKF: velocity_decay_s must be > 0 (or None)")
 
 
 @dataclass
@@ -77,10 +85,16 @@ class TagState:
     P: NDArray[np.float64]
 
 
-def transition(dt: float) -> NDArray[np.float64]:
-    """Eq. 7."""
+def transition(dt: float, decay_s: float | None = None) -> NDArray[np.float64]:
+    """Eq. 7 ([[I, dt I], [0, I]]); with ``decay_s`` the velocity relaxes to zero instead
+    (first-order Gauss-Markov): [[I, tau (1 - e) I], [0, e I]], e = exp(-dt / tau)."""
     F = np.eye(4)
-    F[0, 2] = F[1, 3] = dt
+    if decay_s is None:
+        F[0, 2] = F[1, 3] = dt
+    else:
+        e = float(np.exp(-dt / decay_s))
+        F[0, 2] = F[1, 3] = decay_s * (1.0 - e)
+        F[2, 2] = F[3, 3] = e
     return F
 
 
@@ -94,7 +108,7 @@ def predict(s: TagState, t_ns: int, cfg: UwbEkfConfig) -> TagState:
     dt = (t_ns - s.t_ns) / 1e9
     if dt < 0:
         raise EstimationError(f"UWB EKF: prediction back in time ({dt:.3f} s)")
-    F = transition(dt)
+    F = transition(dt, cfg.velocity_decay_s)
     return TagState(t_ns, F @ s.x, F @ s.P @ F.T + process_noise(dt, cfg))
 
 
@@ -127,9 +141,10 @@ def range_update(
     s: TagState, ref_xy: NDArray, dz: float, z: float, variance: float, bound_m: float
 ) -> tuple[TagState, bool]:
     """Eq. 14 update with range ``z`` to a point at ``ref_xy`` (``dz`` above the tag); rejected
-    (state unchanged, False) when the residual exceeds ``bound_m``."""
+    (state unchanged, False) when the residual exceeds ``bound_m`` plus three standard deviations
+    of the predicted range (a filter that has drifted for a while must still accept ranges)."""
     h, H = range_model(s.x, ref_xy, dz)
-    if abs(z - h) > bound_m:
+    if abs(z - h) > bound_m + 3.0 * float(np.sqrt(H @ s.P @ H)):
         return s, False
     return kalman_update(s, np.array([z - h]), H[None, :], np.array([[variance]])), True
 
@@ -177,6 +192,7 @@ class TagTrack:
     kind: NDArray[np.int8]
     rejected: int  # ranges (or trilaterations) refused by the residual bounds
     skipped_before_start: int  # slots before the first trilateration
+    restarts: int  # trilaterations that restarted a lost filter
 
 
 def _trilateration_start(ep: UwbEpoch, anchors: Mapping[str, NDArray], cfg: UwbEkfConfig) -> NDArray | None:
@@ -187,6 +203,10 @@ def _trilateration_start(ep: UwbEpoch, anchors: Mapping[str, NDArray], cfg: UwbE
         tag_height_m=cfg.tag_height_m,
     )
     return tri.xy if tri.ok and tri.rms_m <= cfg.trilateration_max_rms_m else None
+
+
+def _initial_cov(cfg: UwbEkfConfig) -> NDArray[np.float64]:
+    return np.diag([cfg.sigma_trilateration_m**2] * 2 + [cfg.init_velocity_sigma_mps**2] * 2)
 
 
 def _dz(anchor: NDArray, cfg: UwbEkfConfig) -> float:
@@ -204,18 +224,19 @@ def track_tags(
     rows: dict[str, list[tuple[int, NDArray, NDArray, int]]] = {}
     rejected: dict[str, int] = {}
     skipped: dict[str, int] = {}
+    restarts: dict[str, int] = {}
     for ep in sorted(epochs, key=lambda e: (e.t_ns, e.tag)):
         rows.setdefault(ep.tag, [])
         rejected.setdefault(ep.tag, 0)
         skipped.setdefault(ep.tag, 0)
+        restarts.setdefault(ep.tag, 0)
         s = states.get(ep.tag)
         if s is None:
             p0 = _trilateration_start(ep, anc, cfg)
             if p0 is None:
                 skipped[ep.tag] += 1
                 continue
-            P0 = np.diag([cfg.sigma_trilateration_m**2] * 2 + [cfg.init_velocity_sigma_mps**2] * 2)
-            s = TagState(ep.t_ns, np.array([p0[0], p0[1], 0.0, 0.0]), P0)
+            s = TagState(ep.t_ns, np.array([p0[0], p0[1], 0.0, 0.0]), _initial_cov(cfg))
             states[ep.tag] = s
             rows[ep.tag].append((ep.t_ns, s.x.copy(), s.P.copy(), TRILATERATION))
             continue
@@ -226,8 +247,14 @@ def track_tags(
                 np.array([anc[a] for a in ep.anchor_ids]), ep.anchor_ranges, cfg.sigma_range_m,
                 tag_height_m=cfg.tag_height_m, start=s.x[:2],
             )
-            if tri.ok and tri.rms_m <= cfg.trilateration_max_rms_m and np.linalg.norm(tri.xy - s.x[:2]) <= cfg.residual_bound_m + 3 * np.sqrt(np.trace(s.P[:2, :2])):
-                s = position_update(s, tri.xy, cfg.sigma_trilateration_m)
+            if tri.ok and tri.rms_m <= cfg.trilateration_max_rms_m:
+                nu = tri.xy - s.x[:2]
+                S = s.P[:2, :2] + cfg.sigma_trilateration_m**2 * np.eye(2)
+                if float(nu @ np.linalg.solve(S, nu)) <= CHI2_2DOF_99:
+                    s = position_update(s, tri.xy, cfg.sigma_trilateration_m)
+                else:  # the filter lost itself: start again from the trilateration
+                    s = TagState(ep.t_ns, np.array([tri.xy[0], tri.xy[1], 0.0, 0.0]), _initial_cov(cfg))
+                    restarts[ep.tag] += 1
                 kind = TRILATERATION
             else:
                 rejected[ep.tag] += 1
@@ -259,6 +286,7 @@ def track_tags(
             np.array([v[3] for v in r], np.int8),
             rejected[tag],
             skipped[tag],
+            restarts[tag],
         )
     return out
 

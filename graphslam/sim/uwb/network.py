@@ -36,6 +36,7 @@ from typing import Callable
 import numpy as np
 from numpy.typing import NDArray
 
+from graphslam.core.uwb.ekf import UwbEpoch
 from graphslam.errors import ConfigError, SimulationError
 from graphslam.sim.uwb.clock import ClockParams, Clocks, SyncParams, sync_phase
 from graphslam.sim.uwb.radio import Frame, Medium, UwbRadioParams, ds_twr_range, link_matrix, nlos_excess
@@ -155,6 +156,26 @@ class NetworkRun:
     def responder_name(self, j: int) -> str:
         d = self.devices
         return d.tag_ids[j] if j < d.n_tags else d.anchor_ids[j - d.n_tags]
+
+    def epochs(self, t0_ns: int = 0) -> list[UwbEpoch]:
+        """One ``UwbEpoch`` per executed slot (an empty one where no range completed: the
+        filter's prediction-only step), times on the shared clock ``t0_ns + t``."""
+        r, d = self.ranges, self.devices
+        nt = d.n_tags
+        out = []
+        for tag in range(nt):
+            st = np.sort(r.slot_t_s[r.slot_tag == tag])
+            sel = np.flatnonzero(r.tag == tag)
+            which = np.searchsorted(st, r.t_s[sel], side="right") - 1
+            for k, t in enumerate(st.tolist()):
+                m = sel[which == k]
+                a, p = m[r.responder[m] >= nt], m[r.responder[m] < nt]
+                out.append(UwbEpoch(
+                    d.tag_ids[tag], t0_ns + int(round(t * 1e9)),
+                    tuple(self.responder_name(int(j)) for j in r.responder[a]), r.range_m[a].copy(),
+                    tuple(self.responder_name(int(j)) for j in r.responder[p]), r.range_m[p].copy(),
+                ))
+        return out
 
 
 def _two_hop_conflicts(slots: dict[int, tuple[int, ...]], linked: NDArray) -> int:

@@ -251,7 +251,7 @@ class CrowdUwb:
     duration_min: tuple[float, float] = (5.0, 8.0)
     n_anchors: int = 4
     no_wifi_every: int = 4  # every k-th walker records no WiFi (0: all do)
-    nlos: bool = False  # bias a third of the ranges (bodies and walls), else walls only limit the reach
+    nlos: bool = False  # bias a third of the ranges (bodies and walls); else no range is biased (walls only limit the reach)
     anchor_z: float = 2.5
     radio: UwbRadioParams = field(default_factory=UwbRadioParams)
 
@@ -266,7 +266,7 @@ class CrowdUwb:
 CROWD_ANCHORS = ((35.0, 15.0), (85.0, 45.0), (85.0, 15.0), (35.0, 45.0))
 # With los_nlos_prob = 0.3, 33-36 % of the ranges come out NLOS (walls add the rest; measured
 # by `graphslam bench uwb-survey`): the "a third of the ranges".
-CROWD_NLOS_LOS_PROB = 0.3
+CROWD_NLOS_LOS_PROB = 0.2
 CROWD_NLOS_RADIO = replace(UwbRadioParams(), los_nlos_prob=CROWD_NLOS_LOS_PROB)
 
 
@@ -305,7 +305,10 @@ def simulate_crowd(seed: int, spec: CrowdUwb = CrowdUwb(), params: NetworkParams
     anchor_xy = CROWD_ANCHORS[: spec.n_anchors]
     anchor_ids = tuple(f"A{k + 1}" for k in range(spec.n_anchors))
     anchor_xyz = np.array([[x, y, spec.anchor_z] for x, y in anchor_xy])
-    radio = replace(spec.radio, los_nlos_prob=CROWD_NLOS_LOS_PROB) if spec.nlos else spec.radio
+    if spec.nlos:
+        radio = replace(spec.radio, los_nlos_prob=CROWD_NLOS_LOS_PROB, nlos_through_walls=True)
+    else:
+        radio = replace(spec.radio, los_nlos_prob=0.0, nlos_through_walls=False)
     p = params or NetworkParams(radio=radio)
     devices = Devices(
         tag_ids=tuple(f"T{101 + i}" for i in range(len(sessions))),
