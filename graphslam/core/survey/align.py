@@ -31,6 +31,8 @@ from graphslam.core.survey.chains import CompressedChains, compress, expand
 from graphslam.core.survey.edges import WifiEdges, propose_edges, window_thresholds
 from graphslam.core.survey.initialise import Placement, register_walks, se2_apply
 from graphslam.core.types import PoseTrack, Survey, wrap_angle
+from graphslam.core.uwb import factors as uwb_factors
+from graphslam.core.uwb.survey import UwbSummary, UwbTerms, uwb_terms
 from graphslam.errors import SolverError
 
 log = logging.getLogger(__name__)
@@ -70,6 +72,12 @@ class Alignment:
     timings_s: dict[str, float] = field(default_factory=dict)
     edge_states: dict[str, int] = field(default_factory=dict)
     snapshots: tuple[tuple[int, NDArray[np.float64]], ...] = ()  # (stage, node_xyh) after each stage
+    uwb: UwbSummary | None = None  # UWB ranges used (issue 15); frame "site" when anchors fixed it
+
+    @property
+    def frame(self) -> str:
+        """"site" when UWB anchors fixed the frame, else "aligned" (the reference walk's)."""
+        return self.uwb.frame if self.uwb is not None else "aligned"
 
     @property
     def n_nodes(self) -> int:
@@ -134,6 +142,7 @@ class Problem:
     imu_u: NDArray[np.float64]  # (M, 3) measured body-frame step (eq. 6)
     wifi_pairs: NDArray[np.int64]  # (E, 2) nodes of WiFi edges between included walks
     timings_s: dict[str, float]
+    uwb: UwbTerms | None = None  # UWB range factors and placement (issue 15)
 
     @property
     def reference_node(self) -> int:
@@ -204,6 +213,12 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
         included = label == label[ref]
         for s in np.flatnonzero(~included):
             unaligned[survey.sessions[s].session_id] = "no WiFi edge path to the reference walk"
+    # --- UWB hook (issue 15, graphslam.core.uwb.survey): range factors; with anchors the site
+    # frame, the inclusion and the placement come from the ranges
+    uwb = uwb_terms(survey, cfg, fp.offsets, ea, eb, included, transforms, unaligned)
+    if uwb is not None:
+        included, unaligned = uwb.included, dict(uwb.unaligned)
+    # ---
     init_xyh = np.full_like(dr_xyh, np.nan)
     imu_pairs, imu_u = [], []
     for s in np.flatnonzero(included):
@@ -212,6 +227,9 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
         k = np.arange(a + 1, b)
         imu_pairs.append(np.column_stack([k - 1, k]))
         imu_u.append(F.relative_steps(survey.sessions[s].steps))
+    if uwb is not None:  # UWB hook: the placement from the ranges
+        placed = np.isfinite(uwb.init_xyh[:, 0])
+        init_xyh[placed] = uwb.init_xyh[placed]
     use = included[node_sess[ea]] & included[node_sess[eb]]
     timings["initialise"] = time.perf_counter() - t
     return Problem(
@@ -227,6 +245,7 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
         imu_u=np.concatenate(imu_u),
         wifi_pairs=np.column_stack([ea[use], eb[use]]).astype(np.int64),
         timings_s=timings,
+        uwb=uwb,
     )
 
 
@@ -244,8 +263,10 @@ def native_graph(
         keep = np.zeros(len(problem.init_xyh), bool)
         keep[problem.wifi_pairs.ravel()] = True
         keep[problem.reference_node] = True
+        if problem.uwb is not None:  # UWB hook: poses with a range stay variables
+            keep[problem.uwb.nodes] = True
         step_cov = np.diag([cfg.imu.sigma_xy_m**2, cfg.imu.sigma_xy_m**2, cfg.imu.sigma_heading_rad**2])
-        chains = compress(problem.init_xyh, problem.fingerprints.offsets, keep, problem.included, step_cov)
+        chains = compress(_dr_nodes(problem.survey)[0], problem.fingerprints.offsets, keep, problem.included, step_cov)
         for (i, j), u, cov in zip(chains.pairs.tolist(), chains.measured, chains.covariance):
             imu_graph.add(F.imu_factor(X(i), X(j), u, gtsam.noiseModel.Gaussian.Covariance(cov)))
         nodes = chains.kept
@@ -255,10 +276,16 @@ def native_graph(
             imu_graph.add(F.imu_factor(X(i), X(j), u, imu_nm))
         nodes = np.flatnonzero(np.isfinite(problem.init_xyh[:, 0]))
     r0 = problem.reference_node
-    imu_graph.add(gtsam.PriorFactorPose2(X(r0), gtsam.Pose2(*problem.init_xyh[r0]), F.reference_prior_noise()))
+    uwb = problem.uwb
+    if uwb is None or not uwb.site_frame:  # with UWB anchors they fix the frame instead
+        imu_graph.add(gtsam.PriorFactorPose2(X(r0), gtsam.Pose2(*problem.init_xyh[r0]), F.reference_prior_noise()))
     values = gtsam.Values()
     for n in nodes.tolist():
         values.insert(X(n), gtsam.Pose2(*problem.init_xyh[n]))
+    if uwb is not None:  # UWB hook: range factors (always active) and the anchors
+        for f in uwb_factors.range_factors(uwb.ranges, cfg.uwb, with_anchors=uwb.site_frame):
+            imu_graph.add(f)
+        values.insert(uwb_factors.anchor_values(uwb.ranges))
     wifi_nm = F.wifi_noise(cfg.wifi)
     wifi = [F.wifi_factor(X(i), X(j), wifi_nm) for i, j in problem.wifi_pairs.tolist()]
     return imu_graph, wifi, values, chains
@@ -310,6 +337,7 @@ def solve(
         return float(imu_graph.error(vals) + F.fuzzy_cost(d, cfg.wifi).sum())
 
     init_xyh = problem.init_xyh
+    dr_xyh = _dr_nodes(problem.survey)[0]
     xyh = init_xyh.copy()
     initial_error = objective(xyh, values)
     converged = False
@@ -342,7 +370,7 @@ def solve(
         )
         xyh = _values_to_xyh(values, init_xyh)
         if chains is not None:
-            xyh = expand(xyh, init_xyh, chains)
+            xyh = expand(xyh, dr_xyh, chains)
         snapshots.append((stage, xyh.copy()))
         prev_active = active
     timings["optimise"] = time.perf_counter() - t
@@ -379,13 +407,14 @@ def solve(
             "saturated": int((st == 2).sum()),
         },
         snapshots=tuple(snapshots),
+        uwb=problem.uwb.summary() if problem.uwb is not None else None,
     )
 
 
 def _values_to_xyh(values: gtsam.Values, template: NDArray) -> NDArray:
     out = np.full_like(template, np.nan)
-    # gtsam.utilities.extractPose2 returns poses in key order
-    keys = gtsam.KeyVector(values.keys())
+    # gtsam.utilities.extractPose2 returns the poses in key order (UWB anchors are Point2s)
+    keys = [k for k in values.keys() if gtsam.Symbol(k).chr() == ord("x")]
     poses = gtsam.utilities.extractPose2(values)
     idx = np.array([gtsam.Symbol(k).index() for k in keys], dtype=np.int64)
     out[idx] = poses
