@@ -546,6 +546,25 @@ def bench_tracking(
     typer.echo(json.dumps(res))
 
 
+# --- UWB (Paper 003, issue 15): the seven-tag experiment, the survey with ranges, tracking ---
+
+
+@bench_app.command("uwb")
+def bench_uwb(
+    seeds: str = typer.Option("0-99", help="Seeds of the seven-tag runs (e.g. 0-99)."),
+    plot_dir: Optional[Path] = typer.Option(None, help="Write uwb_fig8.png and uwb_zones.png (first seed) here."),
+    per_seed: bool = typer.Option(False, "--per-seed", help="Also print one JSON line per seed."),
+) -> None:
+    """Paper 003's experiment simulated: collisions, slots per tag per cycle, clock offsets, EKF error per zone/type."""
+    from graphslam.app.uwb_bench import zones_benchmark
+
+    rows, agg = zones_benchmark(_seeds(seeds), plot_dir=plot_dir)
+    if per_seed:
+        for r in rows:
+            typer.echo(json.dumps(r))
+    typer.echo(json.dumps(agg))
+
+
 def _smoothers(text: str) -> list[str]:
     from graphslam.core.tracking.smoother import SMOOTH_METHODS
 
