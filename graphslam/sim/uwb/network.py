@@ -11,8 +11,8 @@ device's logical clock (the paper's Fig. 1):
 
 Topology comes from the building: links and NLOS from ``radio.link_matrix`` (walls limit the
 reach and make a range NLOS), evaluated per phase and per slot at the devices' true
-positions. A tag whose links changed since scheduling (someone came into range, a walker
-stepped through a door) stays silent until the next cycle, both ends of the new link, neither
+positions. A tag with a link that was not there during both the sync and the scheduling phase
+(someone came into range, a walker stepped through a door) stays silent until the next cycle, both ends of the new link, neither
 ranging nor answering polls (the paper: a new tag waits for the next round of scheduling);
 without that rule a newcomer transmits in slots its new neighbours' schedules never accounted
 for, and on clocks they are not synchronised with. Phases of different
@@ -53,8 +53,12 @@ class SlotParams:
 
     slot_s: float = 0.04
     guard_s: float = 1e-3  # from the slot's start to the first poll
-    exchange_s: float = 1e-3  # one DS-TWR exchange (3 frames)
-    reply_s: float = 0.3e-3  # reply delay of each side
+    # one DS-TWR exchange: poll, response, final reply_s apart. Devices three hops apart may share
+    # a slot; their frames stay apart while their clocks differ by less than reply_s - airtime
+    # (350 us: the 20 ppm crystals drift ~30 us each over a cycle; 0.3 ms replies collided twice
+    # in one 8-minute crowd run)
+    exchange_s: float = 1.5e-3
+    reply_s: float = 0.5e-3
     max_responders: int = 12
 
     def __post_init__(self) -> None:
@@ -261,7 +265,7 @@ def simulate_network(
             on_now = devices.on(t_slot)
             xy = devices.xy(t_slot)
             linked_x, walls_x = link_matrix(xy, devices.walls, params.radio, on_now)
-            new = linked_x & ~linked_s
+            new = linked_x & ~(linked & linked_s)  # a link must have been there to sync and to schedule
             suspended |= set(np.flatnonzero(new.any(axis=1) & (np.arange(n) < nt)).tolist())
             owners = [i for i in tags.tolist() if slot in sched.slots[i] and i not in suspended and on_now[i]]
             if not owners:
