@@ -157,3 +157,103 @@ def zones_benchmark(
 
 def ekf_config(**changes: Any) -> UwbEkfConfig:
     return dataclasses.replace(UwbEkfConfig(), **changes)
+
+
+def _walk_errors(tracks: dict, survey: Any, T: NDArray) -> dict[str, float]:
+    from graphslam.core.survey.evaluate import trajectory_errors
+
+    return {sid: trajectory_errors({sid: tr}, survey, T).mean_m for sid, tr in tracks.items()}
+
+
+def _mean_over(errors: dict[str, float], survey: Any, walks: Sequence[str]) -> float:
+    """Mean step error over the steps of ``walks`` (weighted by steps, as the survey-wide mean)."""
+    n = {s.session_id: len(s.steps) for s in survey}
+    w = [n[s] for s in walks]
+    return float(np.average([errors[s] for s in walks], weights=w)) if walks else float("nan")
+
+
+def survey_seed(seed: int, n_anchors: int, cfg: Any) -> dict[str, Any]:
+    """One crowd survey (clean and NLOS ranges, same walkers) aligned WiFi-only, with UWB, with
+    UWB + NLOS. Errors: mean over steps vs ground truth; "site" = no fit, "fit" = one SE(2) fit."""
+    from graphslam.core.survey.align import align
+    from graphslam.core.survey.evaluate import evaluate
+    from graphslam.sim.uwb.scenarios import CrowdUwb, nlos_fraction, simulate_crowd
+
+    out: dict[str, Any] = {"seed": seed, "anchors": n_anchors}
+    runs = {"clean": simulate_crowd(seed, CrowdUwb(n_anchors=n_anchors)),
+            "nlos": simulate_crowd(seed, CrowdUwb(n_anchors=n_anchors, nlos=True))}
+    survey = runs["clean"].survey
+    out["walks"] = len(survey)
+    out["walks_without_wifi"] = list(runs["clean"].no_wifi)
+    out["steps"] = survey.n_steps
+    t = time.perf_counter()
+    wifi = align(survey, cfg.model_copy(update={"uwb": cfg.uwb.model_copy(update={"enabled": False})}))
+    t_wifi = time.perf_counter() - t
+    ev = evaluate(wifi.tracks, survey)
+    wifi_err = _walk_errors(wifi.tracks, survey, np.array(ev.site_from_aligned))
+    out["wifi_only"] = {"aligned": len(wifi.tracks), "fit_mean_m": round(ev.steps.mean_m, 4), "align_s": round(t_wifi, 2)}
+    for name, run in runs.items():
+        t = time.perf_counter()
+        al = align(run.survey, cfg)
+        dt = time.perf_counter() - t
+        ev_u = evaluate(al.tracks, run.survey)
+        site = _walk_errors(al.tracks, run.survey, np.zeros(3))
+        fit = _walk_errors(al.tracks, run.survey, np.array(ev_u.site_from_aligned))
+        both = [s for s in wifi.tracks if s in al.tracks]
+        no_wifi = [s for s in run.no_wifi if s in al.tracks]
+        r = run.network.ranges
+        out[f"uwb_{name}"] = {
+            "frame": al.frame,
+            "aligned": len(al.tracks),
+            "site_mean_m": round(_mean_over(site, run.survey, list(al.tracks)), 4) if al.frame == "site" else None,
+            "fit_mean_m": round(ev_u.steps.mean_m, 4),
+            "same_walkers_as_wifi": {
+                "walks": len(both),
+                "uwb_m": round(_mean_over(site if al.frame == "site" else fit, run.survey, both), 4),
+                "wifi_only_fit_m": round(_mean_over(wifi_err, survey, both), 4),
+            },
+            "walks_without_wifi_aligned": len(no_wifi),
+            "walks_without_wifi_m": round(_mean_over(site if al.frame == "site" else fit, run.survey, no_wifi), 4),
+            "ranges": int(len(r.t_s)),
+            "nlos_fraction": round(nlos_fraction(run.network), 4),
+            "ranging_collisions": int(sum(c.ranging_collisions for c in run.network.cycles)),
+            "uwb": al.uwb.as_dict() if al.uwb is not None else None,
+            "align_s": round(dt, 2),
+        }
+    c, n = out["uwb_clean"], out["uwb_nlos"]
+    key = "site_mean_m" if c["frame"] == "site" else "fit_mean_m"
+    if c[key] is not None and n[key] is not None:
+        out["nlos_over_clean"] = round(n[key] / c[key], 3)
+    return out
+
+
+def survey_benchmark(seeds: Sequence[int], anchors: Sequence[int], cfg: Any) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Rows per (anchors, seed) and, per anchor count, the means and the issue's criteria."""
+    rows = [survey_seed(seed, na, cfg) for na in anchors for seed in seeds]
+    agg: dict[str, Any] = {}
+    for na in anchors:
+        rs = [r for r in rows if r["anchors"] == na]
+        m = lambda f: round(float(np.mean([f(r) for r in rs])), 4)  # noqa: E731
+        site = na > 0
+        clean_key = "site_mean_m" if site else "fit_mean_m"
+        a = {
+            "seeds": len(rs),
+            "wifi_only_fit_m": m(lambda r: r["wifi_only"]["fit_mean_m"]),
+            "uwb_clean_m": m(lambda r: r["uwb_clean"][clean_key]),
+            "uwb_nlos_m": m(lambda r: r["uwb_nlos"][clean_key]),
+            "same_walkers_uwb_m": m(lambda r: r["uwb_clean"]["same_walkers_as_wifi"]["uwb_m"]),
+            "same_walkers_wifi_only_fit_m": m(lambda r: r["uwb_clean"]["same_walkers_as_wifi"]["wifi_only_fit_m"]),
+            "walks_without_wifi": sum(len(r["walks_without_wifi"]) for r in rs),
+            "walks_without_wifi_aligned": sum(r["uwb_clean"]["walks_without_wifi_aligned"] for r in rs),
+            "walks_without_wifi_m": m(lambda r: r["uwb_clean"]["walks_without_wifi_m"]),
+            "nlos_fraction": m(lambda r: r["uwb_nlos"]["nlos_fraction"]),
+            "nlos_over_clean": m(lambda r: r["uwb_nlos"][clean_key] / r["uwb_clean"][clean_key]),
+        }
+        a["criteria"] = {
+            "site_frame_le_0.3_m": bool(site and a["uwb_clean_m"] <= 0.3),
+            "le_half_wifi_only": bool(a["same_walkers_uwb_m"] <= 0.5 * a["same_walkers_wifi_only_fit_m"]),
+            "walks_without_wifi_joined": a["walks_without_wifi_aligned"] == a["walks_without_wifi"],
+            "nlos_within_1.5x_clean": bool(a["uwb_nlos_m"] <= 1.5 * a["uwb_clean_m"]),
+        }
+        agg[f"anchors_{na}"] = a
+    return rows, agg

@@ -219,8 +219,9 @@ def place_windows(
     pa_win = np.array([wp.window_of(int(s), np.array([t]))[0] for s, t in zip(obs.p_walk[:, 0], obs.p_t)], np.int64)
     pb_win = np.array([wp.window_of(int(s), np.array([t]))[0] for s, t in zip(obs.p_walk[:, 1], obs.p_t)], np.int64)
 
-    def refs(s: int, w: int) -> tuple[NDArray, NDArray, NDArray, int]:
-        """(q, c, r, distinct reference points) of walk s, window w, from anchors and placed walkers."""
+    def refs(s: int, w: int) -> tuple[NDArray, NDArray, NDArray, int, int]:
+        """(q, c, r, distinct reference points, distinct anchors) of walk s, window w, from anchors
+        and placed walkers."""
         qa = obs.a_q[(obs.a_walk == s) & (a_win == w)]
         ia = (obs.a_walk == s) & (a_win == w)
         parts_q, parts_c, parts_r = [qa], [anchor_xy[obs.a_anchor[ia]]], [obs.a_range[ia]]
@@ -244,7 +245,7 @@ def place_windows(
             parts_c.append(c)
             parts_r.append(obs.p_range[sel])
             peers |= set(ob.tolist())
-        return np.vstack(parts_q), np.vstack(parts_c), np.concatenate(parts_r), n_refs + len(peers)
+        return np.vstack(parts_q), np.vstack(parts_c), np.concatenate(parts_r), n_refs + len(peers), n_refs
 
     # 1. windows that see two or more anchors; 2. repeatedly, anything the placed walks reach
     for rounds in range(6):
@@ -255,7 +256,7 @@ def place_windows(
             for w in range(n_win[s]):
                 if np.isfinite(wp.T[s][w, 0]):
                     continue
-                q, c, r, n_refs = refs(s, w)
+                q, c, r, n_refs, n_anchors = refs(s, w)
                 fit = None
                 if n_refs >= 2:
                     fit = fit_rigid_ranges(q, c, r, huber_m=huber_m)
@@ -265,7 +266,7 @@ def place_windows(
                     fit = fit_rigid_ranges(q, c, r, huber_m=huber_m, theta=theta)
                 if fit is not None and fit.acceptable():
                     wp.T[s][w] = fit.T
-                    wp.method[s] = wp.method[s] or ("anchors" if rounds == 0 else "ranges")
+                    wp.method[s] = wp.method[s] or ("anchors" if n_anchors >= 2 else "ranges")
                     progress = True
         if not progress and rounds > 0:
             break

@@ -221,7 +221,7 @@ def uwb_terms(
     site = len(sr.a_node) > 0
     if site:
         wp = place_windows(obs, sr.anchor_xy, span, cfg.uwb.window_s)
-        anchored = [s for s in range(n_s) if wp.method[s] == "anchors"]
+        anchored = [s for s in range(n_s) if wp.method[s] == "anchors"]  # a window saw >= 2 anchors
         used = np.unique(obs.a_anchor[np.isin(obs.a_walk, anchored)])
         site = len(anchored) > 0 and len(used) >= 2
     if site:

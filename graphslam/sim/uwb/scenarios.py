@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -25,6 +26,7 @@ from numpy.typing import NDArray
 from graphslam.core.types import Session, Survey, UwbRanges
 from graphslam.core.uwb.motion import position_at
 from graphslam.errors import ConfigError
+from graphslam.io.mcap_writer import write_session
 from graphslam.sim.scenarios import Building, SimulatedSurvey, simulate, with_overrides
 from graphslam.sim.uwb.network import Devices, NetworkParams, NetworkRun, simulate_network
 from graphslam.sim.uwb.radio import UwbRadioParams
@@ -196,6 +198,10 @@ class ZonesRun:
             out.append(_tag_session(net, tag, tid, ZONES_T0_NS, anchors, self.paths.at(tag, np.array([0.0]))[0]))
         return tuple(out)
 
+    def write(self, out_dir: str | Path) -> list[Path]:
+        """``OUT/<session_id>.mcap`` per tag (the ``/uwb/range`` stream and the anchors)."""
+        return [write_session(s, Path(out_dir) / f"{s.session_id}.mcap") for s in self.sessions()]
+
 
 def _tag_ranges(net: NetworkRun, tag: int, t0_ns: int) -> UwbRanges | None:
     r = net.ranges
@@ -223,8 +229,8 @@ def _tag_session(net: NetworkRun, tag: int, tid: str, t0_ns: int, anchors: dict,
     )
 
 
-def simulate_zones(seed: int, params: NetworkParams | None = None) -> ZonesRun:
-    """One run of the seven-tag experiment."""
+def simulate_zones(seed: int, params: NetworkParams | None = None, end_s: float | None = None) -> ZonesRun:
+    """One run of the seven-tag experiment (``end_s``: stop the network earlier, e.g. in tests)."""
     site = zones_site()
     paths = zone_paths(site, seed)
     p = params or NetworkParams(radio=ZONES_RADIO)
@@ -236,7 +242,7 @@ def simulate_zones(seed: int, params: NetworkParams | None = None) -> ZonesRun:
         active=lambda t: np.ones(len(ZONE_GROUPS), bool),
         walls=site.walls,
     )
-    net = simulate_network(devices, 0.0, paths.end_s, p, _rng(seed, 2))
+    net = simulate_network(devices, 0.0, paths.end_s if end_s is None else min(end_s, paths.end_s), p, _rng(seed, 2))
     return ZonesRun(site, paths, net, seed)
 
 
@@ -256,8 +262,8 @@ class CrowdUwb:
     radio: UwbRadioParams = field(default_factory=UwbRadioParams)
 
     def __post_init__(self) -> None:
-        if not 2 <= self.n_anchors <= len(CROWD_ANCHORS):
-            raise ConfigError(f"crowd UWB: n_anchors must be in [2, {len(CROWD_ANCHORS)}]")
+        if not 0 <= self.n_anchors <= len(CROWD_ANCHORS):
+            raise ConfigError(f"crowd UWB: n_anchors must be in [0, {len(CROWD_ANCHORS)}]")
         if self.n_walkers < 2 or self.no_wifi_every < 0:
             raise ConfigError("crowd UWB: need at least 2 walkers and no_wifi_every >= 0")
 
@@ -278,6 +284,10 @@ class CrowdRun:
     anchors: dict[str, tuple[float, float, float]]
     no_wifi: tuple[str, ...]  # session ids of the walkers without WiFi
     sim: SimulatedSurvey
+
+    def write(self, out_dir: str | Path) -> list[Path]:
+        """``OUT/<session_id>.mcap`` per walker: steps, scans, ground truth, marks, UWB ranges, anchors."""
+        return [write_session(s, Path(out_dir) / f"{s.session_id}.mcap") for s in self.survey]
 
 
 def simulate_crowd(seed: int, spec: CrowdUwb = CrowdUwb(), params: NetworkParams | None = None) -> CrowdRun:
@@ -304,7 +314,7 @@ def simulate_crowd(seed: int, spec: CrowdUwb = CrowdUwb(), params: NetworkParams
 
     anchor_xy = CROWD_ANCHORS[: spec.n_anchors]
     anchor_ids = tuple(f"A{k + 1}" for k in range(spec.n_anchors))
-    anchor_xyz = np.array([[x, y, spec.anchor_z] for x, y in anchor_xy])
+    anchor_xyz = np.array([[x, y, spec.anchor_z] for x, y in anchor_xy]).reshape(-1, 3)
     if spec.nlos:
         radio = replace(spec.radio, los_nlos_prob=CROWD_NLOS_LOS_PROB, nlos_through_walls=True)
     else:
@@ -324,7 +334,7 @@ def simulate_crowd(seed: int, spec: CrowdUwb = CrowdUwb(), params: NetworkParams
             no_wifi.append(s.session_id)
         out.append(replace(
             s, scans=() if drop_wifi else s.scans, uwb_id=devices.tag_ids[i],
-            uwb_ranges=_tag_ranges(net, i, t0_ns), uwb_anchors=anchors,
+            uwb_ranges=_tag_ranges(net, i, t0_ns), uwb_anchors=anchors,  # every session knows the anchors
         ))
     return CrowdRun(Survey(tuple(out)), sim.building, net, anchors, tuple(no_wifi), sim)
 
