@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
+import numpy as np
+
 from graphslam.config import GraphSlamConfig
 from graphslam.core.survey.align import Alignment, ProgressCallback, align
 from graphslam.core.survey.evaluate import Evaluation, evaluate
@@ -89,6 +91,12 @@ def build_report(survey: Survey, al: Alignment, ev: Evaluation | None, cfg: Grap
         ]
     if ev is not None:
         report["evaluation"] = ev.as_dict()
+    if al.uwb is not None:  # UWB ranges (issue 15); in the site frame the error needs no fit
+        report["uwb"] = al.uwb.as_dict()
+        if ev is not None and al.frame == "site":
+            from graphslam.core.survey.evaluate import trajectory_errors
+
+            report["evaluation"]["steps_site_frame"] = trajectory_errors(al.tracks, survey, np.zeros(3)).as_dict()
     return report
 
 
@@ -179,7 +187,7 @@ def write_outputs(
             "report": "report.json",
         }
         write_trajectories(al.tracks, stage / names["trajectories"])
-        write_aligned(al.tracks, stage / names["aligned"])
+        write_aligned(al.tracks, stage / names["aligned"], frame_id=al.frame)
         _write_radio_map(survey, al, cfg, stage / names["radio_map"])
         if surveyed:  # evaluation: the same fingerprints at their ground-truth positions
             from graphslam.core.radiomap.survey_maps import surveyed_radio_map

@@ -2,23 +2,26 @@
 
 Indoors NLOS is the rule: a range through a wall or a body is longer than the truth by
 0.3-2 m and never shorter beyond noise. A symmetric robust loss still lets a third of such
-ranges push every walker away from the anchors (the simulated crowd: 0.13 m clean, 0.86 m
-with Cauchy on 35 % NLOS ranges; Huber 3.5 m), and GTSAM's asymmetric losses see the sign of
-the error only through a ``Robust`` model's weights, not its cost (and ``RangeFactor``'s
-error h(x) - z puts NLOS on the side they keep quadratic). So the physics is used directly:
+ranges push walkers away from the anchors (simulated crowd, seed 0: 0.13 m clean, 0.86 m with
+Cauchy on 35 % NLOS ranges, Huber 3.5 m). GTSAM's asymmetric losses do not help here: through a
+``Robust`` model the cost sees only the size of the whitened error, and ``RangeFactor``'s error
+h(x) - z puts NLOS ranges on the side they treat as quadratic. So the physics is used directly:
 
 1. the walks' dead-reckoning chains (one ``BetweenFactorPose2`` per step, the survey's
-   Omega_IMU) plus every range factor, from the UWB placement, solved by LM;
-2. every range measured longer than the solution by more than ``uwb.nlos_flag_sigmas`` of its
-   own sigma is flagged NLOS (one-sided: a range shorter than the solution is never flagged);
-3. a flagged range still says something: the distance is at most z - excess_min and at least
-   z - excess_max (``uwb.nlos_excess_min_m`` / ``_max_m``). It stays in the graph as a range
-   factor of z minus the interval's middle under ``L2WithDeadZone`` of half its width: free
-   inside the interval, quadratic outside. Steps 1-3 repeat until the flags no longer change.
+   Omega_IMU), from the UWB placement, with the anchor ranges only: an anchor cannot move to
+   hide a range that is too long;
+2. every range measured longer than the solution by more than ``uwb.nlos_reject_sigmas`` of its
+   own sigma is dropped as NLOS (one-sided: a range shorter than the solution is never dropped),
+   and the solve repeats until the set no longer changes;
+3. the peer ranges are judged against that solution (which they did not shape), join, and
+   step 2 repeats over both kinds.
 
-The survey then uses the ranges with these flags, and starts from this solution. All factors are
+The survey then uses the kept ranges only, and starts from this solution. All factors are
 native GTSAM; the gauge is the anchors' priors (site frame) or a prior on the first pose of a
-walk the WiFi placement fixed (reference frame).
+walk the WiFi placement fixed (reference frame, peer ranges only).
+
+Measured (docs/benchmarks.md, issue 15): this leaves ~2x the clean error where a third of the
+ranges are NLOS; with the true NLOS flags (an oracle) the same graph reaches ~1.4x.
 """
 
 from __future__ import annotations
