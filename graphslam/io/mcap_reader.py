@@ -19,6 +19,7 @@ from mcap.reader import make_reader
 
 from graphslam.core.types import LandmarkMark, PoseTrack, Scan, Session, Survey
 from graphslam.errors import InputError
+from graphslam.io import uwb_io
 from graphslam.io.schemas import (
     MCAP_MAGIC,
     SESSION_METADATA,
@@ -30,7 +31,6 @@ from graphslam.io.schemas import (
     TOPIC_UWB_RANGE,
     UWB_ANCHORS_METADATA,
 )
-from graphslam.io import uwb_io
 
 log = logging.getLogger(__name__)
 

@@ -12,7 +12,7 @@ h(x) - z puts NLOS ranges on the side they treat as quadratic. So the physics is
    hide a range that is too long;
 2. every range measured longer than the solution by more than ``uwb.nlos_reject_sigmas`` of its
    own sigma is dropped as NLOS (one-sided: a range shorter than the solution is never dropped),
-   and the solve repeats until the set no longer changes;
+   and the solve repeats until the set has settled (fewer than 0.5 % of the ranges change sides);
 3. the peer ranges are judged against that solution (which they did not shape), join, and
    step 2 repeats over both kinds.
 
@@ -41,6 +41,7 @@ from graphslam.core.uwb.factors import X, SurveyRanges, anchor_values, range_fac
 log = logging.getLogger(__name__)
 
 MAX_ROUNDS = 30
+SETTLED_FRACTION = 0.005  # the set is settled when fewer ranges than this change sides in a round
 
 
 @dataclass(frozen=True, eq=False)
@@ -114,7 +115,8 @@ def reject_nlos(
             new_a &= site_frame
             if not peers:
                 new_p = keep_p
-            changed = not (np.array_equal(new_a, keep_a) and np.array_equal(new_p, keep_p))
+            flips = int((new_a != keep_a).sum() + (new_p != keep_p).sum())
+            changed = flips > SETTLED_FRACTION * (len(new_a) + len(new_p))
             keep_a, keep_p = new_a, new_p
             log.info("UWB NLOS stage %d round %d: kept %d of %d anchor, %d of %d peer ranges", stage + 1, rounds,
                      keep_a.sum(), len(keep_a), keep_p.sum(), len(keep_p))
