@@ -71,16 +71,14 @@ def attach_ranges(
     dropped = {"anchor_below_min_horizontal": 0, "tag_not_in_survey": 0, "outside_walk": 0, "peer_off_step": 0}
     A: dict[str, list] = {k: [] for k in ("node", "anchor", "range", "sigma", "offset", "walk", "t", "q")}
     P: dict[str, list] = {k: [] for k in ("node", "range", "sigma", "offset", "walk", "t", "qa", "qb")}
-    per_walk = []
-    for i, s in enumerate(sessions):
-        st = s.steps
-        per_walk.append((st.t_ns, st.xy, st.heading))
+    per_walk = [(s.steps.t_ns, s.steps.xy, s.steps.heading) for s in sessions]
+    one_s = 1_000_000_000  # a range this far outside the walk's steps still belongs to it
     for i, s in enumerate(sessions):
         r = s.uwb_ranges
         if r is None or not len(r):
             continue
         t_steps, xy, h = per_walk[i]
-        inside = (r.t_ns >= t_steps[0] - 1_000_000_000) & (r.t_ns <= t_steps[-1] + 1_000_000_000)
+        inside = (r.t_ns >= t_steps[0] - one_s) & (r.t_ns <= t_steps[-1] + one_s)
         dropped["outside_walk"] += int((~inside).sum())
         k, q, off, near = _antenna(t_steps, xy, h, r.t_ns)
         t_s = (r.t_ns - t0) / 1e9
@@ -99,35 +97,35 @@ def attach_ranges(
             A["walk"].append(np.full(len(idx), i))
             A["t"].append(t_s[idx])
             A["q"].append(q[idx])
-        for j in np.flatnonzero(~r.is_anchor & inside).tolist():
-            b = by_tag.get(r.responder_id[j])
-            if b is None or b == i:
-                dropped["tag_not_in_survey"] += 1
-                continue
+        peer = np.flatnonzero(~r.is_anchor & inside)
+        other = np.array([by_tag.get(r.responder_id[j], -1) for j in peer], np.int64)
+        unknown = (other < 0) | (other == i)
+        dropped["tag_not_in_survey"] += int(unknown.sum())
+        for b in np.unique(other[~unknown]).tolist():  # one batch per responding walk
             tb, xyb, hb = per_walk[b]
-            tq = r.t_ns[j : j + 1]
-            if not (tb[0] - 1_000_000_000 <= tq[0] <= tb[-1] + 1_000_000_000):
-                dropped["outside_walk"] += 1
+            j = peer[other == b]
+            live = (r.t_ns[j] >= tb[0] - one_s) & (r.t_ns[j] <= tb[-1] + one_s)
+            dropped["outside_walk"] += int((~live).sum())
+            j = j[live]
+            if not len(j):
                 continue
-            kb, qb, offb, nearb = _antenna(tb, xyb, hb, tq)
-            # the walker nearer a step pose takes the plain end; the other end is moved by its offset
-            if near[j, 0] <= nearb[0, 0]:
-                plain_gap, plain_node = near[j, 0], offsets[i] + int(near[j, 1])
-                moved_node, moved_off = offsets[b] + int(kb[0]), offb[0]
-            else:
-                plain_gap, plain_node = nearb[0, 0], offsets[b] + int(nearb[0, 1])
-                moved_node, moved_off = offsets[i] + int(k[j]), off[j]
-            if plain_gap > cfg.peer_max_offset_m:
-                dropped["peer_off_step"] += 1
-                continue
-            P["node"].append([moved_node, plain_node])
-            P["range"].append(r.range_m[j])
-            P["sigma"].append(float(np.hypot(cfg.range_sigma_m, plain_gap)))
-            P["offset"].append(moved_off)
-            P["walk"].append([i, b])
-            P["t"].append(t_s[j])
-            P["qa"].append(q[j])
-            P["qb"].append(qb[0])
+            kb, qb, offb, nearb = _antenna(tb, xyb, hb, r.t_ns[j])
+            # the walker nearer one of its step poses takes the plain end, the other end is moved
+            a_plain = near[j, 0] <= nearb[:, 0]
+            gap = np.where(a_plain, near[j, 0], nearb[:, 0])
+            plain = np.where(a_plain, offsets[i] + near[j, 1], offsets[b] + nearb[:, 1]).astype(np.int64)
+            moved = np.where(a_plain, offsets[b] + kb, offsets[i] + k[j]).astype(np.int64)
+            moved_off = np.where(a_plain[:, None], offb, off[j])
+            ok = gap <= cfg.peer_max_offset_m
+            dropped["peer_off_step"] += int((~ok).sum())
+            P["node"].append(np.column_stack([moved, plain])[ok])
+            P["range"].append(r.range_m[j][ok])
+            P["sigma"].append(np.hypot(cfg.range_sigma_m, gap[ok]))
+            P["offset"].append(moved_off[ok])
+            P["walk"].append(np.column_stack([np.full(len(j), i), np.full(len(j), b)])[ok])
+            P["t"].append(t_s[j][ok])
+            P["qa"].append(q[j][ok])
+            P["qb"].append(qb[ok])
 
     def cat(parts: list, shape: tuple[int, ...], dtype: type = float) -> NDArray:
         return np.concatenate(parts).astype(dtype) if parts else np.zeros(shape, dtype)
@@ -136,13 +134,12 @@ def attach_ranges(
         anchor_ids, anchor_xy,
         cat(A["node"], (0,), np.int64), cat(A["anchor"], (0,), np.int64), cat(A["range"], (0,)),
         cat(A["sigma"], (0,)), cat(A["offset"], (0, 2)),
-        np.array(P["node"], np.int64).reshape(-1, 2), np.array(P["range"], float), np.array(P["sigma"], float),
-        np.array(P["offset"], float).reshape(-1, 2), dropped,
+        cat(P["node"], (0, 2), np.int64), cat(P["range"], (0,)), cat(P["sigma"], (0,)), cat(P["offset"], (0, 2)),
+        dropped,
     )
     obs = RangeObservations(
         cat(A["walk"], (0,), np.int64), cat(A["t"], (0,)), cat(A["q"], (0, 2)), sr.a_anchor, sr.a_range,
-        np.array(P["walk"], np.int64).reshape(-1, 2), np.array(P["t"], float), np.array(P["qa"], float).reshape(-1, 2),
-        np.array(P["qb"], float).reshape(-1, 2), sr.p_range,
+        cat(P["walk"], (0, 2), np.int64), cat(P["t"], (0,)), cat(P["qa"], (0, 2)), cat(P["qb"], (0, 2)), sr.p_range,
     )
     return sr, obs
 
