@@ -118,6 +118,12 @@ class UwbConfig(_Strict):
     nlos_reject_sigmas: float = Field(
         1.0, gt=0, description="a range longer than the UWB-only solution by this many sigmas is dropped as NLOS"
     )
+    presolve_sigma_xy_m: float = Field(
+        0.03, gt=0, description="per-step sigma of the UWB-only NLOS solve (no WiFi edges there to bend the chain)"
+    )
+    presolve_sigma_heading_rad: float = Field(
+        0.005, gt=0, description="... and its heading sigma (the simulated foot module: 0.002 + bias)"
+    )
 
 
 class GraphSlamConfig(_Strict):

@@ -31,7 +31,7 @@ from graphslam.core.survey.initialise import ransac_se2
 N_ROTATIONS = 16
 MIN_RANGES_FULL = 8  # a free rigid fit needs this many ranges ...
 MIN_RANGES_TRANSLATION = 4  # ... a translation-only fit this many
-ACCEPT_RMS_M = 0.4  # RMS of the agreeing ranges of an accepted fit
+ACCEPT_RMS_M = 0.6  # RMS of the agreeing ranges of an accepted fit (drift within a window included)
 ACCEPT_INLIER_FRACTION = 0.6
 AMBIGUITY_COST_RATIO = 1.5  # a different transform within this factor of the best cost: ambiguous
 DISTINCT_M, DISTINCT_RAD = 1.0, np.radians(15.0)

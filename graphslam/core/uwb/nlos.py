@@ -7,9 +7,10 @@ Cauchy on 35 % NLOS ranges, Huber 3.5 m). GTSAM's asymmetric losses do not help 
 ``Robust`` model the cost sees only the size of the whitened error, and ``RangeFactor``'s error
 h(x) - z puts NLOS ranges on the side they treat as quadratic. So the physics is used directly:
 
-1. the walks' dead-reckoning chains (one ``BetweenFactorPose2`` per step, the survey's
-   Omega_IMU), from the UWB placement, with the anchor ranges only: an anchor cannot move to
-   hide a range that is too long;
+1. the walks' dead-reckoning chains (one ``BetweenFactorPose2`` per step, with the tighter
+   ``uwb.presolve_sigma_*`` of a chain that only ranges pull on: WiFi edges, which can be wrong
+   by metres, are not in this solve), from the UWB placement, with the anchor ranges only: an
+   anchor cannot move to hide a range that is too long;
 2. every range measured longer than the solution by more than ``uwb.nlos_reject_sigmas`` of its
    own sigma is dropped as NLOS (one-sided: a range shorter than the solution is never dropped),
    and the solve repeats until the set has settled (fewer than 0.5 % of the ranges change sides);
@@ -67,7 +68,9 @@ def reject_nlos(
     fixed when not ``site_frame``."""
     base = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
-    nm = imu_noise(cfg.imu)
+    nm = imu_noise(cfg.imu.model_copy(update={
+        "sigma_xy_m": cfg.uwb.presolve_sigma_xy_m, "sigma_heading_rad": cfg.uwb.presolve_sigma_heading_rad,
+    }))
     for s in np.flatnonzero(included).tolist():
         a, b = int(offsets[s]), int(offsets[s + 1])
         for k, u in zip(range(a + 1, b), relative_steps(survey.sessions[s].steps)):
