@@ -11,8 +11,9 @@ height, so the vertical axis is dropped (anchors keep their height in the range 
   position of those ranges (``ranging.trilaterate``), H = [I 0], R = sigma_tri^2 I.
 - Range to an anchor or a neighbour (eq. 14): h(x) = |(p, z_tag) - q|, H = [u^T, 0] with
   u = (p - q) / h the unit line of sight; residual z - h(x_pred).
-- Range noise: for an anchor (hard-coded, surveyed position) R = sigma_r^2 (1 + age / tau),
-  age = time since the range was taken (0 when it is fused in its own slot). For a neighbour
+- Range noise: for an anchor (hard-coded, surveyed position) R = sigma_r^2; the paper lets it
+  grow with the time since the range was taken, which is nil here: every range is fused in the
+  slot that measured it. For a neighbour
   (eq. 15) its position is an estimate: R = kappa(P_j) sigma_r^2 + u^T P_j u, kappa the
   condition number of the neighbour's position covariance (the paper's confidence indicator;
   the paper's exact expression did not survive in our copy). The second term, the
@@ -23,8 +24,8 @@ height, so the vertical axis is dropped (anchors keep their height in the range 
   trilateration whose RMS exceeds its own bound. A trilateration that fits its ranges but lies
   outside the filter's 99 % ellipse restarts the filter there (a tag that drifted in a zone
   without anchors is found again when it sees three; ours, the paper does not say).
-- No measurement: prediction only (the state drifts; its covariance grows with Q). With eq. 7
-  the last velocity carries on: ``velocity_decay_s`` (ours, default off) lets it relax to zero.
+- No measurement: prediction only (the state drifts with its last velocity; its covariance grows
+  with Q).
 
 Decision flow per slot (the paper's Fig. 3): >= 3 anchors -> trilateration; else each anchor
 range, then each neighbour range (neighbours only without trilateration: it is the least
@@ -56,24 +57,20 @@ class UwbEkfConfig:
     simulated seven-tag experiment (docs/uwb.md): walkers at 0.5-1 m/s who stop at goals."""
 
     q_position: float = 0.002  # m^2/s
-    q_velocity: float = 0.1  # (m/s)^2/s: walkers turn and stop (0.05-0.25 within 1 cm in zones A/B)
+    q_velocity: float = 0.1  # (m/s)^2/s: walkers turn and stop (zone A within 2 mm for 0.05-0.5)
     sigma_trilateration_m: float = 0.05  # eq. 13 (the paper measured its doPositioning standing still)
-    sigma_range_m: float = 0.1  # eq. 14: the simulator's LOS noise is 0.05; 0.1 is better in the 2/0-anchor zones
-    range_age_tau_s: float = 1.0  # anchor-range R doubles for a range this old
+    sigma_range_m: float = 0.1  # eq. 14: the simulated LOS noise is 0.05; 0.1 did better in zones B-D
     residual_bound_m: float = 0.5  # range residuals beyond this (+ the prediction's 3 sigma) are rejected
     trilateration_max_rms_m: float = 0.25  # a trilateration fitting its ranges worse is not used
     init_velocity_sigma_mps: float = 1.0
-    velocity_decay_s: float | None = None  # None: eq. 7; else the velocity mean relaxes to 0 with this time constant
     tag_height_m: float = 1.0  # every tag's antenna height (m, site frame)
     neighbour_los_variance: bool = True  # add u^T P_j u to a neighbour range's R (see module docstring)
 
     def __post_init__(self) -> None:
         vals = (self.q_position, self.q_velocity, self.sigma_trilateration_m, self.sigma_range_m,
-                self.range_age_tau_s, self.residual_bound_m, self.trilateration_max_rms_m, self.init_velocity_sigma_mps)
+                self.residual_bound_m, self.trilateration_max_rms_m, self.init_velocity_sigma_mps)
         if not all(np.isfinite(v) and v > 0 for v in vals):
-            raise EstimationError("UWB EKF: noise levels, bounds and tau must be finite and > 0")
-        if self.velocity_decay_s is not None and not self.velocity_decay_s > 0:
-            raise EstimationError("UWB EKF: velocity_decay_s must be > 0 (or None)")
+            raise EstimationError("UWB EKF: noise levels and bounds must be finite and > 0")
 
 
 @dataclass
@@ -85,16 +82,10 @@ class TagState:
     P: NDArray[np.float64]
 
 
-def transition(dt: float, decay_s: float | None = None) -> NDArray[np.float64]:
-    """Eq. 7 ([[I, dt I], [0, I]]); with ``decay_s`` the velocity relaxes to zero instead
-    (first-order Gauss-Markov): [[I, tau (1 - e) I], [0, e I]], e = exp(-dt / tau)."""
+def transition(dt: float) -> NDArray[np.float64]:
+    """Eq. 7: [[I, dt I], [0, I]]."""
     F = np.eye(4)
-    if decay_s is None:
-        F[0, 2] = F[1, 3] = dt
-    else:
-        e = float(np.exp(-dt / decay_s))
-        F[0, 2] = F[1, 3] = decay_s * (1.0 - e)
-        F[2, 2] = F[3, 3] = e
+    F[0, 2] = F[1, 3] = dt
     return F
 
 
@@ -108,7 +99,7 @@ def predict(s: TagState, t_ns: int, cfg: UwbEkfConfig) -> TagState:
     dt = (t_ns - s.t_ns) / 1e9
     if dt < 0:
         raise EstimationError(f"UWB EKF: prediction back in time ({dt:.3f} s)")
-    F = transition(dt, cfg.velocity_decay_s)
+    F = transition(dt)
     return TagState(t_ns, F @ s.x, F @ s.P @ F.T + process_noise(dt, cfg))
 
 
