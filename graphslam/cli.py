@@ -565,7 +565,6 @@ def bench_uwb(
     typer.echo(json.dumps(agg))
 
 
-
 @bench_app.command("uwb-survey")
 def bench_uwb_survey(
     seeds: str = typer.Option("0-4", help="Seeds of the simulated crowd (12 walkers, 5-8 min, all at once)."),
@@ -623,6 +622,7 @@ def track_uwb(
 
     run = track_uwb_files(sessions, out=out, slot_gap_s=slot_gap_s, at_steps=at_steps)
     typer.echo(json.dumps(run.as_dict()))
+
 
 def _smoothers(text: str) -> list[str]:
     from graphslam.core.tracking.smoother import SMOOTH_METHODS

@@ -14,7 +14,6 @@ fit (UWB) and after one SE(2) fit (all).
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from pathlib import Path
@@ -153,10 +152,6 @@ def zones_benchmark(
         "zone_A_mean_le_0.10_m": bool(za.get("mean_m", np.inf) <= 0.10),
     }
     return rows, agg
-
-
-def ekf_config(**changes: Any) -> UwbEkfConfig:
-    return dataclasses.replace(UwbEkfConfig(), **changes)
 
 
 def _walk_errors(tracks: dict, survey: Any, T: NDArray) -> dict[str, float]:

@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from graphslam.config import GraphSlamConfig, UwbConfig
 from graphslam.core.types import Survey, wrap_angle
 from graphslam.core.uwb.factors import SurveyRanges
-from graphslam.core.uwb.initialise import RangeObservations, WindowPlacement, place_by_wifi, place_windows
+from graphslam.core.uwb.initialise import RangeObservations, place_by_wifi, place_windows
 from graphslam.core.uwb.motion import median_step_s, stride_fraction
 from graphslam.core.uwb.nlos import reject_nlos
 from graphslam.core.uwb.ranging import horizontal_range
