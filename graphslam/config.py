@@ -159,6 +159,31 @@ class UpdateConfig(_Strict):
     )
 
 
+class UwbConfig(_Strict):
+    """UWB ranges in the survey (Paper 003): anchor and peer range factors; values chosen on the simulated crowd (docs/uwb.md)."""
+
+    enabled: bool = Field(True, description="use /uwb/range when the recordings have it (false: WiFi only)")
+    range_sigma_m: float = Field(0.1, gt=0, description="range std (the simulated radios: 0.05 m LOS; the rest is timing and height)")
+    loss: Literal["cauchy", "huber"] = Field("cauchy", description="robust loss of range factors (NLOS ranges are metres long)")
+    loss_k: float = Field(3.0, gt=0, description="loss threshold, in range sigmas")
+    tag_height_m: float = Field(1.0, description="antenna height of every tag (m); 2-D anchors are taken at this height")
+    anchor_prior_sigma_m: float = Field(1e-3, gt=0, description="surveyed anchor positions: held by a prior this tight")
+    peer_max_offset_m: float = Field(
+        0.1, gt=0, description="a peer range is used when one walker is within this of a step pose at that instant"
+    )
+    min_horizontal_m: float = Field(0.5, ge=0, description="anchor ranges shorter than this in the plane are dropped")
+    window_s: float = Field(180.0, gt=0, description="initial placement: one rigid fit of dead reckoning per window")
+    nlos_reject_sigmas: float = Field(
+        1.0, gt=0, description="a range longer than the UWB-only solution by this many sigmas is dropped as NLOS"
+    )
+    presolve_sigma_xy_m: float = Field(
+        0.03, gt=0, description="per-step sigma of the UWB-only NLOS solve (no WiFi edges there to bend the chain)"
+    )
+    presolve_sigma_heading_rad: float = Field(
+        0.005, gt=0, description="... and its heading sigma (the simulated foot module: 0.002 + bias)"
+    )
+
+
 class GraphSlamConfig(_Strict):
     fingerprint: FingerprintConfig = FingerprintConfig()
     edges: EdgeConfig = EdgeConfig()
@@ -167,6 +192,7 @@ class GraphSlamConfig(_Strict):
     optimizer: OptimizerConfig = OptimizerConfig()
     placement: PlacementConfig = PlacementConfig()
     update: UpdateConfig = UpdateConfig()  # issue 18: not part of a solution's identity (app/update.py)
+    uwb: UwbConfig = UwbConfig()
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)

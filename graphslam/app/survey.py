@@ -89,6 +89,12 @@ def build_report(survey: Survey, al: Alignment, ev: Evaluation | None, cfg: Grap
         report.update(_placement_report(al))
     if ev is not None:
         report["evaluation"] = ev.as_dict()
+    if al.uwb is not None:  # UWB ranges (issue 15); in the site frame the error needs no fit
+        report["uwb"] = al.uwb.as_dict()
+        if ev is not None and al.frame == "site":
+            from graphslam.core.survey.evaluate import trajectory_errors
+
+            report["evaluation"]["steps_site_frame"] = trajectory_errors(al.tracks, survey, np.zeros(3)).as_dict()
     return report
 
 
@@ -266,7 +272,7 @@ def write_outputs(
     try:
         names = {k: v for k, v in OUTPUT_FILES.items() if k != "radio_map_surveyed" or surveyed}
         write_trajectories(al.tracks, stage.path / names["trajectories"])
-        write_aligned(al.tracks, stage.path / names["aligned"])
+        write_aligned(al.tracks, stage.path / names["aligned"], frame_id=al.frame)
         _write_radio_map(survey, al, cfg, stage.path / names["radio_map"])
         _write_wifi_edges(al, cfg, stage.path / names["wifi_edges"])
         if surveyed:  # evaluation: the same fingerprints at their ground-truth positions

@@ -27,6 +27,7 @@ from graphslam.core.progress import progress_over
 from graphslam.core.types import LandmarkMark, PoseTrack, Scan, Session, Survey
 from graphslam.errors import InputError
 from graphslam.io.mcap_container import DamagedMcap, McapContents, TopicMessages, read_mcap
+from graphslam.io import uwb_io
 from graphslam.io.schemas import (
     MCAP_MAGIC,
     SESSION_METADATA,
@@ -35,6 +36,8 @@ from graphslam.io.schemas import (
     TOPIC_POSE,
     TOPIC_SCAN,
     TOPIC_SCHEMAS,
+    TOPIC_UWB_RANGE,
+    UWB_ANCHORS_METADATA,
 )
 
 log = logging.getLogger(__name__)
@@ -99,6 +102,7 @@ def read_survey(paths: Iterable[str | Path]) -> Survey:
                 field="graphslam.session.session_id",
             )
         by_id[s.session_id] = s
+    uwb_io.check_survey(sessions)  # UWB (issue 15): anchors agree between files, uwb_id unique
     return Survey(tuple(sessions))
 
 
@@ -347,6 +351,11 @@ def _log_time_mismatch(path: Path, topic: str, t: np.ndarray, msgs: TopicMessage
         log.debug("%s %s: %d messages whose log_time differs from their timestamp", path, topic, n)
 
 
+def _uwb_ranges(path: Path, topic: str, msgs: TopicMessages) -> list[uwb_io.UwbRow]:
+    """Every ``/uwb/range`` message (file order), checked field by field (graphslam.io.uwb_io)."""
+    return [uwb_io.decode_range(path, i, m) for i, m in enumerate(_objects(path, topic, msgs.data))]
+
+
 # topic -> decoder of all its messages (file order). A new topic: its schema in
 # graphslam.io.schemas.TOPIC_SCHEMAS, its decoder here, its field in Session (read_session).
 DECODERS: dict[str, Callable[[Path, str, TopicMessages], Any]] = {
@@ -354,6 +363,7 @@ DECODERS: dict[str, Callable[[Path, str, TopicMessages], Any]] = {
     TOPIC_SCAN: _scans,
     TOPIC_LANDMARKS: _landmarks,
     TOPIC_GROUND_TRUTH: _poses,
+    TOPIC_UWB_RANGE: _uwb_ranges,
 }
 
 
@@ -411,6 +421,8 @@ def _session(path: Path, contents: McapContents) -> Session:
     if TOPIC_POSE not in decoded:
         raise InputError(path, "no step poses: topic missing or empty", topic=TOPIC_POSE)
     meta = contents.metadata.get(SESSION_METADATA, {})
+    anchors = uwb_io.parse_anchors(path, contents.metadata.get(UWB_ANCHORS_METADATA, {}))
+    tag_id = uwb_io.uwb_id(path, meta)
     return Session(
         session_id=str(meta.get("session_id") or path.stem),
         steps=decoded[TOPIC_POSE],
@@ -420,6 +432,9 @@ def _session(path: Path, contents: McapContents) -> Session:
         site=str(meta.get("site", "")),
         floor=str(meta.get("floor", "")),
         source=str(path),
+        uwb_id=tag_id,
+        uwb_ranges=uwb_io.ranges(path, decoded.get(TOPIC_UWB_RANGE, []), anchors, tag_id),
+        uwb_anchors=anchors,
     )
 
 

@@ -33,6 +33,8 @@ from graphslam.core.survey.chains import CompressedChains, compress, expand
 from graphslam.core.survey.edges import WifiEdges, propose_edges, window_thresholds
 from graphslam.core.survey.initialise import Placement, register_walks, se2_apply
 from graphslam.core.types import PoseTrack, Survey, wrap_angle
+from graphslam.core.uwb import factors as uwb_factors
+from graphslam.core.uwb.survey import UwbSummary, UwbTerms, uwb_terms
 from graphslam.errors import SolverError
 
 if TYPE_CHECKING:
@@ -80,6 +82,12 @@ class Alignment:
     timings_s: dict[str, float] = field(default_factory=dict)
     edge_states: dict[str, int] = field(default_factory=dict)
     snapshots: tuple[tuple[int, NDArray[np.float64]], ...] = ()  # (stage, node_xyh) after each stage
+    uwb: UwbSummary | None = None  # UWB ranges used (issue 15); frame "site" when anchors fixed it
+
+    @property
+    def frame(self) -> str:
+        """"site" when UWB anchors fixed the frame, else "aligned" (the reference walk's)."""
+        return self.uwb.frame if self.uwb is not None else "aligned"
 
     @property
     def n_nodes(self) -> int:
@@ -147,6 +155,7 @@ class Problem:
     # --update (issue 18): nodes re-solved; the others keep init_xyh (their previous solution).
     # None: every node of an included walk is a variable (a full solve).
     free: NDArray[np.bool_] | None = None
+    uwb: UwbTerms | None = None  # UWB range factors and placement (issue 15)
 
     @property
     def reference_node(self) -> int:
@@ -261,6 +270,12 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig, warm: incremental.WarmSt
         included = label == label[ref]
         for s in np.flatnonzero(~included):
             unaligned[survey.sessions[s].session_id] = "no WiFi edge path to the reference walk"
+    # --- UWB hook (issue 15, graphslam.core.uwb.survey): range factors; with anchors the site
+    # frame, the inclusion and the placement come from the ranges
+    uwb = uwb_terms(survey, cfg, fp.offsets, ea, eb, included, transforms, unaligned)
+    if uwb is not None:
+        included, unaligned = uwb.included, dict(uwb.unaligned)
+    # ---
     init_xyh = np.full_like(dr_xyh, np.nan)
     imu_pairs, imu_u = [], []
     for s in np.flatnonzero(included):
@@ -269,6 +284,9 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig, warm: incremental.WarmSt
         k = np.arange(a + 1, b)
         imu_pairs.append(np.column_stack([k - 1, k]))
         imu_u.append(F.relative_steps(survey.sessions[s].steps))
+    if uwb is not None:  # UWB hook: the placement from the ranges
+        placed = np.isfinite(uwb.init_xyh[:, 0])
+        init_xyh[placed] = uwb.init_xyh[placed]
     use = included[node_sess[ea]] & included[node_sess[eb]]
     wifi_pairs = np.column_stack([ea[use], eb[use]]).astype(np.int64)
     free = None
@@ -295,6 +313,7 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig, warm: incremental.WarmSt
         wifi_pairs=wifi_pairs,
         timings_s=timings,
         free=free,
+        uwb=uwb,
     )
 
 
@@ -337,9 +356,9 @@ def native_graph(
 
     With ``optimizer.compress_chains`` the IMU chain between fingerprint poses becomes one
     between factor per segment (``graphslam.core.survey.chains``); otherwise one per step (eq. 6-8).
-    Only ``optimizer.solver: gtsam`` solves this graph; the default back end solves ``pose_graph``
-    (except --update, which solves this graph),
-    so a factor type added here needs its vectorised counterpart in ``solver.py`` too.
+    The default back end solves ``pose_graph`` instead, except for --update and UWB surveys
+    (``use_pardiso``): a factor type added here needs its vectorised counterpart in ``solver.py``,
+    or a case in ``use_pardiso``.
     With ``problem.free`` (--update) only factors touching a free node are built; the other
     nodes they touch are held at their previous solution by priors as tight as the reference's.
     """
@@ -352,6 +371,8 @@ def native_graph(
         keep = np.zeros(len(problem.init_xyh), bool)
         keep[problem.wifi_pairs.ravel()] = True
         keep[problem.reference_node] = True
+        if problem.uwb is not None:  # UWB hook: poses with a range stay variables
+            keep[problem.uwb.nodes] = True
         step_cov = np.diag([cfg.imu.sigma_xy_m**2, cfg.imu.sigma_xy_m**2, cfg.imu.sigma_heading_rad**2])
         # measured from the dead reckoning (rigid-invariant): init_xyh is not one with a warm start
         chains = compress(_dr_nodes(problem.survey)[0], problem.fingerprints.offsets, keep, problem.included, step_cov)
@@ -371,11 +392,17 @@ def native_graph(
         for n in nodes[~free[nodes]].tolist():  # the neighbourhood's border keeps its previous solution
             imu_graph.add(gtsam.PriorFactorPose2(X(n), gtsam.Pose2(*problem.init_xyh[n]), F.reference_prior_noise()))
     r0 = problem.reference_node
-    if free is None or free[r0]:
+    uwb = problem.uwb
+    # with UWB anchors they fix the frame instead; --update: only when the reference is re-solved
+    if (uwb is None or not uwb.site_frame) and (free is None or free[r0]):
         imu_graph.add(gtsam.PriorFactorPose2(X(r0), gtsam.Pose2(*problem.init_xyh[r0]), F.reference_prior_noise()))
     values = gtsam.Values()
     for n in nodes.tolist():
         values.insert(X(n), gtsam.Pose2(*problem.init_xyh[n]))
+    if uwb is not None:  # UWB hook: range factors (always active) and the anchors
+        for f in uwb_factors.range_factors(uwb.ranges, cfg.uwb, with_anchors=uwb.site_frame):
+            imu_graph.add(f)
+        values.insert(uwb_factors.anchor_values(uwb.ranges))
     wifi_nm = F.wifi_noise(cfg.wifi)
     wifi = [F.wifi_factor(X(i), X(j), wifi_nm) for i, j in wifi_pairs.tolist()]
     return imu_graph, wifi, values, chains
@@ -413,8 +440,9 @@ def pose_graph(problem: Problem, cfg: GraphSlamConfig) -> tuple[S.PoseGraph, Com
 
 def use_pardiso(cfg: GraphSlamConfig, problem: Problem | None = None) -> bool:
     """``optimizer.solver``: auto takes the PARDISO LM where MKL loads (an x86-64 wheel), else GTSAM's.
-    A local re-solve (--update: ``problem.free``) always takes GTSAM's (``native_graph`` builds it)."""
-    if problem is not None and problem.free is not None:
+    A local re-solve (--update: ``problem.free``) and a survey with UWB range factors (issue 15)
+    always take GTSAM's: only ``native_graph`` builds those factors."""
+    if problem is not None and (problem.free is not None or problem.uwb is not None):
         return False
     if cfg.optimizer.solver == "auto":
         return S.pardiso_available()
@@ -496,7 +524,7 @@ def solve(
         return float(imu + F.fuzzy_cost(d, cfg.wifi).sum())
 
     init_xyh = problem.init_xyh
-    dr_xyh = _dr_nodes(problem.survey)[0] if chains is not None else init_xyh
+    dr_xyh = _dr_nodes(problem.survey)[0]
     xyh = init_xyh.copy()
     initial_error = objective(xyh)
     converged = False
@@ -563,6 +591,7 @@ def solve(
             "saturated": int((st == 2).sum()),
         },
         snapshots=tuple(snapshots),
+        uwb=problem.uwb.summary() if problem.uwb is not None else None,
     )
 
 
@@ -597,8 +626,8 @@ def _values_to_xyh(values: gtsam.Values, template: NDArray) -> NDArray:
     import gtsam
 
     out = np.full_like(template, np.nan)
-    # gtsam.utilities.extractPose2 returns poses in key order
-    keys = gtsam.KeyVector(values.keys())
+    # gtsam.utilities.extractPose2 returns the poses in key order (UWB anchors are Point2s)
+    keys = [k for k in values.keys() if gtsam.Symbol(k).chr() == ord("x")]
     poses = gtsam.utilities.extractPose2(values)
     idx = np.array([gtsam.Symbol(k).index() for k in keys], dtype=np.int64)
     out[idx] = poses
