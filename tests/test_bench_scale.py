@@ -47,3 +47,26 @@ def test_a_baseline_that_is_not_a_checkout_is_an_error(tmp_path: Path, capsys: p
     with pytest.raises(SystemExit) as e:
         main(["bench", "scale", "paper", "--baseline", str(tmp_path)])
     assert e.value.code == 2 and "not a graphslam checkout" in capsys.readouterr().err
+
+
+def test_the_baseline_runs_its_own_code_even_from_inside_this_checkout(tmp_path: Path, monkeypatch) -> None:
+    # A fake baseline whose `python -m graphslam survey` writes a report with iterations = 4242.
+    # Started from the repository root (where ./graphslam is this checkout), the run must still
+    # import the baseline's package: before -P, `python -m` put the cwd first and timed this
+    # checkout twice.
+    import json
+
+    from graphslam.app.bench_scale import _run_once
+
+    pkg = tmp_path / "base" / "graphslam"
+    pkg.mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    report = {"timings_s": {"total": 0.0}, "optimizer": {"final_error": 0.0, "iterations": 4242}, "edges": {"wifi": 0}}
+    (pkg / "__main__.py").write_text(
+        "import json, pathlib, sys\n"
+        "out = pathlib.Path(sys.argv[sys.argv.index('--out') + 1]); out.mkdir(parents=True, exist_ok=True)\n"
+        f"(out / 'report.json').write_text({json.dumps(json.dumps(report))})\n"
+    )
+    monkeypatch.chdir(Path(__file__).resolve().parents[1])
+    run = _run_once(tmp_path / "data", tmp_path / "out", str(tmp_path / "base"), None)
+    assert run["iterations"] == 4242

@@ -36,7 +36,9 @@ STAGES = (
 
 
 def _run_once(data: Path, out: Path, pythonpath: str | None, config: Path | None) -> dict[str, Any]:
-    cmd = [sys.executable, "-m", "graphslam", "survey", str(data), "--out", str(out), "--no-progress"]
+    # -P: no working directory on sys.path, or a run started inside a checkout would import that
+    # checkout's graphslam ahead of the baseline's PYTHONPATH (and time the same code twice)
+    cmd = [sys.executable, "-P", "-m", "graphslam", "survey", str(data), "--out", str(out), "--no-progress"]
     if config is not None:
         cmd += ["--config", str(config)]
     env = {**os.environ, "RERUN": "off"}
