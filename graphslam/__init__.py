@@ -34,7 +34,7 @@ _EXPORTS: dict[str, str] = {
     # configuration
     **{n: "graphslam.config" for n in ("GraphSlamConfig", "load_config", "config_from_dict")},
     # domain objects
-    **{n: "graphslam.core.types" for n in ("PoseTrack", "Scan", "Session", "Survey", "LandmarkMark")},
+    **{n: "graphslam.core.types" for n in ("PoseTrack", "Scan", "Session", "Survey", "LandmarkMark", "UwbRanges")},
     # alignment and its evaluation
     **{n: "graphslam.core.survey.align" for n in ("align", "Alignment")},
     **{n: "graphslam.core.survey.evaluate" for n in ("evaluate", "Evaluation", "ErrorStats")},
@@ -49,6 +49,9 @@ _EXPORTS: dict[str, str] = {
     )},
     **{n: "graphslam.core.tracking.smoother" for n in ("SmoothedRun", "smooth", "rts_smooth", "map_smooth", "MapProblem")},
     **{n: "graphslam.app.track" for n in ("TrackConfig", "SessionTrack", "track_sessions")},
+    # UWB (Paper 003): the collaborative EKF
+    **{n: "graphslam.core.uwb.ekf" for n in ("UwbEkfConfig", "UwbEpoch", "TagTrack", "track_tags")},
+    "track_uwb_sessions": "graphslam.app.uwb_track",
     # files
     **{n: "graphslam.io.mcap_reader" for n in ("read_survey", "read_session")},
     "write_session": "graphslam.io.mcap_writer",
@@ -83,7 +86,8 @@ if TYPE_CHECKING:  # static analysers see the real objects
     from graphslam.core.radiomap.knn import KnnConfig, KnnLocator, KnnResult
     from graphslam.core.radiomap.radiomap import RadioMap
     from graphslam.core.tracking.smoother import MapProblem, SmoothedRun, map_smooth, rts_smooth, smooth
-    from graphslam.core.types import LandmarkMark, PoseTrack, Scan, Session, Survey
+    from graphslam.core.types import LandmarkMark, PoseTrack, Scan, Session, Survey, UwbRanges
+    from graphslam.core.uwb.ekf import TagTrack, UwbEkfConfig, UwbEpoch, track_tags
     from graphslam.errors import (
         ConfigError, EstimationError, GraphSlamError, InputError, OutputError, QueryError, RadioMapError,
         SimulationError, SolverError, VisualizationError,
@@ -94,3 +98,4 @@ if TYPE_CHECKING:  # static analysers see the real objects
     from graphslam.io.radiomap_io import read_radio_map, write_radio_map
     from graphslam.app.survey import SurveyResult, run_survey, write_outputs
     from graphslam.app.track import SessionTrack, TrackConfig, track_sessions
+    from graphslam.app.uwb_track import track_uwb_sessions

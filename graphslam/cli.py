@@ -17,25 +17,54 @@ from graphslam.errors import GraphSlamError
 
 if TYPE_CHECKING:
     from graphslam.config import GraphSlamConfig
-    from graphslam.core.survey.align import IterationRecord
 
+# no_args_is_help stays off: typer prints the whole help while raising that error; without it,
+# `graphslam` / `graphslam bench` alone is a usage error ("Missing command"), one line like all others.
 app = typer.Typer(
     add_completion=False,
-    no_args_is_help=True,
     help="Factor-graph SLAM for crowdsourced indoor WiFi site survey (foot-mounted IMU + WiFi).",
 )
-bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks on simulated and real data.")
+bench_app = typer.Typer(help="Benchmarks on simulated and real data.")
 app.add_typer(bench_app, name="bench")
 
 EXIT_ERROR = 2
 
 
+def _show_version(value: bool) -> None:
+    if value:
+        from graphslam import __version__
+
+        typer.echo(f"graphslam {__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
-def _root(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress at INFO level.")) -> None:
+def _root(
+    ctx: typer.Context,
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Log details at INFO level."),
+    quiet: bool = typer.Option(
+        False, "--quiet", "-q", help="No progress: neither bars (terminal) nor progress log lines (batch). "
+        "Also accepted after the command name."
+    ),
+    progress_interval: float = typer.Option(
+        10.0, "--progress-interval", min=0.0, help="Seconds between progress log lines when stderr is not a terminal."
+    ),
+    version: bool = typer.Option(
+        False, "--version", callback=_show_version, is_eager=True, help="Print the version and exit."
+    ),
+) -> None:
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
     )
+    from graphslam.app.progress import show_progress
+
+    # bars on a terminal, periodic lines in a batch job's log (graphslam.app.progress)
+    if show_progress("off" if quiet else "auto", interval_s=progress_interval) == "bar":
+        from tqdm.contrib.logging import logging_redirect_tqdm
+
+        ctx.with_resource(logging_redirect_tqdm())  # warnings printed above the bars, not through them
+    ctx.call_on_close(lambda: show_progress("off"))
 
 
 @app.command()
@@ -53,11 +82,13 @@ def inspect(
             typer.echo(json.dumps(s.as_dict()))
         typer.echo(json.dumps({"totals": summary.totals}))
         return
-    header = f"{'session':<28} {'steps':>6} {'scans':>6} {'APs':>5} {'dur s':>8} {'walk m':>8} {'lmks':>5}"
+    # the id column is as wide as the longest id: truncated ids (IPIN's differ only at the end) are ambiguous
+    w = max([7] + [len(s.session_id) for s in summary.sessions])
+    header = f"{'session':<{w}} {'steps':>6} {'scans':>6} {'APs':>5} {'dur s':>8} {'walk m':>8} {'lmks':>5}"
     typer.echo(header)
     for s in summary.sessions:
         typer.echo(
-            f"{s.session_id[:28]:<28} {s.steps:>6} {s.scans:>6} {s.access_points:>5} "
+            f"{s.session_id:<{w}} {s.steps:>6} {s.scans:>6} {s.access_points:>5} "
             f"{s.duration_s:>8.1f} {s.walked_m:>8.1f} {s.landmarks:>5}"
         )
     t = summary.totals
@@ -111,22 +142,6 @@ def _config(config: Optional[Path], set_: Optional[List[str]]) -> "GraphSlamConf
     return load_config(config, overrides)
 
 
-class _LmProgress:
-    """One progress line per LM iteration on stderr (tqdm), stage and error in the postfix."""
-
-    def __init__(self, enabled: bool) -> None:
-        from tqdm import tqdm
-
-        self.bar = tqdm(desc="optimise", unit="it", disable=not enabled, leave=False, file=sys.stderr)
-
-    def __call__(self, rec: "IterationRecord") -> None:
-        self.bar.update(1)
-        self.bar.set_postfix(stage=rec.stage, error=f"{rec.error_after:.4g}", edges=rec.active_edges)
-
-    def close(self) -> None:
-        self.bar.close()
-
-
 @app.command()
 def survey(
     paths: List[Path] = typer.Argument(..., help="Recordings (.mcap) or folders of them."),
@@ -134,25 +149,34 @@ def survey(
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config (see configs/default.yaml)."),
     set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value, e.g. wifi.d_min_m=3."),
     rerun: Optional[Path] = typer.Option(None, "--rerun", help="Also log the survey to this .rrd file."),
-    floor_plan: Optional[Path] = typer.Option(None, "--floor-plan", help="PNG shown under everything in Rerun."),
-    floor_size: Optional[tuple[float, float]] = typer.Option(None, "--floor-size", help="W H of the floor plan (m)."),
-    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show optimiser progress."),
+    floor_plan: Optional[Path] = typer.Option(None, "--floor-plan", help="Image drawn under survey.png and in Rerun."),
+    floor_size: Optional[tuple[float, float]] = typer.Option(
+        None, "--floor-size", help="W H of the floor plan (m); default: floor_info.json beside the image."
+    ),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress (--no-progress: as --quiet)."),
     surveyed: bool = typer.Option(
         False, "--surveyed", help="Also write radio_map_surveyed.parquet: fingerprints at ground-truth poses (evaluation)."
     ),
+    picture: bool = typer.Option(True, "--picture/--no-picture", help="Write OUT/survey.png (over --floor-plan)."),
+    update: Optional[Path] = typer.Option(
+        None, "--update", help="A previous survey's OUT folder of this floor: walks solved there start from their "
+        "solution and only the new walks' neighbourhood is re-solved (a full re-solve, said in report.json, if "
+        "the configuration or a walk changed). OUT may be the same folder.",
+    ),
 ) -> None:
     """Align every walk into one frame; write trajectories.csv, aligned.mcap, radio_map.parquet,
-    report.json and the effective config.yaml into OUT."""
+    wifi_edges.parquet, report.json, survey_state.npz, the effective config.yaml and survey.png into OUT."""
     from graphslam.app.survey import run_survey
 
     cfg = _config(config, set_)
-    bar = _LmProgress(progress and sys.stderr.isatty())
-    try:
-        result = run_survey(
-            paths, out, cfg, progress=bar, rerun_path=rerun, floor_plan=floor_plan, floor_size=floor_size, surveyed=surveyed
-        )
-    finally:
-        bar.close()
+    if not progress:
+        from graphslam.app.progress import show_progress
+
+        show_progress("off")
+    result = run_survey(
+        paths, out, cfg, rerun_path=rerun, floor_plan=floor_plan, floor_size=floor_size, surveyed=surveyed,
+        picture=picture, update=update,
+    )
     r = result.report
     typer.echo(
         f"aligned {r['aligned_sessions']}/{r['sessions']} walks, {r['nodes']:,} poses, "
@@ -168,7 +192,67 @@ def survey(
             f"p90 {lm['p90_m']:.2f} m, max {lm['max_m']:.2f} m"
             + (f"; raw dead reckoning mean {raw['mean_m']:.2f} m" if raw["n"] else "")
         )
+    _echo_update(r.get("update"))
     typer.echo(f"outputs in {out}")
+
+
+def _echo_update(u: Optional[dict]) -> None:
+    """One line on what `survey --update` did (issue 18)."""
+    if not u:
+        return
+    res = u["resolved"]
+    if u["mode"] == "full":
+        typer.echo(f"update: full re-solve ({u['reason']})")
+        return
+    typer.echo(
+        f"update: {len(u['new_walks'])} new walks (+{len(u['placed_again'])} placed again); re-solved "
+        f"{res['nodes']:,} of {res['of_nodes']:,} poses in {len(res['walks'])} walks ({res['hops']} hops)"
+    )
+
+
+@app.command("survey-batch")
+def survey_batch(
+    sites_root: Path = typer.Argument(..., help="Folder whose sub-folders of .mcap recordings are floors."),
+    out: Path = typer.Option(..., "--out", "-o", help="OUT_ROOT: each floor's outputs go to its relative path here."),
+    address: Optional[str] = typer.Option(
+        None, "--address", help="Join a running Dask scheduler (e.g. tcp://host:8786) instead of starting a local "
+        "cluster; its workers must see SITES_ROOT and OUT_ROOT at the same paths.",
+    ),
+    workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Local cluster: worker processes (default: cores)."),
+    update: bool = typer.Option(
+        False, "--update", help="Floors with a previous output in OUT_ROOT are updated in place (survey --update); "
+        "the others are surveyed in full.",
+    ),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config for every floor."),
+    set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value, e.g. wifi.d_min_m=3."),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Progress bar over floors."),
+) -> None:
+    """Survey every floor under SITES_ROOT as one task each on Dask; OUT_ROOT/summary.json lists them.
+    Exit code 0: every floor ok; 1: some failed (their error in summary.json); 2: bad arguments."""
+    from tqdm import tqdm
+
+    from graphslam.app.batch import run_batch
+
+    cfg = _config(config, set_)
+    bar = tqdm(desc="floors", unit="floor", disable=not (progress and sys.stderr.isatty()), file=sys.stderr)
+    failed = [0]
+
+    def on_floor(row: object) -> None:
+        failed[0] += getattr(row, "status") != "ok"
+        bar.update(1)
+        bar.set_postfix(failed=failed[0])
+
+    try:
+        res = run_batch(sites_root, out, cfg, address=address, workers=workers, update=update, on_floor=on_floor,
+                        on_start=lambda n: bar.reset(total=n))
+    finally:
+        bar.close()
+    typer.echo(f"{len(res.rows) - res.failed}/{len(res.rows)} floors ok in {res.seconds:.1f} s; summary in {res.summary}")
+    for row in res.rows:
+        if row.status != "ok":
+            typer.echo(f"failed: {row.floor}: {row.error}")
+    if res.failed:
+        sys.exit(1)  # not typer.Exit: main() runs click with standalone_mode=False, which returns its code
 
 
 @app.command()
@@ -208,7 +292,7 @@ def evaluate(
 
 @app.command()
 def simulate(
-    scenario: str = typer.Argument(..., help="Scenario: paper, corridor or crowd (see docs/simulator.md)."),
+    scenario: str = typer.Argument(..., help="Scenario: paper, corridor, crowd or museum (see docs/simulator.md)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (created); existing files are replaced."),
     seed: int = typer.Option(0, "--seed", min=0, help="Random seed; same seed, same recordings."),
     size: float = typer.Option(1.0, "--size", help="Multiplies the number of walks (paper --size 12: ~100k steps)."),
@@ -274,6 +358,69 @@ def bench_survey(
     typer.echo(json.dumps(survey_speed(scenario, seed, runs=runs, size=size, config=config)))
 
 
+@bench_app.command("scale")
+def bench_scale(
+    scenario: str = typer.Argument("paper"),
+    seed: int = typer.Option(0),
+    sizes: str = typer.Option("1", help="Comma-separated simulator sizes, e.g. 1,2,4,8,12."),
+    runs: str = typer.Option("5", help="Rounds per size: one number, or one per size (e.g. 7,5,3,1,1)."),
+    baseline: Optional[Path] = typer.Option(
+        None, "--baseline", help="A graphslam checkout (e.g. a git worktree of the previous main) run alternately."
+    ),
+    baseline_max_size: float = typer.Option(1e9, help="Run the baseline only up to this size (it may be slow)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c"),
+) -> None:
+    """`graphslam survey` per size, alternating with --baseline in fresh processes: stage medians, peak RSS,
+    growth exponent; JSON on stdout, then the markdown stage table."""
+    from graphslam.app.bench_scale import markdown_table, scale
+    from graphslam.errors import ConfigError
+
+    try:
+        size_list = [float(v) for v in sizes.split(",") if v.strip()]
+        run_list = [int(v) for v in runs.split(",") if v.strip()]
+    except ValueError:
+        raise ConfigError(f"--sizes / --runs: numbers separated by commas, got {sizes!r} / {runs!r}") from None
+    if len(run_list) == 1:
+        run_list *= len(size_list)
+    if not size_list or len(run_list) != len(size_list) or min(run_list) < 1 or min(size_list) <= 0:
+        raise ConfigError("--runs: one count >= 1, or one per size; --sizes: positive numbers")
+    result = scale(
+        scenario, seed, size_list, run_list, baseline=baseline, baseline_max_size=baseline_max_size, config=config,
+        progress=lambda msg: typer.echo(msg, err=True),
+    )
+    typer.echo(json.dumps(result))
+    typer.echo(markdown_table(result))
+
+
+@bench_app.command("update")
+def bench_update(
+    scenario: str = typer.Argument("paper"),
+    seed: int = typer.Option(0),
+    size: float = typer.Option(4.0, help="Walks surveyed first, as the simulator's size multiplier."),
+    new_fraction: float = typer.Option(0.05, "--new-fraction", help="Then this many more walks arrive (>= 1)."),
+    hops: str = typer.Option("0,1,2", help="update.hops values to measure (comma-separated)."),
+    runs: int = typer.Option(3, min=1, help="Runs of each variant, alternated (medians reported)."),
+) -> None:
+    """`survey --update` vs a full re-solve of every walk, end to end in fresh processes (issue 18)."""
+    from graphslam.app.bench_update import update_speed
+
+    typer.echo(json.dumps(update_speed(scenario, seed, size=size, new_fraction=new_fraction, hops=_seeds(hops), runs=runs)))
+
+
+@bench_app.command("batch")
+def bench_batch(
+    scenario: str = typer.Argument("crowd"),
+    floors: int = typer.Option(16, min=1, help="Simulated floors (seeds 0..N-1)."),
+    size: float = typer.Option(0.5, help="Simulator size multiplier of each floor."),
+    workers: int = typer.Option(2, min=1, help="survey-batch --workers."),
+    runs: int = typer.Option(1, min=1, help="Runs of each variant (medians reported)."),
+) -> None:
+    """`survey-batch` on a local Dask cluster vs the same floors one after another (issue 18)."""
+    from graphslam.app.bench_update import batch_speed
+
+    typer.echo(json.dumps(batch_speed(scenario, floors=floors, size=size, workers=workers, runs=runs)))
+
+
 INDEX_HELP = "kNN search: exact, ivf (approximate inverted file) or auto."
 IVF_CLUSTERS_HELP = "IVF: k-means clusters (default ~2 sqrt(N))."
 IVF_PROBES_HELP = "IVF: clusters searched per query (default 8)."
@@ -323,6 +470,7 @@ def locate(
         "evaluation.site_from_aligned), for the truth overlay."
     ),
     index: str = typer.Option("exact", "--index", help=INDEX_HELP + " Default: exact."),
+    picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: answers (and truth)."),
 ) -> None:
     """Locate every /wifi/scan of the query sessions by kNN against a radio map."""
     from graphslam.app.locate import locate_files
@@ -342,7 +490,12 @@ def locate(
             query_ids=[f"{s}@{t}" for s, t in zip(pos.session_ids.tolist(), pos.t_ns.tolist())],
             site_from_map=site_from_map,
         )
-    typer.echo(json.dumps(run.as_dict()))
+    shown = {}
+    if picture:
+        from graphslam.app.pictures import write_locate_picture
+
+        shown["picture"] = str(write_locate_picture(run, radio_map, query_paths, out.with_suffix(".png"), site_from_map))
+    typer.echo(json.dumps(run.as_dict() | shown))
 
 
 @app.command()
@@ -364,14 +517,29 @@ def serve(
         help="Forked search workers sharing the map; batches of 64+ fingerprints are split over them. "
         "0 = search in the server process. Default: min(2, cores), 0 with --workers > 1.",
     ),
+    log_level: str = typer.Option(
+        "info", "--log-level", help="critical, error, warning, info (one access line per request), debug, trace."
+    ),
+    token: Optional[str] = typer.Option(
+        None, "--token", envvar="GRAPHSLAM_SERVE_TOKEN", show_envvar=True,
+        help="Require 'Authorization: Bearer TOKEN' on /v1/ (prefer the environment variable: "
+        "a command line is visible to other users).",
+    ),
+    watch: bool = typer.Option(
+        False, "--watch", help="Reload the radio map when its file changes (SIGHUP always reloads); a map that "
+        "does not load is refused and the old one kept. No request fails during a swap.",
+    ),
+    watch_interval: float = typer.Option(1.0, "--watch-interval", min=0.05, help="--watch: seconds between checks."),
 ) -> None:
-    """Serve kNN positioning over HTTP (POST /v1/locate, GET /v1/radio-map, GET /healthz, /openapi.json)."""
+    """Serve kNN positioning over HTTP (POST /v1/locate, GET /v1/radio-map, GET /healthz, /openapi.json, /docs)."""
     from graphslam.service.server import serve as serve_map
 
     serve_map(
         radio_map, host=host, port=port, k=k, weighted=weighted, min_common=min_common,
         max_batch=max_batch, max_body_bytes=max_body_bytes, index=index, ivf_clusters=ivf_clusters,
-        ivf_probes=ivf_probes, workers=workers, search_processes=search_processes,
+        ivf_probes=ivf_probes, workers=workers, search_processes=search_processes, log_level=log_level.lower(),
+        token=token,
+        watch=watch_interval if watch else None,
     )
 
 
@@ -413,6 +581,31 @@ def view(
         server.wait()
 
 
+@app.command()
+def plot(
+    out_dir: Path = typer.Argument(..., help="A finished `graphslam survey --out` folder."),
+    floor_plan: Optional[Path] = typer.Option(None, "--floor-plan", help="Image drawn under everything (site frame)."),
+    floor_size: Optional[tuple[float, float]] = typer.Option(
+        None, "--floor-size", help="W H of the floor plan (m); default: floor_info.json beside the image."
+    ),
+    recordings: Optional[List[Path]] = typer.Option(
+        None, "--recordings", "-r", help="The survey's .mcap files or folders (repeat): adds the landmark marks."
+    ),
+    ap: Optional[List[str]] = typer.Option(None, "--ap", help="BSSID to map in radio_map.png (repeat); default: --top-aps."),
+    top_aps: int = typer.Option(5, "--top-aps", min=0, help="Map the N most-heard access points."),
+    radio_map: bool = typer.Option(True, "--radio-map/--no-radio-map", help="Also draw OUT/radio_map.png."),
+) -> None:
+    """Redraw OUT/survey.png and draw OUT/radio_map.png (coverage, RSS per access point, fitted APs of
+    OUT/ap_models.json when `fit-aps` has run); prints the files written."""
+    from graphslam.app.pictures import plot_survey_folder
+
+    files = plot_survey_folder(
+        out_dir, floor_plan=floor_plan, floor_size=floor_size, recordings=recordings or (), aps=ap or (),
+        top_aps=top_aps, radio_map=radio_map,
+    )
+    typer.echo(json.dumps({k: str(v) for k, v in files.items()}))
+
+
 @bench_app.command("fig8")
 def bench_fig8(
     scenario: str = typer.Argument("paper"),
@@ -452,6 +645,21 @@ def demo(
     typer.echo(json.dumps(f))
 
 
+@bench_app.command("real")
+def bench_real(
+    folders: List[Path] = typer.Argument(..., help="Floor folders of recordings with /landmarks, or site folders of floors."),
+    floors: Optional[str] = typer.Option(None, help="Comma-separated floor sub-folders of a site (default: all)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c"),
+    set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value."),
+) -> None:
+    """Align each floor of real recordings; one JSON line per floor: walks aligned, landmark errors
+    (SE(2) fit), time, and how well the per-walk placement figures separate right from wrong walks."""
+    from graphslam.app.bench import real_floors
+
+    for row in real_floors(folders, _config(config, set_), floors.split(",") if floors else None):
+        typer.echo(json.dumps(row))
+
+
 @bench_app.command("ilc")
 def bench_ilc(
     site_dir: Path = typer.Argument(..., help="An ILC 2.0 site folder with one sub-folder per floor."),
@@ -477,8 +685,9 @@ def fit_aps(
     from graphslam.io.apmodel_io import write_ap_models
     from graphslam.io.radiomap_io import read_radio_map
 
-    models = ApModels.fit(read_radio_map(radio_map), ApFitConfig(min_readings=min_readings))
-    path = write_ap_models(models, out or radio_map.with_name("ap_models.json"))
+    rm = read_radio_map(radio_map)
+    models = ApModels.fit(rm, ApFitConfig(min_readings=min_readings))
+    path = write_ap_models(models, out or radio_map.with_name("ap_models.json"), radio_map=rm)
     reasons: dict[str, int] = {}
     for u in models.unfitted:
         key = u.reason.split(" (")[0]
@@ -507,6 +716,7 @@ def track(
     adaptive_rssi: bool = typer.Option(
         True, "--adaptive-rssi/--no-adaptive-rssi", help="Inflate a scan's RSSI noise when its innovations disagree."
     ),
+    picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: the tracks (and truth)."),
 ) -> None:
     """Track walks on a radio map: fusion of step velocity, WiFi RSSI and kNN fixes (fixed-lag MAP, or EKF/UKF)."""
     from graphslam.app.track import TrackConfig, track_files
@@ -516,7 +726,13 @@ def track(
 
     cfg = TrackConfig(filter=filter_, lag_s=lag, smoother=smooth, knn_fixes=knn_fixes, adaptive_rssi=adaptive_rssi)
     run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg)
-    typer.echo(json.dumps(run.as_dict()))
+    shown = {}
+    if picture:
+        from graphslam.app.pictures import write_track_picture
+
+        label = filter_ + ("" if smooth == "none" else f" + {smooth} smoother")
+        shown["picture"] = str(write_track_picture(run, radio_map, sessions, out.with_suffix(".png"), label))
+    typer.echo(json.dumps(run.as_dict() | shown))
 
 
 @bench_app.command("filters")
@@ -590,6 +806,84 @@ def bench_tracking_real(
     typer.echo(json.dumps(res))
 
 
+# --- UWB (Paper 003, issue 15): the seven-tag experiment, the survey with ranges, tracking ---
+
+
+@bench_app.command("uwb")
+def bench_uwb(
+    seeds: str = typer.Option("0-99", help="Seeds of the seven-tag runs (e.g. 0-99)."),
+    plot_dir: Optional[Path] = typer.Option(None, help="Write uwb_fig8.png and uwb_zones.png (first seed) here."),
+    per_seed: bool = typer.Option(False, "--per-seed", help="Also print one JSON line per seed."),
+) -> None:
+    """Paper 003's experiment simulated: collisions, slots per tag per cycle, clock offsets, EKF error per zone/type."""
+    from graphslam.app.uwb_bench import zones_benchmark
+
+    rows, agg = zones_benchmark(_seeds(seeds), plot_dir=plot_dir)
+    if per_seed:
+        for r in rows:
+            typer.echo(json.dumps(r))
+    typer.echo(json.dumps(agg))
+
+
+@bench_app.command("uwb-survey")
+def bench_uwb_survey(
+    seeds: str = typer.Option("0-4", help="Seeds of the simulated crowd (12 walkers, 5-8 min, all at once)."),
+    anchors: str = typer.Option("2,3,4", help="Anchor counts to run (0: peer ranges only, reference-walk frame)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c"),
+    set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value."),
+    per_seed: bool = typer.Option(False, "--per-seed", help="Also print one JSON line per (anchors, seed)."),
+) -> None:
+    """A crowd surveying together with UWB: site-frame error, vs WiFi only, with NLOS ranges."""
+    from graphslam.app.uwb_bench import survey_benchmark
+
+    rows, agg = survey_benchmark(_seeds(seeds), _seeds(anchors), _config(config, set_))
+    if per_seed:
+        for r in rows:
+            typer.echo(json.dumps(r))
+    typer.echo(json.dumps(agg))
+
+
+@app.command("simulate-uwb")
+def simulate_uwb(
+    scenario: str = typer.Argument(..., help="zones (the paper's seven tags) or crowd (walkers surveying together)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (created); one .mcap per tag / walker."),
+    seed: int = typer.Option(0, "--seed", min=0),
+    anchors: int = typer.Option(4, "--anchors", min=0, max=4, help="crowd: anchors in the corridors (0-4)."),
+    nlos: bool = typer.Option(False, "--nlos", help="crowd: a third of the ranges NLOS-biased (+0.3-2 m)."),
+) -> None:
+    """Simulate the UWB network (sync, TDMA, ranging) and write recordings with the /uwb/range stream."""
+    from graphslam.errors import ConfigError
+
+    if scenario == "zones":
+        from graphslam.sim.uwb.scenarios import simulate_zones
+
+        run = simulate_zones(seed)
+        paths, net = run.write(out), run.network
+    elif scenario == "crowd":
+        from graphslam.sim.uwb.scenarios import CrowdUwb, simulate_crowd
+
+        crowd = simulate_crowd(seed, CrowdUwb(n_anchors=anchors, nlos=nlos))
+        paths, net = crowd.write(out), crowd.network
+    else:
+        raise ConfigError(f"unknown UWB scenario {scenario!r}; known: crowd, zones")
+    typer.echo(json.dumps({"out": str(out), "files": len(paths), "ranges": int(len(net.ranges.t_s)),
+                           "cycles": len(net.cycles), "nlos_fraction": round(float(net.ranges.nlos.mean()), 4)}))
+
+
+@app.command("track-uwb")
+def track_uwb(
+    sessions: List[Path] = typer.Argument(..., help="Recordings with /uwb/range (.mcap) or folders of them."),
+    out: Path = typer.Option(..., "--out", help="Output CSV: one row per slot and step (t_ns, x, y, covariance, update)."),
+    slot_gap_s: float = typer.Option(0.02, "--slot-gap", min=0.0, help="Ranges closer than this form one slot (s)."),
+    at_steps: bool = typer.Option(True, "--at-steps/--slots-only", help="Also report at every step time."),
+) -> None:
+    """Track UWB tags with the paper's collaborative EKF (Paper 003, IV-C): trilateration, anchor and neighbour ranges."""
+    from graphslam.app.uwb_track import track_uwb_files
+
+    run = track_uwb_files(sessions, out=out, slot_gap_s=slot_gap_s, at_steps=at_steps)
+    typer.echo(json.dumps(run.as_dict()))
+
+
 def _smoothers(text: str) -> list[str]:
     from graphslam.core.tracking.smoother import SMOOTH_METHODS
 
@@ -602,28 +896,52 @@ def _smoothers(text: str) -> list[str]:
     return names
 
 
+def _hoist_quiet(argv: list[str]) -> list[str]:
+    """``graphslam survey ... --quiet`` means ``graphslam --quiet survey ...``: --quiet/-q is a
+    root option (every command has progress), but users put it after the command."""
+    end = argv.index("--") if "--" in argv else len(argv)
+    flags = [a for a in argv[:end] if a in ("--quiet", "-q")]
+    return flags + [a for a in argv[:end] if a not in ("--quiet", "-q")] + argv[end:]
+
+
+def _one_line(text: str) -> str:
+    return " ".join(line.strip() for line in str(text).splitlines() if line.strip())
+
+
+def _fail(message: str) -> None:
+    typer.echo(f"error: {_one_line(message)}", err=True)
+    sys.exit(EXIT_ERROR)
+
+
+def _usage_message(e: Exception) -> str:
+    """One line for a click usage error: where, what, and where to read more."""
+    ctx = getattr(e, "ctx", None)
+    where = ctx.command_path if ctx is not None else "graphslam"
+    return f"{where}: {e.format_message()} (see '{where} --help')"  # type: ignore[attr-defined]
+
+
+# typer >= 0.2x bundles its own click (typer._click), older typer uses click itself: the base class of
+# typer.BadParameter is the ClickException in use either way (catching click's would miss typer's).
+_CLICK_EXCEPTION: type[Exception] = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
+
+
 def main(argv: Optional[list[str]] = None) -> None:
-    """Console entry point: run the app, turn ``GraphSlamError`` into one line and exit 2."""
+    """Console entry point: run the app; a ``GraphSlamError`` or a usage error (unknown command or
+    option, missing or malformed argument, no arguments) becomes one line on stderr and exit 2."""
     try:
-        app(args=argv, standalone_mode=False)
+        code = app(args=_hoist_quiet(sys.argv[1:] if argv is None else argv), prog_name="graphslam", standalone_mode=False)
     except GraphSlamError as e:
-        typer.echo(f"error: {e}", err=True)
-        sys.exit(EXIT_ERROR)
+        _fail(str(e))
+    except _CLICK_EXCEPTION as e:
+        _fail(_usage_message(e))
+    except typer.Abort:
+        typer.echo("aborted", err=True)
+        sys.exit(1)
     except KeyboardInterrupt:
         typer.echo("interrupted", err=True)
         sys.exit(130)
-    except Exception as e:  # click's usage errors
-        import click
-
-        if isinstance(e, click.exceptions.ClickException):
-            e.show()
-            sys.exit(e.exit_code)
-        if isinstance(e, click.exceptions.Exit):
-            sys.exit(e.exit_code)
-        if isinstance(e, click.exceptions.Abort):
-            sys.exit(1)
-        raise
-
+    if isinstance(code, int) and code:  # typer.Exit(code) returns its code without standalone mode
+        sys.exit(code)
 
 if __name__ == "__main__":
     main()

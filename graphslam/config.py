@@ -16,7 +16,9 @@ from graphslam.errors import ConfigError
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan=False: every float knob is finite (inf, .inf, 1e999, nan are errors): an
+    # infinite distance or sigma only fails deep inside GTSAM, after the whole alignment.
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class FingerprintConfig(_Strict):
@@ -26,6 +28,11 @@ class FingerprintConfig(_Strict):
     min_rssi_dbm: float = Field(-100.0, description="readings weaker than this are dropped as noise")
     max_scan_step_gap_s: float = Field(
         1.5, gt=0, description="a scan further than this in time from every step is not associated"
+    )
+    standstill_max_s: float = Field(
+        120.0, ge=0,
+        description="a scan in a pause between steps (or before the first / after the last) up to this long is "
+        "attached to the pose where the walker stands; 0: drop such scans (IPIN: 309 of 310 dropped scans were in pauses)",
     )
 
     @model_validator(mode="after")
@@ -50,6 +57,17 @@ class EdgeConfig(_Strict):
     )
     min_common_aps: int = Field(3, ge=1, description="pairs sharing fewer access points are not compared")
     chunk_rows: int = Field(1024, ge=16, description="fingerprints per block of the distance computation")
+    candidates: Literal["auto", "exact", "ivf"] = Field(
+        "auto",
+        description="pairs compared with the threshold. exact: all (O(F^2)); ivf: each fingerprint's ivf_neighbours "
+        "nearest in an IVF index (recall 99.7-99.9 % of the exact edges on paper sizes 1-12); auto: ivf above "
+        "ivf_above_fingerprints",
+    )
+    ivf_above_fingerprints: int = Field(
+        5000, ge=0, description="auto takes ivf above this many fingerprints (exact: ~1 s at 5k, growing as F^2)"
+    )
+    ivf_neighbours: int = Field(32, ge=1, description="ivf: candidates per fingerprint (the cap keeps 3 of them)")
+    ivf_probes: int = Field(8, ge=1, description="ivf: clusters searched per fingerprint (4: recall 98 %, 8: 99.7-99.9 %)")
 
 
 class ImuConfig(_Strict):
@@ -78,9 +96,11 @@ class OptimizerConfig(_Strict):
     """Levenberg-Marquardt, reference pose, initial placement of walks with unknown start."""
 
     reference_session: str | None = Field(None, description="session whose first pose is fixed (default: first)")
-    initialization: Literal["origin", "registration"] = Field(
+    initialization: Literal["origin", "registration", "growth"] = Field(
         "registration",
-        description="origin: every walk starts at (0,0,0) as in the paper; registration: rigid WiFi-match fit",
+        description="origin: every walk starts at (0,0,0) as in the paper; registration: rigid WiFi-match fit "
+        "(pairwise RANSAC + spanning tree); growth: map growth by Hough registration onto the placed walks "
+        "(see the placement section)",
     )
     unreliable_registration: Literal["unalign", "keep"] = Field(
         "unalign",
@@ -91,13 +111,76 @@ class OptimizerConfig(_Strict):
     relative_error_tol: float = Field(1e-4, gt=0)
     absolute_error_tol: float = Field(1e-5, ge=0)
     outer_iterations: int = Field(6, ge=1, description="re-evaluations of the saturated (d > d_max) edge set")
+    solver: Literal["auto", "pardiso", "gtsam"] = Field(
+        "auto",
+        description="pardiso: own LM, vectorised factors, MKL PARDISO with the analysis reused (LM 6-7x faster on "
+        "paper sizes 1-4, same or lower minimum, docs/benchmarks.md issue 16); gtsam: GTSAM's LevenbergMarquardtOptimizer; auto: pardiso if MKL loads",
+    )
+    threads: int = Field(
+        1, ge=0, description="solver=pardiso: MKL threads of the factorisation; 0 = MKL's default (all cores). 1 measured "
+        "fastest on the shared 2-core machine (docs/benchmarks.md issue 16)",
+    )
     linear_solver: Literal["auto", "cholesky", "pcg"] = Field(
         "auto",
-        description="cholesky: multifrontal, METIS; pcg: block-Jacobi PCG (large surveys); auto: pcg above pcg_above_poses",
+        description="solver=gtsam only. cholesky: multifrontal, METIS; pcg: block-Jacobi PCG (large surveys); auto: "
+        "pcg above pcg_above_poses",
     )
     pcg_above_poses: int = Field(6000, ge=0, description="auto switches to pcg above this many pose variables")
     compress_chains: bool = Field(
         True, description="solve only fingerprint poses (IMU chains between them composed exactly), restore the rest"
+    )
+
+
+class PlacementConfig(_Strict):
+    """Map-growth placement (optimizer.initialization: growth): power-cosine matches, Hough votes, rigid refine."""
+
+    similarity_scale_db: float = Field(
+        10.0, gt=0, description="readings enter as exp(rssi / scale): device-invariant cosine (10-15 dB equal on IPIN)"
+    )
+    matches_per_fingerprint: int = Field(5, ge=1, description="most similar fingerprints of other walks kept per fingerprint")
+    weight_power: float = Field(4.0, gt=0, description="a match votes with similarity ** weight_power")
+    rotation_step_deg: float = Field(3.0, gt=0, le=30, description="rotation grid of the Hough registration")
+    blur_m: float = Field(1.5, gt=0, description="vote blur: WiFi resolves a few metres")
+    distinct_m: float = Field(5.0, gt=0, description="a runner-up placement moves the walk at least this much")
+    min_margin: float = Field(
+        0.25, ge=0, description="vote weight by which the best placement must beat the runner-up, else the walk is unplaced"
+    )
+    refine_scale_m: float = Field(3.0, gt=0, description="Cauchy scale of the joint rigid refinement")
+    consistent_m: float = Field(6.0, gt=0, description="a match is consistent when its partners end this close")
+
+
+class UpdateConfig(_Strict):
+    """graphslam survey --update: how much of a solved floor is re-solved around new walks."""
+
+    hops: int = Field(
+        0, ge=0, description="re-solve the new walks, the ends of changed edges and nodes this many factors "
+        "from them (paper --size 4 + 1 walk: 0, 1, 2 hops re-solve 23, 48, 56 % of the poses, landmark mean "
+        "+0.02, +0.02, -0.01 m vs a full re-solve; 0 is the fastest)",
+    )
+
+
+class UwbConfig(_Strict):
+    """UWB ranges in the survey (Paper 003): anchor and peer range factors; values chosen on the simulated crowd (docs/uwb.md)."""
+
+    enabled: bool = Field(True, description="use /uwb/range when the recordings have it (false: WiFi only)")
+    range_sigma_m: float = Field(0.1, gt=0, description="range std (the simulated radios: 0.05 m LOS; the rest is timing and height)")
+    loss: Literal["cauchy", "huber"] = Field("cauchy", description="robust loss of range factors (NLOS ranges are metres long)")
+    loss_k: float = Field(3.0, gt=0, description="loss threshold, in range sigmas")
+    tag_height_m: float = Field(1.0, description="antenna height of every tag (m); 2-D anchors are taken at this height")
+    anchor_prior_sigma_m: float = Field(1e-3, gt=0, description="surveyed anchor positions: held by a prior this tight")
+    peer_max_offset_m: float = Field(
+        0.1, gt=0, description="a peer range is used when one walker is within this of a step pose at that instant"
+    )
+    min_horizontal_m: float = Field(0.5, ge=0, description="anchor ranges shorter than this in the plane are dropped")
+    window_s: float = Field(180.0, gt=0, description="initial placement: one rigid fit of dead reckoning per window")
+    nlos_reject_sigmas: float = Field(
+        1.0, gt=0, description="a range longer than the UWB-only solution by this many sigmas is dropped as NLOS"
+    )
+    presolve_sigma_xy_m: float = Field(
+        0.03, gt=0, description="per-step sigma of the UWB-only NLOS solve (no WiFi edges there to bend the chain)"
+    )
+    presolve_sigma_heading_rad: float = Field(
+        0.005, gt=0, description="... and its heading sigma (the simulated foot module: 0.002 + bias)"
     )
 
 
@@ -107,6 +190,9 @@ class GraphSlamConfig(_Strict):
     imu: ImuConfig = ImuConfig()
     wifi: WifiFactorConfig = WifiFactorConfig()
     optimizer: OptimizerConfig = OptimizerConfig()
+    placement: PlacementConfig = PlacementConfig()
+    update: UpdateConfig = UpdateConfig()  # issue 18: not part of a solution's identity (app/update.py)
+    uwb: UwbConfig = UwbConfig()
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)

@@ -102,3 +102,14 @@ def make_session(
     truth = PoseTrack(t, xy + [10.0, 5.0], h) if with_truth else None
     marks = (LandmarkMark(int(t[3]), "L1", 12.0, 5.0),) if with_truth else ()
     return Session(session_id, PoseTrack(t, xy, h), scans, marks, truth, site="test", floor="0")
+
+
+def run_cli(args: list[str]) -> int:
+    """``graphslam ARGS`` in this process; its exit code (0 when it returns)."""
+    from graphslam.cli import main
+
+    try:
+        main(args)
+    except SystemExit as e:
+        return int(e.code or 0)
+    return 0

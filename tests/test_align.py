@@ -168,7 +168,8 @@ def test_survey_cli_writes_every_output(tmp_path: Path, capsys: pytest.CaptureFi
     assert report["evaluation"]["landmarks"]["mean_m"] < 0.5
     # two walks: one tree edge, no loop to check the registration with
     assert report["registration"] == {
-        "placed": 2, "loops": 0, "loops_consistent": 0, "loop_consistency": None, "reliable": None
+        "method": "registration", "placed": 2, "loops": 0, "loops_consistent": 0, "loop_consistency": None,
+        "reliable": None,
     }
     assert {"associate", "edges", "optimise"} <= {k.split(".")[-1] for k in report["timings_s"]}
     assert load_config(out / "config.yaml").wifi.d_min_m == 0.5

@@ -121,3 +121,39 @@ def test_min_common_aps() -> None:
     pairs_1, _ = _edges([a, b], min_common_aps=1)
     pairs_2, _ = _edges([a, b], min_common_aps=2)
     assert (0, 3) in pairs_1 and (0, 3) not in pairs_2
+
+
+def _sim_edges(candidates: str, **kw: int) -> tuple[set[tuple[int, int]], object]:
+    from graphslam.sim import simulate
+
+    fp = associate(simulate("paper", seed=3, size=0.3).survey)  # 2 walks, 563 fingerprints
+    thr = window_thresholds(fp, window_steps=20)
+    e = propose_edges(
+        fp, thr, exclude_same_session_s=30.0, exclude_same_session_m=10.0, max_per_fingerprint=3, min_common_aps=3,
+        candidates=candidates, **kw,
+    )
+    assert np.all(e.common_aps >= 3)
+    return {(int(i), int(j)) for i, j in zip(e.i, e.j)}, e
+
+
+def test_ivf_candidates_find_the_exact_edges() -> None:
+    exact, ex = _sim_edges("exact")
+    assert len(exact) > 300
+    # every cluster probed and every fingerprint a neighbour: the exact edge set, the same distances
+    everything, ev = _sim_edges("ivf", ivf_neighbours=600, ivf_probes=1000)
+    assert everything == exact
+    np.testing.assert_allclose(np.sort(ev.rss_distance), np.sort(ex.rss_distance), rtol=1e-9)
+    # the defaults (32 neighbours, 8 probes) miss almost none of them
+    approx, _ = _sim_edges("ivf")
+    assert len(approx & exact) >= 0.97 * len(exact)
+    with pytest.raises(ValueError, match="candidates"):
+        _sim_edges("all")
+
+
+def test_auto_candidates_switch_to_ivf_above_the_configured_size() -> None:
+    from graphslam.config import load_config
+    from graphslam.core.survey.align import edge_candidates
+
+    cfg = load_config(None, {"edges": {"ivf_above_fingerprints": 1000}})
+    assert edge_candidates(cfg, 1000) == "exact" and edge_candidates(cfg, 1001) == "ivf"
+    assert edge_candidates(load_config(None, {"edges": {"candidates": "exact"}}), 10**6) == "exact"

@@ -220,3 +220,13 @@ def test_floor_folders_lists_floors_and_names_what_is_missing(tmp_path: Path) ->
         floor_folders(tmp_path / "B1")
     with pytest.raises(InputError, match="not a folder"):
         floor_folders(tmp_path / "floor_info.json")
+
+
+def test_cli_inspect_table_shows_whole_session_ids(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # IPIN-like ids differ only after 28 characters: the table must not cut them
+    ids = ["IPIN2023_T3_TrainingTrial21_repetition01", "IPIN2023_T3_TrainingTrial21_repetition02"]
+    for sid in ids:
+        write_session(make_session(sid, 5), tmp_path / f"{sid}.mcap")
+    main(["inspect", str(tmp_path)])
+    rows = capsys.readouterr().out.splitlines()[1:3]
+    assert [r.split()[0] for r in rows] == ids

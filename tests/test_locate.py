@@ -53,7 +53,8 @@ def test_locate_cli_writes_positions_csv(tmp_path: Path) -> None:
     )
     assert res.exit_code == 0, res.output
     summary = json.loads(res.output.strip().splitlines()[-1])
-    assert summary == {"out": str(out), "sessions": 2, "scans": 4, "located": 3, "unlocated": 1}
+    picture = str(out.with_suffix(".png"))  # the answers drawn beside the CSV (graphslam.app.pictures)
+    assert summary == {"out": str(out), "sessions": 2, "scans": 4, "located": 3, "unlocated": 1, "picture": picture}
     with out.open() as fh:
         rows = list(csv.DictReader(fh))
     assert tuple(rows[0].keys()) == POSITIONS_HEADER
@@ -63,7 +64,7 @@ def test_locate_cli_writes_positions_csv(tmp_path: Path) -> None:
     ]
     assert rows[0]["t_ns"] == str(T0 + 10) and rows[0]["score"] == "0.0000" and rows[0]["floor"] == "F1"
     assert rows[3]["status"] == "no_known_ap" and rows[3]["y"] == ""
-    assert [p.name for p in out.parent.iterdir()] == ["positions.csv"]  # atomic: no temp left
+    assert sorted(p.name for p in out.parent.iterdir()) == ["positions.csv", "positions.png"]  # atomic: no temp left
 
 
 def test_locate_library_k2_interpolates(tmp_path: Path) -> None:

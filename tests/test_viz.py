@@ -9,9 +9,9 @@ from typing import Any
 
 import numpy as np
 import pytest
+from conftest import run_cli
 from rerun.chunk import RrdReader
 
-from graphslam.cli import main as cli_main
 from graphslam.config import GraphSlamConfig
 from graphslam.core.survey.align import Alignment, align
 from graphslam.core.survey.factors import edge_state
@@ -73,14 +73,6 @@ def _png(path: Path, w: int = 40, h: int = 20) -> Path:
 
     Image.new("RGB", (w, h), (200, 220, 255)).save(path)
     return path
-
-
-def _cli(args: list[str]) -> int:
-    try:
-        cli_main(args)
-    except SystemExit as e:
-        return int(e.code or 0)
-    return 0
 
 
 def _aligned_marks(survey: Survey, al: Alignment) -> int:
@@ -291,7 +283,7 @@ def test_survey_and_view_commands(tmp_path: Path) -> None:
     out = tmp_path / "out"
     survey_rrd = tmp_path / "survey.rrd"
     # the pipeline imports and calls log_survey lazily
-    assert _cli(["survey", str(rec_dir), "--out", str(out), "--rerun", str(survey_rrd), "--no-progress"]) == 0
+    assert run_cli(["survey", str(rec_dir), "--out", str(out), "--rerun", str(survey_rrd), "--no-progress"]) == 0
     report = json.loads((out / "report.json").read_text())
     rrd = Rrd(survey_rrd)
     assert len(rrd.under("/" + rl.TRAJECTORIES)) == report["aligned_sessions"]
@@ -310,7 +302,7 @@ def test_survey_and_view_commands(tmp_path: Path) -> None:
 
     # view through the CLI, with the recordings: raw walks and landmarks too
     full = tmp_path / "full.rrd"
-    assert _cli(["view", str(out), "--recordings", str(rec_dir), "--save", str(full)]) == 0
+    assert run_cli(["view", str(out), "--recordings", str(rec_dir), "--save", str(full)]) == 0
     rrd = Rrd(full)
     assert len([p for p in rrd.under("/raw") if p.count("/") == 2]) == len(sim.survey)
     aligned = set(read_trajectories(out / "trajectories.csv"))
@@ -325,7 +317,7 @@ def test_view_errors(tmp_path: Path) -> None:
         rl.write_survey_view(tmp_path / "missing", tmp_path / "x.rrd")
     with pytest.raises(InputError, match="trajectories.csv"):
         rl.write_survey_view(tmp_path, tmp_path / "x.rrd")
-    assert _cli(["view", str(tmp_path)]) == 2  # no --save/--serve/--spawn: one-line error
+    assert run_cli(["view", str(tmp_path)]) == 2  # no --save/--serve/--spawn: one-line error
     assert not (tmp_path / "x.rrd").exists()
 
 

@@ -19,7 +19,10 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
+import numpy as np
+
 from graphslam.config import GraphSlamConfig
+from graphslam.core.progress import progress_over
 from graphslam.core.survey.align import align
 from graphslam.core.survey.evaluate import evaluate
 
@@ -31,7 +34,7 @@ def accuracy(scenario: str, seeds: Sequence[int], cfg: GraphSlamConfig, *, size:
     from graphslam.sim import simulate
 
     rows = []
-    for seed in seeds:
+    for seed in progress_over(seeds, "bench accuracy", unit="seeds"):
         survey = simulate(scenario, seed=seed, size=size).survey
         t = time.perf_counter()
         al = align(survey, cfg)
@@ -76,7 +79,7 @@ def survey_speed(
         sim.write(data)
         totals, walls, stages = [], [], []
         peak_kb = 0
-        for r in range(runs):
+        for r in progress_over(range(runs), "bench survey", unit="runs"):
             out = Path(tmp) / f"out{r}"
             cmd = [sys.executable, "-m", "graphslam", "survey", str(data), "--out", str(out), "--no-progress"]
             if config:
@@ -133,7 +136,7 @@ def fig8(
 
     errs: dict[str, list] = {"crowdsourced": [], "surveyed": []}
     per_seed = []
-    for seed in seeds:
+    for seed in progress_over(seeds, "bench fig8", unit="seeds"):
         sim = simulate(scenario, seed=seed, test_walks=test_walks)
         al = align(sim.survey, cfg)
         ev = evaluate(al.tracks, sim.survey)
@@ -175,14 +178,23 @@ def fig8(
     return out
 
 
-def ilc_floors(site_dir: Path, cfg: GraphSlamConfig, floors: Sequence[str] | None = None) -> list[dict[str, Any]]:
-    """Align every floor of an ILC 2.0 site (real recordings); waypoint errors after one SE(2) fit."""
-    from graphslam.io.mcap_reader import floor_folders
-    from graphslam.app.survey import run_survey
+def real_floors(folders: Sequence[Path], cfg: GraphSlamConfig, floors: Sequence[str] | None = None) -> list[dict[str, Any]]:
+    """Align each floor of real recordings with landmarks; one row per floor.
 
+    A folder holding ``.mcap`` files is one floor; a folder without (an ILC site) stands for
+    its floor sub-folders (``floors`` picks some). Per floor: walks aligned, landmark errors
+    after one SE(2) fit (mean / p90 / max), time, and how well each per-walk placement figure
+    of report.json separates right from wrong walks (``confidence``: a walk is right when its
+    mean landmark error is at most ``RIGHT_WALK_M``).
+    """
+    from graphslam.app.survey import run_survey
+    from graphslam.io.mcap_reader import floor_folders
+
+    expanded: list[Path] = []
+    for f in map(Path, folders):
+        expanded += [f] if any(f.glob("*.mcap")) else floor_folders(f, floors)
     rows = []
-    for folder in floor_folders(site_dir, floors):
-        name = folder.name
+    for folder in progress_over(expanded, "bench real", unit="floors"):
         t = time.perf_counter()
         res = run_survey([folder], None, cfg)
         dt = time.perf_counter() - t
@@ -191,21 +203,59 @@ def ilc_floors(site_dir: Path, cfg: GraphSlamConfig, floors: Sequence[str] | Non
         pl = res.alignment.placement
         rows.append(
             {
-                "floor": name,
+                "floor": folder.name,
                 "walks": len(res.survey),
                 "aligned": len(res.alignment.tracks),
                 "aligned_fraction": round(len(res.alignment.tracks) / max(1, len(res.survey)), 3),
-                "waypoints": lm.n if lm else 0,
+                "landmarks": lm.n if lm else 0,
                 "mean_m": round(lm.mean_m, 2) if lm else None,
                 "p90_m": round(lm.p90_m, 2) if lm else None,
                 "max_m": round(lm.max_m, 2) if lm else None,
                 "per_walk_rigid_fit_mean_m": round(ev.landmarks_per_walk_fit.mean_m, 2) if ev else None,
+                "initialization": cfg.optimizer.initialization,
                 "loop_consistency": None if pl is None or pl.loop_consistency is None else round(pl.loop_consistency, 3),
                 "reliable": None if pl is None else pl.reliable,
+                "confidence": _confidence_separation(res) if ev is not None else None,
                 "time_s": round(dt, 2),
             }
         )
     return rows
+
+
+RIGHT_WALK_M = 5.0  # a walk whose mean landmark error (after the floor's SE(2) fit) is at most this is right
+
+
+def _confidence_separation(res: Any) -> dict[str, Any]:
+    """Right / wrong aligned walks, and the AUC of each per-walk figure (P(a right walk scores
+    higher than a wrong one); 0.5: no separation; None: only one class)."""
+    ev = res.evaluation
+    per = ev.per_walk_mean_m or {}
+    ids = list(res.alignment.session_ids)
+    pl = res.alignment.placement
+    right = {sid: e <= RIGHT_WALK_M for sid, e in per.items() if sid in res.alignment.tracks}
+    out: dict[str, Any] = {"right": int(sum(right.values())), "wrong": int(sum(not r for r in right.values()))}
+    figures = {}
+    if pl is not None and pl.method == "growth":
+        figures = {"support": pl.support, "margin": pl.margin, "consistency": pl.consistency}
+    elif pl is not None:
+        figures = {"registration_inliers": pl.inliers.astype(float)}
+    for name, values in figures.items():
+        pairs = [(float(values[ids.index(sid)]), ok) for sid, ok in right.items()]
+        pairs = [(v if np.isfinite(v) else np.inf, ok) for v, ok in pairs]
+        out[f"auc_{name}"] = _auc([v for v, ok in pairs if ok], [v for v, ok in pairs if not ok])
+    return out
+
+
+def _auc(pos: Sequence[float], neg: Sequence[float]) -> float | None:
+    if not pos or not neg:
+        return None
+    p, n = np.asarray(pos)[:, None], np.asarray(neg)[None, :]
+    return round(float((p > n).mean() + 0.5 * (p == n).mean()), 3)
+
+
+def ilc_floors(site_dir: Path, cfg: GraphSlamConfig, floors: Sequence[str] | None = None) -> list[dict[str, Any]]:
+    """Every floor of an ILC 2.0 site (``real_floors`` over the site's floor folders)."""
+    return real_floors([site_dir], cfg, floors)
 
 
 def filters_cart(
@@ -247,7 +297,7 @@ def filters_cart(
             kind: [], **{f"{kind}+{sm}": [] for sm in smoothers}, **{f"{kind}+fixed-lag:{lag:g}": [] for lag in lags}
         }
         tp, secs = [], {name: 0.0 for name in rms}
-        for i, seed in enumerate(seeds):
+        for i, seed in enumerate(progress_over(seeds, f"bench filters {kind}", unit="seeds")):
             run = simulate_cart(seed, path_loss=model.path_loss, noise=noise)
             epochs = Epochs.fixed_rate(run.y_velocity, run.y_rssi, run.period_s)
             t0 = time.perf_counter()
@@ -340,7 +390,7 @@ def tracking_paper(
     inside: dict[str, list] = {name: [] for name in configs}
     ap_err, per_seed = [], []
     n_unfitted = 0
-    for seed in seeds:
+    for seed in progress_over(seeds, "bench tracking", unit="seeds"):
         sim = simulate(scenario, seed=seed, test_walks=test_walks)
         al = align(sim.survey, cfg)
         ev = evaluate(al.tracks, sim.survey)

@@ -11,6 +11,7 @@ from typing import Iterable, Iterator, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from graphslam.core.progress import Task
 from graphslam.core.radiomap.knn import KnnConfig, KnnLocator, SurveyPositions, locate_survey
 from graphslam.io.atomic import atomic_open
 
@@ -87,7 +88,9 @@ def locate_files(
     rm = read_radio_map(radio_map_path)
     survey = read_survey(list(query_paths))
     locator = KnnLocator(rm, KnnConfig(k=k, weighted=weighted, min_common=min_common, index=index))  # type: ignore[arg-type]
-    positions = locate_survey(locator, survey)
+    with Task("locate", total=survey.n_scans, unit="scans") as task:
+        positions = locate_survey(locator, survey)
+        task.advance(len(positions))
     written = write_positions_csv(positions, out) if out is not None else None
     n_ok = int(positions.result.valid.sum())
     log.info("located %d of %d scans from %d sessions", n_ok, len(positions), len(survey))

@@ -7,26 +7,43 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
+import numpy as np
+
 from graphslam.config import GraphSlamConfig
+from graphslam.core.progress import Task
 from graphslam.core.survey.align import Alignment, ProgressCallback, align
 from graphslam.core.survey.evaluate import Evaluation, evaluate
 from graphslam.core.types import Survey
 from graphslam.errors import InputError, OutputError
-from graphslam.io.atomic import atomic_write_json, atomic_write_text
+from graphslam.io.atomic import FolderStage, atomic_write_json, atomic_write_text, check_replaceable_folder
 from graphslam.io.csv_io import write_trajectories
 from graphslam.io.mcap_reader import read_survey
 from graphslam.io.mcap_writer import write_aligned
+from graphslam.io.survey_state import STATE_FILE, write_survey_state
 
 log = logging.getLogger(__name__)
 
 REPORT_VERSION = 1
+# What a survey writes into --out, and what later commands add there by default (fit-aps:
+# ap_models.json beside the map). --out may hold only these: it is replaced as a whole.
+OUTPUT_FILES = {
+    "trajectories": "trajectories.csv",
+    "aligned": "aligned.mcap",
+    "radio_map": "radio_map.parquet",
+    "radio_map_surveyed": "radio_map_surveyed.parquet",
+    "wifi_edges": "wifi_edges.parquet",
+    "state": STATE_FILE,  # what a later `survey --update` starts from
+    "config": "config.yaml",
+    "report": "report.json",
+}
+# written into --out after the set is in place (a picture that fails is a warning), or later by
+# other commands (fit-aps, plot)
+DERIVED_FILES = ("ap_models.json", "survey.png", "radio_map.png")
 
 
 @dataclass(frozen=True, eq=False)
@@ -50,6 +67,7 @@ def build_report(survey: Survey, al: Alignment, ev: Evaluation | None, cfg: Grap
         "nodes": al.n_nodes,
         "fingerprints": len(fp),
         "scans_dropped": fp.dropped,
+        "scans_standstill": fp.standstill,
         "access_points": fp.fingerprints.n_aps,
         "edges": {
             "imu": int(sum(len(t) - 1 for t in al.tracks.values())),
@@ -68,28 +86,51 @@ def build_report(survey: Survey, al: Alignment, ev: Evaluation | None, cfg: Grap
         "timings_s": {k: round(v, 4) for k, v in timings.items()},
     }
     if al.placement is not None:
-        ids = al.session_ids
-        pl = al.placement
-        c = pl.loop_consistency
-        report["registration"] = {
+        report.update(_placement_report(al))
+    if ev is not None:
+        report["evaluation"] = ev.as_dict()
+    if al.uwb is not None:  # UWB ranges (issue 15); in the site frame the error needs no fit
+        report["uwb"] = al.uwb.as_dict()
+        if ev is not None and al.frame == "site":
+            from graphslam.core.survey.evaluate import trajectory_errors
+
+            report["evaluation"]["steps_site_frame"] = trajectory_errors(al.tracks, survey, np.zeros(3)).as_dict()
+    return report
+
+
+def _placement_report(al: Alignment) -> dict[str, Any]:
+    """report.json's ``registration`` block and per-walk rows (how each walk was placed)."""
+    ids = al.session_ids
+    pl = al.placement
+    assert pl is not None
+    c = pl.loop_consistency
+    out: dict[str, Any] = {
+        "registration": {
+            "method": pl.method,
             "placed": int(pl.placed.sum()),
             "loops": pl.loops,
             "loops_consistent": pl.loops_consistent,
             "loop_consistency": None if c is None else round(c, 3),
             "reliable": pl.reliable,
         }
-        report["walks"] = [
-            {
-                "session_id": ids[s],
-                "aligned": ids[s] in al.tracks,
-                "registration_inliers": int(al.placement.inliers[s]),
-                "registered_to": ids[int(al.placement.parent[s])] if al.placement.parent[s] >= 0 else None,
-            }
-            for s in range(len(ids))
-        ]
-    if ev is not None:
-        report["evaluation"] = ev.as_dict()
-    return report
+    }
+
+    def num(a: Any, s: int) -> float | None:
+        return None if a is None or not np.isfinite(a[s]) else round(float(a[s]), 4)
+
+    walks = []
+    for s in range(len(ids)):
+        row: dict[str, Any] = {"session_id": ids[s], "aligned": ids[s] in al.tracks}
+        if pl.method == "growth":
+            # support: vote weight per fingerprint; margin: over the runner-up placement (seed: null);
+            # consistency: share of the walk's match weight whose partners end within placement.consistent_m
+            row.update(support=num(pl.support, s), margin=num(pl.margin, s), consistency=num(pl.consistency, s))
+        else:
+            row["registration_inliers"] = int(pl.inliers[s])
+            row["registered_to"] = ids[int(pl.parent[s])] if pl.parent[s] >= 0 else None
+        walks.append(row)
+    out["walks"] = walks
+    return out
 
 
 def run_survey(
@@ -102,16 +143,32 @@ def run_survey(
     floor_plan: str | Path | None = None,
     floor_size: tuple[float, float] | None = None,
     surveyed: bool = False,
+    picture: bool = True,
+    update: str | Path | None = None,
 ) -> SurveyResult:
-    """Read ``paths``, align every walk, write the outputs into ``out_dir`` (None: no files)."""
+    """Read ``paths``, align every walk, write the outputs into ``out_dir`` (None: no files);
+    ``picture``: also survey.png there (over ``floor_plan`` when given).
+
+    ``update``: a previous output folder of this floor; walks solved there start from their
+    solution and only the new walks' neighbourhood is re-solved (``graphslam.app.update``)."""
     cfg = config or GraphSlamConfig()
-    _check_outputs(out_dir, rerun_path, floor_plan)
+    _check_outputs(paths, out_dir, rerun_path, floor_plan)
+    plan = _picture_plan(floor_plan, floor_size) if picture and out_dir is not None else None
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
+    previous = None
+    if update is not None:  # read first: a bad previous output fails before the work
+        from graphslam.app.update import align_update, load_previous
+
+        previous = load_previous(update)
     survey = read_survey(paths)
     timings["read"] = time.perf_counter() - t0
 
-    alignment = align(survey, cfg, progress=progress)
+    update_info = None
+    if previous is not None:
+        alignment, cfg, update_info = align_update(survey, cfg, previous, previous_dir=update, progress=progress)
+    else:
+        alignment = align(survey, cfg, progress=progress)
     timings.update({f"align.{k}": v for k, v in alignment.timings_s.items()})
 
     t = time.perf_counter()
@@ -126,16 +183,21 @@ def run_survey(
         viz = start_log_survey(rerun_path, survey, alignment, cfg, floor_plan=floor_plan, floor_size=floor_size)
     files: dict[str, Path] = {}
     report = build_report(survey, alignment, evaluation, cfg, timings)
+    if update_info is not None:
+        report["update"] = update_info
     if out_dir is not None:
         t = time.perf_counter()
         try:
-            files = write_outputs(Path(out_dir), survey, alignment, report, cfg, surveyed=surveyed)
+            with Task("write"):
+                files = write_outputs(Path(out_dir), survey, alignment, report, cfg, surveyed=surveyed)
         except BaseException:
             if viz is not None:  # let the child finish (and clean up its temp file) before failing
                 with contextlib.suppress(Exception):
                     viz.wait()
             raise
         timings["write"] = time.perf_counter() - t
+        if picture:
+            _write_picture(Path(out_dir), survey, alignment, cfg, evaluation, plan, files, timings)
     if viz is not None:
         t = time.perf_counter()
         timings["rerun"] = viz.wait()  # log_survey itself, in the child
@@ -147,10 +209,52 @@ def run_survey(
     return SurveyResult(survey, alignment, evaluation, report, Path(out_dir) if out_dir else None, files)
 
 
-def _check_outputs(out_dir: str | Path | None, rerun_path: str | Path | None, floor_plan: str | Path | None) -> None:
-    """Fail before the work, not after it, on outputs that cannot be written or a missing floor plan."""
-    if out_dir is not None and Path(out_dir).exists() and not Path(out_dir).is_dir():
-        raise OutputError(f"{out_dir}: exists and is not a folder")
+def _picture_plan(floor_plan: str | Path | None, floor_size: tuple[float, float] | None) -> Any:
+    """The floor plan survey.png is drawn over; a bad one fails here, before the work."""
+    from graphslam.viz.common import load_floor_plan
+
+    return load_floor_plan(floor_plan, floor_size)
+
+
+def _write_picture(
+    out_dir: Path, survey: Survey, al: Alignment, cfg: GraphSlamConfig, ev: Evaluation | None, plan: Any,
+    files: dict[str, Path], timings: dict[str, float],
+) -> None:
+    """survey.png beside the outputs, once they are in place; a picture that fails is a warning,
+    not a failed survey (``graphslam.viz.survey_picture``: Pillow, ~0.05 s for the paper survey)."""
+    from graphslam.errors import GraphSlamError
+    from graphslam.viz.survey_picture import PICTURE, draw_survey, scene_of_alignment
+
+    t = time.perf_counter()
+    try:
+        with Task("picture"):
+            files["picture"] = draw_survey(scene_of_alignment(survey, al, cfg, ev), out_dir / PICTURE, floor_plan=plan)
+    except (GraphSlamError, OSError, ValueError) as e:
+        log.warning("%s not written: %s", PICTURE, e)
+    timings["picture"] = time.perf_counter() - t
+
+
+def _check_outputs(
+    paths: Sequence[str | Path],
+    out_dir: str | Path | None,
+    rerun_path: str | Path | None,
+    floor_plan: str | Path | None,
+) -> None:
+    """Fail before the work, not after it: an --out that cannot be replaced as one set (see
+    ``write_outputs``), or that is (inside) an input folder, a --rerun file inside --out, a
+    missing floor plan."""
+    if out_dir is not None:
+        out = Path(out_dir).resolve()
+        for p in map(Path, paths):
+            folder = p.resolve() if p.is_dir() else p.resolve().parent
+            # aligned.mcap in a folder of recordings would join the next survey of that folder
+            if out == folder or (p.is_dir() and folder in out.parents):
+                raise OutputError(f"{out_dir}: is {'inside ' if out != folder else ''}the input folder {folder}")
+            if out in p.resolve().parents:
+                raise OutputError(f"{out_dir}: holds the input {p}, and is replaced as a whole")
+        check_replaceable_folder(out, set(OUTPUT_FILES.values()) | set(DERIVED_FILES))
+        if rerun_path is not None and out in Path(rerun_path).resolve().parents:
+            raise OutputError(f"{rerun_path}: inside --out {out_dir}, which is replaced as a whole: put it beside")
     if rerun_path is not None and Path(rerun_path).is_dir():
         raise OutputError(f"{rerun_path}: is a folder, expected an .rrd file path")
     if floor_plan is not None and not Path(floor_plan).is_file():
@@ -160,43 +264,39 @@ def _check_outputs(out_dir: str | Path | None, rerun_path: str | Path | None, fl
 def write_outputs(
     out_dir: Path, survey: Survey, al: Alignment, report: dict, cfg: GraphSlamConfig, *, surveyed: bool = False
 ) -> dict[str, Path]:
-    """Stage every output in a temporary folder, then move them in: no half-written file.
-
-    Files are moved one by one (each rename is atomic); a crash between two renames can
-    leave a previous run's files beside new ones in a re-used folder.
-    """
+    """Write every output into a staging folder beside ``out_dir``, then swap it in as a whole
+    (``FolderStage``): ``out_dir`` holds this run's files and nothing else (no ``ap_models.json``
+    or ``radio_map_surveyed.parquet`` left from an earlier run), or, if anything fails, exactly
+    what it held before."""
+    stage = FolderStage.create(out_dir, set(OUTPUT_FILES.values()) | set(DERIVED_FILES))
     try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        stage = Path(tempfile.mkdtemp(prefix=".graphslam-", dir=out_dir))
-    except OSError as e:
-        raise OutputError(f"{out_dir}: cannot create the output folder ({e.strerror or e})") from None
-    try:
-        names = {
-            "trajectories": "trajectories.csv",
-            "aligned": "aligned.mcap",
-            "radio_map": "radio_map.parquet",
-            "config": "config.yaml",
-            "report": "report.json",
-        }
-        write_trajectories(al.tracks, stage / names["trajectories"])
-        write_aligned(al.tracks, stage / names["aligned"])
-        _write_radio_map(survey, al, cfg, stage / names["radio_map"])
+        names = {k: v for k, v in OUTPUT_FILES.items() if k != "radio_map_surveyed" or surveyed}
+        write_trajectories(al.tracks, stage.path / names["trajectories"])
+        write_aligned(al.tracks, stage.path / names["aligned"], frame_id=al.frame)
+        _write_radio_map(survey, al, cfg, stage.path / names["radio_map"])
+        _write_wifi_edges(al, cfg, stage.path / names["wifi_edges"])
         if surveyed:  # evaluation: the same fingerprints at their ground-truth positions
             from graphslam.core.radiomap.survey_maps import surveyed_radio_map
             from graphslam.io.radiomap_io import write_radio_map
 
-            names["radio_map_surveyed"] = "radio_map_surveyed.parquet"
-            write_radio_map(surveyed_radio_map(survey, al, cfg), stage / names["radio_map_surveyed"])
-        atomic_write_text(stage / names["config"], cfg.to_yaml())
-        atomic_write_json(stage / names["report"], report)
-        files = {}
-        for key, name in names.items():
-            if (stage / name).exists():
-                (stage / name).replace(out_dir / name)
-                files[key] = out_dir / name
-        return files
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
+            write_radio_map(surveyed_radio_map(survey, al, cfg), stage.path / names["radio_map_surveyed"])
+        atomic_write_text(stage.path / names["config"], cfg.to_yaml())
+        write_survey_state(stage.path / names["state"], survey, al, cfg)
+        atomic_write_json(stage.path / names["report"], report)
+    except BaseException as e:
+        stage.discard()
+        if isinstance(e, OSError):  # e.g. disk full in the middle of a file
+            raise OutputError(f"{out_dir}: cannot write the outputs ({e.strerror or e})") from None
+        raise
+    stage.publish()
+    return {key: out_dir / name for key, name in names.items()}
+
+
+def _write_wifi_edges(al: Alignment, cfg: GraphSlamConfig, path: Path) -> None:
+    from graphslam.core.radiomap.survey_maps import crowdsourced_edges
+    from graphslam.io.edges_io import write_wifi_edges
+
+    write_wifi_edges(crowdsourced_edges(al, cfg), path)
 
 
 def _write_radio_map(survey: Survey, al: Alignment, cfg: GraphSlamConfig, path: Path) -> None:

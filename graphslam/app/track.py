@@ -48,6 +48,7 @@ from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.tracking.fixed_lag import FixedLagConfig, fixed_lag_smooth
 from graphslam.core.tracking.smoother import SMOOTH_METHODS, smooth
+from graphslam.core.progress import Task
 from graphslam.core.types import Session
 from graphslam.errors import EstimationError
 from graphslam.io.atomic import atomic_open
@@ -169,17 +170,21 @@ def _scan_measurements(
 
 
 def track_session(
-    session: Session, model: FusionModel, locator: KnnLocator, cfg: TrackConfig = TrackConfig()
+    session: Session, model: FusionModel, locator: KnnLocator, cfg: TrackConfig = TrackConfig(),
+    progress: Task | None = None,
 ) -> SessionTrack:
     """Track one session (see module docstring). ``EstimationError`` if it has < 2 steps or no scan
-    the radio map can locate. Covariances come out multiplied by ``cfg.covariance_scale``."""
-    tr = _track_session(session, model, locator, cfg)
+    the radio map can locate. Covariances come out multiplied by ``cfg.covariance_scale``;
+    ``progress`` advances by one per step."""
+    tr = _track_session(session, model, locator, cfg, progress)
     if cfg.covariance_scale == 1.0:
         return tr
     return dataclasses.replace(tr, P=tr.P * cfg.covariance_scale)
 
 
-def _track_session(session: Session, model: FusionModel, locator: KnnLocator, cfg: TrackConfig) -> SessionTrack:
+def _track_session(
+    session: Session, model: FusionModel, locator: KnnLocator, cfg: TrackConfig, progress: Task | None
+) -> SessionTrack:
     steps = session.steps
     if len(steps) < 2:
         raise EstimationError(f"track: session {session.session_id} has {len(steps)} steps (need 2)")
@@ -210,7 +215,10 @@ def _track_session(session: Session, model: FusionModel, locator: KnnLocator, cf
     )
     starts = [np.array([p0[0], p0[1], 0, 0, 0, 0, 2 * math.pi * h / H]) for h in range(H)]
     if cfg.filter == "fixed-lag" and cfg.smoother == "none":
-        return _track_fixed_lag(session.session_id, model, starts, P0, t, y_v, walked, meas, fixes, cfg)
+        tr = _track_fixed_lag(session.session_id, model, starts, P0, t, y_v, walked, meas, fixes, cfg)
+        if progress is not None:
+            progress.advance(len(t))
+        return tr
     states = [GaussianState(x0, P0) for x0 in starts]
     ll = np.zeros(H)
     penalty = 0.5 * cfg.gate_sigma**2  # a gated reading costs at least what a 'gate_sigma' one would
@@ -229,6 +237,8 @@ def _track_session(session: Session, model: FusionModel, locator: KnnLocator, cf
         xs.append(states[b].x)
         Ps.append(states[b].P)
         best.append(b)
+        if progress is not None:
+            progress.advance()
         if k == len(t) - 1:
             break
         t_now = t[k]
@@ -350,8 +360,8 @@ class Tracker:
             model, cfg = self_calibrated(rm, models, model, cfg)
         return cls(model, KnnLocator(rm, KnnConfig(k=cfg.knn_k)), cfg)
 
-    def track(self, session: Session) -> SessionTrack:
-        return track_session(session, self.model, self.locator, self.cfg)
+    def track(self, session: Session, progress: Task | None = None) -> SessionTrack:
+        return track_session(session, self.model, self.locator, self.cfg, progress)
 
 
 def track_sessions(
@@ -359,7 +369,8 @@ def track_sessions(
 ) -> tuple[SessionTrack, ...]:
     """Track every session on ``rm`` with the AP models ``models`` (same frame as ``rm``)."""
     tracker = Tracker.on_map(rm, models, cfg)
-    return tuple(tracker.track(s) for s in sessions)
+    with Task("track", total=sum(len(s.steps) for s in sessions), unit="steps") as task:
+        return tuple(tracker.track(s, task) for s in sessions)
 
 
 def self_calibrated(rm: RadioMap, models: ApModels, model: FusionModel, cfg: TrackConfig) -> tuple[FusionModel, TrackConfig]:
@@ -443,16 +454,20 @@ def track_files(
 ) -> TrackRun:
     """Read the radio map, its AP models (``ap_models_path``, else ``ap_models.json`` beside the map,
     else fitted now), the sessions (MCAP); track; write ``out`` (CSV)."""
-    from graphslam.io.apmodel_io import read_ap_models
+    from graphslam.io.apmodel_io import StaleApModelsError, read_ap_models
     from graphslam.io.mcap_reader import read_survey
     from graphslam.io.radiomap_io import read_radio_map
 
     rm = read_radio_map(radio_map_path)
     beside = Path(radio_map_path).with_name("ap_models.json")
     if ap_models_path is not None:
-        models = read_ap_models(ap_models_path)
+        models = read_ap_models(ap_models_path, radio_map=rm)  # another map's models: an error
     elif beside.exists():
-        models = read_ap_models(beside)
+        try:
+            models = read_ap_models(beside, radio_map=rm)
+        except StaleApModelsError as e:  # e.g. left by an earlier survey into the same folder
+            log.warning("%s; fitting them now", e)
+            models = ApModels.fit(rm)
     else:
         log.info("no AP models beside %s: fitting them now", radio_map_path)
         models = ApModels.fit(rm)

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from graphslam.core.progress import progress_over
 from graphslam.core.radiomap.fingerprints import DEFAULT_MIN_RSSI_DBM, DEFAULT_MISSING_DBM
 from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
 from graphslam.errors import InputError
@@ -95,7 +96,7 @@ def run_ujiindoorloc_benchmark(
     queries = test.fingerprints(missing_dbm=missing_dbm, min_rssi_dbm=min_rssi_dbm)
     times = []
     res = None
-    for _ in range(max(1, repeats)):
+    for _ in progress_over(range(max(1, repeats)), "bench ujiindoorloc", unit="runs"):
         t0 = time.perf_counter()
         res = locator.locate(queries)
         times.append(time.perf_counter() - t0)

@@ -10,7 +10,7 @@ Conventions (used everywhere unless a docstring says otherwise):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Iterator, Mapping, Sequence
 
@@ -108,6 +108,39 @@ class LandmarkMark:
 
 
 @dataclass(frozen=True, eq=False)
+class UwbRanges:
+    """One tag's completed two-way rangings (its session's ``/uwb/range``), in time order.
+
+    ``responder_id[i]`` is an anchor id (``is_anchor[i]``) or another session's ``uwb_id``;
+    ``range_m`` is the measured distance (m, 3-D, as the radio reports it).
+    """
+
+    t_ns: NDArray[np.int64]
+    responder_id: tuple[str, ...]
+    is_anchor: NDArray[np.bool_]
+    range_m: NDArray[np.float64]
+
+    def __post_init__(self) -> None:
+        t = frozen_array(self.t_ns, np.int64)
+        a = frozen_array(self.is_anchor, np.bool_)
+        r = frozen_array(self.range_m, np.float64)
+        ids = tuple(self.responder_id)
+        if not (t.ndim == 1 and len(t) == len(a) == len(r) == len(ids)):
+            raise ValueError("UwbRanges: t_ns, responder_id, is_anchor and range_m must have the same length")
+        if not (np.isfinite(r).all() and (r >= 0).all()):
+            raise ValueError("UwbRanges: ranges must be finite and >= 0")
+        if len(t) > 1 and np.any(np.diff(t) < 0):
+            raise ValueError("UwbRanges: timestamps must not decrease")
+        object.__setattr__(self, "t_ns", t)
+        object.__setattr__(self, "responder_id", ids)
+        object.__setattr__(self, "is_anchor", a)
+        object.__setattr__(self, "range_m", r)
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+
+@dataclass(frozen=True, eq=False)
 class Session:
     """One walker's recording.
 
@@ -123,12 +156,21 @@ class Session:
     site: str = ""
     floor: str = ""
     source: str = ""  # file it came from, for messages
+    # UWB (optional, Paper 003): this tag's id, its rangings, and the anchors it knows
+    # (anchor id -> (x, y) or (x, y, z), site frame, m)
+    uwb_id: str = ""
+    uwb_ranges: UwbRanges | None = None
+    uwb_anchors: Mapping[str, tuple[float, ...]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not self.session_id:
             raise ValueError("Session: empty session_id")
         object.__setattr__(self, "scans", tuple(self.scans))
         object.__setattr__(self, "landmarks", tuple(self.landmarks))
+        anchors = {str(k): tuple(float(c) for c in v) for k, v in dict(self.uwb_anchors).items()}
+        if not all(len(v) in (2, 3) and np.isfinite(v).all() for v in anchors.values()):
+            raise ValueError("Session: an anchor position must be 2 or 3 finite numbers")
+        object.__setattr__(self, "uwb_anchors", MappingProxyType(anchors))
 
     @property
     def duration_s(self) -> float:

@@ -17,8 +17,11 @@ from graphslam.io.schemas import (
     TOPIC_POSE,
     TOPIC_SCAN,
     TOPIC_SCHEMAS,
+    TOPIC_UWB_RANGE,
+    UWB_ANCHORS_METADATA,
     schema_bytes,
 )
+from graphslam.io.uwb_io import anchors_metadata, range_messages
 
 
 def _stamp(t_ns: int) -> dict:
@@ -66,13 +69,15 @@ def write_session(session: Session, path: str | Path) -> Path:
     """Write ``session`` to ``path`` (atomically), including landmarks and ground truth if present."""
     path = Path(path)
     with atomic_open(path, "wb") as fh:
-        writer = Writer(fh, compression=CompressionType.ZSTD)
+        writer = Writer(fh, compression=CompressionType.ZSTD, enable_data_crcs=True)
         writer.start(profile="", library="graphslam")
         ch = _Channels(writer)
-        writer.add_metadata(
-            SESSION_METADATA,
-            {"session_id": session.session_id, "site": session.site, "floor": session.floor},
-        )
+        meta = {"session_id": session.session_id, "site": session.site, "floor": session.floor}
+        if session.uwb_id:
+            meta["uwb_id"] = session.uwb_id
+        writer.add_metadata(SESSION_METADATA, meta)
+        if session.uwb_anchors:
+            writer.add_metadata(UWB_ANCHORS_METADATA, anchors_metadata(session))
         events: list[tuple[int, int, bytes]] = []
         pose_ch = ch.channel(TOPIC_POSE)
         events += [(t, pose_ch, d) for t, d in _pose_msgs(session.steps, "fmip")]
@@ -91,6 +96,9 @@ def write_session(session: Session, path: str | Path) -> Path:
         if session.ground_truth is not None:
             gt_ch = ch.channel(TOPIC_GROUND_TRUTH)
             events += [(t, gt_ch, d) for t, d in _pose_msgs(session.ground_truth, "site")]
+        if session.uwb_ranges is not None:
+            uwb_ch = ch.channel(TOPIC_UWB_RANGE)
+            events += [(t, uwb_ch, orjson.dumps(body)) for t, body in range_messages(session)]
         for t, c, d in sorted(events, key=lambda e: (e[0], e[1])):
             ch.add(c, t, d)
         writer.finish()
@@ -101,7 +109,7 @@ def write_aligned(tracks: dict[str, PoseTrack], path: str | Path, frame_id: str 
     """One ``foxglove.PoseInFrame`` topic per session (``/aligned/<session_id>``), viewable in Foxglove."""
     path = Path(path)
     with atomic_open(path, "wb") as fh:
-        writer = Writer(fh, compression=CompressionType.ZSTD)
+        writer = Writer(fh, compression=CompressionType.ZSTD, enable_data_crcs=True)
         writer.start(profile="", library="graphslam")
         ch = _Channels(writer)
         name, schema = TOPIC_SCHEMAS[TOPIC_POSE]

@@ -16,12 +16,18 @@ rssi_dbm       list<float64>           their RSS, dBm, same order as ``bssid``
 
 File key-value metadata ``graphslam.radio_map`` (JSON): ``format_version``,
 ``frame``, ``missing_dbm``, ``min_rssi_dbm``, ``n_fingerprints``,
-``n_access_points`` and ``metadata`` (provenance/config). The AP index is not
-stored: it is the sorted set of BSSIDs in ``bssid`` (``RadioMap`` is canonical).
+``n_access_points``, ``metadata`` (provenance/config) and ``content_sha256``. The AP
+index is not stored: it is the sorted set of BSSIDs in ``bssid`` (``RadioMap`` is canonical).
+
+Integrity: data pages carry Parquet page CRCs (checked on read), and ``content_sha256``
+(``content_hash``: SHA-256 of the decoded map) is checked after decoding, so a changed
+byte anywhere (data, footer, metadata) is an error, never a silently different map. A
+file without ``content_sha256`` (written by another tool) is read with a warning.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 from pathlib import Path
@@ -41,6 +47,39 @@ METADATA_KEY = b"graphslam.radio_map"
 REQUIRED_COLUMNS = ("session_id", "t_ns", "x", "y", "bssid", "rssi_dbm")
 LABEL_COLUMNS = ("floor", "building")
 REQUIRED_META = ("format_version", "frame", "missing_dbm", "min_rssi_dbm")
+HASH_KEY = "content_sha256"
+
+
+def content_hash(rm: RadioMap) -> str:
+    """SHA-256 (hex) of everything a radio map holds, in its canonical form: what the file must
+    decode to. Also what AP models record of the map they were fitted from."""
+    h = hashlib.sha256()
+
+    def put(tag: str, data: bytes) -> None:  # length-prefixed: no two contents hash alike by concatenation
+        h.update(tag.encode())
+        h.update(len(data).to_bytes(8, "little"))
+        h.update(data)
+
+    def strings(a: Any) -> bytes:
+        return b"" if a is None else json.dumps([str(v) for v in a], ensure_ascii=False).encode()
+
+    fm = rm.fingerprints
+    v = fm.values.copy()
+    v.sort_indices()
+    put("format_version", str(rm.format_version).encode())
+    put("frame", rm.frame.encode())
+    put("missing_min", np.array([fm.missing_dbm, rm.min_rssi_dbm], "<f8").tobytes())
+    put("bssids", strings(fm.bssids))
+    put("indptr", v.indptr.astype("<i8").tobytes())
+    put("indices", v.indices.astype("<i8").tobytes())
+    put("values", v.data.astype("<f8").tobytes())
+    put("xy", np.ascontiguousarray(rm.xy, "<f8").tobytes())
+    put("t_ns", np.ascontiguousarray(rm.t_ns, "<i8").tobytes())
+    put("session_ids", strings(rm.session_ids))
+    put("floors", strings(rm.floors) if rm.floors is not None else b"\0none")
+    put("buildings", strings(rm.buildings) if rm.buildings is not None else b"\0none")
+    put("metadata", json.dumps(dict(rm.metadata), sort_keys=True, ensure_ascii=False).encode())
+    return h.hexdigest()
 
 
 def _schema() -> Any:
@@ -95,6 +134,7 @@ def radio_map_table(rm: RadioMap) -> Any:
         "n_fingerprints": len(rm),
         "n_access_points": fm.n_aps,
         "metadata": dict(rm.metadata),
+        HASH_KEY: content_hash(rm),
     }
     schema = schema.with_metadata({METADATA_KEY: json.dumps(meta, sort_keys=True).encode()})
     return pa.Table.from_arrays([cols[f.name] for f in schema], schema=schema)
@@ -107,14 +147,14 @@ def write_radio_map(rm: RadioMap, path: str | Path) -> Path:
     path = Path(path)
     table = radio_map_table(rm)
     with atomic_open(path, "wb") as fh:
-        pq.write_table(table, fh, compression="zstd")
+        pq.write_table(table, fh, compression="zstd", write_page_checksum=True)
     log.info("wrote radio map %s: %d fingerprints, %d APs", path, len(rm), rm.fingerprints.n_aps)
     return path
 
 
 def _fail(path: Path, problem: str, field: str | None = None) -> RadioMapError:
     where = f"{path}" + (f" [field {field}]" if field else "")
-    return RadioMapError(f"{where}: {problem}")
+    return RadioMapError(f"{where}: {' '.join(problem.split())}")  # Arrow's messages span lines
 
 
 def _values(path: Path, table: Any, name: str, kind: str) -> np.ndarray:
@@ -159,18 +199,31 @@ def _list_column(path: Path, table: Any, name: str, kind: str) -> tuple[np.ndarr
 
 def read_radio_map(path: str | Path) -> RadioMap:
     """Read a radio map file. ``RadioMapError`` (naming the file and field) if it is not a
-    Parquet file, has another format version, or misses or mistypes a column."""
+    Parquet file, has another format version, misses or mistypes a column, or is damaged
+    (a page CRC or the content hash does not match)."""
     import pyarrow as pa
-    import pyarrow.compute as pc
     import pyarrow.parquet as pq
 
     path = Path(path)
     if not path.is_file():
         raise _fail(path, "no such file" if not path.exists() else "not a file")
     try:
-        table = pq.read_table(path)
-    except (pa.ArrowException, OSError, ValueError) as e:
+        table = pq.read_table(path, page_checksum_verification=True)
+    except (pa.ArrowException, OSError, ValueError, MemoryError) as e:
         raise _fail(path, f"not a readable Parquet file ({e})") from None
+    try:
+        rm, meta = _decode(path, table)
+    except (pa.ArrowException, UnicodeError, ValueError, KeyError, IndexError, OverflowError) as e:
+        # Damage the checks below do not name (e.g. a column name that is no longer UTF-8).
+        raise _fail(path, f"damaged radio map file ({type(e).__name__}: {e})") from None
+    _verify_hash(path, meta.get(HASH_KEY), rm)
+    return rm
+
+
+def _decode(path: Path, table: Any) -> tuple[RadioMap, dict[str, Any]]:
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
     raw = (table.schema.metadata or {}).get(METADATA_KEY)
     if raw is None:
         raise _fail(path, "no graphslam.radio_map metadata: not a graphslam radio map", "metadata")
@@ -245,8 +298,10 @@ def read_radio_map(path: str | Path) -> RadioMap:
     fm = FingerprintMatrix(tuple(names[order].astype(str).tolist()), v, missing)
     if "n_access_points" in meta and meta["n_access_points"] != fm.n_aps:
         raise _fail(path, f"says {meta['n_access_points']} APs, rows hold {fm.n_aps}", "metadata.n_access_points")
+    if "n_fingerprints" in meta and meta["n_fingerprints"] != n:
+        raise _fail(path, f"says {meta['n_fingerprints']} fingerprints, the file holds {n}", "metadata.n_fingerprints")
     try:
-        return RadioMap(
+        rm = RadioMap(
             fingerprints=fm,
             xy=xy if n else np.zeros((0, 2)),
             session_ids=sids,
@@ -259,3 +314,16 @@ def read_radio_map(path: str | Path) -> RadioMap:
         )
     except RadioMapError as e:
         raise _fail(path, str(e)) from None
+    return rm, meta
+
+
+def _verify_hash(path: Path, stored: Any, rm: RadioMap) -> None:
+    """Last, so that a file with a precise problem (a missing column, a NaN) says that."""
+    if stored is None:
+        log.warning("%s: no %s in its metadata (not written by graphslam?): integrity not verified", path, HASH_KEY)
+        return
+    if stored != content_hash(rm):
+        raise _fail(
+            path, "content does not match its SHA-256: the file is damaged or was changed after it was written",
+            f"metadata.{HASH_KEY}",
+        )

@@ -6,11 +6,13 @@ import json
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 SESSION_METADATA = "graphslam.session"
+UWB_ANCHORS_METADATA = "graphslam.uwb_anchors"  # anchor id -> JSON "[x, y]" or "[x, y, z]" (site frame, m)
 
 TOPIC_POSE = "/fmip/pose"
 TOPIC_SCAN = "/wifi/scan"
 TOPIC_LANDMARKS = "/landmarks"
 TOPIC_GROUND_TRUTH = "/ground_truth/pose"
+TOPIC_UWB_RANGE = "/uwb/range"
 
 _TIME = {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}}
 _XYZ = {"type": "object", "properties": {k: {"type": "number"} for k in "xyz"}}
@@ -58,12 +60,25 @@ LANDMARK_MARK = {
     "required": ["timestamp", "landmark_id", "x", "y"],
 }
 
+UWB_RANGE = {
+    "title": "graphslam.UwbRange",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "responder_id": {"type": "string"},
+        "responder_kind": {"type": "string", "enum": ["anchor", "tag"]},
+        "range_m": {"type": "number", "minimum": 0},
+    },
+    "required": ["timestamp", "responder_id", "responder_kind", "range_m"],
+}
+
 # topic -> (schema name, schema)
 TOPIC_SCHEMAS: dict[str, tuple[str, dict]] = {
     TOPIC_POSE: ("foxglove.PoseInFrame", POSE_IN_FRAME),
     TOPIC_SCAN: ("graphslam.WifiScan", WIFI_SCAN),
     TOPIC_LANDMARKS: ("graphslam.LandmarkMark", LANDMARK_MARK),
     TOPIC_GROUND_TRUTH: ("foxglove.PoseInFrame", POSE_IN_FRAME),
+    TOPIC_UWB_RANGE: ("graphslam.UwbRange", UWB_RANGE),
 }
 
 

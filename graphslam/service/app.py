@@ -7,7 +7,13 @@ Endpoints (OpenAPI at ``/openapi.json``, docs at ``/docs``):
 - ``GET /v1/radio-map``: summary of the loaded map;
 - ``GET /healthz``: liveness.
 
-Every bad request is a 4xx with a ``detail`` message: malformed JSON, wrong types,
+``/docs`` (Swagger UI) and ``/redoc`` are served from assets packaged with
+``fastapi-offline`` (no CDN: they render on a site without internet). With a ``token``,
+every ``/v1/`` request needs ``Authorization: Bearer <token>`` (401 otherwise);
+``/healthz``, ``/openapi.json`` and the docs stay open (they say nothing about the map).
+
+Every bad request is a 4xx with a ``detail`` message: malformed JSON (also: nested deeper
+than ``parsing.MAX_JSON_DEPTH``), wrong types,
 NaN/inf, RSS outside [-200, 0] dBm, empty readings, an empty or too large batch
 (413), a too large body (413), fingerprints with no access point known to the map
 (422, with their indices). The whole batch is refused if any fingerprint is bad, so
@@ -17,6 +23,7 @@ positions always line up with the request. 503 if a search worker process (see
 
 from __future__ import annotations
 
+import hmac
 import logging
 from contextlib import asynccontextmanager
 from typing import Any, AsyncIterator, Awaitable, Callable, MutableMapping
@@ -26,8 +33,9 @@ from fastapi import FastAPI, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from fastapi_offline import FastAPIOffline
 
-from graphslam.core.radiomap.knn import IndexKind, KnnConfig, KnnLocator, KnnResult
+from graphslam.core.radiomap.knn import IndexKind, KnnConfig, KnnLocator, KnnResult, strict_error
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import QueryError
 from graphslam.service.models import (  # re-exported: the service's public models
@@ -42,7 +50,8 @@ from graphslam.service.models import (  # re-exported: the service's public mode
     Position,
     RadioMapInfo,
 )
-from graphslam.service.parsing import is_json_content_type, validated_scans
+from graphslam.service.coalesce import Coalescer
+from graphslam.service.parsing import flat_scans, is_json_content_type, validated_scans
 from graphslam.service.pool import BatchTooLargeError, SearchPool, SearchUnavailableError
 from graphslam.service.render import position_dicts, response_json
 
@@ -113,14 +122,72 @@ class BodyLimit:
         await self.app(scope, buffered_receive, send)
 
 
+class BearerToken:
+    """ASGI middleware: ``/v1/`` requests need ``Authorization: Bearer <token>`` (compared in
+    constant time), else 401 before the body is read."""
+
+    def __init__(self, app: Callable[..., Awaitable[None]], token: str) -> None:
+        self.app = app
+        self.expected = f"Bearer {token}".encode()
+
+    async def __call__(self, scope: MutableMapping[str, Any], receive: Callable, send: Callable) -> None:
+        if scope["type"] == "http" and scope.get("path", "").startswith("/v1/"):
+            got = next((v for k, v in scope.get("headers", []) if k == b"authorization"), b"")
+            if not hmac.compare_digest(got, self.expected):
+                detail = "missing or wrong bearer token (Authorization: Bearer <token>)"
+                r = JSONResponse({"detail": detail}, status_code=401, headers={"WWW-Authenticate": "Bearer"})
+                await r(scope, receive, send)
+                return
+        await self.app(scope, receive, send)
+
+
+class SmallLocateFastPath:
+    """ASGI middleware: a ``POST /v1/locate`` of at most ``INLINE_MAX`` fingerprints that the fast
+    parser accepts and that locates in full is answered here, without FastAPI's routing and
+    dependency machinery (~100 us of a ~350 us request). Everything else -- another route,
+    another content type, a body the fast parser declines, an unlocatable fingerprint -- goes to
+    the app unchanged (with the body replayed), which answers exactly as it always does."""
+
+    def __init__(self, app: Callable[..., Awaitable[None]], answer: Callable[[bytes], Awaitable[bytes | None]]) -> None:
+        self.app, self.answer = app, answer
+
+    async def __call__(self, scope: MutableMapping[str, Any], receive: Callable, send: Callable) -> None:
+        if not (scope["type"] == "http" and scope["method"] == "POST" and scope["path"] == "/v1/locate"):
+            await self.app(scope, receive, send)
+            return
+        content_type = next((v for k, v in scope.get("headers", []) if k == b"content-type"), b"")
+        if not is_json_content_type(content_type.decode("latin-1")):
+            await self.app(scope, receive, send)
+            return
+        message = await receive()  # BodyLimit (outside) hands the whole body in one message
+        body = message.get("body", b"") if message["type"] == "http.request" else b""
+        done = None
+        if message["type"] == "http.request" and not message.get("more_body"):
+            done = await self.answer(body)
+        if done is None:
+            replay = [message]
+
+            async def replayed() -> MutableMapping[str, Any]:
+                return replay.pop() if replay else await receive()
+
+            await self.app(scope, replayed, send)
+            return
+        headers = [(b"content-length", str(len(done)).encode()), (b"content-type", b"application/json")]
+        await send({"type": "http.response.start", "status": 200, "headers": headers})
+        await send({"type": "http.response.body", "body": done})
+
+
 def _validation_message(exc: RequestValidationError) -> tuple[str, list[dict[str, Any]]]:
     errors = []
     for e in exc.errors():
         loc = [str(p) for p in e.get("loc", ()) if p != "body"]
         errors.append({"loc": loc, "msg": e.get("msg", ""), "type": e.get("type", "")})
-    if any(e["type"] == "json_invalid" for e in errors):
-        at = next((e["loc"][0] for e in errors if e["type"] == "json_invalid" and e["loc"]), None)
-        return "malformed JSON body" + (f" (at character {at})" if at is not None else ""), errors
+    bad_json = [e for e in errors if e["type"] == "json_invalid"]
+    if bad_json:
+        at = next((e["loc"][0] for e in bad_json if e["loc"]), None)
+        why = next((e["msg"] for e in bad_json if e["msg"] != "JSON decode error"), None)  # e.g. too deep
+        return "malformed JSON body" + (f" (at character {at})" if at is not None else "") + (
+            f": {why}" if why else ""), errors
     parts = [f"{'.'.join(e['loc']) or 'body'}: {e['msg']}" for e in errors[:5]]
     more = f" (+{len(errors) - 5} more)" if len(errors) > 5 else ""
     return "invalid request: " + "; ".join(parts) + more, errors
@@ -139,6 +206,7 @@ def create_app(
     ivf_clusters: int | None = None,
     ivf_probes: int | None = None,
     search_processes: int = 0,
+    token: str | None = None,
 ) -> FastAPI:
     """The service for ``radio_map``. ``threads``: search threads per large request (default:
     up to 2, the machine's cores; small requests use one). ``index``: kNN search (see
@@ -146,7 +214,8 @@ def create_app(
     ``IVF_AUTO_MIN_REFS`` references or more, exact search below. ``search_processes``: forked
     search workers for large batches (``graphslam.service.pool``; 0 = search in this process).
     The workers are started here and stopped at the app's lifespan shutdown (or by
-    ``app.state.search_pool.close()``), so an app with workers is served once."""
+    ``app.state.search_pool.close()``), so an app with workers is served once. ``token``:
+    bearer token required on ``/v1/`` (None: no authentication)."""
     ivf = {"ivf_clusters": ivf_clusters} | ({"ivf_probes": ivf_probes} if ivf_probes is not None else {})
     config = KnnConfig(k=k, weighted=weighted, min_common=min_common, index=index, **ivf)  # type: ignore[arg-type]
     locator = KnnLocator(radio_map, config, threads=threads)
@@ -162,7 +231,7 @@ def create_app(
         finally:
             pool.close()
 
-    app = FastAPI(
+    app = FastAPIOffline(  # a FastAPI app whose /docs and /redoc use packaged assets, not a CDN
         title="graphslam radio map service",
         version="1",
         summary="kNN WiFi fingerprint positioning (eq. 9 RSS distance) against one radio map",
@@ -170,7 +239,9 @@ def create_app(
     )
     app.state.locator = locator
     app.state.search_pool = pool
-    app.add_middleware(BodyLimit, max_bytes=max_body_bytes)
+    # Concurrent small requests share one search (service/coalesce.py); unlocatable rows are
+    # checked per request below.
+    coalescer = Coalescer(lambda scans: locator.locate(scans))
     default_openapi = app.openapi
 
     def openapi_with_request_model() -> dict[str, Any]:
@@ -184,6 +255,12 @@ def create_app(
         for name, definition in req.pop("$defs", {}).items():
             comps.setdefault(name, definition)
         comps["LocateRequest"] = req
+        if token:  # Swagger UI's "Authorize" button, and the requirement on /v1/ operations
+            schema["components"].setdefault("securitySchemes", {})["bearer"] = {"type": "http", "scheme": "bearer"}
+            for path, ops in schema.get("paths", {}).items():
+                if path.startswith("/v1/"):
+                    for op in ops.values():
+                        op["security"] = [{"bearer": []}]
         return schema
 
     app.openapi = openapi_with_request_model  # type: ignore[method-assign]
@@ -218,6 +295,18 @@ def create_app(
         if got is None:
             return None
         return Response(response_json(head, got[1]), media_type="application/json")
+
+    async def answer_small(body: bytes) -> bytes | None:
+        # The fast path's answer: the JSON the route would send, or None (the route decides).
+        if len(body) >= (POOL_MIN_BODY_BYTES if pool.processes else PARSE_INLINE_MAX_BYTES):
+            return None  # the route's pool / thread-pool paths
+        flat = flat_scans(body)
+        if flat is None or len(flat) > min(INLINE_MAX, max_batch):
+            return None
+        res = await coalescer.locate(flat.scans)
+        if not res.valid.all():
+            return None  # the route searches again and answers 422 with the bad indices
+        return orjson.dumps({**head, "positions": position_dicts(res)})
 
     def respond(res: KnnResult) -> Response:
         # Serialised here (the shape is LocateResponse, documented in OpenAPI): FastAPI's
@@ -258,8 +347,18 @@ def create_app(
             scans = validated_scans(body, content_type)
         if len(scans) > max_batch:
             return _problem(413, f"batch of {len(scans)} fingerprints, at most {max_batch} per request")
-        if len(scans) <= INLINE_MAX:
-            return answer(scans)  # ~1 ms: cheaper inline than a hop to the thread pool
+        if len(scans) <= INLINE_MAX:  # ~0.5 ms of search: on the event loop, shared with concurrent requests
+            res = await coalescer.locate(scans)
+            err = strict_error(res, min_common)
+            if err is not None:
+                raise err  # -> 422 with the bad indices, as pool.locate(strict=True) would
+            return respond(res)
         return await run_in_threadpool(answer, scans)  # big batches must not block the event loop
 
+    # Middleware added later runs first: BearerToken (before the body is read), BodyLimit, then
+    # the small-request fast path.
+    app.add_middleware(SmallLocateFastPath, answer=answer_small)
+    app.add_middleware(BodyLimit, max_bytes=max_body_bytes)
+    if token:
+        app.add_middleware(BearerToken, token=token)
     return app

@@ -3,19 +3,25 @@
 from __future__ import annotations
 
 import gc
+import ipaddress
 import json
 import logging
 import os
+import signal
 import socket
 import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import uvicorn
 from fastapi import FastAPI
 
 from graphslam.errors import GraphSlamError
+
+if TYPE_CHECKING:
+    from graphslam.service.reload import ReloadingApp
 
 log = logging.getLogger(__name__)
 
@@ -45,10 +51,34 @@ def _build_app(radio_map_path: str | Path, **app_kwargs: object) -> FastAPI:
     return app
 
 
-def worker_app() -> FastAPI:
+def reloading_app(radio_map_path: str | Path, watch: float | None, **app_kwargs: object) -> "ReloadingApp":
+    """The service behind a ``ReloadingApp``: SIGHUP (and ``watch``: polling the file every so many
+    seconds) swaps in a new map without failing a request (``graphslam.service.reload``)."""
+    from graphslam.service.reload import ReloadingApp
+
+    def build() -> FastAPI:
+        return _build_app(radio_map_path, **app_kwargs)
+
+    return ReloadingApp(build(), build, radio_map_path, watch_interval=watch)
+
+
+def worker_app() -> "ReloadingApp":
     """App factory for uvicorn worker processes (``serve(workers=N)``)."""
     cfg = json.loads(os.environ[_WORKER_CONFIG_ENV])
-    return _build_app(cfg.pop("radio_map_path"), **cfg)
+    return reloading_app(cfg.pop("radio_map_path"), cfg.pop("watch"), **cfg)
+
+
+LOG_LEVELS = ("critical", "error", "warning", "info", "debug", "trace")  # uvicorn's; info logs every request
+
+
+def is_loopback(host: str) -> bool:
+    """Whether binding ``host`` keeps the service on this machine (``0.0.0.0`` / ``::`` do not)."""
+    if host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:  # a host name: it may resolve anywhere
+        return False
 
 
 def serve(
@@ -67,6 +97,8 @@ def serve(
     ivf_probes: int | None = None,
     workers: int = 1,
     search_processes: int | None = None,
+    token: str | None = None,
+    watch: float | None = None,
 ) -> None:
     """Load the radio map and serve it until interrupted. Why processes: a search holds the GIL
     most of the time, so one process searches on about one core.
@@ -76,9 +108,20 @@ def serve(
     client connections. ``None``: ``min(2, cores)`` with one server process, 0 with
     ``workers`` > 1 (which already runs a process per worker). 0: search in the server process.
     ``workers`` > 1: that many server processes on one socket (uvicorn), each with its own copy
-    of the map and index; connections, not requests, are spread over them."""
+    of the map and index; connections, not requests, are spread over them. ``log_level``: one
+    of ``LOG_LEVELS`` (``warning`` drops the access line per request). ``token``: bearer token
+    required on ``/v1/`` (a warning when ``host`` is not loopback and there is none).
+    SIGHUP reloads the map (in every worker); ``watch``: also poll the file every so many seconds."""
     from graphslam.service.app import DEFAULT_MAX_BATCH, DEFAULT_MAX_BODY_BYTES
     from graphslam.service.pool import default_search_processes
+
+    if log_level not in LOG_LEVELS:
+        raise GraphSlamError(f"log level {log_level!r}: use one of {', '.join(LOG_LEVELS)}")
+    if not token and not is_loopback(host):
+        log.warning(
+            "serving on %s without a bearer token: anyone who can reach this address can query the radio map "
+            "(set --token or GRAPHSLAM_SERVE_TOKEN)", host,
+        )
 
     if search_processes is None:
         search_processes = default_search_processes() if workers <= 1 else 0
@@ -86,17 +129,25 @@ def serve(
         k=k, weighted=weighted, min_common=min_common,
         max_batch=max_batch or DEFAULT_MAX_BATCH, max_body_bytes=max_body_bytes or DEFAULT_MAX_BODY_BYTES,
         index=index, ivf_clusters=ivf_clusters, ivf_probes=ivf_probes, search_processes=search_processes,
+        token=token or None,
     )
     log.info(
         "serving %s on http://%s:%d (%d worker process(es), %d search process(es) each)", radio_map_path, host,
         port, workers, search_processes,
     )
     if workers <= 1:
-        uvicorn.run(_build_app(radio_map_path, **kwargs), host=host, port=port, log_level=log_level)
+        uvicorn.run(reloading_app(radio_map_path, watch, **kwargs), host=host, port=port, log_level=log_level)
         return
     from uvicorn.supervisors import Multiprocess
 
-    os.environ[_WORKER_CONFIG_ENV] = json.dumps({"radio_map_path": str(radio_map_path), **kwargs})
+    class Supervisor(Multiprocess):
+        def handle_hup(self) -> None:
+            # every worker reloads in place (and refuses a broken map), instead of uvicorn's restart
+            for process in self.processes:
+                if process.pid is not None:
+                    os.kill(process.pid, signal.SIGHUP)
+
+    os.environ[_WORKER_CONFIG_ENV] = json.dumps({"radio_map_path": str(radio_map_path), "watch": watch, **kwargs})
     config = uvicorn.Config(
         "graphslam.service.server:worker_app", factory=True, host=host, port=port, workers=workers,
         log_level=log_level,
@@ -104,7 +155,7 @@ def serve(
     # What uvicorn.run does for workers > 1, but with our own listening socket: uvicorn's
     # bind_socket() omits IPPROTO_TCP, so asyncio skips TCP_NODELAY and every small response
     # waits ~40 ms for a delayed ACK (measured: single-request p50 44 ms with 2 workers).
-    Multiprocess(config, sockets=[_tcp_listener(host, port)]).run()
+    Supervisor(config, sockets=[_tcp_listener(host, port)]).run()
 
 
 @dataclass

@@ -1,4 +1,5 @@
-"""Survey simulator: office floors, WiFi radio model, walkers with foot-module drift.
+"""Survey simulator: office floors, WiFi radio model, walkers with foot-module drift, and the
+``museum`` scenario (out-and-back routes with a phone's PDR, shaped like IPIN 2023 floor -2).
 
 Typical use::
 
@@ -14,6 +15,16 @@ See docs/simulator.md for the models and their parameters.
 
 from graphslam.sim.cart import CartNoise, CartPath, CartRun, simulate_cart
 from graphslam.sim.floorplan import FloorPlan, Landmark, corridor_plan, office_plan
+from graphslam.sim.museum import (
+    LayoutParams,
+    MuseumParams,
+    MuseumWalkerParams,
+    PhoneModel,
+    PhonePdrParams,
+    Route,
+    museum_layout,
+    simulate_museum_walk,
+)
 from graphslam.sim.radio import (
     AccessPoints,
     RadioEnvironment,
@@ -32,6 +43,7 @@ from graphslam.sim.scenarios import (
     simulate,
     with_overrides,
 )
+from graphslam.sim.shape import route_of, shape_walks, survey_shape
 from graphslam.sim.stats import SurveyStats, WalkStats, align_by_start, raw_drift
 from graphslam.sim.walker import ImuErrorParams, WalkerParams, WalkSpec, dead_reckon, simulate_walk
 
@@ -45,6 +57,12 @@ __all__ = [
     "FloorPlan",
     "ImuErrorParams",
     "Landmark",
+    "LayoutParams",
+    "MuseumParams",
+    "MuseumWalkerParams",
+    "PhoneModel",
+    "PhonePdrParams",
+    "Route",
     "RadioEnvironment",
     "RadioParams",
     "SCENARIOS",
@@ -61,10 +79,15 @@ __all__ = [
     "dead_reckon",
     "get_scenario",
     "make_radio",
+    "museum_layout",
     "office_plan",
     "raw_drift",
+    "route_of",
+    "shape_walks",
     "simulate",
+    "simulate_museum_walk",
     "simulate_walk",
+    "survey_shape",
     "wall_crossings",
     "with_overrides",
 ]

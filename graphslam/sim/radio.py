@@ -13,6 +13,10 @@ Mean received power of access point ``a`` at a phone at ``p`` (site frame, m):
 - ``S_a`` = shadowing: a zero-mean Gaussian random field per AP, fixed for the
   building (every walker sees the same field), std ``shadowing_sigma_db``, with
   correlation ``exp(-(r / shadowing_corr_m)^2)`` between points r metres apart.
+- APs on another floor (``other_floor_fraction`` of them, none by default) are
+  ``floor_height_m`` higher, with their own P0 (the slab's loss included) and gamma,
+  and lose nothing to this floor's walls: they are heard widely, with a slowly
+  varying RSS.
 
 A scan reading adds independent Gaussian noise (``noise_sigma_db``), is rounded
 to whole dBm (phones report integers), and is reported only when it is at least
@@ -58,29 +62,44 @@ class RadioParams:
     weak_miss_prob: float = 0.25  # ... plus up to this much more near the floor
     weak_band_db: float = 10.0  # width of the "near the floor" band
     ap_min_separation_m: float = 5.0  # APs are placed at least this far apart
+    other_floor_fraction: float = 0.0  # share of the APs on the floor above (heard through the slab)
+    other_floor_p0_dbm_range: tuple[float, float] = (-50.0, -40.0)  # their P0, the slab's loss included
+    other_floor_gamma_range: tuple[float, float] = (1.8, 2.2)  # their path-loss exponent (open floor above)
+    floor_height_m: float = 4.0  # height of a floor
 
     def __post_init__(self) -> None:
         lo, hi = self.p0_dbm_range
         glo, ghi = self.gamma_range
-        if not (lo <= hi and 0 < glo <= ghi):
-            raise ConfigError(f"RadioParams: bad P0 range {self.p0_dbm_range} or gamma range {self.gamma_range}")
-        for name in ("ap_height_m", "wall_loss_db", "shadowing_sigma_db", "noise_sigma_db", "weak_band_db"):
+        olo, ohi = self.other_floor_gamma_range
+        plo, phi = self.other_floor_p0_dbm_range
+        if not (lo <= hi and 0 < glo <= ghi and 0 < olo <= ohi and plo <= phi):
+            raise ConfigError(
+                f"RadioParams: bad P0 range {self.p0_dbm_range} or gamma range {self.gamma_range} "
+                f"(other floor: {self.other_floor_p0_dbm_range}, {self.other_floor_gamma_range})"
+            )
+        for name in (
+            "ap_height_m", "wall_loss_db", "shadowing_sigma_db", "noise_sigma_db", "weak_band_db", "floor_height_m",
+        ):
             if getattr(self, name) < 0:
                 raise ConfigError(f"RadioParams: {name} must be >= 0")
         if self.shadowing_corr_m <= 0 or self.shadowing_grid_m <= 0:
             raise ConfigError("RadioParams: shadowing_corr_m and shadowing_grid_m must be > 0")
         if not (0 <= self.miss_prob <= 1 and 0 <= self.weak_miss_prob <= 1 - self.miss_prob):
             raise ConfigError("RadioParams: miss probabilities must be in [0, 1] and sum to <= 1")
+        if not 0 <= self.other_floor_fraction <= 1:
+            raise ConfigError("RadioParams: other_floor_fraction must be in [0, 1]")
 
 
 @dataclass(frozen=True, eq=False)
 class AccessPoints:
-    """AP table: ``bssids[i]`` is at ``xy[i]`` (site frame, m) with ``p0_dbm[i]``, ``gamma[i]``."""
+    """AP table: ``bssids[i]`` is at ``xy[i]`` (site frame, m) with ``p0_dbm[i]``, ``gamma[i]``,
+    ``floor_offset[i]`` floors above this one (0: on this floor)."""
 
     bssids: tuple[str, ...]
     xy: NDArray[np.float64]  # (A, 2)
     p0_dbm: NDArray[np.float64]  # (A,)
     gamma: NDArray[np.float64]  # (A,)
+    floor_offset: NDArray[np.int64] | None = None  # (A,), None: all on this floor
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "bssids", tuple(self.bssids))
@@ -88,8 +107,10 @@ class AccessPoints:
         object.__setattr__(self, "p0_dbm", frozen_array(self.p0_dbm, np.float64))
         object.__setattr__(self, "gamma", frozen_array(self.gamma, np.float64))
         n = len(self.bssids)
-        if not (len(self.xy) == len(self.p0_dbm) == len(self.gamma) == n):
-            raise ConfigError("AccessPoints: bssids, xy, p0_dbm and gamma must have the same length")
+        off = np.zeros(n, np.int64) if self.floor_offset is None else self.floor_offset
+        object.__setattr__(self, "floor_offset", frozen_array(off, np.int64))
+        if not (len(self.xy) == len(self.p0_dbm) == len(self.gamma) == len(off) == n):
+            raise ConfigError("AccessPoints: bssids, xy, p0_dbm, gamma and floor_offset must have the same length")
         if len(set(self.bssids)) != n:
             raise ConfigError("AccessPoints: duplicate BSSID")
 
@@ -213,7 +234,13 @@ class RadioEnvironment:
         """(N, A) 3-D distance phone -> AP (m), the ``d`` of the path-loss model."""
         xy = np.reshape(np.asarray(xy, dtype=float), (-1, 2))
         d2 = np.sum((xy[:, None, :] - self.aps.xy[None, :, :]) ** 2, axis=2)
-        return np.sqrt(d2 + self.params.ap_height_m**2)
+        height = self.params.ap_height_m + self.params.floor_height_m * np.abs(self._floor_offset())
+        return np.sqrt(d2 + height[None, :] ** 2)
+
+    def _floor_offset(self) -> NDArray[np.int64]:
+        off = self.aps.floor_offset
+        assert off is not None  # set by AccessPoints.__post_init__
+        return off
 
     def mean_rss(self, xy: NDArray, *, walls: bool = True, shadowing: bool = True) -> NDArray[np.float64]:
         """(N, A) noiseless mean RSS (dBm) of every AP (columns in ``bssids`` order) at ``xy`` (N, 2).
@@ -223,16 +250,25 @@ class RadioEnvironment:
         """
         xy = np.reshape(np.asarray(xy, dtype=float), (-1, 2))
         rss = self.aps.p0_dbm[None, :] - 10.0 * self.aps.gamma[None, :] * np.log10(self.distances(xy))
+        other = self._floor_offset() != 0
         if walls and self.params.wall_loss_db > 0:
-            rss = rss - self.params.wall_loss_db * wall_crossings(xy, self.aps.xy, self.walls)
+            here = np.flatnonzero(~other)  # APs on another floor lose nothing to this floor's walls
+            rss[:, here] -= self.params.wall_loss_db * wall_crossings(xy, self.aps.xy[here], self.walls)
         if shadowing:
             rss = rss + self.shadowing.at(xy)
         return rss
 
-    def sample_rss(self, xy: NDArray, rng: np.random.Generator) -> NDArray[np.float64]:
-        """(N, A) one scan's readings per row: integer dBm, NaN where not reported."""
+    def sample_rss(
+        self, xy: NDArray, rng: np.random.Generator, offset_db: float | NDArray = 0.0
+    ) -> NDArray[np.float64]:
+        """(N, A) one scan's readings per row: integer dBm, NaN where not reported.
+
+        ``offset_db`` (dB, broadcast to (N, A)) is added to the mean before the noise
+        and the floor: e.g. a phone model's constant offset (a weaker radio reads lower
+        and so also hears fewer APs).
+        """
         p = self.params
-        mean = self.mean_rss(xy)
+        mean = self.mean_rss(xy) + offset_db
         r = np.round(mean + rng.normal(0.0, p.noise_sigma_db, mean.shape))
         u = rng.random(mean.shape)
         weak = np.clip((p.floor_dbm + p.weak_band_db - r) / max(p.weak_band_db, 1e-9), 0.0, 1.0)
@@ -241,7 +277,10 @@ class RadioEnvironment:
 
     def scans(self, t_ns: NDArray, xy: NDArray, rng: np.random.Generator) -> tuple[Scan, ...]:
         """One ``Scan`` per (time, position); readings ordered strongest first."""
-        r = self.sample_rss(xy, rng)
+        return self.scans_from_rss(t_ns, self.sample_rss(xy, rng))
+
+    def scans_from_rss(self, t_ns: NDArray, r: NDArray) -> tuple[Scan, ...]:
+        """One ``Scan`` per row of ``r`` ((N, A) dBm, NaN = not heard, columns in ``bssids`` order)."""
         out = []
         for t, row in zip(np.asarray(t_ns).tolist(), r):
             idx = np.flatnonzero(~np.isnan(row))
@@ -278,7 +317,13 @@ def place_access_points(
             xy.append(cand)
     p0 = rng.uniform(*params.p0_dbm_range, n_aps)
     gamma = rng.uniform(*params.gamma_range, n_aps)
-    return AccessPoints(tuple(bssid(i) for i in range(n_aps)), np.array(xy), p0, gamma)
+    offset = np.zeros(n_aps, np.int64)
+    if params.other_floor_fraction > 0:  # drawn last: the other scenarios' APs stay as they were
+        up = rng.choice(n_aps, int(round(params.other_floor_fraction * n_aps)), replace=False)
+        offset[up] = 1
+        p0[up] = rng.uniform(*params.other_floor_p0_dbm_range, len(up))
+        gamma[up] = rng.uniform(*params.other_floor_gamma_range, len(up))
+    return AccessPoints(tuple(bssid(i) for i in range(n_aps)), np.array(xy), p0, gamma, offset)
 
 
 def make_radio(plan: FloorPlan, n_aps: int, params: RadioParams, rng: np.random.Generator) -> RadioEnvironment:

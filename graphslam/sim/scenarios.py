@@ -4,7 +4,8 @@ Determinism: everything is drawn from ``numpy`` Generators seeded by
 ``SeedSequence(seed, spawn_key=(stream, i))``: stream 0 = building (APs,
 shadowing), stream 1 = survey walk i, stream 2 = test walk i. So walk i is the
 same whatever ``size`` or ``test_walks`` are, and test walks never perturb the
-survey.
+survey. The ``museum`` scenario draws its layout from stream 3 (heading field:
+(3, 1)) and walk k of route r from ``spawn_key=(1, r, k)``.
 """
 
 from __future__ import annotations
@@ -20,12 +21,14 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from graphslam.core.progress import progress_over
 from graphslam.core.types import Session, Survey
-from graphslam.errors import ConfigError
+from graphslam.errors import ConfigError, SimulationError
 from graphslam.io.atomic import atomic_write_text
 from graphslam.io.mcap_writer import write_session
 from graphslam.sim.floorplan import FloorPlan, Landmark, corridor_plan, office_plan
-from graphslam.sim.radio import AccessPoints, RadioEnvironment, RadioParams, make_radio
+from graphslam.sim.museum import MuseumParams, Route, heading_field, museum_layout, simulate_museum_walk
+from graphslam.sim.radio import AccessPoints, RadioEnvironment, RadioParams, ShadowingField, make_radio
 from graphslam.sim.walker import ImuErrorParams, WalkerParams, WalkSpec, simulate_walk
 
 log = logging.getLogger(__name__)
@@ -35,7 +38,7 @@ EPOCH_2026_NS = 1_767_225_600 * 1_000_000_000
 _DAY_NS = 86_400 * 1_000_000_000
 _HOUR_NS = 3_600 * 1_000_000_000
 
-_STREAM_BUILDING, _STREAM_WALK, _STREAM_TEST = 0, 1, 2
+_STREAM_BUILDING, _STREAM_WALK, _STREAM_TEST, _STREAM_LAYOUT = 0, 1, 2, 3
 
 
 def _rng(seed: int, stream: int, i: int = 0) -> np.random.Generator:
@@ -48,13 +51,15 @@ class Scenario:
 
     Walk durations: walk i lasts ``durations_min[i % len]`` minutes if
     ``durations_min`` is given, else uniform in ``duration_range_min``; ``line``
-    routes ignore both (a walk ends at the end of the marked line).
+    routes ignore both (a walk ends at the end of the marked line), and so do
+    ``out_and_back`` routes (the museum's designed routes, ``museum`` parameters:
+    ``n_walks`` is then only what ``size`` 1 gives).
     """
 
     name: str
     description: str
-    plan: Literal["office", "corridor"]
-    route: Literal["graph", "line"]
+    plan: Literal["office", "corridor", "museum"]
+    route: Literal["graph", "line", "out_and_back"]
     n_walks: int
     n_aps: int
     durations_min: tuple[float, ...] = ()
@@ -64,6 +69,7 @@ class Scenario:
     radio: RadioParams = field(default_factory=RadioParams)
     walker: WalkerParams = field(default_factory=WalkerParams)
     imu: ImuErrorParams = field(default_factory=ImuErrorParams)
+    museum: MuseumParams = field(default_factory=MuseumParams)
 
     def __post_init__(self) -> None:
         if self.n_walks < 1 or self.n_aps < 1:
@@ -73,8 +79,13 @@ class Scenario:
                 raise ConfigError(f"scenario {self.name!r}: bad duration range {r}")
         if any(d <= 0 for d in self.durations_min) or self.walk_spacing_s <= 0:
             raise ConfigError(f"scenario {self.name!r}: durations and spacing must be > 0")
+        if (self.plan == "museum") != (self.route == "out_and_back"):
+            raise ConfigError(f"scenario {self.name!r}: the museum plan goes with out_and_back routes, and only it")
 
     def floor_plan(self) -> FloorPlan:
+        """The fixed plans; the museum's depends on the seed (``build_building``)."""
+        if self.plan == "museum":
+            raise ConfigError("the museum floor plan is drawn per seed: use build_building(scenario, seed)")
         return office_plan() if self.plan == "office" else corridor_plan()
 
 
@@ -112,6 +123,37 @@ SCENARIOS: dict[str, Scenario] = {
         test_duration_range_min=(1.0, 4.0),
         walk_spacing_s=300.0,
     ),
+    "museum": Scenario(
+        name="museum",
+        description=(
+            "IPIN 2023 museum floor -2 shape: 7 out-and-back routes along a tree of corridors, 4 walks each, "
+            "plus 3 stair/lift spots x 4 short walks; phone PDR, 2 or 4 s scans by phone, pauses"
+        ),
+        plan="museum",
+        route="out_and_back",
+        n_walks=40,
+        n_aps=139,
+        walk_spacing_s=300.0,
+        # Calibrated on IPIN 2023 floor -2 (scripts/sim_vs_real_shape.py): ~14 APs heard almost everywhere
+        # (here: on the floor above, no walls in the way), the rest weak and local behind thick walls;
+        # phones miss many weak beacons. Gives ~15 readings per scan of 139 APs and a real-like
+        # fingerprint resolution (the nearest fingerprint of another walk a few metres away).
+        radio=RadioParams(
+            p0_dbm_range=(-80.0, -55.0),
+            gamma_range=(2.5, 3.5),
+            wall_loss_db=10.0,
+            shadowing_sigma_db=2.5,
+            shadowing_corr_m=8.0,
+            noise_sigma_db=2.2,  # white part; the museum walker adds fading correlated over seconds
+            floor_dbm=-97.0,
+            miss_prob=0.07,
+            weak_miss_prob=0.35,
+            ap_min_separation_m=3.5,
+            other_floor_fraction=0.1,
+            other_floor_p0_dbm_range=(-50.0, -40.0),
+            other_floor_gamma_range=(1.8, 2.2),
+        ),
+    ),
 }
 
 
@@ -131,6 +173,8 @@ class Building:
     radio: RadioEnvironment
     site: str
     floor: str
+    routes: tuple[Route, ...] = ()  # designed routes (museum), site frame
+    heading_field: ShadowingField | None = None  # phone heading disturbance, rad (museum)
 
     @property
     def walls(self) -> NDArray[np.float64]:
@@ -160,19 +204,31 @@ class Building:
             "walls": np.round(self.plan.walls, 6).tolist(),
             "landmarks": [{"landmark_id": lm.landmark_id, "x": lm.x, "y": lm.y} for lm in self.landmarks],
             "access_points": [
-                {"bssid": b, "x": float(x), "y": float(y), "p0_dbm": float(p0), "gamma": float(g)}
-                for b, (x, y), p0, g in zip(a.bssids, a.xy.tolist(), a.p0_dbm, a.gamma)
+                {
+                    "bssid": b, "x": float(x), "y": float(y), "p0_dbm": float(p0), "gamma": float(g),
+                    "floor_offset": int(f),
+                }
+                for b, (x, y), p0, g, f in zip(a.bssids, a.xy.tolist(), a.p0_dbm, a.gamma, a.floor_offset)
             ],
             "radio": {k: v for k, v in vars(self.radio.params).items()},
+            "routes": [
+                {"name": r.name, "kind": r.kind, "xy": np.round(r.xy, 6).tolist(), "landmark_ids": list(r.landmark_ids)}
+                for r in self.routes
+            ],
         }
 
 
 def build_building(scenario: str | Scenario, seed: int = 0) -> Building:
     """The building of ``scenario`` for ``seed`` (cheap: no walks). Same as ``simulate(...).building``."""
     sc = get_scenario(scenario) if isinstance(scenario, str) else scenario
-    plan = sc.floor_plan()
-    radio = make_radio(plan, sc.n_aps, sc.radio, _rng(seed, _STREAM_BUILDING))
-    return Building(plan, radio, site=f"sim-{sc.name}", floor="F1")
+    if sc.plan != "museum":
+        plan = sc.floor_plan()
+        radio = make_radio(plan, sc.n_aps, sc.radio, _rng(seed, _STREAM_BUILDING))
+        return Building(plan, radio, site=f"sim-{sc.name}", floor="F1")
+    layout = museum_layout(sc.museum.layout, _rng(seed, _STREAM_LAYOUT))
+    radio = make_radio(layout.plan, sc.n_aps, sc.radio, _rng(seed, _STREAM_BUILDING))
+    hfield = heading_field(layout.plan, sc.museum.pdr, _rng(seed, _STREAM_LAYOUT, 1))
+    return Building(layout.plan, radio, site=f"sim-{sc.name}", floor="F1", routes=layout.routes, heading_field=hfield)
 
 
 @dataclass(frozen=True, eq=False)
@@ -194,8 +250,9 @@ class SimulatedSurvey:
         files (``OUT/*.mcap``) when the test walks must stay held out.
         """
         out = Path(out_dir)
-        paths = [write_session(s, out / f"{s.session_id}.mcap") for s in self.survey]
-        paths += [write_session(s, out / "test" / f"{s.session_id}.mcap") for s in self.test_sessions]
+        every = [(s, out / f"{s.session_id}.mcap") for s in self.survey]
+        every += [(s, out / "test" / f"{s.session_id}.mcap") for s in self.test_sessions]
+        paths = [write_session(s, p) for s, p in progress_over(every, "write", unit="walks")]
         info = {
             "scenario": self.scenario.name,
             "seed": self.seed,
@@ -231,6 +288,42 @@ def _walk_specs(sc: Scenario, seed: int, n: int, test: bool) -> list[tuple[WalkS
     return out
 
 
+def _museum_sessions(
+    sc: Scenario, seed: int, size: float, test_walks: int, b: Building
+) -> tuple[list[Session], list[Session]]:
+    """Every route and stair/lift spot walked ``repetitions * size`` times (rounded, >= 1), then the test walks.
+
+    Walk k of route r has its own stream ``(1, r, k)`` and starts at 08:00 + r * 4 h +
+    k * spacing (+ up to a minute); test walk i walks route ``i % routes`` with phone ``i % phones``.
+    """
+    mp = sc.museum
+    reps = max(1, int(round(mp.repetitions * size)))
+    day0 = EPOCH_2026_NS + 8 * _HOUR_NS
+    jobs = []
+    for r, route in enumerate(b.routes):
+        for k in range(reps):
+            rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(_STREAM_WALK, r, k)))
+            start = day0 + r * 4 * _HOUR_NS + int(k * sc.walk_spacing_s * 1e9)
+            start += int(rng.integers(0, 60_000)) * 1_000_000
+            jobs.append((f"{sc.name}-s{seed}-{route.name}-rep{k + 1:02d}", start, route, mp.phone_for(r, k), rng))
+    n_survey = len(jobs)
+    width = max(2, len(str(test_walks - 1)))
+    for i in range(test_walks):
+        rng = _rng(seed, _STREAM_TEST, i)
+        start = day0 + 30 * _DAY_NS + int(i * sc.walk_spacing_s * 1e9) + int(rng.integers(0, 60_000)) * 1_000_000
+        route = b.routes[i % len(b.routes)]
+        jobs.append((f"{sc.name}-s{seed}-t{i:0{width}d}", start, route, mp.phones[i % len(mp.phones)], rng))
+    if b.heading_field is None:
+        raise SimulationError(f"scenario {sc.name!r}: the building has no heading-disturbance field")
+    sessions = [
+        simulate_museum_walk(
+            sid, start, route, b.plan, b.radio, b.heading_field, mp, phone, rng, site=b.site, floor=b.floor
+        )
+        for sid, start, route, phone, rng in progress_over(jobs, "simulate", unit="walks")
+    ]
+    return sessions[:n_survey], sessions[n_survey:]
+
+
 def simulate(
     scenario: str | Scenario,
     *,
@@ -261,11 +354,14 @@ def simulate(
             simulate_walk(
                 spec, building.plan, building.radio, sc.walker, sc.imu, rng, site=building.site, floor=building.floor
             )
-            for spec, rng in specs
+            for spec, rng in progress_over(specs, "simulate", unit="walks")
         ]
 
-    sessions = run(_walk_specs(sc, int(seed), n, test=False))
-    tests = run(_walk_specs(sc, int(seed), test_walks, test=True)) if test_walks else []
+    if sc.route == "out_and_back":
+        sessions, tests = _museum_sessions(sc, int(seed), size, test_walks, building)
+    else:
+        sessions = run(_walk_specs(sc, int(seed), n, test=False))
+        tests = run(_walk_specs(sc, int(seed), test_walks, test=True)) if test_walks else []
     log.info(
         "simulated %s seed=%d size=%g: %d walks, %d test walks in %.1f s",
         sc.name,

@@ -152,7 +152,7 @@ def graph_route(plan: FloorPlan, rng: np.random.Generator, length_m: float, room
     return np.array(pts)
 
 
-def _along(route: NDArray, s: NDArray) -> tuple[NDArray, NDArray]:
+def along_polyline(route: NDArray, s: NDArray) -> tuple[NDArray, NDArray]:
     """Points at arc lengths ``s`` on polyline ``route``, and the unit direction there."""
     seg = np.diff(route, axis=0)
     ln = np.linalg.norm(seg, axis=1)
@@ -165,7 +165,7 @@ def _along(route: NDArray, s: NDArray) -> tuple[NDArray, NDArray]:
     return route[i] + (s - cum[i])[:, None] * u, u
 
 
-def _smooth_noise(rng: np.random.Generator, n: int, sigma: float, corr_steps: float) -> NDArray:
+def smooth_noise(rng: np.random.Generator, n: int, sigma: float, corr_steps: float) -> NDArray:
     """Stationary Gaussian sequence, std ``sigma``, correlation exp(-(k / corr_steps)^2) at lag k.
 
     White noise convolved with a Gaussian kernel of std ``corr_steps / 2``.
@@ -183,7 +183,9 @@ def _smooth_noise(rng: np.random.Generator, n: int, sigma: float, corr_steps: fl
 
 
 @dataclass(frozen=True, eq=False)
-class _Motion:
+class TrueMotion:
+    """A walker's true motion: one pose per step; pauses precede a step (``walk_s`` excludes them)."""
+
     t_ns: NDArray[np.int64]  # (N,)
     xy: NDArray[np.float64]  # (N, 2) true positions
     heading: NDArray[np.float64]  # (N,) true headings
@@ -193,7 +195,7 @@ class _Motion:
 
 def _true_motion(
     spec: WalkSpec, plan: FloorPlan, wp: WalkerParams, rng: np.random.Generator
-) -> _Motion:
+) -> TrueMotion:
     period = rng.uniform(*wp.step_period_s)
     mean_len = rng.uniform(*wp.step_length_m)
     if spec.route == "line":
@@ -214,13 +216,13 @@ def _true_motion(
     lengths = np.clip(rng.normal(mean_len, wp.step_length_sigma_m, n_max), wp.min_step_m, wp.max_step_m)
     s = np.concatenate([[0.0], np.cumsum(lengths)])
     s = s[s <= route_len]
-    centre, u = _along(route, s)
+    centre, u = along_polyline(route, s)
     # Normals averaged over 5 steps: the sideways offset turns smoothly at corners
     # (and fades out at U-turns) instead of jumping with the route direction.
     normal = np.column_stack([-u[:, 1], u[:, 0]])
     kernel = np.ones(5) / 5.0
     normal = np.column_stack([np.convolve(np.pad(normal[:, i], 2, mode="edge"), kernel, "valid") for i in (0, 1)])
-    xy = centre + _smooth_noise(rng, len(s), wp.lateral_sigma_m, wp.lateral_corr_steps)[:, None] * normal
+    xy = centre + smooth_noise(rng, len(s), wp.lateral_sigma_m, wp.lateral_corr_steps)[:, None] * normal
     n = len(xy)
     walk = period * np.clip(1 + rng.normal(0, wp.step_period_jitter, n), 0.5, 1.5)
     walk[0] = 0.0
@@ -268,7 +270,7 @@ def _true_motion(
         for k, j, d in marked
         if k < n - 1 or (k == n - 1 and spec.route == "line")
     )
-    return _Motion(t_ns, xy, np.asarray(wrap_angle(heading)), walk, tuple(sorted(marks, key=lambda m: m.t_ns)))
+    return TrueMotion(t_ns, xy, np.asarray(wrap_angle(heading)), walk, tuple(sorted(marks, key=lambda m: m.t_ns)))
 
 
 def dead_reckon(
@@ -291,7 +293,7 @@ def dead_reckon(
     return np.column_stack([p, h_dr])
 
 
-def _positions_at(t_query: NDArray[np.int64], m: _Motion) -> NDArray[np.float64]:
+def positions_at(t_query: NDArray[np.int64], m: TrueMotion) -> NDArray[np.float64]:
     """True positions at arbitrary times: still during pauses, linear while stepping."""
     t = m.t_ns
     k = np.clip(np.searchsorted(t, t_query, side="left"), 1, len(t) - 1)
@@ -327,7 +329,7 @@ def simulate_walk(
     m = _true_motion(spec, plan, walker, rng)
     dr = dead_reckon(m.t_ns, m.xy, m.heading, imu, rng)
     ts = scan_times(int(m.t_ns[0]), int(m.t_ns[-1]), walker, rng)
-    scans = radio.scans(ts, _positions_at(ts, m), rng)
+    scans = radio.scans(ts, positions_at(ts, m), rng)
     log.debug("%s: %d steps, %d scans, %d marks", spec.session_id, len(m.t_ns), len(scans), len(m.marks))
     return Session(
         session_id=spec.session_id,

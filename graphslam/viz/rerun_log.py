@@ -26,7 +26,6 @@ with all its points, never one call per point.
 
 from __future__ import annotations
 
-import colorsys
 import contextlib
 import json
 import logging
@@ -38,7 +37,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 from urllib.parse import quote
 from uuid import uuid4
 
@@ -49,12 +48,14 @@ from numpy.typing import NDArray
 
 from graphslam.config import GraphSlamConfig
 from graphslam.core.survey.align import Alignment, IterationRecord
-from graphslam.core.survey.evaluate import interpolate_xy, landmark_errors
 from graphslam.core.survey.factors import edge_state
 from graphslam.core.radiomap.fingerprints import FingerprintMatrix
 from graphslam.core.survey.initialise import se2_apply
 from graphslam.core.types import PoseTrack, Survey
 from graphslam.errors import ConfigError, GraphSlamError, InputError, VisualizationError
+from graphslam.viz.common import (
+    FloorPlan, landmark_marks, load_floor_plan, session_colours, survey_folder_tracks, top_access_points,
+)
 
 log = logging.getLogger(__name__)
 
@@ -108,16 +109,6 @@ class RerunLogSummary:
     counts: dict[str, int]  # entity path -> points / segments / strips / rows logged
     notes: str
     seconds: float
-
-
-@dataclass(frozen=True)
-class FloorPlan:
-    """A floor plan image and the site-frame rectangle it covers: x in [0, width], y in [0, height]."""
-
-    path: Path
-    width_m: float
-    height_m: float
-    pixels: tuple[int, int]  # (columns, rows)
 
 
 @dataclass
@@ -257,17 +248,9 @@ def write_survey_view(
     and the landmarks. WiFi edges and optimiser iterations are not stored in DIR: log them
     with ``graphslam survey --rerun`` instead.
     """
-    from graphslam.io.csv_io import read_trajectories
-
     t0 = time.perf_counter()
     d = Path(out_dir)
-    if not d.is_dir():
-        raise InputError(d, "not a folder (expected a `graphslam survey --out` folder)")
-    if not (d / "trajectories.csv").exists():
-        raise InputError(d, "no trajectories.csv: not a finished survey output folder")
-    tracks = read_trajectories(d / "trajectories.csv")
-    if not tracks:
-        raise InputError(d / "trajectories.csv", "no aligned walk in the file")
+    tracks = survey_folder_tracks(d)
     plan = load_floor_plan(floor_plan, floor_size)
     report, problems = _read_report(d / "report.json")
     survey = None
@@ -303,63 +286,12 @@ def write_survey_view(
     return _write(Path(rerun_path), lg, _blueprint(lg), t0)
 
 
-def load_floor_plan(path: str | Path | None, size: tuple[float, float] | None) -> FloorPlan | None:
-    """The floor plan image and its size in metres.
-
-    Without ``size``, a ``floor_info.json`` beside the image (``{"map_info": {"width": W,
-    "height": H}}``, as in the ILC data) gives it.
-    """
-    if path is None:
-        if size is not None:
-            raise ConfigError("--floor-size given without --floor-plan")
-        return None
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(p, "floor plan image not found")
-    if size is None:
-        info = p.parent / "floor_info.json"
-        try:
-            mi = json.loads(info.read_text(encoding="utf-8"))["map_info"]
-            size = (float(mi["width"]), float(mi["height"]))
-        except (OSError, ValueError, KeyError, TypeError):
-            raise ConfigError(f"floor plan {p}: give --floor-size W H (metres); no usable {info.name} beside it") from None
-    w, h = float(size[0]), float(size[1])
-    if not (np.isfinite(w) and np.isfinite(h) and w > 0 and h > 0):
-        raise ConfigError(f"floor size must be two positive numbers of metres, got {size}")
-    try:
-        from PIL import Image  # a dependency of matplotlib, reads the header only
-
-        with Image.open(p) as im:
-            px = (int(im.size[0]), int(im.size[1]))
-    except Exception as e:  # PIL raises many types for bad images
-        raise InputError(p, f"cannot read the floor plan image ({e})") from None
-    return FloorPlan(p, w, h, px)
-
-
-def session_colours(session_ids: Iterable[str]) -> dict[str, tuple[int, int, int]]:
-    """A distinct colour per session (golden-angle hues): the same in every view."""
-    out = {}
-    for k, sid in enumerate(session_ids):
-        r, g, b = colorsys.hsv_to_rgb((0.61803398875 * k) % 1.0, 0.75 if k % 2 else 0.95, 0.95 if k % 3 else 0.8)
-        out[sid] = (int(r * 255), int(g * 255), int(b * 255))
-    return out
-
-
 def rssi_colours(rssi_dbm: NDArray[np.float64], lo: float = RSSI_RANGE_DBM[0], hi: float = RSSI_RANGE_DBM[1]) -> NDArray[np.uint8]:
     """Viridis-like RGB for RSSI in dBm (``lo`` dark blue ... ``hi`` yellow)."""
     u = np.clip((np.asarray(rssi_dbm, float) - lo) / (hi - lo), 0.0, 1.0) * (len(_VIRIDIS) - 1)
     k = np.minimum(u.astype(int), len(_VIRIDIS) - 2)
     f = (u - k)[:, None]
     return np.round(_VIRIDIS[k] * (1 - f) + _VIRIDIS[k + 1] * f).astype(np.uint8)
-
-
-def top_access_points(fm: FingerprintMatrix, rows: NDArray[np.int64], k: int) -> list[int]:
-    """Column indices of the ``k`` APs heard by most of ``rows``; ties: stronger mean RSSI first."""
-    sub = fm.values[rows].tocsc()
-    heard = np.diff(sub.indptr)
-    mean = np.asarray(sub.sum(axis=0)).ravel() / np.maximum(heard, 1)
-    order = np.lexsort((-mean, -heard))
-    return [int(c) for c in order[:k] if heard[c] > 0]
 
 
 # ---- viewers ---------------------------------------------------------------------------
@@ -440,18 +372,12 @@ def _landmark_layers(lg: _Log, tracks: Mapping[str, PoseTrack], survey: Survey |
     """Truth, estimate and error of every landmark mark of an aligned walk; returns site_from_aligned."""
     if survey is None or not any(s.landmarks for s in survey):
         return None
-    stats, T, _ = landmark_errors(tracks, survey)
-    if stats.n < 2:
+    marks = landmark_marks(tracks, survey)
+    if marks is None:
         lg.notes.append("- landmarks: fewer than 2 marks on aligned walks, no site-frame fit; not shown.")
         return None
-    est, truth, labels = [], [], []
-    for s in survey:
-        if s.session_id in tracks and s.landmarks:
-            t = np.array([m.t_ns for m in s.landmarks], dtype=float)
-            est.append(se2_apply(T, interpolate_xy(tracks[s.session_id], t)))
-            truth.append(np.array([[m.x, m.y] for m in s.landmarks]))
-            labels += [f"{m.landmark_id} ({s.session_id})" for m in s.landmarks]
-    e, tr = np.concatenate(est), np.concatenate(truth)
+    T, stats, labels = marks.site_from_output, marks.stats, list(marks.labels)
+    e, tr = se2_apply(T, marks.estimate_xy), marks.truth_xy
     lg.static(f"{LANDMARKS}/truth", len(tr), _points(tr, [0, 0, 0], 3.5, _Z_LMK, labels))
     lg.static(f"{LANDMARKS}/estimate", len(e), _points(e, [230, 0, 230], 3.0, _Z_LMK + 1, labels))
     lg.static(f"{LANDMARKS}/error", len(e), _segments(np.stack([e, tr], axis=1), [230, 0, 230, 200], 1.0, _Z_LMK))

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -10,6 +10,7 @@ from numpy.typing import NDArray
 from graphslam.config import GraphSlamConfig
 from graphslam.core.survey.align import Alignment
 from graphslam.core.survey.evaluate import interpolate_xy
+from graphslam.core.survey.factors import edge_state
 from graphslam.core.survey.initialise import se2_apply
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.types import Survey
@@ -66,3 +67,24 @@ def surveyed_radio_map(survey: Survey, al: Alignment, cfg: GraphSlamConfig) -> R
     if not np.isfinite(xy).any():
         raise SolverError("--surveyed needs /ground_truth/pose in the recordings")
     return _build(survey, al, xy, "site", cfg, {"kind": "surveyed"})
+
+
+class WifiEdgeRows(NamedTuple):
+    """WiFi edges between aligned walks as rows of ``crowdsourced_radio_map`` (same order)."""
+
+    a: NDArray[np.int64]
+    b: NDArray[np.int64]
+    distance_m: NDArray[np.float64]  # final distance between the two fingerprints (m)
+    state: NDArray[np.int8]  # ``graphslam.core.survey.factors.edge_state`` at that distance
+
+
+def crowdsourced_edges(al: Alignment, cfg: GraphSlamConfig) -> WifiEdgeRows:
+    """The WiFi edges whose two fingerprints are both in ``crowdsourced_radio_map(survey, al, cfg)``."""
+    xy = al.fingerprint_xy()
+    keep = np.isfinite(xy).all(axis=1)
+    row = np.cumsum(keep) - 1  # fingerprint -> radio map row (where kept)
+    i, j = np.asarray(al.edges.i, np.int64), np.asarray(al.edges.j, np.int64)
+    ok = keep[i] & keep[j]
+    i, j = i[ok], j[ok]
+    d = np.linalg.norm(xy[i] - xy[j], axis=1)
+    return WifiEdgeRows(row[i], row[j], d, edge_state(d, cfg.wifi))

@@ -16,26 +16,38 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
-import gtsam
 import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from graphslam.config import GraphSlamConfig
+from graphslam.core.progress import Task
 from graphslam.core.survey import factors as F
+from graphslam.core.survey import solver as S
+from graphslam.core.survey import incremental
 from graphslam.core.survey.association import FingerprintNodes, associate
 from graphslam.core.survey.chains import CompressedChains, compress, expand
 from graphslam.core.survey.edges import WifiEdges, propose_edges, window_thresholds
 from graphslam.core.survey.initialise import Placement, register_walks, se2_apply
 from graphslam.core.types import PoseTrack, Survey, wrap_angle
+from graphslam.core.uwb import factors as uwb_factors
+from graphslam.core.uwb.survey import UwbSummary, UwbTerms, uwb_terms
 from graphslam.errors import SolverError
+
+if TYPE_CHECKING:
+    import gtsam
 
 log = logging.getLogger(__name__)
 
-X = gtsam.symbol_shorthand.X  # X(i): step pose i, numbered globally over all walks
+
+def X(i: int) -> int:
+    """GTSAM key of step pose i, numbered globally over all walks (``symbol_shorthand.X``)."""
+    import gtsam  # lazy: ~0.4 s, needed only by the GTSAM back end (optimizer.solver: gtsam)
+
+    return gtsam.symbol_shorthand.X(i)
 
 
 @dataclass(frozen=True)
@@ -70,6 +82,12 @@ class Alignment:
     timings_s: dict[str, float] = field(default_factory=dict)
     edge_states: dict[str, int] = field(default_factory=dict)
     snapshots: tuple[tuple[int, NDArray[np.float64]], ...] = ()  # (stage, node_xyh) after each stage
+    uwb: UwbSummary | None = None  # UWB ranges used (issue 15); frame "site" when anchors fixed it
+
+    @property
+    def frame(self) -> str:
+        """"site" when UWB anchors fixed the frame, else "aligned" (the reference walk's)."""
+        return self.uwb.frame if self.uwb is not None else "aligned"
 
     @property
     def n_nodes(self) -> int:
@@ -134,48 +152,88 @@ class Problem:
     imu_u: NDArray[np.float64]  # (M, 3) measured body-frame step (eq. 6)
     wifi_pairs: NDArray[np.int64]  # (E, 2) nodes of WiFi edges between included walks
     timings_s: dict[str, float]
+    # --update (issue 18): nodes re-solved; the others keep init_xyh (their previous solution).
+    # None: every node of an included walk is a variable (a full solve).
+    free: NDArray[np.bool_] | None = None
+    uwb: UwbTerms | None = None  # UWB range factors and placement (issue 15)
 
     @property
     def reference_node(self) -> int:
         return int(self.fingerprints.offsets[self.reference])
 
 
-def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
-    """Steps 1-3 of the method: fingerprints on nodes, WiFi edges, initial placement."""
+def edge_candidates(cfg: GraphSlamConfig, n_fingerprints: int) -> str:
+    """``edges.candidates`` resolved: auto takes the IVF index above ``edges.ivf_above_fingerprints``."""
+    c = cfg.edges.candidates
+    if c == "auto":
+        return "ivf" if n_fingerprints > cfg.edges.ivf_above_fingerprints else "exact"
+    return c
+
+
+def build_problem(survey: Survey, cfg: GraphSlamConfig, warm: incremental.WarmStart | None = None) -> Problem:
+    """Steps 1-3 of the method: fingerprints on nodes, WiFi edges, initial placement.
+
+    ``warm`` (``graphslam survey --update``, see ``graphslam.core.survey.incremental``): walks
+    solved before start from their previous solution, only the new walks' fingerprints are
+    compared, the new walks are registered to the solved ones, and ``Problem.free`` marks the
+    neighbourhood that ``solve`` re-solves."""
     if len(survey) == 0:
         raise SolverError("survey has no sessions")
     timings: dict[str, float] = {}
     t = time.perf_counter()
+    task = Task("associate")
     fp = associate(
         survey,
         max_gap_s=cfg.fingerprint.max_scan_step_gap_s,
         missing_dbm=cfg.fingerprint.missing_rssi_dbm,
         min_rssi_dbm=cfg.fingerprint.min_rssi_dbm,
+        standstill_max_s=cfg.fingerprint.standstill_max_s,
     )
     timings["associate"] = time.perf_counter() - t
+    task.end()
 
     t = time.perf_counter()
     thr = window_thresholds(fp, cfg.edges.window_steps)
-    edges = propose_edges(
-        fp,
-        thr,
-        exclude_same_session_s=cfg.edges.exclude_same_session_s,
-        exclude_same_session_m=cfg.edges.exclude_same_session_m,
-        max_per_fingerprint=cfg.edges.max_per_fingerprint,
-        min_common_aps=cfg.edges.min_common_aps,
-        block_rows=cfg.edges.chunk_rows,
-    )
+    if warm is not None:  # --update: the same edges, computed from the new walks' rows only
+        edges = incremental.update_edges(fp, thr, warm, cfg.edges)
+    else:
+        edges = propose_edges(
+            fp,
+            thr,
+            exclude_same_session_s=cfg.edges.exclude_same_session_s,
+            exclude_same_session_m=cfg.edges.exclude_same_session_m,
+            max_per_fingerprint=cfg.edges.max_per_fingerprint,
+            min_common_aps=cfg.edges.min_common_aps,
+            block_rows=cfg.edges.chunk_rows,
+            candidates=edge_candidates(cfg, len(fp)),
+            ivf_neighbours=cfg.edges.ivf_neighbours,
+            ivf_probes=cfg.edges.ivf_probes,
+        )
     timings["edges"] = time.perf_counter() - t
     log.info("%d fingerprints on %d steps, %d WiFi edges", len(fp), fp.offsets[-1], len(edges))
 
     t = time.perf_counter()
+    task = Task("initialise")
     dr_xyh, node_sess = _dr_nodes(survey)
     ref = _reference_index(survey, cfg)
     n_s = len(survey)
     ea, eb = fp.node[edges.i], fp.node[edges.j]
     placement = None
     unaligned: dict[str, str] = {}
-    if cfg.optimizer.initialization == "registration":
+    if warm is not None:  # --update: solved walks keep their solution, the others are registered to them
+        placement = incremental.place_new_walks(warm, n_s, node_sess, dr_xyh[:, :2], ea, eb)
+        included = placement.placed.copy()
+        transforms = placement.transforms
+        for s in np.flatnonzero(~included):
+            unaligned[survey.sessions[s].session_id] = "no rigid WiFi registration chain to the walks solved before"
+        if placement.reliable is False and cfg.optimizer.unreliable_registration == "unalign":
+            for s in np.flatnonzero(included & ~warm.solved_walks(node_sess, n_s)):
+                unaligned[survey.sessions[s].session_id] = (
+                    f"registration unreliable: {placement.loops_consistent} of {placement.loops} loops "
+                    "between the walks placed anew are consistent"
+                )
+                included[s] = False
+    elif cfg.optimizer.initialization == "registration":
         placement = register_walks(n_s, ref, node_sess, dr_xyh[:, :2], ea, eb)
         included = placement.placed.copy()
         transforms = placement.transforms
@@ -197,6 +255,14 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
                 "registration unreliable: %d walks reported unaligned (optimizer.unreliable_registration=keep "
                 "would output them anyway)", int(placement.placed.sum()) - 1,
             )
+    elif cfg.optimizer.initialization == "growth":
+        placement = _grow(survey, fp, dr_xyh, cfg)
+        if cfg.optimizer.reference_session is None:
+            ref = int(np.flatnonzero(placement.parent == -2)[0])  # the seed walk defines the frame
+        included = placement.placed.copy()
+        transforms = placement.transforms
+        for s, why in placement_reasons(placement, survey).items():
+            unaligned[s] = why
     else:
         transforms = np.zeros((n_s, 3))
         g = coo_matrix((np.ones(len(ea)), (node_sess[ea], node_sess[eb])), shape=(n_s, n_s))
@@ -204,6 +270,12 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
         included = label == label[ref]
         for s in np.flatnonzero(~included):
             unaligned[survey.sessions[s].session_id] = "no WiFi edge path to the reference walk"
+    # --- UWB hook (issue 15, graphslam.core.uwb.survey): range factors; with anchors the site
+    # frame, the inclusion and the placement come from the ranges
+    uwb = uwb_terms(survey, cfg, fp.offsets, ea, eb, included, transforms, unaligned)
+    if uwb is not None:
+        included, unaligned = uwb.included, dict(uwb.unaligned)
+    # ---
     init_xyh = np.full_like(dr_xyh, np.nan)
     imu_pairs, imu_u = [], []
     for s in np.flatnonzero(included):
@@ -212,8 +284,21 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
         k = np.arange(a + 1, b)
         imu_pairs.append(np.column_stack([k - 1, k]))
         imu_u.append(F.relative_steps(survey.sessions[s].steps))
+    if uwb is not None:  # UWB hook: the placement from the ranges
+        placed = np.isfinite(uwb.init_xyh[:, 0])
+        init_xyh[placed] = uwb.init_xyh[placed]
     use = included[node_sess[ea]] & included[node_sess[eb]]
+    wifi_pairs = np.column_stack([ea[use], eb[use]]).astype(np.int64)
+    free = None
+    if warm is not None:  # --update: solved walks start from their solution; only their neighbourhood moves
+        init_xyh = np.where(warm.solved[:, None], warm.xyh, init_xyh)
+        prev = incremental.previous_edge_rows(fp, warm)
+        free = incremental.free_nodes(
+            warm, fp.offsets, included, wifi_pairs, fp.node[prev], int(fp.offsets[ref]),
+            compressed=cfg.optimizer.compress_chains,
+        )
     timings["initialise"] = time.perf_counter() - t
+    task.end()
     return Problem(
         survey=survey,
         fingerprints=fp,
@@ -225,9 +310,43 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig) -> Problem:
         init_xyh=init_xyh,
         imu_pairs=np.concatenate(imu_pairs).astype(np.int64),
         imu_u=np.concatenate(imu_u),
-        wifi_pairs=np.column_stack([ea[use], eb[use]]).astype(np.int64),
+        wifi_pairs=wifi_pairs,
         timings_s=timings,
+        free=free,
+        uwb=uwb,
     )
+
+
+def _grow(survey: Survey, fp: FingerprintNodes, dr_xyh: NDArray, cfg: GraphSlamConfig) -> Placement:
+    """Map-growth placement (graphslam.core.survey.placement) as a ``Placement``; the seed walk
+    (the configured reference, else the one with the most match weight) has ``parent == -2``."""
+    # imported here: scipy.ndimage etc. only for surveys that use this placement
+    from graphslam.core.radiomap.similarity import PowerCosine
+    from graphslam.core.survey.placement import GrowthParams, grow_placement
+
+    pc = cfg.placement
+    sim = PowerCosine.of(fp.fingerprints, pc.similarity_scale_db)
+    matches = sim.top_matches(fp.session, pc.matches_per_fingerprint)
+    params = GrowthParams(
+        weight_power=pc.weight_power, rotation_step_deg=pc.rotation_step_deg, blur_m=pc.blur_m,
+        distinct_m=pc.distinct_m, min_margin=pc.min_margin, refine_scale_m=pc.refine_scale_m,
+        consistent_m=pc.consistent_m,
+    )
+    seed = _reference_index(survey, cfg) if cfg.optimizer.reference_session is not None else None
+    res = grow_placement(len(survey), fp.session, dr_xyh[fp.node, :2], matches, params, seed=seed)
+    parent = np.full(len(survey), -1, np.int64)
+    parent[res.seed] = -2
+    return Placement(
+        res.transforms, res.placed, np.full(len(survey), -1, np.int64), parent,
+        method="growth", support=res.support, margin=res.margin, consistency=res.consistency,
+        unplaced_reasons=res.reasons,
+    )
+
+
+def placement_reasons(placement: Placement, survey: Survey) -> dict[str, str]:
+    """session id -> why the placement left the walk out."""
+    reasons = placement.unplaced_reasons or {}
+    return {survey.sessions[s].session_id: reasons.get(int(s), "not placed") for s in np.flatnonzero(~placement.placed)}
 
 
 def native_graph(
@@ -237,37 +356,112 @@ def native_graph(
 
     With ``optimizer.compress_chains`` the IMU chain between fingerprint poses becomes one
     between factor per segment (``graphslam.core.survey.chains``); otherwise one per step (eq. 6-8).
+    The default back end solves ``pose_graph`` instead, except for --update and UWB surveys
+    (``use_pardiso``): a factor type added here needs its vectorised counterpart in ``solver.py``,
+    or a case in ``use_pardiso``.
+    With ``problem.free`` (--update) only factors touching a free node are built; the other
+    nodes they touch are held at their previous solution by priors as tight as the reference's.
     """
+    import gtsam
+
     imu_graph = gtsam.NonlinearFactorGraph()
     chains = None
+    free = problem.free
     if cfg.optimizer.compress_chains:
         keep = np.zeros(len(problem.init_xyh), bool)
         keep[problem.wifi_pairs.ravel()] = True
         keep[problem.reference_node] = True
+        if problem.uwb is not None:  # UWB hook: poses with a range stay variables
+            keep[problem.uwb.nodes] = True
         step_cov = np.diag([cfg.imu.sigma_xy_m**2, cfg.imu.sigma_xy_m**2, cfg.imu.sigma_heading_rad**2])
-        chains = compress(problem.init_xyh, problem.fingerprints.offsets, keep, problem.included, step_cov)
-        for (i, j), u, cov in zip(chains.pairs.tolist(), chains.measured, chains.covariance):
-            imu_graph.add(F.imu_factor(X(i), X(j), u, gtsam.noiseModel.Gaussian.Covariance(cov)))
-        nodes = chains.kept
+        # measured from the dead reckoning (rigid-invariant): init_xyh is not one with a warm start
+        chains = compress(_dr_nodes(problem.survey)[0], problem.fingerprints.offsets, keep, problem.included, step_cov)
+        pairs, measured, noises = chains.pairs, chains.measured, [gtsam.noiseModel.Gaussian.Covariance(c) for c in chains.covariance]
     else:
-        imu_nm = F.imu_noise(cfg.imu)
-        for (i, j), u in zip(problem.imu_pairs.tolist(), problem.imu_u):
-            imu_graph.add(F.imu_factor(X(i), X(j), u, imu_nm))
-        nodes = np.flatnonzero(np.isfinite(problem.init_xyh[:, 0]))
+        pairs, measured = problem.imu_pairs, problem.imu_u
+        noises = [F.imu_noise(cfg.imu)] * len(pairs)
+    use = np.ones(len(pairs), bool) if free is None else free[pairs].any(axis=1)
+    idx = np.flatnonzero(use)
+    for k, (i, j) in zip(idx.tolist(), pairs[idx].tolist()):
+        imu_graph.add(F.imu_factor(X(i), X(j), measured[k], noises[k]))
+    wifi_pairs = _solved_wifi_pairs(problem)
+    if free is None:
+        nodes = chains.kept if chains is not None else np.flatnonzero(np.isfinite(problem.init_xyh[:, 0]))
+    else:
+        nodes = np.unique(np.concatenate([pairs[use].ravel(), wifi_pairs.ravel()]))
+        for n in nodes[~free[nodes]].tolist():  # the neighbourhood's border keeps its previous solution
+            imu_graph.add(gtsam.PriorFactorPose2(X(n), gtsam.Pose2(*problem.init_xyh[n]), F.reference_prior_noise()))
     r0 = problem.reference_node
-    imu_graph.add(gtsam.PriorFactorPose2(X(r0), gtsam.Pose2(*problem.init_xyh[r0]), F.reference_prior_noise()))
+    uwb = problem.uwb
+    # with UWB anchors they fix the frame instead; --update: only when the reference is re-solved
+    if (uwb is None or not uwb.site_frame) and (free is None or free[r0]):
+        imu_graph.add(gtsam.PriorFactorPose2(X(r0), gtsam.Pose2(*problem.init_xyh[r0]), F.reference_prior_noise()))
     values = gtsam.Values()
     for n in nodes.tolist():
         values.insert(X(n), gtsam.Pose2(*problem.init_xyh[n]))
+    if uwb is not None:  # UWB hook: range factors (always active) and the anchors
+        for f in uwb_factors.range_factors(uwb.ranges, cfg.uwb, with_anchors=uwb.site_frame):
+            imu_graph.add(f)
+        values.insert(uwb_factors.anchor_values(uwb.ranges))
     wifi_nm = F.wifi_noise(cfg.wifi)
-    wifi = [F.wifi_factor(X(i), X(j), wifi_nm) for i, j in problem.wifi_pairs.tolist()]
+    wifi = [F.wifi_factor(X(i), X(j), wifi_nm) for i, j in wifi_pairs.tolist()]
     return imu_graph, wifi, values, chains
+
+
+def pose_graph(problem: Problem, cfg: GraphSlamConfig) -> tuple[S.PoseGraph, CompressedChains | None]:
+    """The same graph as ``native_graph``, as arrays for ``solver.levenberg_marquardt`` (vectorised)."""
+    step_cov = np.diag([cfg.imu.sigma_xy_m**2, cfg.imu.sigma_xy_m**2, cfg.imu.sigma_heading_rad**2])
+    r0 = problem.reference_node
+    chains = None
+    if cfg.optimizer.compress_chains:
+        keep = np.zeros(len(problem.init_xyh), bool)
+        keep[problem.wifi_pairs.ravel()] = True
+        keep[r0] = True
+        chains = compress(_dr_nodes(problem.survey)[0], problem.fingerprints.offsets, keep, problem.included, step_cov)
+        nodes, pairs, measured = chains.kept, chains.pairs, chains.measured
+        sqrt_info = S.sqrt_information(chains.covariance)
+    else:
+        nodes = np.flatnonzero(np.isfinite(problem.init_xyh[:, 0]))
+        pairs, measured = problem.imu_pairs, problem.imu_u
+        sqrt_info = np.broadcast_to(S.sqrt_information(step_cov[None])[0], (len(pairs), 3, 3))
+    graph = S.PoseGraph(
+        n_nodes=len(problem.init_xyh),
+        variables=nodes[nodes != r0].astype(np.int64),
+        reference=r0,
+        between_pairs=pairs,
+        between_measured=measured,
+        between_sqrt_info=sqrt_info,
+        range_pairs=problem.wifi_pairs,
+        range_sigma=F.wifi_sigma(cfg.wifi),
+        range_dead_zone_m=cfg.wifi.d_min_m,
+    )
+    return graph, chains
+
+
+def use_pardiso(cfg: GraphSlamConfig, problem: Problem | None = None) -> bool:
+    """``optimizer.solver``: auto takes the PARDISO LM where MKL loads (an x86-64 wheel), else GTSAM's.
+    A local re-solve (--update: ``problem.free``) and a survey with UWB range factors (issue 15)
+    always take GTSAM's: only ``native_graph`` builds those factors."""
+    if problem is not None and (problem.free is not None or problem.uwb is not None):
+        return False
+    if cfg.optimizer.solver == "auto":
+        return S.pardiso_available()
+    return cfg.optimizer.solver == "pardiso"
+
+
+def _solved_wifi_pairs(problem: Problem) -> NDArray[np.int64]:
+    """The WiFi edges in the graph ``solve`` optimises: all, or those touching a free node (--update)."""
+    if problem.free is None:
+        return problem.wifi_pairs
+    return problem.wifi_pairs[problem.free[problem.wifi_pairs].any(axis=1)]
 
 
 def lm_params(cfg: GraphSlamConfig, n_poses: int = 0) -> gtsam.LevenbergMarquardtParams:
     """LM settings. Direct multifrontal Cholesky is fastest on surveys of a few thousand fingerprint
     poses; beyond that the WiFi edges, which tie every revisited place together, make elimination
     cliques grow large and block-Jacobi PCG wins (docs/benchmarks.md)."""
+    import gtsam
+
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(cfg.optimizer.max_iterations)
     params.setRelativeErrorTol(cfg.optimizer.relative_error_tol)
@@ -282,11 +476,17 @@ def lm_params(cfg: GraphSlamConfig, n_poses: int = 0) -> gtsam.LevenbergMarquard
     return params
 
 
-def align(survey: Survey, config: GraphSlamConfig | None = None, progress: ProgressCallback | None = None) -> Alignment:
-    """Align all walks of ``survey`` into the frame of the reference walk's first pose."""
+def align(
+    survey: Survey,
+    config: GraphSlamConfig | None = None,
+    progress: ProgressCallback | None = None,
+    warm: incremental.WarmStart | None = None,
+) -> Alignment:
+    """Align all walks of ``survey`` into the frame of the reference walk's first pose
+    (``warm``: re-solve only around the walks new since a previous solution, see ``build_problem``)."""
     cfg = config or GraphSlamConfig()
     t0 = time.perf_counter()
-    problem = build_problem(survey, cfg)
+    problem = build_problem(survey, cfg, warm)
     return solve(problem, cfg, progress, t0=t0)
 
 
@@ -297,21 +497,36 @@ def solve(
     t0 = time.perf_counter() if t0 is None else t0
     timings = dict(problem.timings_s)
     t = time.perf_counter()
-    imu_graph, wifi_factors, values, chains = native_graph(problem, cfg)
-    ea, eb = problem.wifi_pairs[:, 0], problem.wifi_pairs[:, 1]
+    with Task("build graph"):
+        pardiso = use_pardiso(cfg, problem)
+        if pardiso:
+            pg, chains = pose_graph(problem, cfg)
+            settings = S.LMSettings(
+                max_iterations=cfg.optimizer.max_iterations,
+                relative_error_tol=cfg.optimizer.relative_error_tol,
+                absolute_error_tol=cfg.optimizer.absolute_error_tol,
+                threads=cfg.optimizer.threads,
+            )
+        else:
+            imu_graph, wifi_factors, values, chains = native_graph(problem, cfg)
+    solved_pairs = problem.wifi_pairs if pardiso else _solved_wifi_pairs(problem)
+    ea, eb = solved_pairs[:, 0], solved_pairs[:, 1]
     timings["build_graph"] = time.perf_counter() - t
 
     t = time.perf_counter()
+    task = Task("optimise", unit="iterations")
     records: list[IterationRecord] = []
     snapshots: list[tuple[int, NDArray]] = []
 
-    def objective(xyh: NDArray, vals: gtsam.Values) -> float:
+    def objective(xyh: NDArray) -> float:
         d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
-        return float(imu_graph.error(vals) + F.fuzzy_cost(d, cfg.wifi).sum())
+        imu = S.between_error(pg, xyh) if pardiso else imu_graph.error(values)
+        return float(imu + F.fuzzy_cost(d, cfg.wifi).sum())
 
     init_xyh = problem.init_xyh
+    dr_xyh = _dr_nodes(problem.survey)[0]
     xyh = init_xyh.copy()
-    initial_error = objective(xyh, values)
+    initial_error = objective(xyh)
     converged = False
     prev_active: NDArray | None = None
     for stage, radius in enumerate(_saturation_radii(cfg)):
@@ -319,36 +534,33 @@ def solve(
         active = d <= radius
         if prev_active is not None and np.array_equal(active, prev_active) and converged:
             continue  # LM already converged on exactly this graph
-        graph = gtsam.NonlinearFactorGraph(imu_graph)
-        for k in np.flatnonzero(active).tolist():
-            graph.add(wifi_factors[k])
-        params = lm_params(cfg, values.size())
         n_active = int(active.sum())
 
         def hook(it: int, before: float, after: float, _s: int = stage, _n: int = n_active) -> None:
             rec = IterationRecord(_s, int(it), float(before), float(after), _n)
             records.append(rec)
+            task.advance(info=f"stage {_s}, error {after:.4g}, {_n:,} WiFi edges")
             if progress is not None:
                 progress(rec)
 
-        params.iterationHook = hook
-        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-        values = optimizer.optimize()
-        # LM also stops when it can find no step that lowers the error (lambda at its upper
-        # bound): that is a stall, not convergence
-        converged = (
-            optimizer.iterations() < cfg.optimizer.max_iterations
-            and optimizer.lambda_() < params.getlambdaUpperBound()
-        )
-        xyh = _values_to_xyh(values, init_xyh)
+        if pardiso:
+            res = S.levenberg_marquardt(pg, xyh, active, settings, hook)
+            converged = res.converged
+            xyh = res.xyh
+        else:
+            values, converged = _gtsam_lm(imu_graph, wifi_factors, values, active, cfg, hook)
+            xyh = _values_to_xyh(values, init_xyh)
         if chains is not None:
-            xyh = expand(xyh, init_xyh, chains)
+            xyh = expand(xyh, dr_xyh, chains)
+        if problem.free is not None:  # --update: outside the neighbourhood, the previous solution
+            xyh = np.where(problem.free[:, None], xyh, init_xyh)
         snapshots.append((stage, xyh.copy()))
         prev_active = active
     timings["optimise"] = time.perf_counter() - t
-    final_error = objective(xyh, values)
+    task.end()
+    final_error = objective(xyh)
 
-    d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
+    d = np.linalg.norm(xyh[problem.wifi_pairs[:, 0], :2] - xyh[problem.wifi_pairs[:, 1], :2], axis=1)
     st = F.edge_state(d, cfg.wifi)
     survey = problem.survey
     fp = problem.fingerprints
@@ -379,13 +591,43 @@ def solve(
             "saturated": int((st == 2).sum()),
         },
         snapshots=tuple(snapshots),
+        uwb=problem.uwb.summary() if problem.uwb is not None else None,
     )
 
 
+def _gtsam_lm(
+    imu_graph: gtsam.NonlinearFactorGraph,
+    wifi_factors: list[gtsam.NonlinearFactor],
+    values: gtsam.Values,
+    active: NDArray[np.bool_],
+    cfg: GraphSlamConfig,
+    hook: Callable[[int, float, float], None],
+) -> tuple[gtsam.Values, bool]:
+    """One stage with GTSAM's own LM (``optimizer.solver: gtsam``)."""
+    import gtsam
+
+    graph = gtsam.NonlinearFactorGraph(imu_graph)
+    for k in np.flatnonzero(active).tolist():
+        graph.add(wifi_factors[k])
+    params = lm_params(cfg, values.size())
+    params.iterationHook = hook
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    values = optimizer.optimize()
+    # LM also stops when it can find no step that lowers the error (lambda at its upper
+    # bound): that is a stall, not convergence
+    converged = (
+        optimizer.iterations() < cfg.optimizer.max_iterations
+        and optimizer.lambda_() < params.getlambdaUpperBound()
+    )
+    return values, converged
+
+
 def _values_to_xyh(values: gtsam.Values, template: NDArray) -> NDArray:
+    import gtsam
+
     out = np.full_like(template, np.nan)
-    # gtsam.utilities.extractPose2 returns poses in key order
-    keys = gtsam.KeyVector(values.keys())
+    # gtsam.utilities.extractPose2 returns the poses in key order (UWB anchors are Point2s)
+    keys = [k for k in values.keys() if gtsam.Symbol(k).chr() == ord("x")]
     poses = gtsam.utilities.extractPose2(values)
     idx = np.array([gtsam.Symbol(k).index() for k in keys], dtype=np.int64)
     out[idx] = poses

@@ -22,7 +22,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.survey.initialise import se2_apply
 from graphslam.core.types import wrap_angle
 
 
@@ -77,29 +76,36 @@ def compress(
     Ad = adjoint(V_inv)
     contrib = Ad @ step_cov @ np.transpose(Ad, (0, 2, 1))
     # sum contributions per segment end (segment ids follow kept order)
-    seg_of_end = {int(n): i for i, n in enumerate(b)}
-    seg = np.array([seg_of_end[int(e)] for e in end], dtype=np.int64)
+    seg = np.searchsorted(b, end)  # segment ends are ascending (kept order)
     cov = np.zeros((len(a), 3, 3))
     np.add.at(cov, seg, contrib)
     return CompressedChains(kept, np.column_stack([a, b]).astype(np.int64), measured, cov)
 
 
 def expand(opt_xyh: NDArray, dr_xyh: NDArray, chains: CompressedChains) -> NDArray:
-    """Fill the dropped steps of ``opt_xyh`` (kept rows optimised, others NaN) from the dead reckoning."""
+    """Fill the dropped steps of ``opt_xyh`` (kept rows optimised, others NaN) from the dead reckoning.
+
+    Vectorised over all dropped steps at once: step k of segment (a, b) is a's optimised pose
+    composed with the dead-reckoned a^-1 k, plus the fraction (k - a) / (b - a) of the
+    segment's end mismatch."""
     out = opt_xyh.copy()
-    for (a, b) in chains.pairs.tolist():
-        if b - a < 2:
-            continue
-        k = np.arange(a + 1, b)
-        rel = relative(np.repeat(dr_xyh[a : a + 1], len(k), 0), dr_xyh[k])  # a^{-1} k from dead reckoning
-        Ta = out[a]
-        pred_xy = se2_apply(Ta, rel[:, :2])
-        pred_h = Ta[2] + rel[:, 2]
-        rel_b = relative(dr_xyh[a : a + 1], dr_xyh[b : b + 1])[0]
-        pb_xy = se2_apply(Ta, rel_b[None, :2])[0]
-        corr_xy = out[b, :2] - pb_xy
-        corr_h = wrap_angle(out[b, 2] - (Ta[2] + rel_b[2]))
-        f = ((k - a) / (b - a))[:, None]
-        out[k, :2] = pred_xy + f * corr_xy
-        out[k, 2] = wrap_angle(pred_h + f[:, 0] * corr_h)
+    pairs = chains.pairs[chains.pairs[:, 1] - chains.pairs[:, 0] >= 2]
+    if not len(pairs):
+        return out
+    n_inner = pairs[:, 1] - pairs[:, 0] - 1
+    seg = np.repeat(np.arange(len(pairs)), n_inner)
+    a, b = pairs[seg, 0], pairs[seg, 1]
+    k = a + 1 + (np.arange(len(seg)) - np.repeat(np.cumsum(n_inner) - n_inner, n_inner))
+    rel = relative(dr_xyh[a], dr_xyh[k])  # a^{-1} k from dead reckoning
+    rel_b = relative(dr_xyh[pairs[:, 0]], dr_xyh[pairs[:, 1]])  # a^{-1} b per segment
+    Ta = out[pairs[:, 0]]
+    c, s = np.cos(Ta[:, 2]), np.sin(Ta[:, 2])
+    pb_xy = Ta[:, :2] + np.column_stack([c * rel_b[:, 0] - s * rel_b[:, 1], s * rel_b[:, 0] + c * rel_b[:, 1]])
+    corr_xy = out[pairs[:, 1], :2] - pb_xy
+    corr_h = wrap_angle(out[pairs[:, 1], 2] - (Ta[:, 2] + rel_b[:, 2]))
+    cs, ss = c[seg], s[seg]
+    pred_xy = Ta[seg, :2] + np.column_stack([cs * rel[:, 0] - ss * rel[:, 1], ss * rel[:, 0] + cs * rel[:, 1]])
+    f = (k - a) / (b - a)
+    out[k, :2] = pred_xy + f[:, None] * corr_xy[seg]
+    out[k, 2] = wrap_angle(Ta[seg, 2] + rel[:, 2] + f * corr_h[seg])
     return out

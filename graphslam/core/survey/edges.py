@@ -17,14 +17,21 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Iterator
 
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.survey.association import FingerprintNodes
+from graphslam.core.progress import Task
 from graphslam.core.radiomap.fingerprints import DistanceEngine
+from graphslam.core.survey.association import FingerprintNodes
 
 log = logging.getLogger(__name__)
+
+# Lloyd steps of the edge index's k-means: the clusters only choose where to look, and the
+# index is built for one search; 8 steps kept the recall of 25 at ~1/3 of the build time
+# (paper sizes 1 and 4, docs/benchmarks.md issue 16).
+IVF_KMEANS_ITERATIONS = 8
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,51 +105,101 @@ def propose_edges(
     max_per_fingerprint: int,
     min_common_aps: int,
     block_rows: int | None = None,
+    candidates: str = "exact",
+    ivf_neighbours: int = 32,
+    ivf_probes: int = 8,
 ) -> WifiEdges:
     """Pairs below each fingerprint's threshold, capped per fingerprint, symmetrised.
 
-    Computed in row blocks: memory is ``block_rows * len(fp)``, never N x N.
+    ``candidates``: where the pairs compared with the threshold come from.
+     * ``exact``: every pair, in row blocks (memory ``block_rows * len(fp)``, never N x N;
+       time O(N^2)).
+     * ``ivf``: each fingerprint's ``ivf_neighbours`` nearest by eq. 9 among the ``ivf_probes``
+       nearest clusters of an IVF index (``graphslam.core.radiomap.ivf``; O(N^1.5)). The same
+       threshold, exclusions and cap follow, so an edge is missed only when a partner the
+       exact path keeps is not among those neighbours (recall in docs/benchmarks.md, issue 16).
+       ``WifiEdges.candidates`` then counts the pairs below threshold among the neighbours.
     """
     n = len(fp)
-    engine = DistanceEngine(fp.fingerprints)
-    out_i, out_j, out_d, out_c = [], [], [], []
-    candidates = 0
-    t_s = (fp.t_ns - (fp.t_ns.min() if n else 0)) / 1e9
-    # fingerprints are grouped by session: a session's columns are one contiguous range
-    bounds = np.searchsorted(fp.session, np.arange(fp.session.max() + 2 if n else 1))
     m = max_per_fingerprint if max_per_fingerprint > 0 else n
-    for start, d, common in engine.iter_blocks(fp.fingerprints, min_common=min_common_aps, block_rows=block_rows):
-        rows = np.arange(start, start + len(d))
-        ok = d < thresholds[rows][:, None]  # NaN threshold -> False
-        ok[np.arange(len(rows)), rows] = False
-        for s in np.unique(fp.session[rows]):
-            r = np.flatnonzero(fp.session[rows] == s)
-            c0, c1 = bounds[s], bounds[s + 1]
-            near = (np.abs(t_s[rows[r]][:, None] - t_s[None, c0:c1]) < exclude_same_session_s) | (
-                np.abs(fp.path_m[rows[r]][:, None] - fp.path_m[None, c0:c1]) < exclude_same_session_m
-            )
-            ok[r[:, None], np.arange(c0, c1)[None, :]] &= ~near
+    t_s = (fp.t_ns - (fp.t_ns.min() if n else 0)) / 1e9
+    if candidates == "ivf":
+        blocks = _ivf_candidates(fp, min_common_aps, ivf_neighbours, ivf_probes, block_rows)
+    elif candidates == "exact":
+        blocks = _exact_candidates(fp, thresholds, min_common_aps, block_rows)
+    else:
+        raise ValueError(f"edge candidates must be 'exact' or 'ivf', got {candidates!r}")
+    out_i, out_j, out_d = [], [], []
+    n_candidates = 0
+    for ri, ci, dv in blocks:
+        ok = (dv < thresholds[ri]) & (ri != ci)  # NaN threshold -> False
+        same = fp.session[ri] == fp.session[ci]
+        near = (np.abs(t_s[ri] - t_s[ci]) < exclude_same_session_s) | (
+            np.abs(fp.path_m[ri] - fp.path_m[ci]) < exclude_same_session_m
+        )
+        ok &= ~(same & near)
+        ri, ci, dv = ri[ok], ci[ok], dv[ok]
+        n_candidates += len(ri)
         # the candidates below threshold are few per row: rank those, not the whole block
-        ri, ci = np.nonzero(ok)
-        candidates += len(ri)
-        dv = d[ri, ci]
-        order = np.lexsort((dv, ri))
+        order = np.lexsort((ci, dv, ri))  # nearest first, ties by column (as the exact scan)
         ri, ci, dv = ri[order], ci[order], dv[order]
         first = np.searchsorted(ri, ri, side="left")
         keep = (np.arange(len(ri)) - first) < m
-        out_i.append(rows[ri[keep]])
+        out_i.append(ri[keep])
         out_j.append(ci[keep])
         out_d.append(dv[keep])
-        out_c.append(common[ri[keep], ci[keep]])
-    if not out_i:
+    if not out_i or not sum(len(x) for x in out_i):
         z = np.zeros(0, np.int64)
-        return WifiEdges(z, z, np.zeros(0), z, candidates)
+        return WifiEdges(z, z, np.zeros(0), z, n_candidates)
     i = np.concatenate(out_i)
     j = np.concatenate(out_j)
     dd = np.concatenate(out_d)
-    cc = np.concatenate(out_c).astype(np.int64)
     a, b = np.minimum(i, j), np.maximum(i, j)
     key = a * n + b
     _, first = np.unique(key, return_index=True)
-    log.info("WiFi edges: %d candidates below threshold, %d kept", candidates // 1, len(first))
-    return WifiEdges(a[first], b[first], dd[first], cc[first], candidates)
+    a, b = a[first], b[first]
+    log.info("WiFi edges (%s): %d candidates below threshold, %d kept", candidates, n_candidates, len(first))
+    return WifiEdges(a, b, dd[first], _common_aps(fp, a, b), n_candidates)
+
+
+def _exact_candidates(
+    fp: FingerprintNodes, thresholds: NDArray[np.float64], min_common: int, block_rows: int | None
+) -> Iterator[tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]]:
+    """(row, column, distance) of every pair below the row's threshold, one row block at a time."""
+    engine = DistanceEngine(fp.fingerprints)
+    with Task("edges", total=len(fp), unit="fingerprints") as task:
+        for start, d, _ in engine.iter_blocks(fp.fingerprints, min_common=min_common, block_rows=block_rows):
+            task.advance(len(d))
+            ri, ci = np.nonzero(d < thresholds[start : start + len(d)][:, None])
+            yield ri + start, ci.astype(np.int64), d[ri, ci]
+
+
+def _ivf_candidates(
+    fp: FingerprintNodes, min_common: int, k: int, probes: int, block_rows: int | None
+) -> Iterator[tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]]:
+    """(row, column, distance) of each fingerprint's k approximate nearest neighbours (self included)."""
+    from threadpoolctl import threadpool_limits
+
+    from graphslam.core.radiomap.ivf import IvfIndex
+
+    n = len(fp)
+    if n == 0:
+        return
+    rows = max(256, 4 * (block_rows or 1024))  # the search buffer is rows x probes x largest cluster
+    # one BLAS thread: the index is hundreds of tiny GEMMs, which OpenBLAS's thread hand-off
+    # made 4x slower (paper size 4, 2 busy cores); scoped to this search only
+    with threadpool_limits(limits=1, user_api="blas"):
+        index = IvfIndex(fp.fingerprints, iterations=IVF_KMEANS_ITERATIONS)
+        found = [
+            index.search(fp.fingerprints.rows(slice(s, s + rows)), k=k + 1, probes=probes, min_common=min_common)
+            for s in range(0, n, rows)
+        ]
+    for b, (idx, dist) in enumerate(found):
+        ok = idx >= 0
+        ri = np.nonzero(ok)[0] + b * rows
+        yield ri.astype(np.int64), idx[ok], dist[ok]
+
+
+def _common_aps(fp: FingerprintNodes, a: NDArray[np.int64], b: NDArray[np.int64]) -> NDArray[np.int64]:
+    v = fp.fingerprints.values
+    return np.asarray((v[a] > 0).multiply(v[b] > 0).sum(axis=1)).ravel().astype(np.int64)

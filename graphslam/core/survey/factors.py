@@ -20,12 +20,16 @@ Fuzzy WiFi-vicinity factor (eq. 10)
 
 from __future__ import annotations
 
-import gtsam
+from typing import TYPE_CHECKING
+
 import numpy as np
 from numpy.typing import NDArray
 
 from graphslam.config import ImuConfig, WifiFactorConfig
 from graphslam.core.types import PoseTrack, wrap_angle
+
+if TYPE_CHECKING:  # gtsam is imported where a factor is built: a survey solved by solver.py never loads it
+    import gtsam
 
 # The reference pose is "invariant during optimisation" (paper III-A): a prior this
 # tight fixes it to numerical precision without a hard constraint, which LM handles badly.
@@ -33,11 +37,15 @@ REFERENCE_PRIOR_SIGMAS = np.array([1e-6, 1e-6, 1e-6])
 
 
 def reference_prior_noise() -> gtsam.noiseModel.Base:
+    import gtsam
+
     return gtsam.noiseModel.Diagonal.Sigmas(REFERENCE_PRIOR_SIGMAS)
 
 
 def imu_noise(cfg: ImuConfig) -> gtsam.noiseModel.Base:
     """Omega_IMU of eq. 8 as a diagonal Gaussian."""
+    import gtsam
+
     return gtsam.noiseModel.Diagonal.Sigmas(np.array([cfg.sigma_xy_m, cfg.sigma_xy_m, cfg.sigma_heading_rad]))
 
 
@@ -50,6 +58,8 @@ def relative_steps(track: PoseTrack) -> NDArray[np.float64]:
 
 
 def imu_factor(k_prev: int, k: int, u: NDArray | tuple[float, float, float], noise: gtsam.noiseModel.Base) -> gtsam.NonlinearFactor:
+    import gtsam
+
     return gtsam.BetweenFactorPose2(k_prev, k, gtsam.Pose2(float(u[0]), float(u[1]), float(u[2])), noise)
 
 
@@ -59,12 +69,16 @@ def wifi_sigma(cfg: WifiFactorConfig) -> float:
 
 
 def wifi_noise(cfg: WifiFactorConfig) -> gtsam.noiseModel.Base:
+    import gtsam
+
     sigma = wifi_sigma(cfg)
     loss = gtsam.noiseModel.mEstimator.L2WithDeadZone(cfg.d_min_m / sigma)
     return gtsam.noiseModel.Robust.Create(loss, gtsam.noiseModel.Isotropic.Sigma(1, sigma))
 
 
 def wifi_factor(k: int, q: int, noise: gtsam.noiseModel.Base) -> gtsam.NonlinearFactor:
+    import gtsam
+
     return gtsam.RangeFactorPose2(k, q, 0.0, noise)
 
 

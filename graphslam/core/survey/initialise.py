@@ -46,6 +46,13 @@ class Placement:
     parent: NDArray[np.int64]  # (S,) tree parent (-1 for the reference / unplaced)
     loops: int = 0  # pairwise transforms between placed walks not used by the tree
     loops_consistent: int = 0  # ... of which the tree placement predicts within inlier_m
+    method: str = "registration"  # or "growth" (graphslam.core.survey.placement)
+    # growth only, per walk (NaN: unplaced): vote support per fingerprint, margin over the
+    # runner-up placement, fraction of match weight consistent at the final placement
+    support: NDArray[np.float64] | None = None
+    margin: NDArray[np.float64] | None = None
+    consistency: NDArray[np.float64] | None = None
+    unplaced_reasons: dict[int, str] | None = None  # walk index -> why it was not placed
 
     @property
     def loop_consistency(self) -> float | None:

@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
+from graphslam.core.progress import progress_over
 from graphslam.core.tracking.filters import PathLossModel
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import EstimationError
@@ -102,7 +103,7 @@ class ApModels:
         v = rm.fingerprints.values.tocsc()
         fitted: list[ApModel] = []
         unfitted: list[UnfittedAp] = []
-        for j, bssid in enumerate(rm.bssids):
+        for j, bssid in enumerate(progress_over(rm.bssids, "fit-aps", unit="APs")):
             rows = v.indices[v.indptr[j] : v.indptr[j + 1]]
             rss = v.data[v.indptr[j] : v.indptr[j + 1]] + rm.missing_dbm
             res = fit_ap(bssid, rm.xy[rows], rss, cfg)

@@ -1,0 +1,196 @@
+"""``graphslam survey-batch SITES_ROOT --out OUT_ROOT``: many floors on a Dask cluster.
+
+Every folder under SITES_ROOT that holds ``.mcap`` files directly is one floor; it is surveyed
+as one task (``survey_floor``: ``run_survey`` of that folder) into the same relative path under
+OUT_ROOT. A local cluster (``workers`` processes, one thread each) is started by default;
+``address`` joins a running Dask scheduler instead, whose workers must see SITES_ROOT and
+OUT_ROOT at the same paths (a shared file system) and have graphslam installed.
+
+Failures stay per floor: bad input or a solver error is the floor's ``error`` (the message
+names the file); a worker that dies while surveying a floor (OOM killer, a lost machine)
+makes the scheduler run the floor again on another worker, up to
+``distributed.scheduler.allowed-failures`` (Dask's default 3) more times, after which the floor
+fails with "worker lost". The other floors go on. ``OUT_ROOT/summary.json`` lists them all.
+
+Why Dask and not Ray (measured here, docs/benchmarks.md "Issue 18"): 44 MB installed vs 259 MB,
+and a 2-worker local cluster up in ~3 s vs ~11 s on this 2-core machine (``survey-batch`` pays
+that on every run). On worker death both do what is needed: a task whose worker is killed
+mid-task is run again, and one that kills every worker ends in a clear error after a few tries
+(Dask ``KilledWorker``, Ray ``WorkerCrashedError``), so that did not decide it.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from graphslam.config import GraphSlamConfig, config_from_dict
+from graphslam.errors import ConfigError, GraphSlamError, InputError
+from graphslam.io.atomic import atomic_write_json
+
+log = logging.getLogger(__name__)
+
+SUMMARY_FILE = "summary.json"
+# One thread per floor process: a survey is single-threaded in GTSAM; BLAS threads on top of
+# two workers on two cores would only compete.
+_WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "RERUN": "off"}
+
+
+@dataclass(frozen=True)
+class FloorRow:
+    """One line of summary.json."""
+
+    floor: str  # folder relative to SITES_ROOT ("." for SITES_ROOT itself)
+    status: str  # "ok" | "failed"
+    error: str | None
+    walks: int
+    aligned: int
+    seconds: float
+
+
+def find_floors(sites_root: Path, out_root: Path) -> list[Path]:
+    """Folders under ``sites_root`` (itself included) that hold ``.mcap`` files directly, sorted;
+    nothing inside ``out_root`` (its aligned.mcap files are outputs, not floors)."""
+    if not sites_root.is_dir():
+        raise InputError(sites_root, "not a folder (expected SITES_ROOT with one folder of .mcap recordings per floor)")
+    out = out_root.resolve()
+    floors = []
+    for d, dirs, files in os.walk(sites_root):
+        here = Path(d)
+        if here.resolve() == out or out in here.resolve().parents:
+            dirs[:] = []
+            continue
+        dirs.sort()
+        if any(f.endswith(".mcap") for f in files):
+            floors.append(here)
+    if not floors:
+        raise InputError(sites_root, "no folder under it holds .mcap recordings")
+    return sorted(floors)
+
+
+def survey_floor(floor_dir: str, out_dir: str, config_json: str, floor: str, update: bool = False) -> dict[str, Any]:
+    """The task: survey one floor, never raise for the floor's own failures (they are its row).
+    ``update``: a previous output in ``out_dir`` seeds ``survey --update`` (none: a full survey)."""
+    from graphslam.app.survey import run_survey
+    from graphslam.io.survey_state import STATE_FILE
+
+    t = time.perf_counter()
+    walks = aligned = 0
+    error = None
+    try:
+        import json
+
+        cfg = config_from_dict(json.loads(config_json), "survey-batch configuration")
+        previous = out_dir if update and (Path(out_dir) / STATE_FILE).is_file() else None
+        result = run_survey([floor_dir], out_dir, cfg, update=previous)
+        walks, aligned = result.report["sessions"], result.report["aligned_sessions"]
+    except GraphSlamError as e:
+        error = str(e)
+    except Exception as e:  # noqa: BLE001 - a floor's internal error must not stop the others
+        log.exception("floor %s", floor)
+        error = f"internal error: {type(e).__name__}: {e}"
+    seconds = round(time.perf_counter() - t, 3)
+    return asdict(FloorRow(floor, "failed" if error else "ok", error, walks, aligned, seconds))
+
+
+@dataclass(frozen=True)
+class BatchResult:
+    rows: list[FloorRow]
+    summary: Path
+    seconds: float
+
+    @property
+    def failed(self) -> int:
+        return sum(r.status != "ok" for r in self.rows)
+
+
+def run_batch(
+    sites_root: str | Path,
+    out_root: str | Path,
+    config: GraphSlamConfig | None = None,
+    *,
+    address: str | None = None,
+    workers: int | None = None,
+    update: bool = False,
+    on_floor: Callable[[FloorRow], None] | None = None,
+    on_start: Callable[[int], None] | None = None,
+) -> BatchResult:
+    """Survey every floor under ``sites_root`` into ``out_root``; ``summary.json`` lists them.
+    ``update``: floors already surveyed into ``out_root`` are updated (``survey --update``)."""
+    t0 = time.perf_counter()
+    cfg = config or GraphSlamConfig()
+    sites, out = Path(sites_root), Path(out_root)
+    if out.exists() and not out.is_dir():
+        from graphslam.errors import OutputError
+
+        raise OutputError(f"{out}: exists and is not a folder")
+    floors = find_floors(sites, out)
+    rels = [str(f.relative_to(sites)) for f in floors]
+    if on_start is not None:
+        on_start(len(floors))
+    rows: dict[str, FloorRow] = {}
+    with _client(address, workers) as client:
+        from distributed import as_completed
+
+        futures = {
+            client.submit(survey_floor, str(f), str(out / rel), cfg.model_dump_json(), rel, update,
+                          key=f"floor-{k}-{rel}", pure=False): rel
+            for k, (f, rel) in enumerate(zip(floors, rels))
+        }
+        for fut in as_completed(futures):
+            rel = futures[fut]
+            try:
+                row = FloorRow(**fut.result())
+            except Exception as e:  # noqa: BLE001 - KilledWorker, a lost connection: this floor only
+                from distributed import KilledWorker
+
+                why = "worker lost after retries" if isinstance(e, KilledWorker) else f"{type(e).__name__}: {e}"
+                row = FloorRow(rel, "failed", why, 0, 0, 0.0)
+            rows[rel] = row
+            if row.status != "ok":
+                log.warning("floor %s failed: %s", rel, row.error)
+            if on_floor is not None:
+                on_floor(row)
+    ordered = [rows[r] for r in rels]
+    out.mkdir(parents=True, exist_ok=True)
+    summary = out / SUMMARY_FILE
+    atomic_write_json(summary, [asdict(r) for r in ordered])
+    return BatchResult(ordered, summary, time.perf_counter() - t0)
+
+
+class _client:
+    """A Dask client: on a new local cluster, or connected to ``address``. Closes what it started."""
+
+    def __init__(self, address: str | None, workers: int | None) -> None:
+        self.address, self.workers = address, workers
+        self.cluster: Any = None
+        self.client: Any = None
+
+    def __enter__(self) -> Any:
+        from distributed import Client, LocalCluster
+
+        if not logging.getLogger().isEnabledFor(logging.INFO):  # Dask's INFO lines only with --verbose
+            logging.getLogger("distributed").setLevel(logging.WARNING)
+        if self.address:
+            try:
+                self.client = Client(self.address, timeout="10s")
+            except (OSError, TimeoutError) as e:
+                raise ConfigError(f"--address {self.address}: cannot connect to a Dask scheduler ({e})") from None
+            return self.client
+        n = self.workers or os.cpu_count() or 1
+        self.cluster = LocalCluster(
+            n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, env=_WORKER_ENV,
+        )
+        self.client = Client(self.cluster)
+        log.info("local Dask cluster: %d workers", n)
+        return self.client
+
+    def __exit__(self, *exc: object) -> None:
+        if self.client is not None:
+            self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()

@@ -1,0 +1,127 @@
+"""``graphslam survey --update PREVIOUS_OUT``: join new walks to a floor solved before.
+
+``align_update`` decides between the incremental path (walks solved before start from their
+previous solution, only their neighbourhood of the new walks is re-solved:
+``graphslam.core.survey.incremental``) and a full re-solve, and says which and why in the
+report's ``update`` section. A previous output that does not match — other configuration, a
+walk changed or missing — is never mixed in: the floor is solved again from scratch.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from graphslam.config import GraphSlamConfig
+from graphslam.core.survey.align import Alignment, ProgressCallback, align, build_problem, solve
+from graphslam.core.survey.incremental import (
+    PreviousSolution,
+    changed_edges,
+    previous_edge_rows,
+    session_digest,
+    warm_start,
+)
+from graphslam.core.types import Survey
+from graphslam.errors import InputError
+from graphslam.io.survey_state import STATE_FILE, read_survey_state
+
+log = logging.getLogger(__name__)
+
+# Config sections that do not change the solution a previous output holds.
+_NOT_COMPARED = ("update",)
+
+
+def load_previous(previous_dir: str | Path) -> PreviousSolution:
+    """The state of a previous survey output folder (an ``InputError`` if it is not one)."""
+    d = Path(previous_dir)
+    if not d.is_dir():
+        raise InputError(d, "--update: not a folder (expected a previous `graphslam survey --out` folder)")
+    return read_survey_state(d / STATE_FILE)
+
+
+def mismatch(previous: PreviousSolution, survey: Survey, cfg: GraphSlamConfig) -> str | None:
+    """Why ``previous`` cannot seed this survey (None: it can)."""
+    diff = _config_diff(json.loads(previous.config_json), cfg)
+    if diff:
+        return "configuration differs from the previous run's: " + "; ".join(diff[:3]) + (
+            f" (+{len(diff) - 3} more)" if len(diff) > 3 else "")
+    current = {s.session_id: s for s in survey}
+    for sid, digest in zip(previous.session_ids, previous.digests):
+        if sid not in current:
+            return f"walk {sid!r} of the previous survey is not among the recordings"
+        if session_digest(current[sid]) != digest:
+            return f"walk {sid!r} changed since the previous survey (its steps or scans differ)"
+    if previous.registration_reliable is False and cfg.optimizer.unreliable_registration == "unalign":
+        return "the previous survey's registration was unreliable: which walks it aligns depends on all of them"
+    return None
+
+
+def _config_diff(prev: dict[str, Any], cfg: GraphSlamConfig) -> list[str]:
+    cur = cfg.model_dump(mode="json")
+    out = []
+    for section in sorted(set(prev) | set(cur)):
+        if section in _NOT_COMPARED:
+            continue
+        a, b = prev.get(section, {}), cur.get(section, {})
+        for key in sorted(set(a) | set(b)):
+            if section == "optimizer" and key == "reference_session" and b.get(key) is None:
+                continue  # not set now: the previous reference walk is kept (same frame)
+            if a.get(key) != b.get(key):
+                out.append(f"{section}.{key} {a.get(key)!r} -> {b.get(key)!r}")
+    return out
+
+
+def align_update(
+    survey: Survey,
+    cfg: GraphSlamConfig,
+    previous: PreviousSolution,
+    *,
+    previous_dir: str | Path,
+    progress: ProgressCallback | None = None,
+) -> tuple[Alignment, GraphSlamConfig, dict[str, Any]]:
+    """(alignment, effective config, the report's ``update`` section)."""
+    prev_ids = set(previous.session_ids)
+    prev_aligned = {sid for sid, ok in zip(previous.session_ids, previous.aligned.tolist()) if ok}
+    info: dict[str, Any] = {
+        "previous": str(previous_dir),
+        "new_walks": [s.session_id for s in survey if s.session_id not in prev_ids],
+        "placed_again": [s.session_id for s in survey if s.session_id in prev_ids - prev_aligned],
+    }
+    reason = mismatch(previous, survey, cfg)
+    if reason is not None:
+        log.warning("--update: full re-solve: %s", reason)
+        al = align(survey, cfg, progress=progress)
+        info.update(mode="full", reason=reason, resolved={"nodes": al.n_nodes, "of_nodes": al.n_nodes})
+        return al, cfg, info
+    # the previous reference walk stays the reference: the solution keeps its frame
+    eff = cfg.model_copy(
+        update={"optimizer": cfg.optimizer.model_copy(update={"reference_session": previous.reference})}
+    )
+    t0 = time.perf_counter()
+    warm = warm_start(previous, survey, cfg.update.hops)
+    problem = build_problem(survey, eff, warm)
+    al = solve(problem, eff, progress, t0=t0)
+    free = problem.free if problem.free is not None else np.zeros(al.n_nodes, bool)
+    walk_of = np.repeat(np.arange(len(survey)), np.diff(problem.fingerprints.offsets))
+    ids = [s.session_id for s in survey]
+    prev_pairs = problem.fingerprints.node[previous_edge_rows(problem.fingerprints, warm)]
+    added, removed = changed_edges(problem.wifi_pairs, prev_pairs, warm.solved)
+    info.update(
+        mode="incremental",
+        reason=None,
+        resolved={
+            "hops": cfg.update.hops,
+            "nodes": int(free.sum()),
+            "of_nodes": al.n_nodes,
+            "walks": sorted({ids[s] for s in np.unique(walk_of[free]).tolist()}),
+            "edges_added": len(added),
+            "edges_removed": len(removed),
+        },
+    )
+    log.info("--update: %d new walks, re-solved %d of %d poses", len(info["new_walks"]), free.sum(), al.n_nodes)
+    return al, eff, info

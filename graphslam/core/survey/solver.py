@@ -1,0 +1,467 @@
+"""Levenberg-Marquardt for the paper's pose graph: vectorised factors, a sparse direct solver.
+
+The same objective as the GTSAM graph of ``graphslam.core.survey.factors`` (IMU-between
+factors with GTSAM's Pose2 Logmap error, the dead-zone WiFi range factors), solved by an
+LM loop whose every step is a handful of numpy array operations over all factors plus one
+sparse Cholesky factorisation. Why not GTSAM's own LM: on the WiFi graph its multifrontal
+elimination redoes the symbolic work at every try of lambda and is ~8x slower per
+factorisation than MKL PARDISO with the analysis reused (docs/benchmarks.md, issue 16).
+
+ * Variables: (x, y, theta) of every kept node except the reference node, which is held
+   fixed (the paper's invariant reference pose; GTSAM's 1e-6 prior, exactly).
+ * IMU-between: e = Log(U^-1 (X_a^-1 X_b)), whitened by an upper-triangular W with
+   W^T W = Sigma^-1 (GTSAM's ``BetweenFactorPose2`` with a Gaussian noise model).
+ * WiFi range: r = max(d - d_min, 0) / sigma, d = |p_a - p_b| (GTSAM's ``RangeFactorPose2``
+   at range 0 under ``L2WithDeadZone``), with its exact Hessian (``range_hessian``) where
+   GTSAM's robust wrapper reweights a Gauss-Newton one; the minimum is the same.
+ * Linear algebra: the normal equations' pattern is fixed for one active edge set, so
+   PARDISO's ordering (METIS) and symbolic analysis run once per stage and each lambda try
+   or iteration is only a numeric refactorisation. Lambda follows Nielsen's rule, which
+   rejects few steps (each rejection costs a factorisation).
+
+Everything here is pure maths on arrays; nothing reads files.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import sparse
+
+from graphslam.core.types import wrap_angle
+from graphslam.errors import SolverError
+
+log = logging.getLogger(__name__)
+
+IterationHook = Callable[[int, float, float], None]  # (iteration, error before, error after)
+
+
+@dataclass(frozen=True, eq=False)
+class PoseGraph:
+    """The factor graph as arrays; node ids are global step numbers (rows of ``xyh``)."""
+
+    n_nodes: int
+    variables: NDArray[np.int64]  # (K,) node ids optimised, ascending (reference excluded)
+    reference: int  # node id held fixed
+    between_pairs: NDArray[np.int64]  # (M, 2) node ids (a, b)
+    between_measured: NDArray[np.float64]  # (M, 3) U = a^-1 b as (x, y, theta)
+    between_sqrt_info: NDArray[np.float64]  # (M, 3, 3) W, upper triangular, W^T W = Sigma^-1
+    range_pairs: NDArray[np.int64]  # (E, 2) node ids of WiFi edges
+    range_sigma: float
+    range_dead_zone_m: float
+
+
+@dataclass(frozen=True)
+class LMSettings:
+    max_iterations: int = 100
+    relative_error_tol: float = 1e-4
+    absolute_error_tol: float = 1e-5
+    lambda_initial: float = 1e-5  # damping lambda * diag(J^T J): dimensionless
+    lambda_upper: float = 1e8  # a stall beyond this: no step lowers the error
+    threads: int = 1  # MKL threads of the factorisation (0: MKL's default)
+
+
+@dataclass(frozen=True, eq=False)
+class LMResult:
+    xyh: NDArray[np.float64]  # (n_nodes, 3): variables and the reference updated, other rows as given
+    iterations: int
+    factorizations: int
+    initial_error: float
+    error: float
+    converged: bool  # a tolerance was met (not the iteration cap, not a lambda stall)
+
+
+def sqrt_information(cov: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(M, 3, 3) upper-triangular W with W^T W = cov^-1 (GTSAM's sqrt-information convention)."""
+    info = np.linalg.inv(cov)
+    info = 0.5 * (info + np.transpose(info, (0, 2, 1)))
+    return np.transpose(np.linalg.cholesky(info), (0, 2, 1))
+
+
+# --- the two factor types, vectorised ---------------------------------------------------
+
+
+def _log_coeffs(w: NDArray) -> tuple[NDArray, NDArray]:
+    """Pose2 Logmap's V^-1 = [[a, w/2], [-w/2, a]], a = (w/2) cot(w/2), and da/dw."""
+    small = np.abs(w) < 1e-4
+    ws = np.where(small, 1.0, w)
+    half = 0.5 * ws
+    a = np.where(small, 1.0 - w * w / 12.0, half / np.tan(half))
+    da = np.where(small, -w / 6.0, 0.5 / np.tan(half) - half / (2.0 * np.sin(half) ** 2))
+    return a, da
+
+
+def between_residuals(
+    xa: NDArray, xb: NDArray, u: NDArray, W: NDArray, *, jacobians: bool = True
+) -> tuple[NDArray, NDArray | None, NDArray | None]:
+    """Whitened e = W Log(U^-1 a^-1 b) (M, 3) and its Jacobians (M, 3, 3) w.r.t. a's and b's (x, y, theta)."""
+    d = xb[:, :2] - xa[:, :2]
+    al = xa[:, 2] + u[:, 2]  # R(theta_a + phi)^T maps world offsets into U's frame
+    c, s = np.cos(al), np.sin(al)
+    cp, sp = np.cos(u[:, 2]), np.sin(u[:, 2])
+    zx = c * d[:, 0] + s * d[:, 1] - (cp * u[:, 0] + sp * u[:, 1])
+    zy = -s * d[:, 0] + c * d[:, 1] - (-sp * u[:, 0] + cp * u[:, 1])
+    w = wrap_angle(xb[:, 2] - xa[:, 2] - u[:, 2])
+    a, da = _log_coeffs(w)
+    e = np.column_stack([a * zx + 0.5 * w * zy, -0.5 * w * zx + a * zy, w])
+    r = np.einsum("mij,mj->mi", W, e)
+    if not jacobians:
+        return r, None, None
+    m = len(xa)
+    # z_t = R(al)^T d - R(phi)^T u_t; dz_t/dp_b = R(al)^T, dz_t/dtheta_a = dR(al)^T/dal d
+    dzx_dth = -s * d[:, 0] + c * d[:, 1]
+    dzy_dth = -c * d[:, 0] - s * d[:, 1]
+    # e_t = V^-1(w) z_t; de_t/dw = [[da, 1/2], [-1/2, da]] z_t; dw/dtheta_b = 1 = -dw/dtheta_a
+    dex_dw = da * zx + 0.5 * zy
+    dey_dw = -0.5 * zx + da * zy
+    Jb = np.zeros((m, 3, 3))
+    Jb[:, 0, 0] = a * c - 0.5 * w * s
+    Jb[:, 0, 1] = a * s + 0.5 * w * c
+    Jb[:, 1, 0] = -0.5 * w * c - a * s
+    Jb[:, 1, 1] = -0.5 * w * s + a * c
+    Jb[:, 0, 2] = dex_dw
+    Jb[:, 1, 2] = dey_dw
+    Jb[:, 2, 2] = 1.0
+    Ja = -Jb
+    Ja[:, 0, 2] = a * dzx_dth + 0.5 * w * dzy_dth - dex_dw
+    Ja[:, 1, 2] = -0.5 * w * dzx_dth + a * dzy_dth - dey_dw
+    Ja[:, 2, 2] = -1.0
+    return r, W @ Ja, W @ Jb
+
+
+def range_residuals(
+    xa: NDArray, xb: NDArray, sigma: float, dead_zone_m: float, *, jacobians: bool = True
+) -> tuple[NDArray, NDArray | None, NDArray | None]:
+    """r = max(|p_b - p_a| - d0, 0) / sigma (E,) and its Jacobians (E, 3) w.r.t. a's and b's (x, y, theta)."""
+    d = xb[:, :2] - xa[:, :2]
+    n = np.hypot(d[:, 0], d[:, 1])
+    on = n > dead_zone_m
+    r = np.where(on, n - dead_zone_m, 0.0) / sigma
+    if not jacobians:
+        return r, None, None
+    unit = np.where(on[:, None], d / np.where(on, n, 1.0)[:, None], 0.0) / sigma
+    Jb = np.zeros((len(xa), 3))
+    Jb[:, :2] = unit
+    return r, -Jb, Jb
+
+
+def between_error(graph: PoseGraph, xyh: NDArray) -> float:
+    """0.5 sum |W e|^2 of the IMU-between factors at poses ``xyh`` (n_nodes, 3)."""
+    p = graph.between_pairs
+    r, _, _ = between_residuals(
+        xyh[p[:, 0]], xyh[p[:, 1]], graph.between_measured, graph.between_sqrt_info, jacobians=False
+    )
+    return 0.5 * float(np.sum(r * r))
+
+
+def range_hessian(xa: NDArray, xb: NDArray, r: NDArray, Jb: NDArray, sigma: float) -> NDArray:
+    """(E, 3, 3) exact Hessian of 0.5 r^2 w.r.t. b's pose (w.r.t. a's: the same; cross term: minus it).
+
+    J^T J = u u^T / sigma^2 plus the curvature of the distance, r / (sigma d) (I - u u^T), which is
+    positive semi-definite (r >= 0): Newton's model stays convex and converges where Gauss-Newton
+    crawls along the edges' tangential directions (measured: paper seed 1 stalled 0.11 above GTSAM's
+    minimum with Gauss-Newton alone)."""
+    d = np.hypot(*(xb[:, :2] - xa[:, :2]).T)
+    H = np.zeros((len(r), 3, 3))
+    u = Jb[:, :2] * sigma  # unit vector where r > 0, else 0
+    H[:, :2, :2] = Jb[:, :2, None] * Jb[:, None, :2]
+    k = np.where(r > 0, r / (sigma * np.where(d > 0, d, 1.0)), 0.0)
+    H[:, :2, :2] += k[:, None, None] * (np.eye(2) - u[:, :, None] * u[:, None, :])
+    return H
+
+
+# --- normal equations with a fixed pattern ------------------------------------------------
+
+
+class _NormalEquations:
+    """Assembles J^T J (upper triangle, CSR) and J^T r for one set of factors.
+
+    Every factor adds 3x3 blocks at (a, a), (b, b) and (min, max); the block slots and the
+    CSR position of each of their entries are computed once, so an assembly is a few
+    ``bincount`` calls."""
+
+    def __init__(self, n_vars: int, va: NDArray[np.int64], vb: NDArray[np.int64]) -> None:
+        # va, vb: variable index of each factor's endpoints, -1 for the fixed reference
+        self.n = 3 * n_vars
+        self.va, self.vb = va, vb
+        both = (va >= 0) & (vb >= 0)
+        lo, hi = np.minimum(va, vb), np.maximum(va, vb)
+        keys = np.concatenate([np.arange(n_vars) * (n_vars + 1), (lo * n_vars + hi)[both]])
+        blocks, inv = np.unique(keys, return_inverse=True)
+        self.n_blocks = len(blocks)
+        nf = len(va)
+        self.slot_aa = _slot(blocks, va * (n_vars + 1), va >= 0)
+        self.slot_bb = _slot(blocks, vb * (n_vars + 1), vb >= 0)
+        self.slot_ab = np.full(nf, -1, np.int64)
+        self.slot_ab[both] = inv[n_vars:]
+        self.swap = va > vb  # the (min, max) block is J_b^T J_a when a is the larger index
+        bi, bj = blocks // n_vars, blocks % n_vars
+        r, c = np.divmod(np.arange(9), 3)
+        rows = (3 * bi[:, None] + r[None, :]).ravel()
+        cols = (3 * bj[:, None] + c[None, :]).ravel()
+        keep = rows <= cols  # upper triangle (only diagonal blocks have entries below)
+        order = np.lexsort((cols[keep], rows[keep]))
+        self.gather = np.flatnonzero(keep)[order]  # block-entry index of each CSR entry
+        rr, cc = rows[keep][order], cols[keep][order]
+        self.indptr = np.searchsorted(rr, np.arange(self.n + 1)).astype(np.int32)
+        self.indices = cc.astype(np.int32)
+        self.diag_pos = self.indptr[:-1].astype(np.int64)  # first entry of each row is its diagonal
+
+    def assemble(self, aa: NDArray, bb: NDArray, ab: NDArray, ga: NDArray, gb: NDArray) -> tuple[NDArray, NDArray]:
+        """(CSR data of J^T J's upper triangle, J^T r) from per-factor blocks J_a^T J_a, J_b^T J_b,
+        J_a^T J_b (F, 3, 3) and gradients J_a^T r, J_b^T r (F, 3)."""
+        ab = np.where(self.swap[:, None, None], np.transpose(ab, (0, 2, 1)), ab)
+        e9 = np.arange(9)
+        idx, wts = [], []
+        for slot, blk in ((self.slot_aa, aa), (self.slot_bb, bb), (self.slot_ab, ab)):
+            ok = slot >= 0
+            idx.append((slot[ok, None] * 9 + e9).ravel())
+            wts.append(blk[ok].reshape(-1))
+        H = np.bincount(np.concatenate(idx), np.concatenate(wts), minlength=self.n_blocks * 9)[self.gather]
+        g = np.zeros(self.n)
+        for v, gv in ((self.va, ga), (self.vb, gb)):
+            ok = v >= 0
+            g += np.bincount((3 * v[ok, None] + np.arange(3)).ravel(), gv[ok].ravel(), minlength=self.n)
+        return H, g
+
+
+def _slot(blocks: NDArray, keys: NDArray, ok: NDArray) -> NDArray:
+    return np.where(ok, np.searchsorted(blocks, np.where(ok, keys, 0)), -1)
+
+
+_MKL: list = []  # the loaded MKL runtime, once per process
+
+
+def _mkl_runtime():  # -> ctypes.CDLL (imported lazily)
+    """MKL's single dynamic library, as the ``mkl`` wheel installs it (``<prefix>/lib``).
+
+    Looked up by file name first: ``ctypes.util.find_library`` runs ldconfig and a compiler
+    (~0.1 s), and pypardiso's import does that search at import time."""
+    if _MKL:
+        return _MKL[0]
+    import ctypes
+    import ctypes.util
+    import glob
+    import site
+    import sys
+
+    dirs = [Path(sys.prefix) / "lib", Path(site.getuserbase()) / "lib", Path(sys.prefix) / "Library" / "bin"]
+    names = ("libmkl_rt.so*", "libmkl_rt*.dylib", "mkl_rt*.dll")
+    found = sorted(p for d in dirs for n in names for p in glob.glob(str(d / n)))
+    lib_path = found[-1] if found else ctypes.util.find_library("mkl_rt")
+    if lib_path is None:
+        raise OSError("MKL runtime (libmkl_rt) not found: pip install mkl")
+    lib = ctypes.CDLL(lib_path)
+    i32p = ctypes.POINTER(ctypes.c_int32)
+    lib.pardiso.argtypes = [ctypes.POINTER(ctypes.c_int64)] + [i32p] * 5 + [ctypes.c_void_p, i32p, i32p, i32p, i32p,
+                                                                             i32p, i32p, ctypes.c_void_p,
+                                                                             ctypes.c_void_p, i32p]
+    lib.pardiso.restype = None
+    _MKL.append(lib)
+    return lib
+
+
+class _Pardiso:
+    """MKL PARDISO for a symmetric positive-definite matrix (upper triangle, CSR): the ordering
+    (METIS nested dissection) and symbolic factorisation once, then numeric refactorisations."""
+
+    def __init__(self, indptr: NDArray[np.int32], indices: NDArray[np.int32], threads: int = 1) -> None:
+        self._lib = _mkl_runtime()
+        self._n = len(indptr) - 1
+        self._ia = (indptr + 1).astype(np.int32)  # PARDISO's default: one-based indices
+        self._ja = (indices + 1).astype(np.int32)
+        self._a = np.zeros(len(indices))
+        self._pt = np.zeros(64, np.int64)  # PARDISO's internal handle
+        self._iparm = np.zeros(64, np.int32)  # iparm[0] = 0: every parameter at its default
+        self._threads = threads
+        self._live = False
+        self._call(11, np.zeros(1), np.zeros(1))  # analysis
+        self._live = True
+
+    def _call(self, phase: int, b: NDArray, x: NDArray) -> None:
+        import ctypes
+
+        i32 = ctypes.c_int32
+        err = i32(0)
+        lib = self._lib
+        # thread-local MKL thread count: OpenMP spin-waits cost more than they gain on a busy machine
+        prev = lib.MKL_Set_Num_Threads_Local(self._threads) if self._threads > 0 else None
+        try:
+            lib.pardiso(
+                self._pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
+                ctypes.byref(i32(1)), ctypes.byref(i32(1)), ctypes.byref(i32(2)),  # maxfct, mnum, mtype: real SPD
+                ctypes.byref(i32(phase)), ctypes.byref(i32(self._n)),
+                self._a.ctypes.data, self._ia.ctypes.data_as(ctypes.POINTER(i32)),
+                self._ja.ctypes.data_as(ctypes.POINTER(i32)), None, ctypes.byref(i32(1)),
+                self._iparm.ctypes.data_as(ctypes.POINTER(i32)), ctypes.byref(i32(0)),
+                b.ctypes.data, x.ctypes.data, ctypes.byref(err),
+            )
+        finally:
+            if prev is not None:
+                lib.MKL_Set_Num_Threads_Local(prev)
+        if err.value != 0:  # e.g. -4: zero pivot, the matrix is not positive definite
+            raise np.linalg.LinAlgError(f"PARDISO phase {phase} failed with error {err.value}")
+
+    def factor(self, data: NDArray) -> None:
+        self._a[:] = data
+        self._call(22, np.zeros(1), np.zeros(1))
+
+    def solve(self, b: NDArray) -> NDArray:
+        b = np.ascontiguousarray(b, dtype=np.float64)
+        x = np.zeros_like(b)
+        self._call(33, b, x)
+        return x
+
+    def free(self) -> None:
+        if self._live:
+            self._live = False
+            self._call(-1, np.zeros(1), np.zeros(1))
+
+
+def pardiso_available() -> bool:
+    """MKL PARDISO loads (the ``mkl`` wheel exists for x86-64 Linux, Windows and macOS only)."""
+    try:
+        _mkl_runtime()
+    except OSError:
+        return False
+    return True
+
+
+# --- Levenberg-Marquardt ------------------------------------------------------------------
+
+
+class _Objective:
+    """Residuals and Jacobians of one active factor set at flattened variables ``v`` (3K,)."""
+
+    def __init__(self, g: PoseGraph, active: NDArray[np.bool_], xyh: NDArray) -> None:
+        self.g = g
+        var_of = np.full(g.n_nodes, -1, np.int64)
+        var_of[g.variables] = np.arange(len(g.variables))
+        self.ref = xyh[g.reference].copy()
+        self.bp = g.between_pairs
+        self.rp = g.range_pairs[active]
+        va = np.concatenate([var_of[self.bp[:, 0]], var_of[self.rp[:, 0]]])
+        vb = np.concatenate([var_of[self.bp[:, 1]], var_of[self.rp[:, 1]]])
+        self.var_of = var_of
+        self.normal = _NormalEquations(len(g.variables), va, vb)
+
+    def poses(self, v: NDArray, nodes: NDArray) -> NDArray:
+        x = v.reshape(-1, 3)
+        k = self.var_of[nodes]
+        return np.where((k >= 0)[:, None], x[np.maximum(k, 0)], self.ref)
+
+    def error(self, v: NDArray) -> float:
+        g = self.g
+        rb, _, _ = between_residuals(
+            self.poses(v, self.bp[:, 0]), self.poses(v, self.bp[:, 1]), g.between_measured, g.between_sqrt_info,
+            jacobians=False,
+        )
+        rr, _, _ = range_residuals(
+            self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1]), g.range_sigma, g.range_dead_zone_m,
+            jacobians=False,
+        )
+        return 0.5 * float(np.sum(rb * rb) + np.sum(rr * rr))
+
+    def linearise(self, v: NDArray) -> tuple[NDArray, NDArray, float]:
+        g = self.g
+        rb, Jba, Jbb = between_residuals(
+            self.poses(v, self.bp[:, 0]), self.poses(v, self.bp[:, 1]), g.between_measured, g.between_sqrt_info
+        )
+        rr, Jra, Jrb = range_residuals(
+            self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1]), g.range_sigma, g.range_dead_zone_m
+        )
+        JbaT, JbbT = np.transpose(Jba, (0, 2, 1)), np.transpose(Jbb, (0, 2, 1))
+        Hr = range_hessian(self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1]), rr, Jrb, g.range_sigma)
+        H, grad = self.normal.assemble(
+            np.concatenate([JbaT @ Jba, Hr]),
+            np.concatenate([JbbT @ Jbb, Hr]),
+            np.concatenate([JbaT @ Jbb, -Hr]),
+            np.concatenate([(JbaT @ rb[:, :, None])[:, :, 0], Jra * rr[:, None]]),
+            np.concatenate([(JbbT @ rb[:, :, None])[:, :, 0], Jrb * rr[:, None]]),
+        )
+        return H, grad, 0.5 * float(np.sum(rb * rb) + np.sum(rr * rr))
+
+
+def levenberg_marquardt(
+    graph: PoseGraph,
+    xyh: NDArray[np.float64],
+    active: NDArray[np.bool_],
+    settings: LMSettings = LMSettings(),
+    hook: IterationHook | None = None,
+) -> LMResult:
+    """Minimise the graph's error over its variables, WiFi edges restricted to ``active``.
+
+    ``xyh``: (n_nodes, 3) initial poses (rows of non-variables are returned unchanged).
+    Damping lambda * diag(J^T J) (Marquardt; scale-free across metres and radians).
+    """
+    obj = _Objective(graph, active, xyh)
+    v = np.ascontiguousarray(xyh[graph.variables]).ravel()
+    if not np.all(np.isfinite(v)):
+        raise SolverError("initial poses of the optimised nodes are not finite")
+    if not len(v):  # only the fixed reference pose: nothing to optimise
+        err = obj.error(v)
+        return LMResult(xyh.copy(), 0, 0, err, err, True)
+    ne = obj.normal
+    solver = _Pardiso(ne.indptr, ne.indices, settings.threads)
+    H, grad, err = obj.linearise(v)
+    initial = err
+    lam = settings.lambda_initial
+    nu = 2.0
+    it = factorizations = 0
+    converged = False
+    try:
+        while it < settings.max_iterations:
+            diag = np.clip(H[ne.diag_pos], 1e-9, None)
+            accepted = False
+            while lam <= settings.lambda_upper:
+                Hd = H.copy()
+                Hd[ne.diag_pos] += lam * diag
+                factorizations += 1
+                try:
+                    solver.factor(Hd)
+                    step = -solver.solve(grad)
+                except np.linalg.LinAlgError:  # not positive definite: damp more
+                    lam, nu = lam * nu, nu * 2.0
+                    continue
+                # predicted decrease of the Gauss-Newton model, 0.5 |r + J s|^2
+                pred = -(grad @ step) - 0.5 * (step @ _sym_matvec(ne, H, step))
+                v_new = v + step
+                v_new[2::3] = wrap_angle(v_new[2::3])
+                err_new = obj.error(v_new)
+                rho = (err - err_new) / pred if pred > 0 else -1.0
+                if rho > 0:
+                    accepted = True
+                    lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                    nu = 2.0
+                    break
+                lam, nu = lam * nu, nu * 2.0
+            if not accepted:
+                break  # stall: no lambda gives a lower error
+            it += 1
+            log.debug("LM %d: error %.6g -> %.6g, rho %.3f, lambda %.3g, factorisations %d", it, err, err_new, rho, lam,
+                      factorizations)
+            if hook is not None:
+                hook(it, err, err_new)
+            decrease = err - err_new
+            v = v_new
+            if decrease <= settings.absolute_error_tol or decrease <= settings.relative_error_tol * err:
+                err = err_new
+                converged = True
+                break
+            H, grad, err = obj.linearise(v)
+    finally:
+        solver.free()
+    out = xyh.copy()
+    out[graph.variables] = v.reshape(-1, 3)
+    return LMResult(out, it, factorizations, initial, err, converged)
+
+
+def _sym_matvec(ne: _NormalEquations, upper_data: NDArray, x: NDArray) -> NDArray:
+    """(J^T J) x from its upper triangle."""
+    U = sparse.csr_matrix((upper_data, ne.indices, ne.indptr), shape=(ne.n, ne.n))
+    return U @ x + U.T @ x - upper_data[ne.diag_pos] * x

@@ -1,0 +1,121 @@
+"""``survey_state.npz``: what a survey output keeps for a later ``graphslam survey --update``.
+
+A NumPy ``.npz`` archive (no pickles), format version 1:
+
+==================  ===========  ==================================================
+array               dtype        meaning
+==================  ===========  ==================================================
+format_version      int64 ()     1
+session_ids         str (S,)     every walk of the survey, in survey order
+digests             str (S,)     SHA-256 of each walk's solver inputs (``incremental.session_digest``)
+aligned             bool (S,)    walk was aligned
+offsets             int64 (S+1)  step ranges of each walk into ``xyh``
+xyh                 float64 (N,3) solution of every step: x, y (m), heading (rad), aligned frame; NaN if unaligned
+edge_session        int64 (E,2)  the WiFi edges' walks (indices into ``session_ids``)
+edge_scan           int64 (E,2)  ... and scans (index into the walk's ``/wifi/scan`` messages)
+candidates          int64 ()     pairs below threshold before the per-fingerprint cap
+reference           str ()       the reference walk (its first pose is the frame's origin)
+config_json         str ()       the effective configuration, JSON
+registration_reliable int64 ()   1 / 0, or -1 when the loop check had too few loops to judge
+==================  ===========  ==================================================
+"""
+
+from __future__ import annotations
+
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from graphslam.config import GraphSlamConfig
+from graphslam.core.survey.align import Alignment
+from graphslam.core.survey.incremental import PreviousSolution, session_digest
+from graphslam.core.types import Survey
+from graphslam.errors import InputError
+from graphslam.io.atomic import atomic_open
+
+STATE_FILE = "survey_state.npz"
+STATE_FORMAT_VERSION = 1
+
+
+def write_survey_state(path: str | Path, survey: Survey, al: Alignment, cfg: GraphSlamConfig) -> Path:
+    path = Path(path)
+    fp = al.fingerprints
+    reliable = None if al.placement is None else al.placement.reliable
+    arrays = {
+        "format_version": np.int64(STATE_FORMAT_VERSION),
+        "session_ids": np.array([s.session_id for s in survey], dtype=str),
+        "digests": np.array([session_digest(s) for s in survey], dtype=str),
+        "aligned": np.array([s.session_id in al.tracks for s in survey], bool),
+        "offsets": np.asarray(fp.offsets, np.int64),
+        "xyh": np.asarray(al.node_xyh, np.float64),
+        "edge_session": np.column_stack([fp.session[al.edges.i], fp.session[al.edges.j]]).astype(np.int64),
+        "edge_scan": np.column_stack([fp.scan[al.edges.i], fp.scan[al.edges.j]]).astype(np.int64),
+        "candidates": np.int64(al.edges.candidates),
+        "reference": np.array(al.reference),
+        "config_json": np.array(cfg.model_dump_json()),
+        "registration_reliable": np.int64(-1 if reliable is None else int(reliable)),
+    }
+    with atomic_open(path, "wb") as fh:
+        np.savez(fh, **arrays)
+    return path
+
+
+def read_survey_state(path: str | Path) -> PreviousSolution:
+    """Read and check a state file; every problem is an ``InputError`` naming the file and array."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "no survey state: not the output folder of a `graphslam survey` run (or one from before "
+                         "--update existed; re-run the survey once)")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
+        raise InputError(path, f"unreadable survey state ({type(e).__name__}: {e})") from None
+    need = ("format_version", "session_ids", "digests", "aligned", "offsets", "xyh", "edge_session", "edge_scan",
+            "candidates", "reference", "config_json", "registration_reliable")
+    for k in need:
+        if k not in data:
+            raise InputError(path, "missing array", field=k)
+    if int(data["format_version"]) != STATE_FORMAT_VERSION:
+        raise InputError(path, f"format version {int(data['format_version'])}, expected {STATE_FORMAT_VERSION}",
+                         field="format_version")
+    ids = tuple(str(x) for x in data["session_ids"].reshape(-1))
+    n_s = len(ids)
+    offsets = data["offsets"].astype(np.int64).reshape(-1)
+    xyh = data["xyh"].astype(np.float64)
+    checks = [
+        ("digests", data["digests"].shape == (n_s,)),
+        ("aligned", data["aligned"].shape == (n_s,)),
+        ("offsets", offsets.shape == (n_s + 1,) and offsets[0] == 0 and bool(np.all(np.diff(offsets) >= 0))),
+        ("xyh", xyh.ndim == 2 and xyh.shape[1:] == (3,) and len(offsets) > 0 and xyh.shape[0] == offsets[-1]),
+        ("edge_session", data["edge_session"].ndim == 2 and data["edge_session"].shape[1:] == (2,)),
+        ("edge_scan", data["edge_scan"].shape == data["edge_session"].shape),
+    ]
+    for name, ok in checks:
+        if not ok:
+            raise InputError(path, "array has the wrong shape or values", field=name)
+    es = data["edge_session"].astype(np.int64)
+    if len(es) and (es.min() < 0 or es.max() >= n_s or data["edge_scan"].min() < 0):
+        raise InputError(path, "edge index out of range", field="edge_session")
+    aligned = data["aligned"].astype(bool)
+    for s in np.flatnonzero(aligned):
+        if not np.isfinite(xyh[offsets[s] : offsets[s + 1]]).all():
+            raise InputError(path, f"walk {ids[s]!r} is marked aligned but has non-finite poses", field="xyh")
+    reference = str(data["reference"])
+    if reference not in ids:
+        raise InputError(path, f"reference walk {reference!r} is not one of its walks", field="reference")
+    rel = int(data["registration_reliable"])
+    return PreviousSolution(
+        session_ids=ids,
+        digests=tuple(str(x) for x in data["digests"]),
+        aligned=aligned,
+        offsets=offsets,
+        xyh=xyh,
+        edge_session=es,
+        edge_scan=data["edge_scan"].astype(np.int64),
+        candidates=int(data["candidates"]),
+        reference=reference,
+        config_json=str(data["config_json"]),
+        registration_reliable=None if rel < 0 else bool(rel),
+    )

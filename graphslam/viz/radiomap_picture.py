@@ -1,0 +1,187 @@
+"""``radio_map.png``: is the survey good enough? What Anyplace users look at (``graphslam.viz.canvas``).
+
+Panel 1, coverage: fingerprints per m^2 on a grid of ``cell_m`` cells. Then one panel per
+access point (``aps``, else the ``top`` most-heard, stronger mean RSS first on ties): its
+RSS interpolated over the surveyed area, with the AP's fitted position (``fit-aps``'
+ap_models.json) marked when there is one, and the fingerprints that heard it as dots.
+
+Interpolation: a Gaussian kernel average (Nadaraya-Watson, std ``bandwidth_m``) of every
+fingerprint's reading, where a fingerprint that did not hear the AP counts as the map's
+``min_rssi_dbm`` (the reading floor: it was weaker than that). Binned on the grid and
+filtered (``scipy.ndimage.gaussian_filter``), so the cost is that of the grid, not of the
+fingerprints x cells. Cells where the kernel weight of all fingerprints is below
+``MIN_WEIGHT`` are outside the surveyed area and left blank (the same mask in every panel).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graphslam.core.radiomap.radiomap import RadioMap
+from graphslam.core.survey.initialise import se2_apply
+from graphslam.core.tracking.apmodel import ApModels
+from graphslam.errors import ConfigError
+from graphslam.viz.canvas import MAGMA_R, VIRIDIS, Panel, Picture, colour_map
+from graphslam.viz.common import FloorPlan, top_access_points
+
+SIZE_PX = (1600, 1000)
+TOP_APS = 5
+MAX_APS = 11  # 12 panels at most: beyond that nothing is readable
+MIN_WEIGHT = 0.05  # kernel weight (in fingerprints) below which a cell is "not surveyed"
+RSS_RANGE_DBM = (-100.0, -30.0)  # fixed colour scale, the same in every panel (and as Rerun's)
+
+
+def grid_cell_m(xy: NDArray) -> float:
+    """A round cell size (0.5, 1, 2, 2.5, 5 m x 10^k) giving about 150 cells along the longer side,
+    never finer than 0.5 m."""
+    span = float(np.ptp(xy, axis=0).max()) if len(xy) else 0.0
+    target = max(0.5, span / 150.0)
+    p = 10.0 ** math.floor(math.log10(target))
+    return min(m * p for m in (1.0, 2.0, 2.5, 5.0, 10.0) if m * p >= target - 1e-9)
+
+
+def draw_radio_map(
+    rm: RadioMap,
+    path: str | Path,
+    *,
+    aps: Sequence[str] = (),
+    top: int = TOP_APS,
+    ap_models: ApModels | None = None,
+    floor_plan: FloorPlan | None = None,
+    site_from_map: NDArray | None = None,
+    cell_m: float | None = None,
+    bandwidth_m: float | None = None,
+    size_px: tuple[int, int] = SIZE_PX,
+) -> Path:
+    """Render the radio map picture to ``path`` (PNG of ``size_px``, written atomically).
+
+    ``site_from_map`` (x, y, theta) draws a map in the aligned frame over a ``floor_plan`` in
+    the site frame (e.g. report.json's landmark fit); without it the plan is drawn as is.
+    """
+    if not len(rm):
+        raise ConfigError("radio map picture: the radio map has no fingerprint")
+    cols = ap_columns(rm, aps, top)
+    T = None if site_from_map is None or floor_plan is None else np.asarray(site_from_map, float).reshape(3)
+    registered = T is not None  # drawn in the plan's site frame
+
+    def place(points: NDArray) -> NDArray:
+        return se2_apply(T, points) if T is not None else points
+
+    xy = place(np.asarray(rm.xy, float))
+    cell = float(cell_m or grid_cell_m(xy))
+    h = float(bandwidth_m or 2.0 * cell)
+    grid = _Grid(xy, cell)
+    weight = grid.smooth(grid.bin(np.ones(len(xy))), h)
+    outside = weight < MIN_WEIGHT
+    floor = rm.min_rssi_dbm
+
+    frame = f"{rm.frame} frame"
+    if floor_plan is not None:
+        frame = "site frame of the floor plan" if registered else f"{rm.frame} frame, floor plan NOT registered to it"
+    pic = Picture(size_px, title_lines=[
+        f"radio map: {len(rm):,} fingerprints, {rm.fingerprints.n_aps:,} APs, {len(set(rm.session_ids.tolist()))} walks; "
+        f"{frame}; {cell:g} m cells, Gaussian kernel {h:g} m; an AP not heard counts as {floor:g} dBm"
+    ])
+    boxes = _layout(1 + len(cols), size_px, top=36)
+    extent = grid.extent
+
+    density = weight / cell**2  # kernel density: fingerprints per m^2
+    d_hi = float(np.percentile(density[~outside], 99)) if (~outside).any() else 1.0
+    panel = _heat_panel(pic, boxes[0], extent, density, outside, 0.0, d_hi, MAGMA_R, floor_plan, "fingerprints / m²")
+    area = float((~outside).sum()) * cell**2
+    pic.caption((boxes[0][0], boxes[0][1] - 34), f"coverage: {len(rm):,} fingerprints over ~{area:,.0f} m²\n"
+                f"median {np.median(density[~outside]) if (~outside).any() else 0:.2f} / m² where surveyed", 12)
+
+    values = rm.fingerprints.values.tocsc()
+    fitted = {a.bssid: a for a in ap_models.fitted} if ap_models is not None else {}
+    unfitted = {u.bssid: u.reason for u in ap_models.unfitted} if ap_models is not None else {}
+    for box, c in zip(boxes[1:], cols):
+        rows = values.indices[values.indptr[c] : values.indptr[c + 1]]
+        rss = np.full(len(xy), floor)
+        rss[rows] = values.data[values.indptr[c] : values.indptr[c + 1]] + rm.missing_dbm
+        field = grid.smooth(grid.bin(rss), h) / np.maximum(weight, 1e-12)
+        panel = _heat_panel(pic, box, extent, field, outside, *RSS_RANGE_DBM, VIRIDIS, floor_plan, "RSS (dBm)")
+        panel.dots(xy[rows], (30, 30, 30), size=1)
+        bssid = rm.bssids[c]
+        note = "no AP models (run fit-aps)" if ap_models is None else "no AP model"
+        if bssid in fitted:
+            a = fitted[bssid]
+            p = place(np.array([[a.x, a.y]]))
+            panel.points(p, (255, 0, 0), radius=12, kind="star")
+            note = f"fitted AP (red star): P0 {a.p0_dbm:.0f} dBm, γ {a.gamma:.1f}, ±{a.position_std_m:.1f} m"
+        elif bssid in unfitted:
+            note = f"AP not fitted: {unfitted[bssid].split(' (')[0]}"
+        pic.caption((box[0], box[1] - 34), f"{bssid}, heard by {len(rows):,} fingerprints\n{note}", 12)
+    return pic.save(path)
+
+
+def _layout(n: int, size_px: tuple[int, int], top: int) -> list[tuple[int, int, int, int]]:
+    """Panel boxes on a grid: room above each for a 2-line caption, right for a colour bar, left and
+    below for the ticks."""
+    ncols = {1: 1, 2: 2, 3: 3, 4: 2}.get(n, 3 if n <= 9 else 4)
+    nrows = math.ceil(n / ncols)
+    w, h = size_px
+    cw, ch = w / ncols, (h - top) / nrows
+    return [
+        (int(c * cw + 52), int(top + r * ch + 40), int((c + 1) * cw - 95), int(top + (r + 1) * ch - 24))
+        for r in range(nrows) for c in range(ncols)
+    ][:n]
+
+
+def _heat_panel(
+    pic: Picture, box: tuple[int, int, int, int], extent: tuple[float, float, float, float], field: NDArray,
+    outside: NDArray, lo: float, hi: float, table: NDArray, plan: FloorPlan | None, label: str,
+) -> Panel:
+    x0, x1, y0, y1 = extent
+    panel = pic.panel(box, (x0, y0, x1, y1))
+    if plan is not None:
+        panel.floor_plan(plan)
+    rgba = np.zeros(field.shape + (4,), np.uint8)  # (nx, ny): x along the first axis
+    rgba[..., :3] = colour_map(field, lo, hi, table)
+    rgba[..., 3] = np.where(outside, 0, 235)
+    panel.raster(np.transpose(rgba, (1, 0, 2))[::-1], extent, smooth=True)  # rows from the top
+    panel.scale_bar()
+    pic.colourbar((box[2] + 10, box[1], box[2] + 26, box[3]), table, lo, hi, label)
+    return panel
+
+
+def ap_columns(rm: RadioMap, aps: Sequence[str], top: int) -> list[int]:
+    """Columns of ``rm`` to draw: ``aps`` (each must be in the map), else the ``top`` most heard."""
+    if aps:
+        index = {b: i for i, b in enumerate(rm.bssids)}
+        unknown = [a for a in aps if a not in index]
+        if unknown:
+            raise ConfigError(f"--ap {unknown[0]}: no fingerprint of the radio map heard this access point")
+        cols = [index[a] for a in dict.fromkeys(aps)]
+    else:
+        cols = top_access_points(rm.fingerprints, np.arange(len(rm)), max(0, top))
+    if len(cols) > MAX_APS:
+        raise ConfigError(f"radio map picture: {len(cols)} access points asked for, at most {MAX_APS} fit")
+    return cols
+
+
+class _Grid:
+    """Square cells of ``cell`` m covering ``xy`` with a margin of a few cells."""
+
+    def __init__(self, xy: NDArray, cell: float) -> None:
+        lo, hi = xy.min(axis=0) - 3 * cell, xy.max(axis=0) + 3 * cell
+        self.cell = cell
+        self.n = np.maximum(np.ceil((hi - lo) / cell).astype(int), 1)
+        self.lo = lo
+        self.extent = (lo[0], lo[0] + self.n[0] * cell, lo[1], lo[1] + self.n[1] * cell)
+        self._ij = np.clip(((xy - lo) / cell).astype(int), 0, self.n - 1)
+
+    def bin(self, w: NDArray) -> NDArray:
+        """Sum of ``w`` per cell, shape (nx, ny)."""
+        flat = np.bincount(self._ij[:, 0] * self.n[1] + self._ij[:, 1], weights=w, minlength=int(self.n.prod()))
+        return flat.reshape(self.n[0], self.n[1])
+
+    def smooth(self, g: NDArray, bandwidth_m: float) -> NDArray:
+        from scipy.ndimage import gaussian_filter
+
+        return gaussian_filter(g, bandwidth_m / self.cell, mode="constant")

@@ -1,0 +1,289 @@
+"""``survey.png``: the aligned survey at a glance (``graphslam.viz.canvas``: Pillow, fast).
+
+Every aligned walk in its own colour (the colours of the Rerun views), the reference walk
+marked at its first pose (the origin of the output frame), the WiFi edges faint by their
+final state, landmark truth / estimate / error when the recordings have marks, a scale bar,
+and the floor plan underneath when one is given. Unaligned walks are listed in the legend,
+grouped by their reason.
+
+Frames: the picture is drawn in the output frame (trajectories.csv) unless a floor plan is
+given and the landmarks gave a site-from-output fit: then everything is drawn in the plan's
+site frame through that fit (display only; the subtitle says which).
+
+Two sources, one ``SurveyScene``: ``scene_of_alignment`` (in memory, by ``graphslam survey``)
+and ``scene_of_folder`` (a finished output folder, by ``graphslam plot``).
+"""
+
+from __future__ import annotations
+
+import json
+import textwrap
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graphslam.config import GraphSlamConfig
+from graphslam.core.radiomap.survey_maps import WifiEdgeRows, crowdsourced_edges
+from graphslam.core.survey.align import Alignment
+from graphslam.core.survey.evaluate import Evaluation
+from graphslam.core.survey.initialise import se2_apply
+from graphslam.core.types import Survey
+from graphslam.errors import InputError
+from graphslam.viz.common import (
+    FloorPlan, LandmarkMarks, fitted_site_from_aligned, landmark_marks, session_colours, site_to_frame,
+    survey_folder_tracks,
+)
+from graphslam.viz.canvas import BLACK, GREY, LegendEntry, Picture, bounds_of
+
+SIZE_PX = (1600, 1000)
+MAX_EDGES = 20_000  # drawn; more are subsampled (deterministically), the legend gives both counts
+MAX_LEGEND_WALKS = 16  # more aligned walks: one legend line for all (the colours still differ)
+MAX_REASONS = 6  # unaligned walks are grouped by reason; at most this many groups listed
+EDGE_COLOURS = ((70, 170, 90), (255, 160, 0), (220, 40, 40))  # inactive, ramp, saturated (as in Rerun)
+MAGENTA = (215, 0, 215)
+EDGE_NAMES = ("inactive", "ramp", "saturated")
+PICTURE = "survey.png"
+
+
+@dataclass(frozen=True, eq=False)
+class SurveyScene:
+    """What ``survey.png`` shows. Positions in the output frame (metres) except ``marks.truth_xy``."""
+
+    tracks: dict[str, NDArray[np.float64]]  # aligned walks: (N, 2) each
+    colours: dict[str, tuple[int, int, int]]  # every session (aligned or not), as in Rerun
+    reference: str
+    unaligned: dict[str, str]  # session id -> reason
+    edge_xy: NDArray[np.float64]  # (E, 2, 2) the edges drawn (a sample when there are many)
+    edge_state: NDArray[np.int8]  # (E,)
+    edge_counts: tuple[int, int, int]  # every edge between aligned walks, by state
+    marks: LandmarkMarks | None  # from the recordings
+    site_from_output: NDArray[np.float64] | None  # landmark fit (marks or report.json)
+    landmark_text: str  # "43 marks: mean 0.67 m ..." or ""
+    n_sessions: int
+    n_poses: int
+    notes: tuple[str, ...] = ()  # what could not be shown, and why
+
+
+def scene_of_alignment(
+    survey: Survey, al: Alignment, cfg: GraphSlamConfig, evaluation: Evaluation | None = None,
+    *, max_edges: int = MAX_EDGES,
+) -> SurveyScene:
+    """The scene of a survey just aligned (``graphslam survey``)."""
+    tracks = {sid: np.asarray(tr.xy) for sid, tr in al.tracks.items()}
+    xy = al.fingerprint_xy()
+    rows_xy = xy[np.isfinite(xy).all(axis=1)]
+    marks = landmark_marks(al.tracks, survey)
+    T = marks.site_from_output if marks is not None else None
+    if T is None and evaluation is not None and evaluation.steps.n:  # fitted on true poses (simulations)
+        T = np.asarray(evaluation.site_from_aligned, float)
+    return _scene(
+        tracks, al.session_ids, al.reference, dict(al.unaligned), rows_xy, crowdsourced_edges(al, cfg), marks, T,
+        _landmark_text(marks.stats.as_dict() if marks is not None else None), survey.n_steps, max_edges, (),
+    )
+
+
+def scene_of_folder(
+    out_dir: str | Path, recordings: Sequence[str | Path] = (), *, max_edges: int = MAX_EDGES
+) -> SurveyScene:
+    """The scene of a finished ``graphslam survey --out`` folder (``graphslam plot``).
+
+    Needs ``trajectories.csv``; uses ``report.json`` (reference, unaligned walks and reasons,
+    the landmark fit), ``radio_map.parquet`` + ``wifi_edges.parquet`` (edges) when present.
+    ``recordings`` add the landmark marks and the walks that were not aligned.
+    """
+    d = Path(out_dir)
+    pose_tracks = survey_folder_tracks(d)
+    report = _read_json(d / "report.json")
+    notes: list[str] = []
+    survey = None
+    if recordings:
+        from graphslam.io.mcap_reader import read_survey
+
+        survey = read_survey(recordings)
+    # the survey's own order gives each walk the colour it had in survey.png and in Rerun
+    ids = [w.get("session_id") for w in report.get("walks") or [] if isinstance(w, dict)]
+    unaligned = {
+        str(u.get("session_id")): str(u.get("reason")) for u in report.get("unaligned") or [] if isinstance(u, dict)
+    }
+    if survey is not None and not ids:
+        ids = [s.session_id for s in survey]
+    ids = list(dict.fromkeys([str(i) for i in ids] + list(pose_tracks) + list(unaligned)))
+    reference = str(report.get("reference_session") or next(iter(pose_tracks)))
+    rows_xy, edges = np.zeros((0, 2)), None
+    if (d / "wifi_edges.parquet").exists() and (d / "radio_map.parquet").exists():
+        from graphslam.io.edges_io import read_wifi_edges
+        from graphslam.io.radiomap_io import read_radio_map
+
+        rows_xy = np.asarray(read_radio_map(d / "radio_map.parquet").xy)
+        edges = read_wifi_edges(d / "wifi_edges.parquet", len(rows_xy))
+    else:
+        notes.append("WiFi edges not shown: no wifi_edges.parquet + radio_map.parquet in the folder")
+    marks = landmark_marks(pose_tracks, survey)
+    ev = report.get("evaluation") if isinstance(report.get("evaluation"), dict) else {}
+    T = marks.site_from_output if marks is not None else None
+    if T is None:
+        T = fitted_site_from_aligned(ev)
+    lm = marks.stats.as_dict() if marks is not None else ev.get("landmarks")
+    n_poses = int(report.get("nodes") or sum(len(t) for t in pose_tracks.values()))
+    return _scene(
+        {sid: np.asarray(t.xy) for sid, t in pose_tracks.items()}, ids, reference, unaligned, rows_xy, edges,
+        marks, T, _landmark_text(lm), n_poses, max_edges, tuple(notes),
+    )
+
+
+def _scene(
+    tracks: dict[str, NDArray], ids: Sequence[str], reference: str, unaligned: dict[str, str], rows_xy: NDArray,
+    edges: WifiEdgeRows | None, marks: LandmarkMarks | None, T: NDArray | None, landmark_text: str, n_poses: int,
+    max_edges: int, notes: tuple[str, ...],
+) -> SurveyScene:
+    if edges is None or not len(edges.a):
+        seg, state, counts = np.zeros((0, 2, 2)), np.zeros(0, np.int8), (0, 0, 0)
+    else:
+        c = np.bincount(edges.state, minlength=3)
+        counts = (int(c[0]), int(c[1]), int(c[2]))
+        pick = np.arange(len(edges.a))
+        if len(pick) > max_edges:  # same sample every time: the picture of a survey does not flicker
+            pick = np.sort(np.random.default_rng(0).choice(len(pick), max_edges, replace=False))
+        seg = np.stack([rows_xy[edges.a[pick]], rows_xy[edges.b[pick]]], axis=1)
+        state = edges.state[pick]
+    return SurveyScene(
+        tracks, session_colours(ids), reference, unaligned, seg, state, counts, marks, T, landmark_text,
+        len(ids), n_poses, notes,
+    )
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    if not path.exists():
+        return {}
+    try:
+        rep = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        raise InputError(path, f"not readable JSON ({e})") from None
+    if not isinstance(rep, dict):
+        raise InputError(path, "not a JSON object")
+    return rep
+
+
+def _landmark_text(lm: Mapping[str, Any] | None) -> str:
+    if not lm or not lm.get("n"):
+        return ""
+    return (
+        f"landmark error (SE(2) fit, {lm['n']} marks): mean {lm['mean_m']:.2f} m, median {lm['median_m']:.2f} m, "
+        f"max {lm['max_m']:.2f} m"
+    )
+
+
+# ---- drawing -------------------------------------------------------------------------------
+
+
+def draw_survey(
+    scene: SurveyScene, path: str | Path, *, floor_plan: FloorPlan | None = None, size_px: tuple[int, int] = SIZE_PX
+) -> Path:
+    """Render ``scene`` to the PNG ``path`` (``size_px`` pixels exactly, written atomically)."""
+    return survey_picture(scene, floor_plan=floor_plan, size_px=size_px).save(path)
+
+
+def survey_picture(scene: SurveyScene, *, floor_plan: FloorPlan | None = None, size_px: tuple[int, int] = SIZE_PX) -> Picture:
+    """The picture, not yet rendered: one panel, the legend in a column on its right."""
+    T = scene.site_from_output
+    in_site = floor_plan is not None and T is not None
+    move = (lambda xy: se2_apply(T, xy)) if in_site else (lambda xy: xy)  # noqa: E731
+    ids = list(scene.tracks)
+    lines = [move(scene.tracks[s]) for s in ids]
+    colours = [scene.colours[s] for s in ids]
+    est = truth = None
+    if scene.marks is not None:
+        m = scene.marks
+        est = se2_apply(m.site_from_output, m.estimate_xy) if in_site else m.estimate_xy
+        truth = m.truth_xy if in_site else site_to_frame(m.site_from_output, m.truth_xy)
+    plan_box = np.array([[0.0, 0.0], [floor_plan.width_m, floor_plan.height_m]]) if floor_plan is not None else None
+    w, h = size_px
+    pic = Picture(size_px, title_lines=_title(scene, floor_plan, in_site), legend_x=int(0.685 * w))
+    top = 16 + 20 * len(pic.title_lines)
+    panel = pic.panel((62, top, int(0.665 * w), h - 30), bounds_of(*lines, truth, plan_box))
+    legend = pic.legend
+
+    if floor_plan is not None:
+        panel.floor_plan(floor_plan)
+        legend.append(LegendEntry(
+            f"floor plan {floor_plan.path.name} ({floor_plan.width_m:.0f} x {floor_plan.height_m:.0f} m)",
+            (235, 235, 235), "box"))
+    n_drawn, n_edges = len(scene.edge_xy), sum(scene.edge_counts)
+    if n_drawn:
+        seg = move(scene.edge_xy.reshape(-1, 2)).reshape(-1, 2, 2)
+        for k in range(3):
+            panel.faint_segments(seg[scene.edge_state == k], EDGE_COLOURS[k], alpha=0.18)
+    for k, name in enumerate(EDGE_NAMES):
+        if scene.edge_counts[k]:
+            legend.append(LegendEntry(f"WiFi edges {name}: {scene.edge_counts[k]:,}", _faint(EDGE_COLOURS[k]), width=2))
+    if n_edges:
+        shown = "all drawn" if n_drawn == n_edges else f"{n_drawn:,} drawn"
+        legend[-1].text += f" (of {n_edges:,}; {shown})"
+
+    if est is not None and truth is not None:  # under the walks: big errors must not hide them
+        panel.faint_segments(np.stack([est, truth], axis=1), MAGENTA, alpha=0.45)
+    width = 2 if len(ids) <= 40 else 1
+    panel.polylines(lines, colours, width=width)
+    if len(ids) <= MAX_LEGEND_WALKS:
+        legend += [LegendEntry(s + (" (reference)" if s == scene.reference else ""), c, width=4)
+                   for s, c in zip(ids, colours)]
+    else:
+        legend.append(LegendEntry(f"{len(ids)} aligned walks, one colour each", colours[0], width=4))
+
+    if scene.reference in scene.tracks and len(scene.tracks[scene.reference]):
+        ref = lines[ids.index(scene.reference)]
+        panel.polylines([ref], [BLACK], width=1)  # thin, on top: marks the walk without hiding others
+        panel.points(ref[:1], BLACK, radius=11, kind="star")
+        where = "" if in_site else ", starts at the origin"
+        legend.append(LegendEntry(f"reference {scene.reference} (thin black line{where})", BLACK, "star"))
+
+    if scene.marks is not None and est is not None and truth is not None:
+        panel.points(truth, BLACK, radius=4, kind="cross")
+        panel.points(est, MAGENTA, radius=2)
+        legend.append(LegendEntry("landmark truth", BLACK, "cross"))
+        legend.append(LegendEntry(
+            f"landmark estimate and error line ({scene.marks.stats.mean_m:.2f} m mean)", MAGENTA, "point"))
+    legend += _unaligned_entries(scene.unaligned)
+    panel.scale_bar()
+    return pic
+
+
+def _faint(c: tuple[int, int, int], a: float = 0.55) -> tuple[int, int, int]:
+    r, g, b = (int(255 - (255 - v) * a) for v in c)
+    return (r, g, b)
+
+
+def _title(scene: SurveyScene, plan: FloorPlan | None, in_site: bool) -> list[str]:
+    n_al = len(scene.tracks)
+    head = (f"{n_al}/{scene.n_sessions} walks aligned, {scene.n_poses:,} poses, "
+            f"{sum(scene.edge_counts):,} WiFi edges between them"
+            + (f"; {scene.landmark_text}" if scene.landmark_text else ""))
+    if in_site and scene.site_from_output is not None:
+        x, y, th = (float(v) for v in scene.site_from_output)
+        frame = (f"site frame of the floor plan: walks placed by the landmark SE(2) fit (x {x:.1f} m, y {y:.1f} m, "
+                 f"{np.degrees(th):.1f} deg; display only)")
+    else:
+        frame = "output frame (trajectories.csv, metres): origin = first pose of the reference walk"
+        if plan is not None:
+            frame += "; the floor plan is NOT registered to it (no landmark fit)"
+    return [line for s in [head, frame, *scene.notes] for line in textwrap.wrap(s, 150)]
+
+
+def _unaligned_entries(unaligned: Mapping[str, str]) -> list[LegendEntry]:
+    """One legend entry per reason: how many walks, their ids (the first few)."""
+    if not unaligned:
+        return []
+    groups: dict[str, list[str]] = {}
+    for sid, why in unaligned.items():
+        groups.setdefault(why, []).append(sid)
+    out = [LegendEntry(f"{len(unaligned)} walks not aligned (not drawn):", kind="text")]
+    for k, (why, sids) in enumerate(sorted(groups.items(), key=lambda kv: -len(kv[1]))):
+        if k == MAX_REASONS:
+            out.append(LegendEntry(f"... {len(groups) - k} more reasons (report.json)", kind="text"))
+            break
+        listed = ", ".join(sids[:4]) + (f" +{len(sids) - 4} more" if len(sids) > 4 else "")
+        out.append(LegendEntry(f"{len(sids)}: {why} ({listed})", GREY, "cross"))
+    return out

@@ -1,0 +1,103 @@
+"""`graphslam survey-batch` on a REAL local Dask cluster (issue 18): floors, failures, summary, exit codes."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from conftest import run_cli as _run
+
+from graphslam.io.mcap_writer import write_session
+from graphslam.sim import simulate
+
+
+@pytest.fixture(scope="module")
+def sites(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Three small floors in two buildings; b2/F1 has one truncated recording."""
+    root = tmp_path_factory.mktemp("sites")
+    for k, rel in enumerate(["b1/F1", "b1/F2", "b2/F1"]):
+        for s in simulate("corridor", seed=k, size=0.5).survey:
+            write_session(s, root / rel / f"{s.session_id}.mcap")
+    bad = sorted((root / "b2/F1").glob("*.mcap"))[1]
+    bad.write_bytes(bad.read_bytes()[:300])
+    (root / "b1" / "notes.txt").write_text("not a floor")
+    return root
+
+
+def test_batch_surveys_every_floor_and_reports_the_broken_one(
+    sites: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    assert _run(["survey-batch", str(sites), "--out", str(out), "--workers", "2", "--no-progress"]) == 1
+    rows = json.loads((out / "summary.json").read_text())
+    assert [r["floor"] for r in rows] == ["b1/F1", "b1/F2", "b2/F1"]
+    assert set(rows[0]) == {"floor", "status", "error", "walks", "aligned", "seconds"}
+    ok = [r for r in rows if r["status"] == "ok"]
+    assert len(ok) == 2 and all(r["error"] is None and r["walks"] == 6 and r["aligned"] >= 1 for r in ok)
+    bad = rows[2]
+    bad_file = sorted((sites / "b2/F1").glob("*.mcap"))[1]
+    assert bad["status"] == "failed" and str(bad_file) in bad["error"] and bad["walks"] == 0
+    # each floor's outputs at its relative path; none for the failed floor
+    assert (out / "b1/F1/radio_map.parquet").is_file() and (out / "b1/F2/report.json").is_file()
+    assert not (out / "b2/F1/report.json").exists()
+    assert f"failed: b2/F1: {bad_file}" in capsys.readouterr().out
+    # the next night: floors surveyed before are updated in place, the broken one is tried in full again
+    assert _run(["survey-batch", str(sites), "--out", str(out), "--workers", "1", "--no-progress", "--update"]) == 1
+    for rel in ("b1/F1", "b1/F2"):
+        u = json.loads((out / rel / "report.json").read_text())["update"]
+        assert u["mode"] == "incremental" and u["new_walks"] == [] and u["resolved"]["nodes"] == 0
+
+
+def test_batch_bad_arguments_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert _run(["survey-batch", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 2
+    assert "not a folder" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert _run(["survey-batch", str(tmp_path / "empty"), "--out", str(tmp_path / "o")]) == 2
+    assert "no folder under it holds .mcap" in capsys.readouterr().err
+    assert _run(["survey-batch", str(tmp_path / "empty"), "--out", str(tmp_path / "o"), "--workers", "0"]) == 2
+
+
+@pytest.mark.parametrize("allowed_failures", [3, 0])
+def test_batch_on_an_existing_cluster_survives_a_killed_worker(
+    sites: Path, tmp_path: Path, allowed_failures: int
+) -> None:
+    """--address joins a running scheduler. A worker killed while it surveys a floor: the scheduler
+    runs the floor again (default), or with no retries allowed that floor alone fails as 'worker lost'
+    while the other worker's floor finishes."""
+    import dask
+    from distributed import Client, LocalCluster
+
+    good = tmp_path / "sites"
+    for rel in ("b1/F1", "b1/F2"):
+        (good / rel).mkdir(parents=True)
+        for f in (sites / rel).glob("*.mcap"):
+            os.link(f, good / rel / f.name)
+    out = tmp_path / "out"
+    with dask.config.set({"distributed.scheduler.allowed-failures": allowed_failures}):
+        with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cluster, Client(cluster) as c:
+            codes: list[int] = []
+            args = ["survey-batch", str(good), "--out", str(out), "--address", cluster.scheduler_address,
+                    "--no-progress"]
+            t = threading.Thread(target=lambda: codes.append(_run(args)))
+            t.start()
+            deadline = time.monotonic() + 60
+            while not any(c.processing().values()) and time.monotonic() < deadline:
+                time.sleep(0.01)
+            pids = c.run(os.getpid)
+            busy = [a for a, keys in c.processing().items() if keys]
+            assert busy, "no floor started"
+            os.kill(pids[busy[0]], signal.SIGKILL)
+            t.join(120)
+    rows = {r["floor"]: r for r in json.loads((out / "summary.json").read_text())}
+    assert set(rows) == {"b1/F1", "b1/F2"}
+    if allowed_failures:
+        assert codes == [0] and all(r["status"] == "ok" for r in rows.values())
+    else:
+        lost = [r for r in rows.values() if r["status"] == "failed"]
+        assert codes == [1] and len(lost) == 1 and lost[0]["error"] == "worker lost after retries"
+        assert [r["status"] for r in rows.values()].count("ok") == 1

@@ -1,0 +1,149 @@
+"""The PARDISO Levenberg-Marquardt (core/survey/solver.py): factors against GTSAM, normal equations,
+and the same minimum as GTSAM's optimiser."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import gtsam
+import numpy as np
+import pytest
+from test_align import CFG, two_walks
+
+from graphslam.core.survey import solver as S
+from graphslam.core.survey.align import build_problem, pose_graph, solve
+from graphslam.errors import SolverError
+
+X = gtsam.symbol_shorthand.X
+pytestmark = pytest.mark.skipif(not S.pardiso_available(), reason="MKL PARDISO not available on this platform")
+
+
+def _poses(rng: np.random.Generator, m: int) -> tuple[np.ndarray, np.ndarray]:
+    xa = rng.normal(size=(m, 3)) * [5.0, 5.0, 2.0]
+    return xa, xa + rng.normal(size=(m, 3)) * [1.0, 1.0, 1.5]
+
+
+def _numerical(fun, x: np.ndarray, h: float = 1e-6) -> np.ndarray:
+    cols = []
+    for i in range(3):
+        dx = np.zeros(3)
+        dx[i] = h
+        cols.append((fun(x + dx) - fun(x - dx)) / (2 * h))
+    return np.stack(cols, axis=-1)
+
+
+def test_between_factor_equals_gtsam_and_its_jacobians_the_numerical_ones() -> None:
+    rng = np.random.default_rng(1)
+    xa, xb = _poses(rng, 40)
+    u = rng.normal(size=(40, 3))
+    cov = np.array([np.diag(rng.uniform(0.01, 0.1, 3)) for _ in range(40)])
+    cov[:, 0, 1] = cov[:, 1, 0] = 0.003  # correlated, as a compressed chain's covariance
+    W = S.sqrt_information(cov)
+    r, Ja, Jb = S.between_residuals(xa, xb, u, W)
+    for k in range(40):
+        f = gtsam.BetweenFactorPose2(X(0), X(1), gtsam.Pose2(*u[k]), gtsam.noiseModel.Gaussian.Covariance(cov[k]))
+        v = gtsam.Values()
+        v.insert(X(0), gtsam.Pose2(*xa[k]))
+        v.insert(X(1), gtsam.Pose2(*xb[k]))
+        assert 0.5 * r[k] @ r[k] == pytest.approx(f.error(v), rel=1e-9)
+    np.testing.assert_allclose(Ja, _numerical(lambda x: S.between_residuals(x, xb, u, W, jacobians=False)[0], xa), atol=1e-6)
+    np.testing.assert_allclose(Jb, _numerical(lambda x: S.between_residuals(xa, x, u, W, jacobians=False)[0], xb), atol=1e-6)
+
+
+def test_range_factor_equals_gtsam_dead_zone_and_its_hessian_the_numerical_one() -> None:
+    rng = np.random.default_rng(2)
+    xa, xb = _poses(rng, 30)
+    sigma, d0 = 0.7, 1.0
+    r, Ja, Jb = S.range_residuals(xa, xb, sigma, d0)
+    noise = gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.L2WithDeadZone(d0 / sigma), gtsam.noiseModel.Isotropic.Sigma(1, sigma)
+    )
+    for k in range(30):
+        v = gtsam.Values()
+        v.insert(X(0), gtsam.Pose2(*xa[k]))
+        v.insert(X(1), gtsam.Pose2(*xb[k]))
+        assert 0.5 * r[k] ** 2 == pytest.approx(gtsam.RangeFactorPose2(X(0), X(1), 0.0, noise).error(v), abs=1e-12)
+    def grad_b(x: np.ndarray) -> np.ndarray:  # d(0.5 r^2)/d(pose b) = r J_b
+        rr, _, jb = S.range_residuals(xa, x, sigma, d0)
+        return rr[:, None] * jb
+
+    np.testing.assert_allclose(S.range_hessian(xa, xb, r, Jb, sigma), _numerical(grad_b, xb), atol=1e-5)
+    np.testing.assert_allclose(Ja, -Jb)
+
+
+def test_normal_equations_equal_the_dense_products() -> None:
+    rng = np.random.default_rng(3)
+    n_vars, m = 6, 15
+    va = rng.integers(-1, n_vars, m)  # -1: the fixed reference
+    vb = (va + 1 + rng.integers(0, n_vars - 1, m)) % n_vars
+    Ja, Jb, res = rng.normal(size=(m, 3, 3)), rng.normal(size=(m, 3, 3)), rng.normal(size=(m, 3))
+    ne = S._NormalEquations(n_vars, va, vb)
+    tr = lambda a: np.transpose(a, (0, 2, 1))
+    H, g = ne.assemble(tr(Ja) @ Ja, tr(Jb) @ Jb, tr(Ja) @ Jb, (tr(Ja) @ res[:, :, None])[..., 0], (tr(Jb) @ res[:, :, None])[..., 0])
+    J = np.zeros((3 * m, 3 * n_vars))
+    for k in range(m):
+        for v, Jk in ((va[k], Ja[k]), (vb[k], Jb[k])):
+            if v >= 0:
+                J[3 * k : 3 * k + 3, 3 * v : 3 * v + 3] = Jk
+    upper = np.zeros((3 * n_vars, 3 * n_vars))
+    rows = np.repeat(np.arange(3 * n_vars), np.diff(ne.indptr))
+    upper[rows, ne.indices] = H
+    np.testing.assert_allclose(upper, np.triu(J.T @ J), atol=1e-12)
+    np.testing.assert_allclose(g, J.T @ res.ravel(), atol=1e-12)
+    x = rng.normal(size=3 * n_vars)
+    np.testing.assert_allclose(S._sym_matvec(ne, H, x), J.T @ J @ x, atol=1e-10)
+
+
+def test_reaches_gtsam_minimum_with_one_factorisation_per_iteration() -> None:
+    survey = two_walks()
+    cfg_p = CFG.model_copy(update={"optimizer": CFG.optimizer.model_copy(update={"solver": "pardiso"})})
+    cfg_g = CFG.model_copy(update={"optimizer": CFG.optimizer.model_copy(update={"solver": "gtsam"})})
+    problem = build_problem(survey, cfg_p)
+    p, g = solve(problem, cfg_p), solve(problem, cfg_g)
+    assert p.converged and g.converged
+    assert p.final_error <= g.final_error * (1 + 1e-3) + 1e-6
+    # the valley is flat (total error 0.08): both stop within a few cm of each other
+    np.testing.assert_allclose(p.node_xyh[:, :2], g.node_xyh[:, :2], atol=0.05)
+    # the reference node is held exactly where the initialisation put it
+    r0 = problem.reference_node
+    np.testing.assert_array_equal(p.node_xyh[r0], problem.init_xyh[r0])
+    # every LM run: one factorisation per iteration when no step is rejected
+    graph, _ = pose_graph(problem, cfg_p)
+    active = np.ones(len(problem.wifi_pairs), bool)
+    res = S.levenberg_marquardt(graph, problem.init_xyh, active)
+    assert res.converged and res.error < res.initial_error
+    assert res.factorizations <= res.iterations + 2
+
+
+def test_an_unfinite_start_is_an_error() -> None:
+    problem = build_problem(two_walks(), CFG)
+    graph, _ = pose_graph(problem, CFG)
+    bad = problem.init_xyh.copy()
+    bad[graph.variables[3]] = np.nan
+    with pytest.raises(SolverError, match="not finite"):
+        S.levenberg_marquardt(graph, bad, np.ones(len(problem.wifi_pairs), bool))
+
+
+def test_auto_falls_back_to_gtsam_where_mkl_does_not_load(monkeypatch: pytest.MonkeyPatch) -> None:
+    from graphslam.core.survey.align import use_pardiso
+
+    assert use_pardiso(CFG)  # MKL loads here (the module is skipped otherwise)
+
+    def no_mkl() -> None:
+        raise OSError("MKL runtime (libmkl_rt) not found")
+
+    monkeypatch.setattr(S, "_mkl_runtime", no_mkl)
+    assert not S.pardiso_available() and not use_pardiso(CFG)
+    gtsam_cfg = CFG.model_copy(update={"optimizer": CFG.optimizer.model_copy(update={"solver": "gtsam"})})
+    assert not use_pardiso(gtsam_cfg)
+
+
+def test_a_graph_of_the_reference_pose_alone_is_already_solved() -> None:
+    problem = build_problem(two_walks(), CFG)
+    graph, _ = pose_graph(problem, CFG)
+    lonely = replace(graph, variables=graph.variables[:0], between_pairs=graph.between_pairs[:0],
+                     between_measured=graph.between_measured[:0], between_sqrt_info=graph.between_sqrt_info[:0],
+                     range_pairs=graph.range_pairs[:0])
+    res = S.levenberg_marquardt(lonely, problem.init_xyh, np.zeros(0, bool))
+    assert res.converged and res.iterations == 0 and res.error == 0.0
+    np.testing.assert_array_equal(res.xyh, problem.init_xyh)

@@ -1,0 +1,159 @@
+"""`graphslam survey --update`: new walks joined to a solved floor (issue 18).
+
+A simulated crowd floor: 11 walks surveyed first, a 12th walk arrives later.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import run_cli as _run
+
+from graphslam.config import GraphSlamConfig
+from graphslam.core.survey import incremental as inc
+from graphslam.core.survey.align import build_problem, solve
+from graphslam.core.types import Survey
+from graphslam.io.csv_io import read_trajectories
+from graphslam.io.mcap_writer import write_session
+from graphslam.io.survey_state import STATE_FILE, read_survey_state
+from graphslam.sim import simulate
+
+
+@pytest.fixture(scope="module")
+def floor(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """Recordings of 12 walks (old/ holds the first 11), and the 11-walk survey's output."""
+    root = tmp_path_factory.mktemp("update")
+    sim = simulate("crowd", seed=0, size=0.25)
+    (root / "old").mkdir()
+    (root / "all").mkdir()
+    for k, s in enumerate(sim.survey):
+        write_session(s, root / "all" / f"{s.session_id}.mcap")
+        if k < len(sim.survey) - 1:
+            shutil.copy(root / "all" / f"{s.session_id}.mcap", root / "old")
+    assert _run(["survey", str(root / "old"), "--out", str(root / "prev"), "--no-progress"]) == 0
+    return {"root": root, "sim": sim, "new": sim.survey.sessions[-1].session_id}
+
+
+def test_update_edges_equal_a_full_recomputation(floor: dict) -> None:
+    survey = floor["sim"].survey
+    cfg = GraphSlamConfig()
+    old = Survey(survey.sessions[:-1])
+    al_old = solve(build_problem(old, cfg), cfg)
+    fp = al_old.fingerprints
+    prev = inc.PreviousSolution(
+        tuple(s.session_id for s in old), tuple(inc.session_digest(s) for s in old),
+        np.array([s.session_id in al_old.tracks for s in old]), fp.offsets, al_old.node_xyh,
+        np.column_stack([fp.session[al_old.edges.i], fp.session[al_old.edges.j]]),
+        np.column_stack([fp.scan[al_old.edges.i], fp.scan[al_old.edges.j]]), al_old.edges.candidates,
+        al_old.reference, cfg.model_dump_json(), None,
+    )
+    full = build_problem(survey, cfg)
+    warm = inc.warm_start(prev, survey, hops=1)
+    upd = build_problem(survey, cfg, warm)
+    # the same pairs, distances and candidate count as comparing every fingerprint with every other
+    assert len(full.edges) > len(al_old.edges)
+    np.testing.assert_array_equal(upd.edges.i, full.edges.i)
+    np.testing.assert_array_equal(upd.edges.j, full.edges.j)
+    np.testing.assert_allclose(upd.edges.rss_distance, full.edges.rss_distance, rtol=1e-9)
+    np.testing.assert_array_equal(upd.edges.common_aps, full.edges.common_aps)
+    assert upd.edges.candidates == full.edges.candidates
+    # the new walk is free, and so is a neighbourhood, but not the whole floor
+    n_new = len(survey.sessions[-1].steps)
+    assert upd.free is not None and upd.free[-n_new:].all()
+    assert n_new < upd.free.sum() < len(upd.free)
+    # more hops, a larger part re-solved (monotone)
+    bigger = build_problem(survey, cfg, inc.warm_start(prev, survey, hops=3))
+    assert (bigger.free >= upd.free).all() and bigger.free.sum() > upd.free.sum()
+    # solved walks start from their previous solution, exactly
+    np.testing.assert_array_equal(upd.init_xyh[: len(al_old.node_xyh)][warm.solved[: len(al_old.node_xyh)]],
+                                  al_old.node_xyh[warm.solved[: len(al_old.node_xyh)]])
+
+
+def test_cli_update_rewrites_a_consistent_set(floor: dict) -> None:
+    root = floor["root"]
+    out = root / "upd"
+    assert _run(["survey", str(root / "all"), "--out", str(out), "--update", str(root / "prev"), "--no-progress"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    u = rep["update"]
+    assert u["mode"] == "incremental" and u["reason"] is None
+    assert u["new_walks"] == [floor["new"]]
+    res = u["resolved"]
+    assert 0 < res["nodes"] < res["of_nodes"] == rep["nodes"]
+    assert res["edges_added"] > 0
+    # every output describes the 12-walk floor
+    state = read_survey_state(out / STATE_FILE)
+    assert floor["new"] in state.session_ids and len(state.session_ids) == 12
+    tracks = read_trajectories(out / "trajectories.csv")
+    assert set(tracks) == {sid for sid, ok in zip(state.session_ids, state.aligned) if ok}
+    from graphslam.io.radiomap_io import read_radio_map
+
+    rm = read_radio_map(out / "radio_map.parquet")
+    assert floor["new"] in set(rm.session_ids.tolist())
+    # a walk the update did not touch keeps its previous trajectory
+    prev_tracks = read_trajectories(root / "prev" / "trajectories.csv")
+    untouched = [sid for sid in prev_tracks if sid not in res["walks"]]
+    touched = [sid for sid in res["walks"] if sid in prev_tracks]
+    assert touched
+    for sid in untouched:
+        np.testing.assert_array_equal(tracks[sid].xy, prev_tracks[sid].xy)
+    # walks it touched moved only in part: some of their steps are exactly where they were
+    same = [np.mean(np.all(tracks[s].xy == prev_tracks[s].xy, axis=1)) for s in touched]
+    assert max(same) > 0
+    # the frame is kept: the reference walk is the previous one's
+    assert rep["reference_session"] == json.loads((root / "prev" / "report.json").read_text())["reference_session"]
+    ev = rep["evaluation"]["landmarks"]
+    assert np.isfinite(ev["mean_m"])
+
+
+def test_update_with_a_changed_configuration_or_walk_is_a_full_resolve(floor: dict, tmp_path: Path) -> None:
+    root = floor["root"]
+    out = tmp_path / "cfg"
+    assert _run(["survey", str(root / "all"), "--out", str(out), "--update", str(root / "prev"), "--no-progress",
+                 "--set", "wifi.d_min_m=2"]) == 0
+    u = json.loads((out / "report.json").read_text())["update"]
+    assert u["mode"] == "full" and "wifi.d_min_m 1.0 -> 2.0" in u["reason"]
+    # a walk whose scans changed since the previous survey
+    changed = tmp_path / "changed"
+    shutil.copytree(root / "all", changed)
+    s0 = floor["sim"].survey.sessions[0]
+    from graphslam.core.types import Scan, Session
+
+    scans = tuple(Scan(sc.t_ns, {b: r - 1.0 for b, r in sc.readings.items()}) for sc in s0.scans)
+    write_session(Session(s0.session_id, s0.steps, scans, s0.landmarks, s0.ground_truth, s0.site, s0.floor),
+                  changed / f"{s0.session_id}.mcap")
+    out = tmp_path / "walk"
+    assert _run(["survey", str(changed), "--out", str(out), "--update", str(root / "prev"), "--no-progress"]) == 0
+    u = json.loads((out / "report.json").read_text())["update"]
+    assert u["mode"] == "full" and s0.session_id in u["reason"] and "changed" in u["reason"]
+    # a walk of the previous survey that is gone
+    (changed / f"{s0.session_id}.mcap").unlink()
+    out = tmp_path / "gone"
+    assert _run(["survey", str(changed), "--out", str(out), "--update", str(root / "prev"), "--no-progress"]) == 0
+    u = json.loads((out / "report.json").read_text())["update"]
+    assert u["mode"] == "full" and s0.session_id in u["reason"] and "not among" in u["reason"]
+
+
+def test_update_from_a_bad_previous_output_is_one_line_exit_2(
+    floor: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    root = floor["root"]
+    args = ["survey", str(root / "all"), "--no-progress", "--update"]
+    # not a survey output
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert _run(args + [str(empty), "--out", str(tmp_path / "o1")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and STATE_FILE in err and "not the output folder" in err
+    # a truncated state file
+    broken = tmp_path / "broken"
+    shutil.copytree(root / "prev", broken)
+    data = (broken / STATE_FILE).read_bytes()
+    (broken / STATE_FILE).write_bytes(data[: len(data) // 2])
+    assert _run(args + [str(broken), "--out", str(tmp_path / "o2")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and str(broken / STATE_FILE) in err and "unreadable" in err
+    assert not (tmp_path / "o1").exists() and not (tmp_path / "o2").exists()
