@@ -708,13 +708,17 @@ def track(
         None, "--ap-models", help="AP models JSON (default: ap_models.json beside the map, else fitted now)."
     ),
     smooth: str = typer.Option(
-        "none", "--smooth", help="Offline, whole session: none (causal filter), rts, or map (whole-run MAP)."
+        "none", "--smooth", help="Offline, whole session: none (the online tracker), rts, or map (whole-run MAP)."
     ),
     knn_fixes: bool = typer.Option(
         True, "--knn-fixes/--no-knn-fixes", help="Also fuse each scan's kNN fix on the radio map (--no-knn-fixes: the papers' RSSI-only model)."
     ),
     adaptive_rssi: bool = typer.Option(
         True, "--adaptive-rssi/--no-adaptive-rssi", help="Inflate a scan's RSSI noise when its innovations disagree."
+    ),
+    self_calibrate: bool = typer.Option(
+        True, "--self-calibrate/--no-self-calibrate",
+        help="Measure the kNN fix noise, RSSI variance and covariance scale on the radio map itself (docs/tracking.md).",
     ),
     picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: the tracks (and truth)."),
 ) -> None:
@@ -724,13 +728,16 @@ def track(
 
     limit_blas_threads(1)  # thousands of tiny solves: OpenBLAS threads only slow them down
 
-    cfg = TrackConfig(filter=filter_, lag_s=lag, smoother=smooth, knn_fixes=knn_fixes, adaptive_rssi=adaptive_rssi)
+    cfg = TrackConfig(
+        filter=filter_, lag_s=lag, smoother=smooth, knn_fixes=knn_fixes, adaptive_rssi=adaptive_rssi,
+        self_calibrate=self_calibrate,
+    )
     run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg)
     shown = {}
     if picture:
         from graphslam.app.pictures import write_track_picture
 
-        label = filter_ + ("" if smooth == "none" else f" + {smooth} smoother")
+        label = (f"fixed-lag {lag:g} s" if filter_ == "fixed-lag" else filter_) if smooth == "none" else f"{filter_} + {smooth} smoother"
         shown["picture"] = str(write_track_picture(run, radio_map, sessions, out.with_suffix(".png"), label))
     typer.echo(json.dumps(run.as_dict() | shown))
 

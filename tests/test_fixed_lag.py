@@ -113,3 +113,31 @@ def test_the_bank_reports_the_start_that_explains_the_fixes():
 def test_config_rejects_a_window_shorter_than_the_lag():
     with pytest.raises(EstimationError, match="lag"):
         FixedLagConfig(lag_s=3.0, window_s=1.0)
+
+
+def test_normal_equations_and_one_epoch_marginal_match_the_sparse_algebra():
+    # The fixed-lag path assembles J^T W J without a sparse matrix and takes one epoch's marginal
+    # by a banded solve: both must equal the plain sparse products (robust weights on, RSSI rows in).
+    base = FusionModel.paper_ekf()
+    m = FusionModel(base.path_loss, base.q_diag * 1e3, np.full(2, 0.01), base.r_rssi, theta_rad=0.1)
+    rng = np.random.default_rng(7)
+    e0 = _epochs()
+    rss_k = np.repeat(np.arange(0, len(e0), 3), 2)
+    e = Epochs(
+        e0.t_s, e0.vel_k, e0.vel_y, rss_k, rng.integers(0, 4, len(rss_k)), rng.normal(-60.0, 8.0, len(rss_k)),
+        e0.fix_k, e0.fix_xy, e0.fix_sigma, rng.uniform(1.0, 2.0, len(rss_k)),
+    )
+    p = MapProblem(m, X0, P0, e, huber_k=1.0)
+    X = X0 + rng.normal(0.0, 0.5, (len(e), len(X0)))
+    r = p.residual(X.ravel())
+    assert (p.weights(r) < 1.0).any()  # some rows are down-weighted: the test covers IRLS
+    band, g = p.normal_equations(X, r)
+    sw = p.weights(r)
+    import scipy.sparse as sp
+
+    J = sp.diags(sw) @ p.jacobian(X)
+    np.testing.assert_allclose(band, p.banded(J.T @ J), rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(g, J.T @ (sw * r), rtol=1e-10, atol=1e-10)
+    full = p.marginals(X)
+    for k in (0, 11, len(e) - 1):
+        np.testing.assert_allclose(p.marginal(X, k), full[k], rtol=1e-8, atol=1e-12)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -79,3 +81,57 @@ def test_rssi_variance_factor_is_one_for_independent_readings_and_grows_with_dup
     )
     f8 = rssi_variance_factor(rm8, _models(dup, np.repeat(APS, 8, axis=0)), np.full(len(dup), 4.0))
     assert 6.0 < f8 < 10.0, f8
+
+
+def _corridor_map(offset_m: float, seed: int = 3) -> RadioMap:
+    """Two walks along y = 10 with the same fingerprints, the second laid ``offset_m`` east."""
+    rng = np.random.default_rng(seed)
+    xy = np.column_stack([np.linspace(0, 30, 40), np.full(40, 10.0)])
+    scans = [{f"ap{j}": float(r[j]) for j in range(len(APS))} for r in _rss(xy) + rng.normal(0, 1.0, (40, len(APS)))]
+    t = [int(2e9 * i) for i in range(40)]
+    return RadioMap.from_scans(
+        scans + scans, np.vstack([xy, xy + [offset_m, 0.0]]), session_ids=["a"] * 40 + ["b"] * 40, t_ns=t + t, frame="site",
+    )
+
+
+def test_self_calibration_takes_the_fix_noise_from_the_map_and_keeps_the_configured_floor_otherwise():
+    from graphslam.app.track import TrackConfig, Tracker
+
+    names = [f"ap{j}" for j in range(len(APS))]
+    cfg = TrackConfig(replay_sessions=0)
+    far = Tracker.on_map(_corridor_map(6.0), _models(names, APS), cfg)
+    assert far.cfg.fix_sigma_floor_m == pytest.approx(6.0 / 1.1774, rel=0.05)  # the maps' sessions disagree by 6 m
+    near = Tracker.on_map(_corridor_map(0.5), _models(names, APS), cfg)
+    assert near.cfg.fix_sigma_floor_m == cfg.fix_sigma_floor_m  # never below the configured floor
+    off = Tracker.on_map(_corridor_map(6.0), _models(names, APS), TrackConfig(self_calibrate=False))
+    assert off.cfg.fix_sigma_floor_m == cfg.fix_sigma_floor_m and off.cfg.covariance_scale == 1.0
+    assert (far.model.r_rssi >= off.model.r_rssi - 1e-12).all()  # RSSI variance only ever inflated
+
+
+def test_replay_scale_grows_when_the_tracker_claims_too_much_and_scales_the_reported_covariance():
+    # Replaying the map's own walks: a tracker told its fixes are good to 5 cm (and its RSSI to
+    # 0.1 dB) reports ellipses far too small for where the map says the walk was, so the factor is
+    # large; one told 20 m needs none (>= 1 by construction).
+    from graphslam.app.track import TrackConfig, fusion_model, replay_covariance_scale, track_session
+    from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
+
+    names = [f"ap{j}" for j in range(len(APS))]
+    rm, models = _corridor_map(1.0), _models(names, APS)
+    small = dict(replay_sessions=2, replay_max_scans=12, n_theta_hypotheses=2, self_calibrate=False)
+    tight = TrackConfig(fix_sigma_floor_m=0.05, rssi_sigma_floor_db=0.1, **small)
+    loose = TrackConfig(fix_sigma_floor_m=20.0, rssi_sigma_floor_db=30.0, **small)
+    s_tight = replay_covariance_scale(rm, fusion_model(_models(names, APS), tight), tight)
+    s_loose = replay_covariance_scale(rm, fusion_model(models, loose), loose)
+    assert s_tight > 5.0 and s_loose == pytest.approx(1.0), (s_tight, s_loose)
+    # covariance_scale multiplies the reported covariance and nothing else
+    from graphslam.core.types import PoseTrack, Scan, Session
+
+    v = rm.fingerprints.values.tocsr()
+    scans = tuple(Scan(int(rm.t_ns[i]), {rm.bssids[c]: float(x) + rm.missing_dbm for c, x in zip(v[i].indices, v[i].data)})
+                  for i in range(12))
+    walk = Session("w", PoseTrack(rm.t_ns[:12], rm.xy[:12] - rm.xy[0], np.zeros(12)), scans)
+    loc = KnnLocator(rm, KnnConfig(k=3))
+    a = track_session(walk, fusion_model(models, tight), loc, tight)
+    b = track_session(walk, fusion_model(models, tight), loc, dataclasses.replace(tight, covariance_scale=3.0))
+    np.testing.assert_allclose(b.x, a.x)
+    np.testing.assert_allclose(b.P, 3.0 * a.P)

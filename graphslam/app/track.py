@@ -66,7 +66,7 @@ TRACKERS = ("fixed-lag", "ekf", "ukf")
 class TrackConfig:
     """Filter settings for walking people (SI units; process noise per second)."""
 
-    filter: str = "ekf"  # fixed-lag | ekf | ukf
+    filter: str = "fixed-lag"  # fixed-lag (online, lag_s late) | ekf | ukf (causal)
     lag_s: float = 2.0  # fixed-lag: a step's position is reported once the data up to lag_s later are in
     window_s: float = 20.0  # fixed-lag: older epochs are marginalised into a prior
     prune_cost: float | None = 50.0  # fixed-lag: heading hypotheses this far above the best are dropped
@@ -89,11 +89,11 @@ class TrackConfig:
     fix_sigma_floor_m: float = 2.0  # a fix's std = max(kNN neighbour spread, this)
     adaptive_rssi: bool = True  # inflate a scan's RSSI noise when its innovations say so
     rssi: bool = True  # fuse the RSSI readings through the AP models (False: steps and kNN fixes only)
-    replay_sessions: int = 0  # self-calibration: replay this many map walks to scale the covariance (0: off)
+    replay_sessions: int = 20  # self-calibration: replay this many map walks to scale the covariance (0: off)
     replay_max_scans: int = 40  # self-calibration: replayed segments hold at most this many scans
     replay_seed: int = 0
     covariance_scale: float = 1.0  # reported covariances are multiplied by this (set by self-calibration)
-    self_calibrate: bool = False  # RSSI variance and kNN fix floor measured on the map (self_calibrated)
+    self_calibrate: bool = True  # RSSI variance and kNN fix floor measured on the map (self_calibrated)
     smoother: str = "none"  # none | rts | map (offline: uses the whole session)
 
     def __post_init__(self) -> None:
