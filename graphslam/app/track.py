@@ -70,7 +70,7 @@ class TrackConfig:
     lag_s: float = 2.0  # fixed-lag: a step's position is reported once the data up to lag_s later are in
     window_s: float = 20.0  # fixed-lag: older epochs are marginalised into a prior
     prune_cost: float | None = 50.0  # fixed-lag: heading hypotheses this far above the best are dropped
-    calibrate_covariance: bool = False  # fixed-lag: covariances scaled by the fix-innovation variance factor
+    calibrate_covariance: bool = True  # fixed-lag: covariances also scaled by the walk's own fix-innovation variance factor
     w0: float = 0.1  # UKF weight of the central sigma point (Paper 002's value)
     velocity_sigma_mps: float = 0.15  # step-velocity noise per axis
     q_position: float = 0.01  # m^2/s

@@ -207,11 +207,13 @@ def tracking_real(
                 else:
                     rm, survey_info = crowdsourced_map(train, cfg)
                     info.update(survey_info)
-            except GraphSlamError as e:
+                models = ApModels.fit(rm)
+                models.path_loss()  # EstimationError when no AP could be fitted
+            except GraphSlamError as e:  # the fold is left out for every variant, kNN included
+                log.warning("tracking-real: %s map of %s: %s", kind, name, e)
                 info["error"] = str(e)
                 per_fold.append(info)
                 continue
-            models = ApModels.fit(rm)
             res = score_walks(rm, models, [walks[i] for i in test], variants)
             for v, d in res.items():
                 for key, vals in d.items():
