@@ -411,7 +411,10 @@ def replay_covariance_scale(rm: RadioMap, model: FusionModel, cfg: TrackConfig) 
     ids = rng.permutation(ids)
     bssids, missing = rm.bssids, rm.missing_dbm
     d2 = []
+    task = Task("track: self-calibration replay", total=cfg.replay_sessions, unit="segments")
     for n in range(cfg.replay_sessions):  # round robin over the walks: long walks give several segments
+        if n:
+            task.advance()
         sid = ids[n % len(ids)]
         own = np.flatnonzero(rm.session_ids == sid)
         own = own[np.argsort(rm.t_ns[own], kind="stable")]
@@ -439,6 +442,8 @@ def replay_covariance_scale(rm: RadioMap, model: FusionModel, cfg: TrackConfig) 
         except EstimationError:
             continue
         d2.append(mahalanobis_sq(tr.xy - xy, tr.P[:, :2, :2]))
+    task.advance()
+    task.end()
     if not d2:
         return 1.0
     return max(1.0, float(np.percentile(np.concatenate(d2), 95)) / CHI2_2DOF_95)
