@@ -699,13 +699,16 @@ def fit_aps(
 def track(
     sessions: List[Path] = typer.Argument(..., help="Session recordings (.mcap) or folders of them."),
     radio_map: Path = typer.Option(..., "--radio-map", help="Radio map (.parquet); positions come out in its frame."),
-    filter_: str = typer.Option("ekf", "--filter", help="ekf or ukf."),
+    filter_: str = typer.Option(
+        "fixed-lag", "--filter", help="fixed-lag (online, reports each step --lag s late), or the causal ekf / ukf."
+    ),
+    lag: float = typer.Option(2.0, "--lag", min=0.0, help="fixed-lag: latency in s (a step is reported once the data up to lag s later are in)."),
     out: Path = typer.Option(..., "--out", help="Output CSV: one row per step (t_ns, x, y, covariance, ...)."),
     ap_models: Optional[Path] = typer.Option(
         None, "--ap-models", help="AP models JSON (default: ap_models.json beside the map, else fitted now)."
     ),
     smooth: str = typer.Option(
-        "none", "--smooth", help="Offline, whole session: none (causal filter), rts, or map (whole-run MAP)."
+        "none", "--smooth", help="Offline, whole session: none (the online tracker), rts, or map (whole-run MAP)."
     ),
     knn_fixes: bool = typer.Option(
         True, "--knn-fixes/--no-knn-fixes", help="Also fuse each scan's kNN fix on the radio map (--no-knn-fixes: the papers' RSSI-only model)."
@@ -713,18 +716,28 @@ def track(
     adaptive_rssi: bool = typer.Option(
         True, "--adaptive-rssi/--no-adaptive-rssi", help="Inflate a scan's RSSI noise when its innovations disagree."
     ),
+    self_calibrate: bool = typer.Option(
+        True, "--self-calibrate/--no-self-calibrate",
+        help="Measure the kNN fix noise, RSSI variance and covariance scale on the radio map itself (docs/tracking.md).",
+    ),
     picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: the tracks (and truth)."),
 ) -> None:
-    """Track walks on a radio map: EKF/UKF fusion of step velocity and WiFi RSSI (Papers 000/002)."""
+    """Track walks on a radio map: fusion of step velocity, WiFi RSSI and kNN fixes (fixed-lag MAP, or EKF/UKF)."""
     from graphslam.app.track import TrackConfig, track_files
+    from graphslam.core.radiomap.ivf import limit_blas_threads
 
-    cfg = TrackConfig(filter=filter_, smoother=smooth, knn_fixes=knn_fixes, adaptive_rssi=adaptive_rssi)
+    limit_blas_threads(1)  # thousands of tiny solves: OpenBLAS threads only slow them down
+
+    cfg = TrackConfig(
+        filter=filter_, lag_s=lag, smoother=smooth, knn_fixes=knn_fixes, adaptive_rssi=adaptive_rssi,
+        self_calibrate=self_calibrate,
+    )
     run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg)
     shown = {}
     if picture:
         from graphslam.app.pictures import write_track_picture
 
-        label = filter_ + ("" if smooth == "none" else f" + {smooth} smoother")
+        label = (f"fixed-lag {lag:g} s" if filter_ == "fixed-lag" else filter_) if smooth == "none" else f"{filter_} + {smooth} smoother"
         shown["picture"] = str(write_track_picture(run, radio_map, sessions, out.with_suffix(".png"), label))
     typer.echo(json.dumps(run.as_dict() | shown))
 
@@ -735,11 +748,20 @@ def bench_filters(
     shadowing_db: Optional[float] = typer.Option(None, help="Override the 4 dB shadowing std (sensitivity)."),
     plot_dir: Optional[Path] = typer.Option(None, help="Write tracking_cart_{ekf,ukf}.png here (first seed)."),
     smoothers: str = typer.Option("rts,map", help="Offline smoothers also reported (comma-separated; '' for none)."),
+    lags: str = typer.Option("2", help="Fixed-lag smoother latencies also reported (s, comma-separated; '' for none)."),
+    window: float = typer.Option(480.0, min=0.0, help="Fixed-lag window (s): older epochs are marginalised."),
+    restart_every: int = typer.Option(10, min=0, help="Fixed-lag: also solve from dead-reckoning starts every N epochs (0: never)."),
 ) -> None:
     """The filter papers' experiment simulated: RMS error in x and y of EKF and UKF (and smoothed) over seeds."""
     from graphslam.app.bench import filters_cart
+    from graphslam.core.radiomap.ivf import limit_blas_threads
 
-    res = filters_cart(_seeds(seeds), shadowing_db=shadowing_db, plot_dir=plot_dir, smoothers=_smoothers(smoothers))
+    limit_blas_threads(1)
+
+    res = filters_cart(
+        _seeds(seeds), shadowing_db=shadowing_db, plot_dir=plot_dir, smoothers=_smoothers(smoothers),
+        lags=[float(x) for x in lags.split(",") if x.strip()], window_s=window, restart_every=restart_every,
+    )
     typer.echo(json.dumps(res))
 
 
@@ -751,13 +773,42 @@ def bench_tracking(
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
     smoothers: str = typer.Option("", help="Offline smoothers also reported, e.g. 'rts,map' (default none)."),
     knn_fixes: bool = typer.Option(False, "--knn-fixes", help="Also report every variant with kNN fixes fused."),
+    lags: str = typer.Option("", help="Also report the fixed-lag tracker at these latencies (s, comma-separated)."),
 ) -> None:
     """Held-out walks: EKF/UKF tracking vs kNN (mean error); AP position error vs the simulator."""
     from graphslam.app.bench import tracking_paper
+    from graphslam.core.radiomap.ivf import limit_blas_threads
 
+    limit_blas_threads(1)
     res = tracking_paper(
         scenario, _seeds(seeds), _config(config, None), test_walks=test_walks, smoothers=_smoothers(smoothers),
-        knn_fixes=knn_fixes,
+        knn_fixes=knn_fixes, lags=[float(x) for x in lags.split(",") if x.strip()],
+    )
+    typer.echo(json.dumps(res))
+
+
+@bench_app.command("tracking-real")
+def bench_tracking_real(
+    folder: Path = typer.Argument(..., help="Folder of real recordings with /landmarks (e.g. ../shared/data/ipin2023/b100_f-2)."),
+    maps: str = typer.Option("oracle,crowdsourced", help="Radio maps to build per fold: oracle, crowdsourced."),
+    lags: str = typer.Option("0,1,2", help="Fixed-lag tracker latencies to report (s, comma-separated)."),
+    filters: str = typer.Option("ekf", help="Causal filters also reported (ekf, ukf; '' for none)."),
+    smoothers: str = typer.Option("", help="Offline whole-session smoothers also reported (rts, map)."),
+    folds: Optional[int] = typer.Option(None, help="Seeded random folds (default: leave one route out when file names name routes, else 5)."),
+    seed: int = typer.Option(0, help="Seed of the random folds."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="Survey configuration (crowdsourced map)."),
+    set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a survey config value."),
+) -> None:
+    """Held-out real walks tracked on a map of the other walks vs kNN: mean/median/p75/p90, 95 % ellipse coverage."""
+    from graphslam.app.tracking_bench import standard_variants, tracking_real
+    from graphslam.core.radiomap.ivf import limit_blas_threads
+
+    limit_blas_threads(1)
+    variants = standard_variants(
+        [float(x) for x in lags.split(",") if x.strip()], [f for f in filters.split(",") if f.strip()], _smoothers(smoothers)
+    )
+    res = tracking_real(
+        folder, _config(config, set_), variants, maps=[m for m in maps.split(",") if m.strip()], folds=folds, seed=seed
     )
     typer.echo(json.dumps(res))
 

@@ -124,7 +124,7 @@ def test_fit_aps_and_track_cli_end_to_end(tiny_case):
 
 
 @pytest.mark.parametrize(
-    ("option", "value", "message"), [("--filter", "pf", "ekf or ukf"), ("--smooth", "ks", "unknown smoother")]
+    ("option", "value", "message"), [("--filter", "pf", "fixed-lag, ekf, ukf"), ("--smooth", "ks", "unknown smoother")]
 )
 def test_track_cli_rejects_unknown_filter_or_smoother(tiny_case, capsys, option, value, message):
     from graphslam.cli import main
@@ -182,3 +182,21 @@ def test_track_skips_an_odometry_jump_instead_of_flying_off(tiny_case):
         err[limit] = np.linalg.norm(tr.xy[1:] - truth, axis=1)[len(truth) // 2 :].mean()
     assert err[3.0] < 4.0, err
     assert err[1e9] > 3 * err[3.0], err  # the guard is what keeps it on the map
+
+
+def test_track_cli_default_is_the_fixed_lag_tracker_and_rejects_a_negative_lag(tiny_case, capsys):
+    from graphslam.cli import main
+    from graphslam.core.survey.evaluate import interpolate_xy
+
+    d, session = tiny_case
+    out = d / "positions_lag.csv"
+    main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--lag", "1", "--out", str(out)])
+    rows = list(csv.DictReader(out.open()))
+    assert [int(r["t_ns"]) for r in rows] == session.steps.t_ns.tolist()
+    xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
+    err = np.linalg.norm(xy - interpolate_xy(session.ground_truth, session.steps.t_ns.astype(float)), axis=1)
+    assert err[len(err) // 2 :].mean() < 4.0, err.mean()
+    bad = d / "positions_neg.csv"
+    with pytest.raises(SystemExit) as e:
+        main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--lag", "-1", "--out", str(bad)])
+    assert e.value.code == 2 and "--lag" in capsys.readouterr().err and not bad.exists()

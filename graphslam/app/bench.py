@@ -264,6 +264,9 @@ def filters_cart(
     shadowing_db: float | None = None,
     plot_dir: Path | None = None,
     smoothers: Sequence[str] = ("rts", "map"),
+    lags: Sequence[float] = (),
+    window_s: float = 480.0,
+    restart_every: int = 10,
 ) -> dict[str, Any]:
     """The filter papers' experiment (cart, 5 rounds, 4 APs) simulated per seed; EKF with Paper 000's
     constants, UKF with Paper 002's (each paper's P0/gamma for truth and filter, their Q, R, x0, P0).
@@ -271,7 +274,10 @@ def filters_cart(
     RMS error in x and y per seed and estimator: the causal filter (``ekf``, ``ukf``) and, per
     name in ``smoothers``, the same run smoothed offline under the same model (``ekf+rts``,
     ``ekf+map``, ...; ``graphslam.core.tracking.smoother``); mean / median / p90 over seeds and the
-    number of seeds meeting the papers' figures. ``shadowing_db`` overrides the documented
+    number of seeds meeting the papers' figures. Per lag in ``lags`` (s), the fixed-lag smoother
+    under the same model (``{kind}+fixed-lag:LAG``: each epoch reported LAG s after it, from a
+    window of ``max(window_s, LAG)`` s, Gaussian losses, also solved from dead-reckoning starts
+    every ``restart_every`` epochs). ``shadowing_db`` overrides the documented
     default (4 dB) for a sensitivity sweep. ``plot_dir``: one PNG per filter (path, |error|,
     trace P) for the first seed.
     """
@@ -280,13 +286,16 @@ def filters_cart(
     import numpy as np
 
     from graphslam.core.tracking.filters import Epochs, FusionModel, make_filter, run_epochs
+    from graphslam.core.tracking.fixed_lag import FixedLagConfig, fixed_lag_smooth
     from graphslam.core.tracking.smoother import smooth
     from graphslam.sim.cart import PAPER_P0, PAPER_RMS_TARGETS_M, PAPER_X0, CartNoise, simulate_cart
 
     noise = CartNoise() if shadowing_db is None else dataclasses.replace(CartNoise(), shadowing_sigma_db=shadowing_db)
     out: dict[str, Any] = {"seeds": list(seeds), "noise": dataclasses.asdict(noise)}
     for kind, model in (("ekf", FusionModel.paper_ekf()), ("ukf", FusionModel.paper_ukf())):
-        rms: dict[str, list[tuple[float, float]]] = {kind: [], **{f"{kind}+{sm}": [] for sm in smoothers}}
+        rms: dict[str, list[tuple[float, float]]] = {
+            kind: [], **{f"{kind}+{sm}": [] for sm in smoothers}, **{f"{kind}+fixed-lag:{lag:g}": [] for lag in lags}
+        }
         tp, secs = [], {name: 0.0 for name in rms}
         for i, seed in enumerate(progress_over(seeds, f"bench filters {kind}", unit="seeds")):
             run = simulate_cart(seed, path_loss=model.path_loss, noise=noise)
@@ -299,6 +308,14 @@ def filters_cart(
                 t0 = time.perf_counter()
                 ests[f"{kind}+{sm}"] = smooth(model, PAPER_X0, PAPER_P0, epochs, res, sm).x
                 secs[f"{kind}+{sm}"] += time.perf_counter() - t0
+            for lag in lags:
+                t0 = time.perf_counter()
+                flc = FixedLagConfig(
+                    lag_s=float(lag), window_s=max(window_s, float(lag)), huber_k=None, prune_cost=None,
+                    restart_every=restart_every,
+                )
+                ests[f"{kind}+fixed-lag:{lag:g}"] = fixed_lag_smooth(model, [PAPER_X0], PAPER_P0, epochs, flc).x
+                secs[f"{kind}+fixed-lag:{lag:g}"] += time.perf_counter() - t0
             for name, X in ests.items():
                 e = X[:, :2] - run.xy
                 rms[name].append((float(np.sqrt(np.mean(e[:, 0] ** 2))), float(np.sqrt(np.mean(e[:, 1] ** 2)))))
@@ -335,11 +352,16 @@ def tracking_paper(
     filters: Sequence[str] = ("ekf", "ukf"),
     smoothers: Sequence[str] = (),
     knn_fixes: bool = False,
+    lags: Sequence[float] = (),
+    track_overrides: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Held-out walks tracked (EKF / UKF, AP models fitted from the crowdsourced radio map) vs kNN
     positioning of the same scans on the same map; AP position errors vs the simulator's APs.
     ``smoothers`` adds offline-smoothed variants, ``knn_fixes`` variants that also fuse each
-    scan's kNN fix.
+    scan's kNN fix, ``lags`` the fixed-lag tracker at each lag (s; named ``fixed-lag:LAG``, kNN
+    fixes fused, the other settings ``TrackConfig``'s defaults updated by ``track_overrides``).
+    Every tracker row also reports ``inside_95``: the share of scan-time errors inside its 95 %
+    position ellipse.
 
     The crowdsourced map is put into the site frame with the landmark SE(2) fit (evaluation only,
     as ``fig8``); errors at scan times (the tracker's step output interpolated there).
@@ -354,8 +376,18 @@ def tracking_paper(
     from graphslam.sim import simulate
     from graphslam.app.track import TrackConfig, track_sessions
 
-    variants = [(f, sm, fx) for fx in ((False, True) if knn_fixes else (False,)) for f in filters for sm in ("none", *smoothers)]
-    errs: dict[str, list] = {"knn": [], **{variant_name(*v): [] for v in variants}}
+    from graphslam.app.tracking_bench import interpolate_cov
+    from graphslam.core.tracking.calibration import ellipse_coverage
+
+    over = dict(track_overrides or {})
+    configs = {
+        variant_name(f, sm, fx): TrackConfig(**{**over, "filter": f, "smoother": sm, "knn_fixes": fx})
+        for fx in ((False, True) if knn_fixes else (False,)) for f in filters for sm in ("none", *smoothers)
+    }
+    for lag in lags:
+        configs[f"fixed-lag:{lag:g}"] = TrackConfig(**{**over, "filter": "fixed-lag", "lag_s": float(lag)})
+    errs: dict[str, list] = {"knn": [], **{name: [] for name in configs}}
+    inside: dict[str, list] = {name: [] for name in configs}
     ap_err, per_seed = [], []
     n_unfitted = 0
     for seed in progress_over(seeds, "bench tracking", unit="seeds"):
@@ -375,15 +407,16 @@ def tracking_paper(
         e = np.linalg.norm(knn.xy - truth, axis=1)
         errs["knn"].append(e[np.isfinite(e)])
         row["knn_mean_m"] = round(float(np.nanmean(e)), 3)
-        for f, sm, fx in variants:
-            name = variant_name(f, sm, fx)
+        for name, tcfg in configs.items():
             t0 = time.perf_counter()
-            tracks = track_sessions(sessions, rm, models, TrackConfig(filter=f, smoother=sm, knn_fixes=fx))
+            tracks = track_sessions(sessions, rm, models, tcfg)
             est = np.concatenate(
                 [interpolate_xy(PoseTrack(tr.t_ns, tr.xy, np.zeros(len(tr.t_ns))), t) for tr, t in zip(tracks, t_scan)]
             )
+            cov = np.concatenate([interpolate_cov(tr.t_ns, tr.P, t) for tr, t in zip(tracks, t_scan)])
             e = np.linalg.norm(est - truth, axis=1)
             errs[name].append(e)
+            inside[name].append(ellipse_coverage(est - truth, cov))
             row[f"{name}_mean_m"] = round(float(e.mean()), 3)
             row[f"{name}_s"] = round(time.perf_counter() - t0, 2)
         per_seed.append(row)
@@ -394,6 +427,8 @@ def tracking_paper(
             "n": int(a.size), "mean_m": round(float(a.mean()), 3), "median_m": round(float(np.median(a)), 3),
             "p90_m": round(float(np.percentile(a, 90)), 3),
         }
+        if name in inside:
+            out[name]["inside_95"] = round(float(np.concatenate(inside[name]).mean()), 3)
     a = np.concatenate(ap_err)
     out["ap_position_error"] = {
         "n_fitted": int(a.size), "n_unfitted": n_unfitted, "median_m": round(float(np.median(a)), 3),

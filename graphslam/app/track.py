@@ -30,6 +30,7 @@ smoothed trajectory (``hypothesis`` column constant).
 from __future__ import annotations
 
 import csv
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -45,6 +46,7 @@ from graphslam.core.tracking.filters import (
 )
 from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
 from graphslam.core.radiomap.radiomap import RadioMap
+from graphslam.core.tracking.fixed_lag import FixedLagConfig, fixed_lag_smooth
 from graphslam.core.tracking.smoother import SMOOTH_METHODS, smooth
 from graphslam.core.progress import Task
 from graphslam.core.types import Session
@@ -57,13 +59,18 @@ TRACK_HEADER = (
     "session_id", "t_ns", "x", "y", "cov_xx", "cov_xy", "cov_yy", "vx", "vy", "theta", "theta_std", "hypothesis",
 )
 _SWAP = np.array([[0.0, 1.0], [1.0, 0.0]])
+TRACKERS = ("fixed-lag", "ekf", "ukf")
 
 
 @dataclass(frozen=True)
 class TrackConfig:
     """Filter settings for walking people (SI units; process noise per second)."""
 
-    filter: str = "ekf"
+    filter: str = "fixed-lag"  # fixed-lag (online, lag_s late) | ekf | ukf (causal)
+    lag_s: float = 2.0  # fixed-lag: a step's position is reported once the data up to lag_s later are in
+    window_s: float = 20.0  # fixed-lag: older epochs are marginalised into a prior
+    prune_cost: float | None = 50.0  # fixed-lag: heading hypotheses this far above the best are dropped
+    calibrate_covariance: bool = True  # fixed-lag: covariances also scaled by the walk's own fix-innovation variance factor
     w0: float = 0.1  # UKF weight of the central sigma point (Paper 002's value)
     velocity_sigma_mps: float = 0.15  # step-velocity noise per axis
     q_position: float = 0.01  # m^2/s
@@ -81,11 +88,17 @@ class TrackConfig:
     knn_fixes: bool = True  # also fuse each scan's kNN fix on the radio map as a position reading
     fix_sigma_floor_m: float = 2.0  # a fix's std = max(kNN neighbour spread, this)
     adaptive_rssi: bool = True  # inflate a scan's RSSI noise when its innovations say so
+    rssi: bool = True  # fuse the RSSI readings through the AP models (False: steps and kNN fixes only)
+    replay_sessions: int = 20  # self-calibration: replay this many map walks to scale the covariance (0: off)
+    replay_max_scans: int = 40  # self-calibration: replayed segments hold at most this many scans
+    replay_seed: int = 0
+    covariance_scale: float = 1.0  # reported covariances are multiplied by this (set by self-calibration)
+    self_calibrate: bool = True  # RSSI variance and kNN fix floor measured on the map (self_calibrated)
     smoother: str = "none"  # none | rts | map (offline: uses the whole session)
 
     def __post_init__(self) -> None:
-        if self.filter not in ("ekf", "ukf"):
-            raise EstimationError(f"track: unknown filter {self.filter!r}; use ekf or ukf")
+        if self.filter not in TRACKERS:
+            raise EstimationError(f"track: unknown filter {self.filter!r}; use {', '.join(TRACKERS)}")
         if self.smoother != "none" and self.smoother not in SMOOTH_METHODS:
             raise EstimationError(f"track: unknown smoother {self.smoother!r}; use none, {', '.join(SMOOTH_METHODS)}")
         if self.n_theta_hypotheses < 1 or self.velocity_sigma_mps <= 0 or self.rssi_sigma_floor_db <= 0:
@@ -143,13 +156,16 @@ def fusion_model(models: ApModels, cfg: TrackConfig) -> FusionModel:
     )
 
 
-def _scan_measurements(session: Session, bssids: Sequence[str], min_rssi_dbm: float) -> list[tuple[int, NDArray, NDArray]]:
+def _scan_measurements(
+    session: Session, bssids: Sequence[str], min_rssi_dbm: float, use_rssi: bool = True
+) -> list[tuple[int, NDArray, NDArray]]:
+    """Per scan, in time order: (t_ns, AP rows, dBm) of its readings of modelled APs (empty arrays
+    when none, or when ``use_rssi`` is off): every scan is an epoch, for its kNN fix if nothing else."""
     index = {b: i for i, b in enumerate(bssids)}
     out = []
     for sc in sorted(session.scans, key=lambda s: s.t_ns):
-        pairs = sorted((index[b], r) for b, r in sc.readings.items() if b in index and r >= min_rssi_dbm)
-        if pairs:
-            out.append((sc.t_ns, np.array([p[0] for p in pairs], np.int64), np.array([p[1] for p in pairs])))
+        pairs = sorted((index[b], r) for b, r in sc.readings.items() if b in index and r >= min_rssi_dbm) if use_rssi else []
+        out.append((sc.t_ns, np.array([p[0] for p in pairs], np.int64), np.array([p[1] for p in pairs], float)))
     return out
 
 
@@ -158,13 +174,23 @@ def track_session(
     progress: Task | None = None,
 ) -> SessionTrack:
     """Track one session (see module docstring). ``EstimationError`` if it has < 2 steps or no scan
-    the radio map can locate. ``progress`` advances by one per step."""
+    the radio map can locate. Covariances come out multiplied by ``cfg.covariance_scale``;
+    ``progress`` advances by one per step."""
+    tr = _track_session(session, model, locator, cfg, progress)
+    if cfg.covariance_scale == 1.0:
+        return tr
+    return dataclasses.replace(tr, P=tr.P * cfg.covariance_scale)
+
+
+def _track_session(
+    session: Session, model: FusionModel, locator: KnnLocator, cfg: TrackConfig, progress: Task | None
+) -> SessionTrack:
     steps = session.steps
     if len(steps) < 2:
         raise EstimationError(f"track: session {session.session_id} has {len(steps)} steps (need 2)")
-    filt: KalmanFilter = make_filter(cfg.filter, model, w0=cfg.w0)
+    filt: KalmanFilter = make_filter("ekf" if cfg.filter == "fixed-lag" else cfg.filter, model, w0=cfg.w0)
     bssids = model.path_loss.bssids
-    meas = _scan_measurements(session, bssids, locator.radio_map.min_rssi_dbm)
+    meas = _scan_measurements(session, bssids, locator.radio_map.min_rssi_dbm, cfg.rssi)
     fix = locator.locate([sc.readings for sc in session.scans]) if session.scans else None
     ok = np.flatnonzero(fix.valid) if fix is not None else np.zeros(0, int)
     if not len(ok):
@@ -187,7 +213,13 @@ def track_session(
         [cfg.init_position_sigma_m**2] * 2 + [cfg.init_velocity_sigma_mps**2] * 2
         + [cfg.init_bias_sigma_mps**2] * 2 + [(math.pi / H) ** 2]
     )
-    states = [GaussianState(np.array([p0[0], p0[1], 0, 0, 0, 0, 2 * math.pi * h / H]), P0) for h in range(H)]
+    starts = [np.array([p0[0], p0[1], 0, 0, 0, 0, 2 * math.pi * h / H]) for h in range(H)]
+    if cfg.filter == "fixed-lag" and cfg.smoother == "none":
+        tr = _track_fixed_lag(session.session_id, model, starts, P0, t, y_v, walked, meas, fixes, cfg)
+        if progress is not None:
+            progress.advance(len(t))
+        return tr
+    states = [GaussianState(x0, P0) for x0 in starts]
     ll = np.zeros(H)
     penalty = 0.5 * cfg.gate_sigma**2  # a gated reading costs at least what a 'gate_sigma' one would
     xs, Ps, best = [], [], []
@@ -243,6 +275,31 @@ def track_session(
     )
 
 
+def _track_fixed_lag(
+    session_id: str, model: FusionModel, starts: list[NDArray], P0: NDArray, t: NDArray[np.int64], y_v: NDArray,
+    walked: NDArray[np.bool_], meas: Sequence[tuple[int, NDArray, NDArray]], fixes: dict[int, tuple[NDArray, float]],
+    cfg: TrackConfig,
+) -> SessionTrack:
+    """The fixed-lag smoother over the session's epochs; a step interval's velocity is known at its
+    end step (``vel_available_s``), so a lag of 0 reports each step from the data up to it."""
+    epochs, step_epoch = _session_epochs(t, y_v, walked, meas, fixes)
+    avail = epochs.t_s[step_epoch[1:][walked]]
+    run = fixed_lag_smooth(
+        model, starts, P0, epochs,
+        FixedLagConfig(
+            lag_s=cfg.lag_s, window_s=max(cfg.window_s, cfg.lag_s), huber_k=cfg.gate_sigma, prune_cost=cfg.prune_cost,
+            adaptive_rssi=cfg.adaptive_rssi,
+        ),
+        vel_available_s=avail,
+    )
+    scan_rows = np.isin(epochs.rss_k, np.arange(len(epochs)))
+    P = run.P * (run.variance_factor[:, None, None] if cfg.calibrate_covariance else 1.0)
+    return SessionTrack(
+        session_id, t.copy(), run.x[step_epoch], P[step_epoch], run.hypothesis[step_epoch],
+        int(scan_rows.sum()), 0,
+    )
+
+
 def _session_epochs(
     t_ns: NDArray[np.int64],
     y_v: NDArray,
@@ -285,16 +342,111 @@ def write_track_csv(tracks: Iterable[SessionTrack], path: str | Path) -> Path:
     return path
 
 
+@dataclass(frozen=True, eq=False)
+class Tracker:
+    """A radio map made ready for tracking: the fusion model from its AP models, its kNN locator and
+    the configuration, self-calibrated on the map once (``TrackConfig.self_calibrate``)."""
+
+    model: FusionModel
+    locator: KnnLocator
+    cfg: TrackConfig
+
+    @classmethod
+    def on_map(cls, rm: RadioMap, models: ApModels, cfg: TrackConfig = TrackConfig()) -> "Tracker":
+        if models.frame != rm.frame:
+            raise EstimationError(f"track: AP models are in frame {models.frame!r}, radio map in {rm.frame!r}")
+        model = fusion_model(models, cfg)
+        if cfg.self_calibrate:
+            model, cfg = self_calibrated(rm, models, model, cfg)
+        return cls(model, KnnLocator(rm, KnnConfig(k=cfg.knn_k)), cfg)
+
+    def track(self, session: Session, progress: Task | None = None) -> SessionTrack:
+        return track_session(session, self.model, self.locator, self.cfg, progress)
+
+
 def track_sessions(
     sessions: Sequence[Session], rm: RadioMap, models: ApModels, cfg: TrackConfig = TrackConfig()
 ) -> tuple[SessionTrack, ...]:
     """Track every session on ``rm`` with the AP models ``models`` (same frame as ``rm``)."""
-    if models.frame != rm.frame:
-        raise EstimationError(f"track: AP models are in frame {models.frame!r}, radio map in {rm.frame!r}")
-    model = fusion_model(models, cfg)
-    locator = KnnLocator(rm, KnnConfig(k=cfg.knn_k))
+    tracker = Tracker.on_map(rm, models, cfg)
     with Task("track", total=sum(len(s.steps) for s in sessions), unit="steps") as task:
-        return tuple(track_session(s, model, locator, cfg, task) for s in sessions)
+        return tuple(tracker.track(s, task) for s in sessions)
+
+
+def self_calibrated(rm: RadioMap, models: ApModels, model: FusionModel, cfg: TrackConfig) -> tuple[FusionModel, TrackConfig]:
+    """The RSSI variances scaled by the map's own RSSI variance factor and the kNN fix floor raised
+    to the map's leave-one-session-out kNN error (``graphslam.core.tracking.calibration``): noise
+    levels measured on the map, not chosen per building."""
+    from graphslam.core.tracking.calibration import fix_noise, rssi_variance_factor
+
+    kappa = rssi_variance_factor(rm, models, np.sqrt(model.r_rssi)) if len(models.fitted) else 1.0
+    try:
+        floor = max(cfg.fix_sigma_floor_m, fix_noise(rm, k=cfg.knn_k).sigma_m)
+    except EstimationError as e:  # a one-session map: keep the configured floor
+        log.info("track: no leave-one-session-out fix noise (%s)", e)
+        floor = cfg.fix_sigma_floor_m
+    model = dataclasses.replace(model, r_rssi=model.r_rssi * kappa)
+    cfg = dataclasses.replace(cfg, fix_sigma_floor_m=floor, self_calibrate=False)
+    scale = replay_covariance_scale(rm, model, cfg) if cfg.replay_sessions > 0 else 1.0
+    log.info("track: self-calibration: RSSI variance x %.2f, kNN fix std floor %.2f m, covariance x %.2f", kappa, floor, scale)
+    return model, dataclasses.replace(cfg, covariance_scale=cfg.covariance_scale * scale)
+
+
+def replay_covariance_scale(rm: RadioMap, model: FusionModel, cfg: TrackConfig) -> float:
+    """How over-confident is the tracker on this map? Replay (a seeded sample of) the map's own
+    walks through it: each walk's fingerprints, at their map positions, become steps (in an
+    odometry frame turned by a random angle) and scans; it is tracked on the map without its own
+    fingerprints; the 95th percentile of the squared Mahalanobis distances of the map positions
+    from the reported ellipses, over chi-square's (5.991), is the factor (>= 1) that makes the
+    reported 95 % ellipses hold 95 % of them (a split-conformal calibration on the map, no
+    ground truth). The replayed walks have near-perfect odometry, so the factor is a lower bound."""
+    from graphslam.core.tracking.calibration import CHI2_2DOF_95, mahalanobis_sq
+    from graphslam.core.types import PoseTrack, Scan
+
+    rng = np.random.default_rng(cfg.replay_seed)
+    ids, counts = np.unique(rm.session_ids, return_counts=True)
+    ids = ids[counts >= 5]
+    if len(ids) < 2:
+        return 1.0
+    ids = rng.permutation(ids)
+    bssids, missing = rm.bssids, rm.missing_dbm
+    d2 = []
+    task = Task("track: self-calibration replay", total=cfg.replay_sessions, unit="segments")
+    for n in range(cfg.replay_sessions):  # round robin over the walks: long walks give several segments
+        if n:
+            task.advance()
+        sid = ids[n % len(ids)]
+        own = np.flatnonzero(rm.session_ids == sid)
+        own = own[np.argsort(rm.t_ns[own], kind="stable")]
+        own = own[np.concatenate([[True], np.diff(rm.t_ns[own]) > 0])]
+        if len(own) > cfg.replay_max_scans:  # a segment of a tracked walk's length
+            start = int(rng.integers(0, len(own) - cfg.replay_max_scans + 1))
+            own = own[start : start + cfg.replay_max_scans]
+        rest = np.flatnonzero(rm.session_ids != sid)
+        others = RadioMap.from_fingerprints(
+            rm.fingerprints.rows(rest), rm.xy[rest], session_ids=rm.session_ids[rest].tolist(), t_ns=rm.t_ns[rest],
+            frame=rm.frame, min_rssi_dbm=rm.min_rssi_dbm,
+        )
+        a = rng.uniform(-math.pi, math.pi)
+        R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        xy = rm.xy[own]
+        v = rm.fingerprints.values[own].tocsr()
+        scans = tuple(
+            Scan(int(rm.t_ns[r]), {bssids[c]: float(x) + missing for c, x in zip(v.indices[v.indptr[i]:v.indptr[i + 1]],
+                                                                           v.data[v.indptr[i]:v.indptr[i + 1]])})
+            for i, r in enumerate(own.tolist())
+        )
+        walk = Session(str(sid), PoseTrack(rm.t_ns[own], (xy - xy[0]) @ R.T, np.zeros(len(own))), scans)
+        try:
+            tr = track_session(walk, model, KnnLocator(others, KnnConfig(k=cfg.knn_k)), cfg)
+        except EstimationError:
+            continue
+        d2.append(mahalanobis_sq(tr.xy - xy, tr.P[:, :2, :2]))
+    task.advance()
+    task.end()
+    if not d2:
+        return 1.0
+    return max(1.0, float(np.percentile(np.concatenate(d2), 95)) / CHI2_2DOF_95)
 
 
 def track_files(

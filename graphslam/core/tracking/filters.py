@@ -438,7 +438,8 @@ class Epochs:
 
     Velocity readings ``vel_y[i]`` (eq. 4) belong to epoch ``vel_k[i]``; RSSI readings
     ``rss_y[j]`` (dBm) of access point ``rss_ap[j]`` (a row of the path-loss model) to epoch
-    ``rss_k[j]``; optional position fixes ``fix_xy[l]`` (m, e.g. a kNN fix on the radio map)
+    ``rss_k[j]`` (its std is the model's times ``rss_scale[j]``, default 1: the whole-run and
+    fixed-lag MAP use it, the causal filters do not); optional position fixes ``fix_xy[l]`` (m, e.g. a kNN fix on the radio map)
     with isotropic std ``fix_sigma[l]`` (m) to epoch ``fix_k[l]``. Times strictly increase
     (readings at one time share an epoch); an epoch may hold no reading. Read-only arrays.
     """
@@ -452,6 +453,7 @@ class Epochs:
     fix_k: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     fix_xy: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
     fix_sigma: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    rss_scale: NDArray[np.float64] | None = None  # per RSSI reading: std multiplier (>= 1; None: all 1)
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t_s, float).ravel()
@@ -476,6 +478,10 @@ class Epochs:
             raise FilterError("epochs: an epoch or AP index is out of range")
         if not (np.isfinite(vy).all() and np.isfinite(ry).all()):
             raise FilterError("epochs: non-finite reading")
+        rs = np.ones(len(ry)) if self.rss_scale is None else np.asarray(self.rss_scale, float).ravel()
+        if rs.shape != ry.shape or not (np.isfinite(rs).all() and (rs > 0).all()):
+            raise FilterError("epochs: rss_scale needs one positive finite value per RSSI reading")
+        object.__setattr__(self, "rss_scale", _ro(rs))
         if len(np.unique(vk)) != len(vk):
             raise FilterError("epochs: more than one velocity reading in an epoch")
         for name, a in (("t_s", t), ("vel_k", vk), ("vel_y", vy), ("rss_k", rk), ("rss_ap", ra), ("rss_y", ry),

@@ -91,9 +91,10 @@ class MapProblem:
         self._dt = epochs.dt
         self._sq = np.sqrt(np.outer(self._dt / model.period_s, model.q_diag))  # (N-1, n) process std
         self._sv = np.sqrt(model.r_velocity)
-        self._sr = np.sqrt(model.r_rssi[epochs.rss_ap])
+        self._sr = np.sqrt(model.r_rssi[epochs.rss_ap]) * epochs.rss_scale
         self._rows = np.cumsum([0, n, (N - 1) * n, 2 * len(epochs.vel_k), len(epochs.rss_k) + 2 * len(epochs.fix_k)])
         self._pattern = self._structure()
+        self._pairs: tuple[NDArray, NDArray, NDArray, NDArray] | None = None
 
     @property
     def size(self) -> int:
@@ -158,6 +159,11 @@ class MapProblem:
 
     def jacobian(self, X: NDArray) -> sp.csr_matrix:
         """d residual / d X (rows as ``residual``, columns state-major: epoch k, component i -> k n + i)."""
+        r, c = self._pattern
+        return sp.csr_matrix((self.jacobian_values(X), (r, c)), shape=(self._rows[-1], self.size))
+
+    def jacobian_values(self, X: NDArray) -> NDArray[np.float64]:
+        """The Jacobian's entries, in the order of ``_structure``'s (row, column) pattern."""
         m, e, n = self.model, self.epochs, self.n
         X = np.asarray(X, float).reshape(self.N, n)
         inv_sq = 1.0 / self._sq
@@ -174,8 +180,38 @@ class MapProblem:
             vals.append((-np.einsum("mij,mj->mi", dM, xv[:, 2:4]) * inv_sv).ravel())
         _, g = m.path_loss.rss_pairs(X[e.rss_k, 0:2], e.rss_ap)
         vals += [-g[:, 0] / self._sr, -g[:, 1] / self._sr, -np.repeat(1.0 / e.fix_sigma, 2)]
-        r, c = self._pattern
-        return sp.csr_matrix((np.concatenate(vals), (r, c)), shape=(self._rows[-1], self.size))
+        return np.concatenate(vals)
+
+    def _band_pairs(self) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+        """For ``normal_equations``: every pair (a, b) of Jacobian entries in one row with column
+        a <= column b, their row, and the flat index of (col a, col b) in the upper band. Each row
+        holds at most n entries, so there are O(rows n^2) pairs; computed once per problem."""
+        if self._pairs is None:
+            r, c = self._pattern
+            order = np.argsort(r, kind="stable")
+            rs = r[order]
+            counts = np.bincount(rs, minlength=self._rows[-1])
+            start = np.cumsum(counts) - counts
+            m = counts[rs]  # partners of each entry (its row's size)
+            a = np.repeat(order, m)
+            offs = np.arange(m.sum()) - np.repeat(np.cumsum(m) - m, m)
+            b = order[np.repeat(start[rs], m) + offs]
+            keep = c[a] <= c[b]
+            a, b = a[keep], b[keep]
+            u = 2 * self.n - 1
+            self._pairs = (a, b, r[a], (u + c[a] - c[b]) * self.size + c[b])
+        return self._pairs
+
+    def normal_equations(self, X: NDArray, r: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Gauss-Newton system at ``X`` with residuals ``r``: the upper band (``banded`` layout) of
+        J^T W J and the gradient J^T W r (W: IRLS weights), assembled without a sparse matrix."""
+        w = self.weights(r) ** 2
+        v = self.jacobian_values(X)
+        a, b, row, flat = self._band_pairs()
+        band = np.bincount(flat, weights=v[a] * v[b] * w[row], minlength=2 * self.n * self.size)
+        rr, cc = self._pattern
+        g = np.bincount(cc, weights=v * (w * r)[rr], minlength=self.size)
+        return band.reshape(2 * self.n, self.size), g
 
     def banded(self, A: sp.spmatrix) -> NDArray[np.float64]:
         """Upper band of the symmetric ``A`` (size x size) in ``scipy.linalg.solveh_banded`` layout.
@@ -188,13 +224,35 @@ class MapProblem:
         ab[u + A.row[up] - A.col[up], A.col[up]] = A.data[up]
         return ab
 
+    def rows_touching_first_epoch(self) -> NDArray[np.int64]:
+        """Rows whose Jacobian has an entry in epoch 0's columns: its prior, its readings and the
+        process step to epoch 1 (they touch epochs 0 and 1 only): what marginalising it removes."""
+        r, c = self._pattern
+        return np.unique(r[c < self.n])
+
+    def information(self, X: NDArray) -> sp.csr_matrix:
+        """Gauss-Newton information ``J^T W J`` at ``X`` (IRLS weights when robust)."""
+        J = sp.diags(self.weights(self.residual(X))) @ self.jacobian(X)
+        return (J.T @ J).tocsr()
+
+    def marginal(self, X: NDArray, k: int) -> NDArray[np.float64]:
+        """(n, n) marginal covariance of epoch ``k`` at ``X``: one block column of the inverse
+        information by a banded Cholesky solve (cheaper than ``marginals`` for one epoch)."""
+        n = self.n
+        E = np.zeros((self.size, n))
+        E[k * n : (k + 1) * n] = np.eye(n)
+        band, _ = self.normal_equations(X, self.residual(X))
+        try:
+            S = sla.solveh_banded(band, E, check_finite=False)[k * n : (k + 1) * n]
+        except np.linalg.LinAlgError:
+            raise EstimationError("map smoothing: the information matrix is singular (unobservable state)") from None
+        return 0.5 * (S + S.T)
+
     def marginals(self, X: NDArray) -> NDArray[np.float64]:
         """(N, n, n) marginal covariances at ``X``: diagonal blocks of (J^T W J)^-1, by the block-
         tridiagonal recursion (the information matrix couples consecutive epochs only)."""
         n, N = self.n, self.N
-        J = self.jacobian(X)
-        J = sp.diags(self.weights(self.residual(X))) @ J
-        A = (J.T @ J).tocoo()
+        A = self.information(X).tocoo()
         bi, bj = A.row // n, A.col // n
         D, B = np.zeros((N, n, n)), np.zeros((max(N - 1, 0), n, n))
         on = bi == bj
@@ -223,17 +281,18 @@ def _spd_inverse(S: NDArray) -> NDArray[np.float64]:
     return sla.cho_solve(c, np.eye(len(S)))
 
 
-def _levenberg_marquardt(problem: MapProblem, X0: NDArray, max_iter: int) -> tuple[NDArray, float, int]:
-    """Damped Gauss-Newton (IRLS weights when robust); a step is kept only if the cost falls."""
+def levenberg_marquardt(
+    problem: MapProblem, X0: NDArray, max_iter: int, *, rel_tol: float = 1e-8
+) -> tuple[NDArray, float, int]:
+    """Damped Gauss-Newton (IRLS weights when robust); a step is kept only if the cost falls.
+    Stops when a step lowers the cost by less than ``rel_tol`` of it."""
     x = np.asarray(X0, float).ravel().copy()
     if x.shape != (problem.size,) or not np.isfinite(x).all():
         raise EstimationError(f"map smoothing: start of {x.size} values for {problem.N} x {problem.n} states, or non-finite")
     r = problem.residual(x)
     cost, lam, it = problem.cost(r), 1e-3, 0
     for it in range(1, max_iter + 1):
-        sw = problem.weights(r)
-        J = sp.diags(sw) @ problem.jacobian(x)
-        band, g = problem.banded(J.T @ J), J.T @ (sw * r)
+        band, g = problem.normal_equations(x, r)
         diag = band[-1].copy()
         while True:
             band[-1] = diag * (1.0 + lam)
@@ -250,7 +309,7 @@ def _levenberg_marquardt(problem: MapProblem, X0: NDArray, max_iter: int) -> tup
                 return x.reshape(problem.N, problem.n), cost, it
         x, r, drop = x + dx, r_new, cost - c_new
         cost, lam = c_new, max(lam / 10.0, 1e-12)
-        if drop <= 1e-8 * cost or np.abs(dx).max() < 1e-10:
+        if drop <= rel_tol * cost or np.abs(dx).max() < 1e-10:
             break
     return x.reshape(problem.N, problem.n), cost, it
 
@@ -304,7 +363,7 @@ def map_smooth(problem: MapProblem, starts: Sequence[NDArray], *, max_iter: int 
     """The whole run's MAP trajectory from each start (N, n); the lowest-cost result is kept."""
     if not starts:
         raise EstimationError("map smoothing: no start trajectory")
-    results = [_levenberg_marquardt(problem, s, max_iter) for s in starts]
+    results = [levenberg_marquardt(problem, s, max_iter) for s in starts]
     best = int(np.argmin([c for _, c, _ in results]))
     X, cost, it = results[best]
     log.debug("map smoothing: costs %s from %d starts, kept %d", [round(c, 1) for _, c, _ in results], len(starts), best)

@@ -1,0 +1,139 @@
+"""How wrong is a kNN fix on this radio map? Leave-one-session-out errors of the map itself.
+
+A tracker that fuses kNN fixes as position readings needs their error scale. The map can tell
+it without any ground truth: locate every fingerprint of the map among the fingerprints of the
+*other* sessions (same k, same weights as ``KnnLocator``) and compare with where the map puts
+it. On a map whose positions are right this is the kNN error a new walk over the surveyed
+area will see; on a crowdsourced map it is the error in the map's own frame (which is the
+frame the tracker reports in). Why not a constant: kNN errors differ by building (UJIIndoorLoc
+~5 m, ILC mall ~6 m, IPIN museum ~9 m, the simulator ~2 m: docs/benchmarks.md), and a fix
+standard deviation chosen on one misweights fixes against steps on the others.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graphslam.core.radiomap.knn import WEIGHT_EPS_DB, KnnConfig, KnnLocator
+from graphslam.core.radiomap.radiomap import RadioMap
+from graphslam.errors import EstimationError
+
+if TYPE_CHECKING:
+    from graphslam.core.tracking.apmodel import ApModels
+
+RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))  # median of |e| for e ~ N(0, I_2): 1.177
+CHI2_2DOF_MEDIAN = 2.0 * float(np.log(2.0))  # median of |e|^2 for e ~ N(0, I_2): 1.386
+CHI2_2DOF_95 = -2.0 * float(np.log(0.05))  # P(chi^2_2 <= 5.991) = 0.95
+
+
+@dataclass(frozen=True)
+class FixNoise:
+    """Leave-one-session-out kNN errors of a map (m): their median, p90 and the per-axis standard
+    deviation ``sigma_m`` of a 2-D Gaussian with the same median error (robust to the tail,
+    which a robust loss handles)."""
+
+    n: int
+    median_m: float
+    p90_m: float
+    sigma_m: float
+
+
+def leave_one_session_out_errors(
+    rm: RadioMap, *, k: int = 3, extra: int = 30, max_queries: int = 3000, seed: int = 0
+) -> NDArray[np.float64]:
+    """kNN error (m) of (up to ``max_queries``, seeded sample of) the map's fingerprints, each
+    located among the other sessions' fingerprints: the ``k`` nearest of another session among
+    its ``k + extra`` nearest overall, inverse-distance weighted as ``KnnLocator``. Rows whose
+    candidates all come from their own session are left out."""
+    if len(rm) < 2 or len(set(rm.session_ids.tolist())) < 2:
+        raise EstimationError("fix noise: the radio map needs fingerprints of at least 2 sessions")
+    rows = np.arange(len(rm))
+    if len(rows) > max_queries:
+        rows = np.sort(np.random.default_rng(seed).choice(rows, max_queries, replace=False))
+    res = KnnLocator(rm, KnnConfig(k=min(k + extra, len(rm)))).locate(rm.fingerprints.rows(rows))
+    idx, dist = res.neighbours, res.distances
+    other = (idx >= 0) & (rm.session_ids[np.maximum(idx, 0)] != rm.session_ids[rows][:, None])
+    rank = np.cumsum(other, axis=1)
+    use = other & (rank <= k)
+    w = np.where(use, 1.0 / (np.where(use, dist, 0.0) + WEIGHT_EPS_DB), 0.0)
+    wsum = w.sum(axis=1)
+    ok = wsum > 0
+    est = (w[ok, :, None] * rm.xy[np.maximum(idx[ok], 0)]).sum(axis=1) / wsum[ok, None]
+    return np.linalg.norm(est - rm.xy[rows[ok]], axis=1)
+
+
+def fix_noise(rm: RadioMap, *, k: int = 3) -> FixNoise:
+    """``FixNoise`` of ``rm`` from ``leave_one_session_out_errors``."""
+    e = leave_one_session_out_errors(rm, k=k)
+    if not len(e):
+        raise EstimationError("fix noise: no fingerprint could be located among other sessions")
+    med = float(np.median(e))
+    return FixNoise(len(e), med, float(np.percentile(e, 90)), med / RAYLEIGH_MEDIAN)
+
+
+def rssi_variance_factor(
+    rm: RadioMap, models: "ApModels", sigma_db: NDArray, *, max_queries: int = 1000, iterations: int = 8, seed: int = 0
+) -> float:
+    """How over-confident are the RSSI readings under the AP models, measured on the map itself?
+
+    For (a seeded sample of) the map's fingerprints: the position that best explains the
+    fingerprint's readings of modelled APs alone (Gauss-Newton on eq. 6 from the map position,
+    readings of std ``sigma_db`` per AP), its covariance (H^T R^-1 H)^-1, and the squared
+    Mahalanobis distance of the map position from it. With right, independent errors these are
+    chi-square with 2 dof (median 1.386); the returned factor (>= 1) is the sample median over
+    that. Why: many BSSIDs per physical AP (dual band, several SSIDs) and AP-model errors shared
+    by neighbouring APs make a scan's readings far less independent than the filters assume; a
+    mall scan with ~200 modelled BSSIDs then claims decimetre positions that are metres off
+    (docs/tracking.md). Uses only the map and its AP models."""
+    pl = models.path_loss()
+    index = {b: i for i, b in enumerate(pl.bssids)}
+    cols = np.array([index.get(b, -1) for b in rm.bssids])
+    v = rm.fingerprints.values.tocsr()
+    rows = np.arange(len(rm))
+    if len(rows) > max_queries:
+        rows = np.sort(np.random.default_rng(seed).choice(rows, max_queries, replace=False))
+    d2 = []
+    for r in rows.tolist():
+        j = v.indices[v.indptr[r] : v.indptr[r + 1]]
+        a = cols[j]
+        keep = a >= 0
+        if keep.sum() < 3:
+            continue
+        a, y = a[keep], v.data[v.indptr[r] : v.indptr[r + 1]][keep] + rm.missing_dbm
+        w = 1.0 / np.asarray(sigma_db, float)[a] ** 2
+        p = rm.xy[r].copy()
+        for _ in range(iterations):
+            h, g = pl.rss_pairs(np.tile(p, (len(a), 1)), a)
+            A = (g * w[:, None]).T @ g
+            try:
+                p = p + np.linalg.solve(A, (g * w[:, None]).T @ (y - h))
+            except np.linalg.LinAlgError:
+                break
+        else:
+            _, g = pl.rss_pairs(np.tile(p, (len(a), 1)), a)
+            A = (g * w[:, None]).T @ g
+            e = p - rm.xy[r]
+            d2.append(float(e @ A @ e))
+    if not d2:
+        return 1.0
+    return max(1.0, float(np.median(d2)) / CHI2_2DOF_MEDIAN)
+
+
+def mahalanobis_sq(err_xy: NDArray, cov_xy: NDArray) -> NDArray[np.float64]:
+    """Per row: ``e^T C^-1 e`` of the error ``err_xy`` (m, 2) under its covariance ``cov_xy``
+    (m^2, 2 x 2); a singular covariance gives 0 for a zero error, else inf."""
+    e = np.asarray(err_xy, float).reshape(-1, 2)
+    C = np.asarray(cov_xy, float).reshape(-1, 2, 2)
+    det = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d2 = (C[:, 1, 1] * e[:, 0] ** 2 - (C[:, 0, 1] + C[:, 1, 0]) * e[:, 0] * e[:, 1] + C[:, 0, 0] * e[:, 1] ** 2) / det
+    return np.where(det > 0, d2, np.where(np.abs(e).sum(axis=1) == 0, 0.0, np.inf))
+
+
+def ellipse_coverage(err_xy: NDArray, cov_xy: NDArray, chi2: float = CHI2_2DOF_95) -> NDArray[np.bool_]:
+    """Per row: is the error inside the ellipse ``e^T C^-1 e <= chi2`` of its covariance?"""
+    return mahalanobis_sq(err_xy, cov_xy) <= chi2

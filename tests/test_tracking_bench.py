@@ -1,0 +1,71 @@
+"""Held-out walks tracked on a map of the others (graphslam.app.tracking_bench, bench tracking-real)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from graphslam.app.tracking_bench import _folds, route_of
+from graphslam.core.types import PoseTrack, Session
+
+
+def _stub(name: str) -> Session:
+    return Session(name, PoseTrack(np.array([0, 1]), np.zeros((2, 2)), np.zeros(2)), source=f"/data/{name}.mcap")
+
+
+def test_folds_leave_one_route_out_when_names_say_routes_else_seeded_random():
+    walks = [_stub(f"Trial2{r}_repetition{k}") for r in (1, 2, 3) for k in (1, 2)]
+    assert [route_of(w) for w in walks[:3]] == ["21", "21", "22"]
+    folds = _folds(walks, None, 0)
+    assert [name for name, _ in folds] == ["route 21", "route 22", "route 23"]
+    assert [test for _, test in folds] == [[0, 1], [2, 3], [4, 5]]
+    other = [_stub(f"walk{i}") for i in range(7)]
+    a, b = _folds(other, None, 0), _folds(other, None, 1)
+    assert len(a) == 5 and sorted(i for _, t in a for i in t) == list(range(7))  # a partition
+    assert a != b and a == _folds(other, None, 0)  # seeded
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    from graphslam.io.mcap_writer import write_session
+    from graphslam.sim import simulate
+
+    d = tmp_path_factory.mktemp("tracking_real")
+    for s in simulate("paper", seed=1).survey.sessions[:4]:
+        t_end = s.landmarks[1].t_ns + 5_000_000_000  # two landmarks: 35-100 s of walking
+        n = int(np.searchsorted(s.steps.t_ns, t_end, side="right"))
+        write_session(
+            Session(s.session_id, PoseTrack(s.steps.t_ns[:n], s.steps.xy[:n], s.steps.heading[:n]),
+                    tuple(sc for sc in s.scans if sc.t_ns <= t_end), tuple(m for m in s.landmarks if m.t_ns <= t_end),
+                    site=s.site, floor=s.floor),
+            d / f"{s.session_id}.mcap",
+        )
+    return d
+
+
+def test_tracking_real_scores_knn_and_the_tracker_on_the_same_landmarks(folder):
+    # What `graphslam bench tracking-real` runs, with a light tracker (2 heading hypotheses, no
+    # self-calibration) to keep the test short.
+    from graphslam.app.track import TrackConfig
+    from graphslam.app.tracking_bench import Variant, tracking_real
+    from graphslam.config import GraphSlamConfig
+
+    light = Variant("fixed-lag:1", TrackConfig(lag_s=1.0, n_theta_hypotheses=2, self_calibrate=False))
+    res = tracking_real(folder, GraphSlamConfig(), [light], maps=["oracle"], folds=2)
+    assert res["walks"] == 4 and res["folds"] == ["fold 0", "fold 1"]
+    s = res["oracle"]["summary"]
+    assert set(s) == {"knn", "fixed-lag:1"}
+    assert s["knn"]["n"] == s["fixed-lag:1"]["n"] > 0  # the same landmarks scored for both
+    row = s["fixed-lag:1"]
+    assert row["median_m"] <= row["p75_m"] <= row["p90_m"] and 0.0 <= row["inside_95"] <= 1.0
+    assert row["vs_knn"] == pytest.approx(row["mean_m"] / s["knn"]["mean_m"] - 1.0, abs=2e-3)
+    folds = res["oracle"]["per_fold"]
+    assert [f["test_walks"] for f in folds] == [2, 2] and all("fixed-lag:1_mean_m" in f for f in folds)
+
+
+def test_bench_tracking_real_rejects_an_unknown_map_kind(folder, capsys):
+    from graphslam.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["bench", "tracking-real", str(folder), "--maps", "floorplan"])
+    assert e.value.code == 2 and "floorplan" in capsys.readouterr().err
