@@ -1,4 +1,11 @@
-"""``graphslam track``: EKF / UKF tracking of walks on a radio map (steps + WiFi RSSI).
+"""``graphslam track``: online tracking of walks on a radio map (steps + WiFi RSSI + kNN fixes).
+
+``filter``: ``fixed-lag`` (default; ``graphslam.core.tracking.fixed_lag``: each step reported
+``lag_s`` after it from a sliding-window MAP of the last ``window_s``, Huber loss instead of the
+gate, the heading bank ranked by total cost), or the causal ``ekf`` / ``ukf`` described below.
+All share the model, readings and start. ``self_calibrate`` (default on): the kNN fix floor,
+the RSSI variance and a covariance scale measured on the radio map itself (``Tracker.on_map``,
+``graphslam.core.tracking.calibration``; docs/tracking.md).
 
 Per session (positions in the radio map's frame, m):
 
