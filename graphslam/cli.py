@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, List, Optional
@@ -760,7 +761,7 @@ def bench_filters(
 
     res = filters_cart(
         _seeds(seeds), shadowing_db=shadowing_db, plot_dir=plot_dir, smoothers=_smoothers(smoothers),
-        lags=[float(x) for x in lags.split(",") if x.strip()], window_s=window, restart_every=restart_every,
+        lags=_lags(lags), window_s=window, restart_every=restart_every,
     )
     typer.echo(json.dumps(res))
 
@@ -782,7 +783,7 @@ def bench_tracking(
     limit_blas_threads(1)
     res = tracking_paper(
         scenario, _seeds(seeds), _config(config, None), test_walks=test_walks, smoothers=_smoothers(smoothers),
-        knn_fixes=knn_fixes, lags=[float(x) for x in lags.split(",") if x.strip()],
+        knn_fixes=knn_fixes, lags=_lags(lags),
     )
     typer.echo(json.dumps(res))
 
@@ -805,7 +806,7 @@ def bench_tracking_real(
 
     limit_blas_threads(1)
     variants = standard_variants(
-        [float(x) for x in lags.split(",") if x.strip()], [f for f in filters.split(",") if f.strip()], _smoothers(smoothers)
+        _lags(lags), [f for f in filters.split(",") if f.strip()], _smoothers(smoothers)
     )
     res = tracking_real(
         folder, _config(config, set_), variants, maps=[m for m in maps.split(",") if m.strip()], folds=folds, seed=seed
@@ -889,6 +890,19 @@ def track_uwb(
 
     run = track_uwb_files(sessions, out=out, slot_gap_s=slot_gap_s, at_steps=at_steps)
     typer.echo(json.dumps(run.as_dict()))
+
+
+def _lags(text: str) -> list[float]:
+    """'0,1,2': fixed-lag latencies in s (finite, >= 0)."""
+    try:
+        lags = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        lags = [math.nan]
+    if not all(math.isfinite(v) and v >= 0 for v in lags):
+        from graphslam.errors import ConfigError
+
+        raise ConfigError(f"--lags: {text!r} is not a comma-separated list of latencies >= 0 (s), e.g. 0,1,2")
+    return lags
 
 
 def _smoothers(text: str) -> list[str]:

@@ -69,3 +69,14 @@ def test_bench_tracking_real_rejects_an_unknown_map_kind(folder, capsys):
     with pytest.raises(SystemExit) as e:
         main(["bench", "tracking-real", str(folder), "--maps", "floorplan"])
     assert e.value.code == 2 and "floorplan" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", [["bench", "filters"], ["bench", "tracking", "paper"], ["bench", "tracking-real", "."]])
+@pytest.mark.parametrize("lags", ["abc", "-1", "1,nan"])
+def test_bad_lags_are_one_line_usage_errors(command, lags, capsys):
+    from graphslam.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main([*command, f"--lags={lags}"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "--lags" in err and len(err.strip().splitlines()) == 1
