@@ -200,3 +200,11 @@ def test_track_cli_default_is_the_fixed_lag_tracker_and_rejects_a_negative_lag(t
     with pytest.raises(SystemExit) as e:
         main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--lag", "-1", "--out", str(bad)])
     assert e.value.code == 2 and "--lag" in capsys.readouterr().err and not bad.exists()
+    with pytest.raises(SystemExit) as e:
+        main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--lag", "nan", "--out", str(bad)])
+    assert e.value.code == 2 and "--lag" in capsys.readouterr().err and not bad.exists()
+    from graphslam.app.track import TrackConfig
+    from graphslam.errors import EstimationError
+
+    with pytest.raises(EstimationError, match="lag_s"):  # library callers get the same check
+        TrackConfig(lag_s=float("nan"))

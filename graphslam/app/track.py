@@ -110,6 +110,8 @@ class TrackConfig:
             raise EstimationError(f"track: unknown smoother {self.smoother!r}; use none, {', '.join(SMOOTH_METHODS)}")
         if self.n_theta_hypotheses < 1 or self.velocity_sigma_mps <= 0 or self.rssi_sigma_floor_db <= 0:
             raise EstimationError("track: n_theta_hypotheses >= 1 and positive noise levels required")
+        if not (math.isfinite(self.lag_s) and self.lag_s >= 0 and math.isfinite(self.window_s) and self.window_s >= 0):
+            raise EstimationError(f"track: lag_s and window_s must be finite and >= 0, got {self.lag_s}, {self.window_s}")
         if self.max_step_speed_mps <= 0 or self.fix_sigma_floor_m <= 0:
             raise EstimationError("track: max_step_speed_mps and fix_sigma_floor_m must be > 0")
 
