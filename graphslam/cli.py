@@ -827,10 +827,7 @@ def bench_uwb(
     from graphslam.app.uwb_bench import zones_benchmark
 
     rows, agg = zones_benchmark(_seeds(seeds), plot_dir=plot_dir)
-    if per_seed:
-        for r in rows:
-            typer.echo(json.dumps(r))
-    typer.echo(json.dumps(agg))
+    _echo_rows(rows if per_seed else [], agg)
 
 
 @bench_app.command("uwb-survey")
@@ -845,10 +842,7 @@ def bench_uwb_survey(
     from graphslam.app.uwb_bench import survey_benchmark
 
     rows, agg = survey_benchmark(_seeds(seeds), _seeds(anchors), _config(config, set_))
-    if per_seed:
-        for r in rows:
-            typer.echo(json.dumps(r))
-    typer.echo(json.dumps(agg))
+    _echo_rows(rows if per_seed else [], agg)
 
 
 @app.command("simulate-uwb")
@@ -890,6 +884,13 @@ def track_uwb(
 
     run = track_uwb_files(sessions, out=out, slot_gap_s=slot_gap_s, at_steps=at_steps)
     typer.echo(json.dumps(run.as_dict()))
+
+
+def _echo_rows(rows: list[dict], last: dict) -> None:
+    """One JSON line per row, then the aggregate."""
+    for r in rows:
+        typer.echo(json.dumps(r))
+    typer.echo(json.dumps(last))
 
 
 def _lags(text: str) -> list[float]:
