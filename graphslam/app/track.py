@@ -301,11 +301,10 @@ def _track_fixed_lag(
         ),
         vel_available_s=avail,
     )
-    scan_rows = np.isin(epochs.rss_k, np.arange(len(epochs)))
     P = run.P * (run.variance_factor[:, None, None] if cfg.calibrate_covariance else 1.0)
     return SessionTrack(
         session_id, t.copy(), run.x[step_epoch], P[step_epoch], run.hypothesis[step_epoch],
-        int(scan_rows.sum()), 0,
+        len(epochs.rss_k), 0,  # every RSSI reading is used (Huber-weighted, never gated)
     )
 
 
