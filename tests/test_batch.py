@@ -101,3 +101,32 @@ def test_batch_on_an_existing_cluster_survives_a_killed_worker(
         lost = [r for r in rows.values() if r["status"] == "failed"]
         assert codes == [1] and len(lost) == 1 and lost[0]["error"] == "worker lost after retries"
         assert [r["status"] for r in rows.values()].count("ok") == 1
+
+
+def _worker_state() -> tuple[bool, str | None, str | None]:
+    import os
+    import sys
+
+    # nothing imported by this task itself: what the worker process was started with
+    return "graphslam.app.survey" in sys.modules, os.environ.get("OPENBLAS_NUM_THREADS"), os.environ.get("RERUN")
+
+
+def test_local_workers_start_with_the_survey_code_imported() -> None:
+    """Local workers fork from a fork server that imported the survey code once (so no floor pays
+    the imports), with one BLAS thread and no Rerun; the caller's environment is left as it was."""
+    import multiprocessing
+    import os
+
+    from graphslam.app.batch import _client
+
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        pytest.skip("no fork server on this platform")
+    before = dict(os.environ)
+    with _client(None, 2) as client:
+        states = client.gather([client.submit(_worker_state, pure=False, key=f"state-{k}") for k in range(4)])
+        assert len(client.scheduler_info()["workers"]) == 2
+    assert all(s == (True, "1", "off") for s in states), states
+    assert dict(os.environ) == before
+    import dask
+
+    assert dask.config.get("distributed.worker.multiprocessing-method") != "forkserver"  # config restored

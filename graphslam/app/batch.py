@@ -38,6 +38,11 @@ SUMMARY_FILE = "summary.json"
 # One thread per floor process: a survey is single-threaded in GTSAM; BLAS threads on top of
 # two workers on two cores would only compete.
 _WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "RERUN": "off"}
+# Local workers are forked from a fork server that has imported these once (numpy, scipy,
+# GTSAM, the survey code: ~1 CPU-s per worker otherwise, a fifth of a 16-floor run of small
+# floors); a fork server is single-threaded, so forking it is safe where forking this
+# process (an event-loop thread) is not.
+_FORKSERVER_PRELOAD = ["distributed", "numpy", "graphslam.app.survey"]
 
 
 @dataclass(frozen=True)
@@ -169,8 +174,11 @@ class _client:
         self.address, self.workers = address, workers
         self.cluster: Any = None
         self.client: Any = None
+        self._config: Any = None
 
     def __enter__(self) -> Any:
+        if not self.address:
+            self._config = _forkserver_workers()
         from distributed import Client, LocalCluster
 
         if not logging.getLogger().isEnabledFor(logging.INFO):  # Dask's INFO lines only with --verbose
@@ -182,10 +190,14 @@ class _client:
                 raise ConfigError(f"--address {self.address}: cannot connect to a Dask scheduler ({e})") from None
             return self.client
         n = self.workers or os.cpu_count() or 1
-        self.cluster = LocalCluster(
-            n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, env=_WORKER_ENV,
-        )
-        self.client = Client(self.cluster)
+        try:
+            self.cluster = LocalCluster(
+                n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, env=_WORKER_ENV,
+            )
+            self.client = Client(self.cluster)
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
         log.info("local Dask cluster: %d workers", n)
         return self.client
 
@@ -194,3 +206,32 @@ class _client:
             self.client.close()
         if self.cluster is not None:
             self.cluster.close()
+        if self._config is not None:
+            self._config.__exit__(None, None, None)
+
+
+def _forkserver_workers() -> Any:
+    """Dask configured (until the returned context is exited) to start local workers from a
+    fork server preloaded with ``_FORKSERVER_PRELOAD``; a no-op context where there is none.
+    The server is started here, first, so that its imports overlap the cluster's start-up."""
+    import contextlib
+    import multiprocessing
+    import multiprocessing.forkserver
+
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return contextlib.nullcontext()
+    # A running server (an earlier batch in this process) keeps its preload; only start-up differs.
+    multiprocessing.get_context("forkserver").set_forkserver_preload(_FORKSERVER_PRELOAD)
+    saved = dict(os.environ)
+    os.environ.update(_WORKER_ENV)  # read once by BLAS as the server imports numpy: one thread
+    try:
+        multiprocessing.forkserver.ensure_running()
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
+    import dask
+    import distributed  # noqa: F401 - its config defaults first, or leaving the context below drops them
+
+    config = dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"})
+    config.__enter__()
+    return config
