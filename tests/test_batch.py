@@ -103,17 +103,21 @@ def test_batch_on_an_existing_cluster_survives_a_killed_worker(
         assert [r["status"] for r in rows.values()].count("ok") == 1
 
 
-def _worker_state() -> tuple[bool, str | None, str | None]:
+def _worker_state() -> tuple[bool, str | None, str | None, bool]:
     import os
     import sys
 
+    import dask
+
     # nothing imported by this task itself: what the worker process was started with
-    return "graphslam.app.survey" in sys.modules, os.environ.get("OPENBLAS_NUM_THREADS"), os.environ.get("RERUN")
+    return ("graphslam.app.survey" in sys.modules, os.environ.get("OPENBLAS_NUM_THREADS"), os.environ.get("RERUN"),
+            dask.config.get("distributed.worker.profile.enabled"))
 
 
 def test_local_workers_start_with_the_survey_code_imported() -> None:
     """Local workers fork from a fork server that imported the survey code once (so no floor pays
-    the imports), with one BLAS thread and no Rerun; the caller's environment is left as it was."""
+    the imports), with one BLAS thread, no Rerun and no Dask profiler; the caller's environment is left as it was,
+    and no process outlives the batch."""
     import multiprocessing
     import os
 
@@ -121,12 +125,29 @@ def test_local_workers_start_with_the_survey_code_imported() -> None:
 
     if "forkserver" not in multiprocessing.get_all_start_methods():
         pytest.skip("no fork server on this platform")
-    before = dict(os.environ)
+    import psutil  # a dependency of distributed
+
+    before, children = dict(os.environ), {c.pid for c in psutil.Process().children(recursive=True)}
     with _client(None, 2) as client:
         states = client.gather([client.submit(_worker_state, pure=False, key=f"state-{k}") for k in range(4)])
         assert len(client.scheduler_info()["workers"]) == 2
-    assert all(s == (True, "1", "off") for s in states), states
+    assert all(s == (True, "1", "off", False) for s in states), states
     assert dict(os.environ) == before
+    # the fork server and its workers are gone with the batch
+    assert {c.pid for c in psutil.Process().children(recursive=True) if c.status() != psutil.STATUS_ZOMBIE} <= children
     import dask
 
     assert dask.config.get("distributed.worker.multiprocessing-method") != "forkserver"  # config restored
+    assert dask.config.get("distributed.worker.profile.enabled")
+
+
+def test_batch_surveys_the_largest_floors_first(sites: Path, tmp_path: Path) -> None:
+    """Largest floors (bytes of recordings) first, so that no worker is left with a big floor at
+    the end while the others idle: with one worker the floors finish in that order."""
+    from graphslam.app.batch import run_batch
+
+    done: list[str] = []
+    run_batch(sites, tmp_path / "out", workers=1, on_floor=lambda row: done.append(row.floor))
+    size = {rel: sum(f.stat().st_size for f in (sites / rel).glob("*.mcap")) for rel in done}
+    assert len(set(size.values())) == len(done)  # the fixture's floors differ in size
+    assert done == sorted(done, key=lambda rel: -size[rel]) != sorted(done)  # not the folders' order

@@ -2,7 +2,8 @@
 
 Every folder under SITES_ROOT that holds ``.mcap`` files directly is one floor; it is surveyed
 as one task (``survey_floor``: ``run_survey`` of that folder) into the same relative path under
-OUT_ROOT. A local cluster (``workers`` processes, one thread each) is started by default;
+OUT_ROOT. A local cluster (``workers`` processes, one thread each, forked from a server that
+has imported the survey code once, no Dask profiler) is started by default;
 ``address`` joins a running Dask scheduler instead, whose workers must see SITES_ROOT and
 OUT_ROOT at the same paths (a shared file system) and have graphslam installed.
 
@@ -21,12 +22,15 @@ mid-task is run again, and one that kills every worker ends in a clear error aft
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import multiprocessing
+import multiprocessing.forkserver
 import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 from graphslam.config import GraphSlamConfig, config_from_dict
 from graphslam.errors import ConfigError, GraphSlamError, InputError
@@ -141,10 +145,15 @@ def run_batch(
     with _client(address, workers) as client:
         from distributed import as_completed
 
+        # Largest floors first (bytes of recordings, a proxy for the solve; submitted in that order
+        # and prioritised so): the last to finish are small ones, and the workers run out of work
+        # at nearly the same time instead of one waiting for the other's big floor.
+        size = {f: _recorded_bytes(f) for f in floors}
+        order = sorted(range(len(floors)), key=lambda k: -size[floors[k]])
         futures = {
-            client.submit(survey_floor, str(f), str(out / rel), cfg.model_dump_json(), rel, update,
-                          key=f"floor-{k}-{rel}", pure=False): rel
-            for k, (f, rel) in enumerate(zip(floors, rels))
+            client.submit(survey_floor, str(floors[k]), str(out / rels[k]), cfg.model_dump_json(), rels[k], update,
+                          key=f"floor-{k}-{rels[k]}", pure=False, priority=len(floors) - rank): rels[k]
+            for rank, k in enumerate(order)
         }
         for fut in as_completed(futures):
             rel = futures[fut]
@@ -167,6 +176,10 @@ def run_batch(
     return BatchResult(ordered, summary, time.perf_counter() - t0)
 
 
+def _recorded_bytes(floor: Path) -> int:
+    return sum(f.stat().st_size for f in floor.glob("*.mcap") if f.is_file())
+
+
 class _client:
     """A Dask client: on a new local cluster, or connected to ``address``. Closes what it started."""
 
@@ -174,11 +187,11 @@ class _client:
         self.address, self.workers = address, workers
         self.cluster: Any = None
         self.client: Any = None
-        self._config: Any = None
+        self._stack = contextlib.ExitStack()
 
     def __enter__(self) -> Any:
         if not self.address:
-            self._config = _forkserver_workers()
+            self._stack.enter_context(_local_workers())
         from distributed import Client, LocalCluster
 
         if not logging.getLogger().isEnabledFor(logging.INFO):  # Dask's INFO lines only with --verbose
@@ -206,32 +219,38 @@ class _client:
             self.client.close()
         if self.cluster is not None:
             self.cluster.close()
-        if self._config is not None:
-            self._config.__exit__(None, None, None)
+        self._stack.close()
 
 
-def _forkserver_workers() -> Any:
-    """Dask configured (until the returned context is exited) to start local workers from a
-    fork server preloaded with ``_FORKSERVER_PRELOAD``; a no-op context where there is none.
-    The server is started here, first, so that its imports overlap the cluster's start-up."""
-    import contextlib
-    import multiprocessing
-    import multiprocessing.forkserver
-
-    if "forkserver" not in multiprocessing.get_all_start_methods():
-        return contextlib.nullcontext()
-    # A running server (an earlier batch in this process) keeps its preload; only start-up differs.
-    multiprocessing.get_context("forkserver").set_forkserver_preload(_FORKSERVER_PRELOAD)
-    saved = dict(os.environ)
-    os.environ.update(_WORKER_ENV)  # read once by BLAS as the server imports numpy: one thread
-    try:
-        multiprocessing.forkserver.ensure_running()
-    finally:
-        os.environ.clear()
-        os.environ.update(saved)
+@contextlib.contextmanager
+def _local_workers() -> Iterator[None]:
+    """Within: Dask starts local workers (a) from a fork server preloaded with
+    ``_FORKSERVER_PRELOAD`` where there is one, started first so that its imports overlap the
+    cluster's start-up and stopped at the end (no process with the survey code loaded outlives
+    the batch, and the workers' CPU time is accounted to this process's children); (b) without
+    Dask's statistical profiler, which samples the floor's thread every 10 ms for a dashboard
+    that is not started (~10 % of a floor: docs/benchmarks.md, issue 18)."""
+    forkserver = "forkserver" in multiprocessing.get_all_start_methods()
+    if forkserver:
+        # A server already running (started elsewhere in this process) keeps its own preload.
+        multiprocessing.get_context("forkserver").set_forkserver_preload(_FORKSERVER_PRELOAD)
+        saved = dict(os.environ)
+        os.environ.update(_WORKER_ENV)  # BLAS reads its thread count once, as the server imports numpy
+        try:
+            multiprocessing.forkserver.ensure_running()
+        finally:
+            os.environ.clear()
+            os.environ.update(saved)
     import dask
     import distributed  # noqa: F401 - its config defaults first, or leaving the context below drops them
 
-    config = dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"})
-    config.__enter__()
-    return config
+    settings: dict[str, Any] = {"distributed.worker.profile.enabled": False}
+    if forkserver:
+        settings["distributed.worker.multiprocessing-method"] = "forkserver"
+    try:
+        with dask.config.set(settings):
+            yield
+    finally:
+        stop = getattr(multiprocessing.forkserver._forkserver, "_stop", None) if forkserver else None
+        if stop is not None:  # CPython's; there is no public API to stop the server
+            stop()
