@@ -117,8 +117,9 @@ class OptimizerConfig(_Strict):
         "paper sizes 1-4, same or lower minimum, docs/benchmarks.md issue 16); gtsam: GTSAM's LevenbergMarquardtOptimizer; auto: pardiso if MKL loads",
     )
     threads: int = Field(
-        1, ge=0, description="solver=pardiso: MKL threads of the factorisation; 0 = MKL's default (all cores). 1 measured "
-        "fastest on the shared 2-core machine (docs/benchmarks.md issue 16)",
+        0, ge=0, description="solver=pardiso: MKL threads of the factorisation; 0 = MKL's default: every core, or "
+        "MKL_NUM_THREADS (survey-batch workers: 1). Measured (docs/benchmarks.md issue 16): 2 threads 1.7x faster than 1 "
+        "on an idle 2-core machine, equal with one other job, slower with six",
     )
     linear_solver: Literal["auto", "cholesky", "pcg"] = Field(
         "auto",

@@ -147,3 +147,17 @@ def test_a_graph_of_the_reference_pose_alone_is_already_solved() -> None:
     res = S.levenberg_marquardt(lonely, problem.init_xyh, np.zeros(0, bool))
     assert res.converged and res.iterations == 0 and res.error == 0.0
     np.testing.assert_array_equal(res.xyh, problem.init_xyh)
+
+
+def test_the_factorisation_on_every_core_reaches_the_same_minimum() -> None:
+    """optimizer.threads 0 (MKL's default: every core) and 1 give the same solution: a parallel
+    factorisation only reorders sums."""
+    survey = two_walks()
+    sols = []
+    for threads in (1, 0):
+        opt = CFG.optimizer.model_copy(update={"solver": "pardiso", "threads": threads})
+        cfg = CFG.model_copy(update={"optimizer": opt})
+        sols.append(solve(build_problem(survey, cfg), cfg))
+    assert sols[0].converged and sols[1].converged
+    np.testing.assert_allclose(sols[1].node_xyh, sols[0].node_xyh, atol=1e-6)
+    assert abs(sols[1].final_error - sols[0].final_error) <= 1e-9 * max(1.0, sols[0].final_error)

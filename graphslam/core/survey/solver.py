@@ -63,7 +63,7 @@ class LMSettings:
     absolute_error_tol: float = 1e-5
     lambda_initial: float = 1e-5  # damping lambda * diag(J^T J): dimensionless
     lambda_upper: float = 1e8  # a stall beyond this: no step lowers the error
-    threads: int = 1  # MKL threads of the factorisation (0: MKL's default)
+    threads: int = 0  # MKL threads of the factorisation (0: MKL's default, i.e. MKL_NUM_THREADS or every core)
 
 
 @dataclass(frozen=True, eq=False)
@@ -270,7 +270,7 @@ class _Pardiso:
     """MKL PARDISO for a symmetric positive-definite matrix (upper triangle, CSR): the ordering
     (METIS nested dissection) and symbolic factorisation once, then numeric refactorisations."""
 
-    def __init__(self, indptr: NDArray[np.int32], indices: NDArray[np.int32], threads: int = 1) -> None:
+    def __init__(self, indptr: NDArray[np.int32], indices: NDArray[np.int32], threads: int = 0) -> None:
         self._lib = _mkl_runtime()
         self._n = len(indptr) - 1
         self._ia = (indptr + 1).astype(np.int32)  # PARDISO's default: one-based indices
@@ -289,7 +289,7 @@ class _Pardiso:
         i32 = ctypes.c_int32
         err = i32(0)
         lib = self._lib
-        # thread-local MKL thread count: OpenMP spin-waits cost more than they gain on a busy machine
+        # thread-local MKL thread count when one is set (a busy machine: OpenMP spin-waits cost more than they gain)
         prev = lib.MKL_Set_Num_Threads_Local(self._threads) if self._threads > 0 else None
         try:
             lib.pardiso(
