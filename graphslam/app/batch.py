@@ -234,13 +234,16 @@ def _local_workers() -> Iterator[None]:
     if forkserver:
         # A server already running (started elsewhere in this process) keeps its own preload.
         multiprocessing.get_context("forkserver").set_forkserver_preload(_FORKSERVER_PRELOAD)
-        saved = dict(os.environ)
+        saved = {k: os.environ.get(k) for k in _WORKER_ENV}
         os.environ.update(_WORKER_ENV)  # BLAS reads its thread count once, as the server imports numpy
         try:
             multiprocessing.forkserver.ensure_running()
         finally:
-            os.environ.clear()
-            os.environ.update(saved)
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
     import dask
     import distributed  # noqa: F401 - its config defaults first, or leaving the context below drops them
 
