@@ -177,6 +177,12 @@ class UwbConfig(_Strict):
     nlos_reject_sigmas: float = Field(
         1.0, gt=0, description="a range longer than the UWB-only solution by this many sigmas is dropped as NLOS"
     )
+    nlos_chord_prefilter: bool = Field(True, description="drop ranges the dead reckoning proves too long before the NLOS solve")
+    nlos_chord_sigmas: float = Field(
+        3.0, ge=0, description="pre-filter: a range longer than another of the same link plus the chord walked "
+        "between them by this many sigmas is NLOS"
+    )
+    nlos_chord_max_dt_s: float = Field(30.0, gt=0, description="pre-filter: only ranges this close in time are compared")
     presolve_sigma_xy_m: float = Field(
         0.03, gt=0, description="per-step sigma of the UWB-only NLOS solve (no WiFi edges there to bend the chain)"
     )

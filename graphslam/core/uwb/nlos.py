@@ -34,7 +34,7 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.config import GraphSlamConfig
+from graphslam.config import GraphSlamConfig, UwbConfig
 from graphslam.core.survey.factors import imu_factor, imu_noise, reference_prior_noise, relative_steps
 from graphslam.core.types import Survey
 from graphslam.core.uwb.factors import X, SurveyRanges, anchor_values, range_factors, range_residuals
@@ -43,6 +43,73 @@ log = logging.getLogger(__name__)
 
 MAX_ROUNDS = 30
 SETTLED_FRACTION = 0.005  # the set is settled when fewer ranges than this change sides in a round
+
+
+def too_long_by_chords(
+    group: NDArray[np.int64],
+    t: NDArray[np.float64],
+    q: NDArray[np.float64],
+    node: NDArray[np.int64],
+    r: NDArray[np.float64],
+    sigma: NDArray[np.float64],
+    *,
+    k: float,
+    step_sigma_m: float,
+    max_dt_s: float,
+) -> NDArray[np.bool_]:
+    """Ranges that are provably too long, from the ranges and the dead reckoning alone (no solve).
+
+    Ranges of one ``group`` measure one distance between the same two bodies (a walker and an
+    anchor, or two walkers). Between two of them, at times i and j, that distance changes by at
+    most the chord |q_i - q_j| each moving end travelled (``q`` (M, E, 2): the E = 1 or 2 ends'
+    antennas, each in its own walk's dead-reckoning frame, so no placement is needed). Hence
+    r_i > r_j + sum of the chords + k * sqrt(sigma_i^2 + sigma_j^2 + steps * step_sigma^2) says
+    r_i is longer than the truth beyond noise, whatever r_j is (a too-long r_j only weakens the
+    bound). ``node`` (M, E): the step nodes the antennas belong to (their difference counts the
+    dead-reckoning steps between i and j, whose error the slack covers); only pairs within
+    ``max_dt_s`` are compared. A LOS range is flagged only when its noise beats that slack.
+    """
+    out = np.zeros(len(r), bool)
+    if not len(r):
+        return out
+    order = np.lexsort((t, group))
+    g = group[order]
+    cuts = np.flatnonzero(np.diff(g)) + 1
+    for idx in np.split(order, cuts):
+        if len(idx) < 2:
+            continue
+        for lo in range(0, len(idx), 512):  # rows in blocks: memory stays O(512 n)
+            i = idx[lo:lo + 512]
+            dt = np.abs(t[i][:, None] - t[idx][None, :])
+            chord = np.linalg.norm(q[i][:, None] - q[idx][None, :], axis=-1).sum(-1)
+            steps = np.abs(node[i][:, None] - node[idx][None, :]).sum(-1)
+            slack = k * np.sqrt(sigma[i][:, None] ** 2 + sigma[idx][None, :] ** 2 + steps * step_sigma_m**2)
+            bound = r[idx][None, :] + chord + slack
+            out[i] = ((r[i][:, None] > bound) & (dt <= max_dt_s)).any(axis=1)
+    return out
+
+
+def chord_flags(
+    sr: SurveyRanges, walk_a: NDArray[np.int64], t_a: NDArray, q_a: NDArray,
+    walk_p: NDArray[np.int64], t_p: NDArray, qa_p: NDArray, qb_p: NDArray,
+    node_walk: NDArray[np.int64], cfg: UwbConfig,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """``too_long_by_chords`` over the anchor ranges (one group per walker and anchor) and the peer
+    ranges (one per pair of walkers, whichever of the two measured) of ``sr``; the other arrays
+    (as ``RangeObservations``) in the order of ``sr``. (Ma,) and (Mp,) flags: provably too long."""
+    kw = dict(k=cfg.nlos_chord_sigmas, step_sigma_m=cfg.presolve_sigma_xy_m, max_dt_s=cfg.nlos_chord_max_dt_s)
+    n_a = len(sr.anchor_ids)
+    fa = too_long_by_chords(walk_a * n_a + sr.a_anchor, t_a, q_a[:, None], sr.a_node[:, None], sr.a_range, sr.a_sigma, **kw)
+    if not len(sr.p_node):
+        return fa, np.zeros(0, bool)
+    swap = walk_p[:, 0] > walk_p[:, 1]  # canonical order: the lower walk first
+    lo, hi = np.where(swap, walk_p[:, 1], walk_p[:, 0]), np.where(swap, walk_p[:, 0], walk_p[:, 1])
+    q = np.where(swap[:, None, None], np.stack([qb_p, qa_p], 1), np.stack([qa_p, qb_p], 1))
+    first_is_lo = node_walk[sr.p_node[:, 0]] == lo
+    node = np.where(first_is_lo[:, None], sr.p_node, sr.p_node[:, ::-1])
+    n_w = int(max(walk_p.max(), walk_a.max(initial=0))) + 1
+    fp = too_long_by_chords(lo * n_w + hi, t_p, q, node, sr.p_range, sr.p_sigma, **kw)
+    return fa, fp
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,6 +130,7 @@ def reject_nlos(
     *,
     site_frame: bool,
     gauge_node: int | None = None,
+    too_long: tuple[NDArray[np.bool_], NDArray[np.bool_]] | None = None,
 ) -> NlosResult:
     """Steps 1-3 of the module docstring for the walks ``included``; ``gauge_node``: the pose held
     fixed when not ``site_frame``."""
@@ -97,9 +165,11 @@ def reject_nlos(
         keys = [key for key in values.keys() if gtsam.Symbol(key).chr() == ord("x")]
         xyh[[gtsam.Symbol(key).index() for key in keys]] = gtsam.utilities.extractPose2(values)
         ea, ep = range_residuals(sr, xyh)
-        return ea <= k * sr.a_sigma, ep <= k * sr.p_sigma
+        return (ea <= k * sr.a_sigma) & ~bad_a, (ep <= k * sr.p_sigma) & ~bad_p
 
-    keep_a = np.full(len(sr.a_node), site_frame)
+    bad_a, bad_p = too_long if too_long is not None else (np.zeros(len(sr.a_node), bool), np.zeros(len(sr.p_node), bool))
+
+    keep_a = np.full(len(sr.a_node), site_frame) & ~bad_a
     keep_p = np.zeros(len(sr.p_node), bool)
     rounds = 0
     # 1. anchors only (fixed points: an NLOS anchor range cannot hide by moving its anchor);
@@ -107,9 +177,9 @@ def reject_nlos(
     for stage, peers in enumerate((False, True)):
         if peers:
             if not site_frame:
-                keep_p[:] = True
+                keep_p = ~bad_p
             elif len(keep_p):
-                keep_p = range_residuals(sr, xyh)[1] <= k * sr.p_sigma
+                keep_p = (range_residuals(sr, xyh)[1] <= k * sr.p_sigma) & ~bad_p
         elif not site_frame:
             continue
         for _ in range(MAX_ROUNDS):

@@ -28,7 +28,7 @@ from graphslam.core.types import Survey, wrap_angle
 from graphslam.core.uwb.factors import SurveyRanges
 from graphslam.core.uwb.initialise import RangeObservations, place_by_wifi, place_windows
 from graphslam.core.uwb.motion import median_step_s, stride_fraction
-from graphslam.core.uwb.nlos import reject_nlos
+from graphslam.core.uwb.nlos import chord_flags, reject_nlos
 from graphslam.core.uwb.ranging import horizontal_range
 
 log = logging.getLogger(__name__)
@@ -244,10 +244,18 @@ def uwb_terms(
         init[a:b, :2] = wp.apply(s, node_t[a:b], node_xyh[a:b, :2])
         init[a:b, 2] = wrap_angle(node_xyh[a:b, 2] + T[:, 2])
     ranges = sr.select(inc[node_walk])
+    too_long = None
+    if cfg.uwb.nlos_chord_prefilter:  # the ranges the dead reckoning alone proves too long
+        fa, fp = chord_flags(sr, obs.a_walk, obs.a_t, obs.a_q, obs.p_walk, obs.p_t, obs.p_qa, obs.p_qb, node_walk, cfg.uwb)
+        ka = inc[node_walk][sr.a_node]
+        kp = inc[node_walk][sr.p_node].all(axis=1) if len(sr.p_node) else np.zeros(0, bool)
+        too_long = (fa[ka], fp[kp])
     if not site:  # anchor ranges cannot enter a graph whose frame is a walk's
         ranges = ranges.subset(np.zeros(len(ranges.a_node), bool), np.ones(len(ranges.p_node), bool))
+        if too_long is not None:
+            too_long = (np.zeros(0, bool), too_long[1])
     gauge = None if site else next((int(offsets[s]) for s in range(n_s) if wp.method[s] == "registration"), None)
-    nl = reject_nlos(survey, offsets, inc, init, ranges, cfg, site_frame=site, gauge_node=gauge)
+    nl = reject_nlos(survey, offsets, inc, init, ranges, cfg, site_frame=site, gauge_node=gauge, too_long=too_long)
     ranges = ranges.subset(nl.keep_anchor, nl.keep_peer)
     ranges.dropped["nlos_anchor"] = int((~nl.keep_anchor).sum()) if site else 0
     ranges.dropped["nlos_peer"] = int((~nl.keep_peer).sum())
