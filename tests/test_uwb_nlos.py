@@ -63,3 +63,18 @@ def test_chord_test_groups_links_and_sums_both_walkers_chords() -> None:
     assert one_end.tolist() == [False, True, False, True]  # A's chord alone (1 m) cannot explain +1.5 m
     late = too_long_by_chords(group, t * 10, q, node, r, np.full(4, 0.05), k=3.0, step_sigma_m=0.0, max_dt_s=30.0)
     assert late.tolist() == [False, False, False, False]  # 50 s apart: not compared
+
+
+def test_chord_test_under_a_persistent_bias_flags_nothing_unbiased() -> None:
+    """A wall between walker and anchor for 20 s: every range of that stretch +1.2 m (one bias,
+    not drawn per range). The test may catch the stretch's ranges near its ends (where little was
+    walked since a LOS range), never a LOS one, and keeps most of the stretch's ranges for the
+    solve-based rejection (no reliance on independent biases)."""
+    rng = np.random.default_rng(2)
+    t, p, q = _walk(seed=3)
+    n = len(t)
+    bias = np.where((t >= 40.0) & (t < 60.0), 1.2, 0.0)
+    r = np.linalg.norm(p, axis=1) + bias + rng.normal(0, 0.05, n)
+    flag = too_long_by_chords(np.zeros(n, np.int64), t, q[:, None], np.arange(n)[:, None], r, np.full(n, SIGMA), **KW)
+    assert not (flag & (bias == 0)).any()
+    assert flag[bias > 0].any()  # the first ranges behind the wall
