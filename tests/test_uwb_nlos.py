@@ -78,3 +78,23 @@ def test_chord_test_under_a_persistent_bias_flags_nothing_unbiased() -> None:
     flag = too_long_by_chords(np.zeros(n, np.int64), t, q[:, None], np.arange(n)[:, None], r, np.full(n, SIGMA), **KW)
     assert not (flag & (bias == 0)).any()
     assert flag[bias > 0].any()  # the first ranges behind the wall
+
+
+def test_chord_prefilter_compares_only_within_the_time_window() -> None:
+    """A range is judged only against ranges of its link within max_dt_s, also across the
+    512-row blocks: the same flags as the direct pairwise rule on a long link."""
+    rng = np.random.default_rng(5)
+    m = 1500
+    t = np.sort(rng.uniform(0, 600, m))
+    q = np.cumsum(rng.normal(0, 0.05, (m, 1, 2)), axis=0)
+    node = np.arange(m)[:, None]
+    r = 5 + np.abs(rng.normal(0, 0.05, m)) + np.where(rng.random(m) < 0.3, rng.uniform(0.3, 2, m), 0.0)
+    sigma = np.full(m, 0.05)
+    group = np.zeros(m, np.int64)
+    got = too_long_by_chords(group, t, q, node, r, sigma, k=3.0, step_sigma_m=0.03, max_dt_s=10.0)
+    chord = np.linalg.norm(q[:, None, 0] - q[None, :, 0], axis=-1)
+    steps = np.abs(node[:, None, 0] - node[None, :, 0])
+    bound = r[None, :] + chord + 3.0 * np.sqrt(2 * 0.05**2 + steps * 0.03**2)
+    want = ((r[:, None] > bound) & (np.abs(t[:, None] - t[None, :]) <= 10.0)).any(axis=1)
+    np.testing.assert_array_equal(got, want)
+    assert want.sum() > 10  # the rule fires on this link

@@ -89,13 +89,18 @@ def too_long_by_chords(
     for idx in np.split(order, cuts):
         if len(idx) < 2:
             continue
-        for lo in range(0, len(idx), 512):  # rows in blocks: memory stays O(512 n)
+        tg = t[idx]  # sorted
+        for lo in range(0, len(idx), 512):  # rows in blocks of 512 ...
             i = idx[lo:lo + 512]
-            dt = np.abs(t[i][:, None] - t[idx][None, :])
-            chord = np.linalg.norm(q[i][:, None] - q[idx][None, :], axis=-1).sum(-1)
-            steps = np.abs(node[i][:, None] - node[idx][None, :]).sum(-1)
-            slack = k * np.sqrt(sigma[i][:, None] ** 2 + sigma[idx][None, :] ** 2 + steps * step_sigma_m**2)
-            bound = r[idx][None, :] + chord + slack
+            # ... against the ranges of the link within max_dt_s of them only: memory stays
+            # O(512 x ranges per window), however long the walks
+            t_first, t_last = tg[lo], tg[min(lo + 511, len(idx) - 1)]
+            j = idx[np.searchsorted(tg, t_first - max_dt_s, "left"):np.searchsorted(tg, t_last + max_dt_s, "right")]
+            dt = np.abs(t[i][:, None] - t[j][None, :])
+            chord = np.linalg.norm(q[i][:, None] - q[j][None, :], axis=-1).sum(-1)
+            steps = np.abs(node[i][:, None] - node[j][None, :]).sum(-1)
+            slack = k * np.sqrt(sigma[i][:, None] ** 2 + sigma[j][None, :] ** 2 + steps * step_sigma_m**2)
+            bound = r[j][None, :] + chord + slack
             out[i] = ((r[i][:, None] > bound) & (dt <= max_dt_s)).any(axis=1)
     return out
 
