@@ -721,6 +721,10 @@ def track(
         True, "--self-calibrate/--no-self-calibrate",
         help="Measure the kNN fix noise, RSSI variance and covariance scale on the radio map itself (docs/tracking.md).",
     ),
+    calibration_cache: bool = typer.Option(
+        True, "--calibration-cache/--no-calibration-cache",
+        help="Keep the self-calibration in track_calibration.json beside the map; reuse it for the same map, AP models and options.",
+    ),
     picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: the tracks (and truth)."),
 ) -> None:
     """Track walks on a radio map: fusion of step velocity, WiFi RSSI and kNN fixes (fixed-lag MAP, or EKF/UKF)."""
@@ -733,7 +737,7 @@ def track(
         filter=filter_, lag_s=lag, smoother=smooth, knn_fixes=knn_fixes, adaptive_rssi=adaptive_rssi,
         self_calibrate=self_calibrate,
     )
-    run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg)
+    run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg, calibration_cache=calibration_cache)
     shown = {}
     if picture:
         from graphslam.app.pictures import write_track_picture

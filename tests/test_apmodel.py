@@ -208,3 +208,43 @@ def test_track_cli_default_is_the_fixed_lag_tracker_and_rejects_a_negative_lag(t
 
     with pytest.raises(EstimationError, match="lag_s"):  # library callers get the same check
         TrackConfig(lag_s=float("nan"))
+
+
+def test_track_keeps_its_self_calibration_beside_the_map(tiny_case, tmp_path, monkeypatch, caplog):
+    """The self-calibration is measured once per (map, AP models, configuration), kept in
+    track_calibration.json beside the map and reused (same tracks); another configuration, a
+    damaged or tampered file mean measuring again (logged, never an error)."""
+    import dataclasses
+    import json
+    import logging
+    import shutil
+
+    from graphslam.app import track as T
+
+    d, _ = tiny_case
+    shutil.copy(d / "radio_map.parquet", tmp_path / "radio_map.parquet")
+    shutil.copy(d / "walk.mcap", tmp_path / "walk.mcap")
+    rm_path, walk, cache = tmp_path / "radio_map.parquet", [tmp_path / "walk.mcap"], tmp_path / T.CALIBRATION_FILE
+    measured = []
+    real = T.SelfCalibration.measure.__func__
+    monkeypatch.setattr(T.SelfCalibration, "measure", classmethod(lambda cls, *a: measured.append(1) or real(cls, *a)))
+    cfg = T.TrackConfig(filter="ekf")
+    first = T.track_files(rm_path, walk, cfg=cfg)
+    assert len(measured) == 1 and json.loads(cache.read_text())["covariance_scale"] >= 1
+    again = T.track_files(rm_path, walk, cfg=cfg)
+    assert len(measured) == 1  # reused
+    np.testing.assert_array_equal(again.tracks[0].x, first.tracks[0].x)
+    np.testing.assert_array_equal(again.tracks[0].P, first.tracks[0].P)
+    T.track_files(rm_path, walk, cfg=dataclasses.replace(cfg, knn_k=5))
+    assert len(measured) == 2  # another configuration: another calibration
+    caplog.set_level(logging.INFO, logger="graphslam.app.track")
+    cache.write_text("{not json")
+    T.track_files(rm_path, walk, cfg=cfg)
+    assert len(measured) == 3 and "unreadable" in caplog.text
+    kept = json.loads(cache.read_text())
+    cache.write_text(json.dumps(kept | {"covariance_scale": 0.5}))  # right key, impossible value
+    T.track_files(rm_path, walk, cfg=cfg)
+    assert len(measured) == 4 and "out of range" in caplog.text
+    cache.unlink()
+    T.track_files(rm_path, walk, cfg=cfg, calibration_cache=False)
+    assert len(measured) == 5 and not cache.exists()

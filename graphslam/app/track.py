@@ -358,15 +358,23 @@ class Tracker:
     model: FusionModel
     locator: KnnLocator
     cfg: TrackConfig
+    calibration: SelfCalibration | None = None  # what self-calibration applied (None: off)
 
     @classmethod
-    def on_map(cls, rm: RadioMap, models: ApModels, cfg: TrackConfig = TrackConfig()) -> "Tracker":
+    def on_map(
+        cls, rm: RadioMap, models: ApModels, cfg: TrackConfig = TrackConfig(), calibration: SelfCalibration | None = None
+    ) -> "Tracker":
+        """``calibration``: one measured on this map with this ``cfg`` before (else measured now)."""
         if models.frame != rm.frame:
             raise EstimationError(f"track: AP models are in frame {models.frame!r}, radio map in {rm.frame!r}")
         model = fusion_model(models, cfg)
-        if cfg.self_calibrate:
-            model, cfg = self_calibrated(rm, models, model, cfg)
-        return cls(model, KnnLocator(rm, KnnConfig(k=cfg.knn_k)), cfg)
+        if not cfg.self_calibrate:
+            calibration = None
+        elif calibration is None:
+            calibration = SelfCalibration.measure(rm, models, model, cfg)
+        if calibration is not None:
+            model, cfg = calibration.apply(model, cfg)
+        return cls(model, KnnLocator(rm, KnnConfig(k=cfg.knn_k)), cfg, calibration)
 
     def track(self, session: Session, progress: Task | None = None) -> SessionTrack:
         return track_session(session, self.model, self.locator, self.cfg, progress)
@@ -381,23 +389,43 @@ def track_sessions(
         return tuple(tracker.track(s, task) for s in sessions)
 
 
-def self_calibrated(rm: RadioMap, models: ApModels, model: FusionModel, cfg: TrackConfig) -> tuple[FusionModel, TrackConfig]:
-    """The RSSI variances scaled by the map's own RSSI variance factor and the kNN fix floor raised
-    to the map's leave-one-session-out kNN error (``graphslam.core.tracking.calibration``): noise
-    levels measured on the map, not chosen per building."""
-    from graphslam.core.tracking.calibration import fix_noise, rssi_variance_factor
+@dataclass(frozen=True)
+class SelfCalibration:
+    """What self-calibration measured on one radio map for one ``TrackConfig``: three numbers,
+    so that they can be kept beside the map (``track_files``) instead of measured per call."""
 
-    kappa = rssi_variance_factor(rm, models, np.sqrt(model.r_rssi)) if len(models.fitted) else 1.0
-    try:
-        floor = max(cfg.fix_sigma_floor_m, fix_noise(rm, k=cfg.knn_k).sigma_m)
-    except EstimationError as e:  # a one-session map: keep the configured floor
-        log.info("track: no leave-one-session-out fix noise (%s)", e)
-        floor = cfg.fix_sigma_floor_m
-    model = dataclasses.replace(model, r_rssi=model.r_rssi * kappa)
-    cfg = dataclasses.replace(cfg, fix_sigma_floor_m=floor, self_calibrate=False)
-    scale = replay_covariance_scale(rm, model, cfg) if cfg.replay_sessions > 0 else 1.0
-    log.info("track: self-calibration: RSSI variance x %.2f, kNN fix std floor %.2f m, covariance x %.2f", kappa, floor, scale)
-    return model, dataclasses.replace(cfg, covariance_scale=cfg.covariance_scale * scale)
+    rssi_variance_factor: float  # RSSI variances x this
+    fix_sigma_floor_m: float  # kNN fix std floor (m)
+    covariance_scale: float  # reported covariances x this (>= 1)
+
+    @classmethod
+    def measure(cls, rm: RadioMap, models: ApModels, model: FusionModel, cfg: TrackConfig) -> "SelfCalibration":
+        """The map's own RSSI variance factor, its leave-one-session-out kNN error as the fix floor
+        (``graphslam.core.tracking.calibration``), and the covariance scale from replaying its walks
+        under those two: noise levels measured on the map, not chosen per building."""
+        from graphslam.core.tracking.calibration import fix_noise, rssi_variance_factor
+
+        kappa = rssi_variance_factor(rm, models, np.sqrt(model.r_rssi)) if len(models.fitted) else 1.0
+        try:
+            floor = max(cfg.fix_sigma_floor_m, fix_noise(rm, k=cfg.knn_k).sigma_m)
+        except EstimationError as e:  # a one-session map: keep the configured floor
+            log.info("track: no leave-one-session-out fix noise (%s)", e)
+            floor = cfg.fix_sigma_floor_m
+        half = cls(float(kappa), float(floor), 1.0)
+        scale = replay_covariance_scale(rm, *half.apply(model, cfg)) if cfg.replay_sessions > 0 else 1.0
+        log.info("track: self-calibration: RSSI variance x %.2f, kNN fix std floor %.2f m, covariance x %.2f", kappa, floor, scale)
+        return cls(float(kappa), float(floor), float(scale))
+
+    def apply(self, model: FusionModel, cfg: TrackConfig) -> tuple[FusionModel, TrackConfig]:
+        model = dataclasses.replace(model, r_rssi=model.r_rssi * self.rssi_variance_factor)
+        cfg = dataclasses.replace(cfg, fix_sigma_floor_m=self.fix_sigma_floor_m, self_calibrate=False,
+                                  covariance_scale=cfg.covariance_scale * self.covariance_scale)
+        return model, cfg
+
+
+def self_calibrated(rm: RadioMap, models: ApModels, model: FusionModel, cfg: TrackConfig) -> tuple[FusionModel, TrackConfig]:
+    """``model`` and ``cfg`` with the noise levels measured on the map (``SelfCalibration``)."""
+    return SelfCalibration.measure(rm, models, model, cfg).apply(model, cfg)
 
 
 def replay_covariance_scale(rm: RadioMap, model: FusionModel, cfg: TrackConfig) -> float:
@@ -464,9 +492,12 @@ def track_files(
     ap_models_path: str | Path | None = None,
     out: str | Path | None = None,
     cfg: TrackConfig = TrackConfig(),
+    calibration_cache: bool = True,
 ) -> TrackRun:
     """Read the radio map, its AP models (``ap_models_path``, else ``ap_models.json`` beside the map,
-    else fitted now), the sessions (MCAP); track; write ``out`` (CSV)."""
+    else fitted now), the sessions (MCAP); track; write ``out`` (CSV). ``calibration_cache``: keep
+    the self-calibration in ``track_calibration.json`` beside the map and reuse it while the map,
+    AP models and configuration are the same."""
     from graphslam.io.apmodel_io import StaleApModelsError, read_ap_models
     from graphslam.io.mcap_reader import read_survey
     from graphslam.io.radiomap_io import read_radio_map
@@ -485,6 +516,70 @@ def track_files(
         log.info("no AP models beside %s: fitting them now", radio_map_path)
         models = ApModels.fit(rm)
     survey = read_survey(list(session_paths))
-    tracks = track_sessions(survey.sessions, rm, models, cfg)
+    cache = key = cached = None
+    if cfg.self_calibrate and calibration_cache:
+        cache = Path(radio_map_path).with_name(CALIBRATION_FILE)
+        models_source = Path(ap_models_path) if ap_models_path is not None else beside if beside.exists() else None
+        key = _calibration_key(Path(radio_map_path), models_source, models, cfg)
+        cached = _read_calibration(cache, key)
+    tracker = Tracker.on_map(rm, models, cfg, calibration=cached)
+    if cache is not None and cached is None and tracker.calibration is not None:
+        _write_calibration(cache, key, tracker.calibration)
+    with Task("track", total=sum(len(s.steps) for s in survey.sessions), unit="steps") as task:
+        tracks = tuple(tracker.track(s, task) for s in survey.sessions)
     written = write_track_csv(tracks, out) if out is not None else None
     return TrackRun(tracks, written, len(models.fitted))
+
+
+# Self-calibration kept beside the radio map: measuring it replays the map's walks (~46 s on the
+# IPIN floor), the same for every call with the same map, AP models and configuration.
+CALIBRATION_FILE = "track_calibration.json"
+_CALIBRATION_FORMAT = 1
+
+
+def _calibration_key(radio_map: Path, models_source: Path | None, models: ApModels, cfg: TrackConfig) -> str:
+    """sha256 over what the calibration depends on: the map's bytes, the AP models' (or that they
+    were fitted now, from the map), the tracking configuration and this graphslam's version."""
+    import hashlib
+    import json
+
+    from graphslam import __version__
+
+    h = hashlib.sha256()
+    h.update(radio_map.read_bytes())
+    h.update(models_source.read_bytes() if models_source is not None else f"fitted:{len(models.fitted)}".encode())
+    h.update(json.dumps(dataclasses.asdict(cfg), sort_keys=True, default=str).encode())
+    h.update(f"{__version__}/{_CALIBRATION_FORMAT}".encode())
+    return h.hexdigest()
+
+
+def _read_calibration(path: Path, key: str) -> SelfCalibration | None:
+    """The calibration kept in ``path`` for ``key``; None (measure it again) when there is none, it
+    is for another map or configuration, or the file is damaged (a cache: logged, never an error)."""
+    import json
+
+    if not path.is_file():
+        return None
+    try:
+        d = json.loads(path.read_text())
+        if d.get("format") != _CALIBRATION_FORMAT or d.get("key") != key:
+            log.info("%s: for another map, AP models or configuration: measuring again", path)
+            return None
+        cal = SelfCalibration(*(float(d[k]) for k in ("rssi_variance_factor", "fix_sigma_floor_m", "covariance_scale")))
+    except (OSError, ValueError, TypeError, KeyError, AttributeError) as e:
+        log.warning("%s: unreadable (%s): measuring the self-calibration again", path, e)
+        return None
+    if not all(math.isfinite(v) and v > 0 for v in dataclasses.astuple(cal)) or cal.covariance_scale < 1:
+        log.warning("%s: values out of range: measuring the self-calibration again", path)
+        return None
+    log.info("track: self-calibration from %s", path)
+    return cal
+
+
+def _write_calibration(path: Path, key: str, cal: SelfCalibration) -> None:
+    from graphslam.io.atomic import atomic_write_json
+
+    try:
+        atomic_write_json(path, {"format": _CALIBRATION_FORMAT, "key": key, **dataclasses.asdict(cal)})
+    except OSError as e:  # a read-only map folder: track anyway, measure again next time
+        log.warning("%s: cannot keep the self-calibration (%s)", path, e)
