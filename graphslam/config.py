@@ -121,6 +121,11 @@ class OptimizerConfig(_Strict):
         "MKL_NUM_THREADS (survey-batch workers: 1). Measured (docs/benchmarks.md issue 16): 2 threads 1.7x faster than 1 "
         "on an idle 2-core machine, equal with one other job, slower with six",
     )
+    blas_threads: int = Field(
+        1, ge=0, description="OpenBLAS threads (numpy's and scipy's) during a survey; 0 = OpenBLAS's default: every "
+        "core, or OPENBLAS_NUM_THREADS. 1 measured faster (docs/benchmarks.md issue 16): the survey's many small "
+        "products do not pay for waking the other threads. MKL's factorisation keeps `threads`",
+    )
     linear_solver: Literal["auto", "cholesky", "pcg"] = Field(
         "auto",
         description="solver=gtsam only. cholesky: multifrontal, METIS; pcg: block-Jacobi PCG (large surveys); auto: "

@@ -137,6 +137,16 @@ def test_update_with_a_changed_configuration_or_walk_is_a_full_resolve(floor: di
     assert u["mode"] == "full" and s0.session_id in u["reason"] and "not among" in u["reason"]
 
 
+def test_thread_settings_do_not_force_a_full_resolve(floor: dict, tmp_path: Path) -> None:
+    """Thread counts only reorder sums: a previous output made with others is still updated."""
+    root = floor["root"]
+    out = tmp_path / "threads"
+    assert _run(["survey", str(root / "all"), "--out", str(out), "--update", str(root / "prev"), "--no-progress",
+                 "--set", "optimizer.threads=1", "--set", "optimizer.blas_threads=0"]) == 0
+    u = json.loads((out / "report.json").read_text())["update"]
+    assert u["mode"] == "incremental" and u["reason"] is None
+
+
 def test_update_from_a_bad_previous_output_is_one_line_exit_2(
     floor: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

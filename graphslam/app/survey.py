@@ -10,7 +10,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 
@@ -152,6 +152,37 @@ def run_survey(
     ``update``: a previous output folder of this floor; walks solved there start from their
     solution and only the new walks' neighbourhood is re-solved (``graphslam.app.update``)."""
     cfg = config or GraphSlamConfig()
+    with openblas_threads(cfg.optimizer.blas_threads):
+        return _run_survey(paths, out_dir, cfg, progress=progress, rerun_path=rerun_path, floor_plan=floor_plan,
+                           floor_size=floor_size, surveyed=surveyed, picture=picture, update=update)
+
+
+@contextlib.contextmanager
+def openblas_threads(n: int) -> Iterator[None]:
+    """Within: OpenBLAS (numpy's and scipy's, whatever their build's prefix) at ``n`` threads;
+    ``n`` = 0 leaves it. MKL (the factorisation's, ``optimizer.threads``) is not touched."""
+    if n <= 0:
+        yield
+        return
+    from threadpoolctl import ThreadpoolController
+
+    with ThreadpoolController().select(internal_api="openblas").limit(limits=n):
+        yield
+
+
+def _run_survey(
+    paths: Sequence[str | Path],
+    out_dir: str | Path | None,
+    cfg: GraphSlamConfig,
+    *,
+    progress: ProgressCallback | None,
+    rerun_path: str | Path | None,
+    floor_plan: str | Path | None,
+    floor_size: tuple[float, float] | None,
+    surveyed: bool,
+    picture: bool,
+    update: str | Path | None,
+) -> SurveyResult:
     _check_outputs(paths, out_dir, rerun_path, floor_plan)
     plan = _picture_plan(floor_plan, floor_size) if picture and out_dir is not None else None
     timings: dict[str, float] = {}

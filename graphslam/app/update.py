@@ -32,8 +32,9 @@ from graphslam.io.survey_state import STATE_FILE, read_survey_state
 
 log = logging.getLogger(__name__)
 
-# Config sections that do not change the solution a previous output holds.
+# Config sections and settings that do not change the solution a previous output holds.
 _NOT_COMPARED = ("update",)
+_NOT_COMPARED_KEYS = {("optimizer", "threads"), ("optimizer", "blas_threads")}  # summation order only
 
 
 def load_previous(previous_dir: str | Path) -> PreviousSolution:
@@ -69,6 +70,8 @@ def _config_diff(prev: dict[str, Any], cfg: GraphSlamConfig) -> list[str]:
             continue
         a, b = prev.get(section, {}), cur.get(section, {})
         for key in sorted(set(a) | set(b)):
+            if (section, key) in _NOT_COMPARED_KEYS:
+                continue
             if section == "optimizer" and key == "reference_session" and b.get(key) is None:
                 continue  # not set now: the previous reference walk is kept (same frame)
             if a.get(key) != b.get(key):
