@@ -1,3 +1,3 @@
-from graphslam.cli import main
+from graphslam.cli import entry
 
-main()
+entry()

@@ -969,5 +969,42 @@ def main(argv: Optional[list[str]] = None) -> None:
     if isinstance(code, int) and code:  # typer.Exit(code) returns its code without standalone mode
         sys.exit(code)
 
+def entry() -> None:
+    """The ``graphslam`` script and ``python -m graphslam``: :func:`main`, then :func:`_exit_now`."""
+    code: object = 0
+    try:
+        main()
+    except SystemExit as e:
+        code = e.code
+    _exit_now(code)
+
+
+def _exit_now(code: object) -> None:
+    """Exit as the interpreter would — non-daemon threads joined, exit handlers run (logging,
+    multiprocessing, temporary folders, Rerun), stdout and stderr flushed — but without tearing
+    down every module (numpy, scipy, GTSAM, pyarrow, ...): that took ~0.2 s of a 1.7-s survey
+    (docs/benchmarks.md, issue 16). Under a profiler or tracer (cProfile, coverage) the normal exit,
+    so that they write their results."""
+    status = 0 if code is None else code if isinstance(code, int) else 1
+    if not isinstance(code, (int, type(None))):
+        print(code, file=sys.stderr)  # sys.exit("message"), as the interpreter prints it
+    if sys.getprofile() is not None or sys.gettrace() is not None:
+        sys.exit(status)
+    import atexit
+    import os
+    import threading
+
+    for t in threading.enumerate():
+        if t is not threading.main_thread() and not t.daemon:
+            t.join()
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe (`| head`) or stream: nothing more to say
+            pass
+    os._exit(status & 0xFF)
+
+
 if __name__ == "__main__":
-    main()
+    entry()

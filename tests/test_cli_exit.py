@@ -1,0 +1,61 @@
+"""The console entry's fast exit (issue 16): what the interpreter's exit does, minus the teardown."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+import graphslam
+from graphslam import cli
+
+
+def _python(code: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=120)
+
+
+def test_exit_joins_threads_runs_handlers_and_flushes_buffered_output() -> None:
+    p = _python("""
+        import atexit, sys, threading, time
+        from graphslam import cli
+        atexit.register(lambda: print("handler ran"))
+        def late():
+            time.sleep(0.3)
+            print("thread done")
+        threading.Thread(target=late).start()
+        sys.stdout.write("buffered, not flushed; ")
+        sys.argv = ["graphslam", "--version"]
+        cli.entry()
+        print("never reached")
+    """)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.startswith("buffered, not flushed; ") and graphslam.__version__ in p.stdout
+    assert p.stdout.index("thread done") < p.stdout.index("handler ran")
+    assert "never reached" not in p.stdout
+
+
+@pytest.mark.parametrize(("code", "status", "stderr"), [(None, 0, ""), (2, 2, ""), ("boom", 1, "boom\n")])
+def test_exit_status_is_the_interpreters(code: object, status: int, stderr: str) -> None:
+    p = _python(f"from graphslam import cli; cli._exit_now({code!r})")
+    assert (p.returncode, p.stderr) == (status, stderr)
+
+
+def test_module_entry_keeps_the_exit_code_and_one_line_of_a_usage_error() -> None:
+    p = subprocess.run([sys.executable, "-m", "graphslam", "survey", "--no-such-option"], capture_output=True,
+                       text=True, timeout=120)
+    assert p.returncode == 2 and p.stdout == ""
+    assert len(p.stderr.strip().splitlines()) == 1 and "--no-such-option" in p.stderr
+
+
+def test_under_a_tracer_the_exit_is_the_normal_one() -> None:
+    """cProfile and coverage write their results at the normal exit: it must happen."""
+    previous = sys.gettrace()
+    sys.settrace(previous or (lambda *a: None))
+    try:
+        with pytest.raises(SystemExit) as e:
+            cli._exit_now(3)
+    finally:
+        sys.settrace(previous)
+    assert e.value.code == 3
