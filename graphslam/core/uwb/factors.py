@@ -25,15 +25,25 @@ Keys: ``X(i)`` step poses (global numbering, as ``graphslam.core.survey.align``)
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
-import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
 from graphslam.config import UwbConfig
 
-X = gtsam.symbol_shorthand.X
-L = gtsam.symbol_shorthand.L
+if TYPE_CHECKING:  # gtsam is imported where a factor is built: a WiFi-only survey never loads it (~0.1 s)
+    import gtsam
+
+
+def X(j: int) -> int:
+    """Key of pose ``x_j``: GTSAM's ``symbol_shorthand.X`` (character in the top 8 bits, index below)."""
+    return (ord("x") << 56) | int(j)
+
+
+def L(j: int) -> int:
+    """Key of anchor ``l_j``: GTSAM's ``symbol_shorthand.L``."""
+    return (ord("l") << 56) | int(j)
 
 
 @dataclass(frozen=True, eq=False)
@@ -73,22 +83,30 @@ class SurveyRanges:
 
 def range_noise(sigma: float, cfg: UwbConfig) -> gtsam.noiseModel.Base:
     """Isotropic 1-D noise of std ``sigma`` under the configured robust loss (threshold k sigma)."""
+    import gtsam
+
     est = gtsam.noiseModel.mEstimator
     loss = est.Cauchy.Create(cfg.loss_k) if cfg.loss == "cauchy" else est.Huber.Create(cfg.loss_k)
     return gtsam.noiseModel.Robust.Create(loss, gtsam.noiseModel.Isotropic.Sigma(1, float(sigma)))
 
 
 def anchor_prior_noise(cfg: UwbConfig) -> gtsam.noiseModel.Base:
+    import gtsam
+
     return gtsam.noiseModel.Isotropic.Sigma(2, cfg.anchor_prior_sigma_m)
 
 
 def anchor_range_factor(node: int, anchor: int, r: float, sigma: float, offset: NDArray, cfg: UwbConfig) -> gtsam.NonlinearFactor:
+    import gtsam
+
     return gtsam.RangeFactorWithTransform2D(
         X(node), L(anchor), float(r), range_noise(sigma, cfg), gtsam.Pose2(float(offset[0]), float(offset[1]), 0.0)
     )
 
 
 def peer_range_factor(node_a: int, node_b: int, r: float, sigma: float, offset_a: NDArray, cfg: UwbConfig) -> gtsam.NonlinearFactor:
+    import gtsam
+
     return gtsam.RangeFactorWithTransformPose2(
         X(node_a), X(node_b), float(r), range_noise(sigma, cfg),
         gtsam.Pose2(float(offset_a[0]), float(offset_a[1]), 0.0),
@@ -97,6 +115,8 @@ def peer_range_factor(node_a: int, node_b: int, r: float, sigma: float, offset_a
 
 def range_factors(sr: SurveyRanges, cfg: UwbConfig, *, with_anchors: bool = True) -> list[gtsam.NonlinearFactor]:
     """Every range factor of ``sr`` (anchor ones only ``with_anchors``) plus one prior per used anchor."""
+    import gtsam
+
     out: list[gtsam.NonlinearFactor] = []
     if with_anchors:
         for a in np.unique(sr.a_anchor).tolist():
@@ -110,6 +130,8 @@ def range_factors(sr: SurveyRanges, cfg: UwbConfig, *, with_anchors: bool = True
 
 def anchor_values(sr: SurveyRanges) -> gtsam.Values:
     """Initial values of the anchors that have ranges (their surveyed positions)."""
+    import gtsam
+
     v = gtsam.Values()
     for a in np.unique(sr.a_anchor).tolist():
         v.insert(L(a), np.asarray(sr.anchor_xy[a], float))

@@ -41,7 +41,6 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
@@ -150,6 +149,8 @@ def reject_nlos(
 ) -> NlosResult:
     """Steps 1-3 of the module docstring for the walks ``included``; ``gauge_node``: the pose held
     fixed when not ``site_frame``."""
+    import gtsam  # here: a survey without UWB ranges never loads it
+
     base = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     nm = imu_noise(cfg.imu.model_copy(update={

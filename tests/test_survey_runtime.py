@@ -1,7 +1,11 @@
-"""`optimizer.blas_threads`: OpenBLAS's thread count within a survey, restored after it (issue 16)."""
+"""What a survey process loads and runs with (issue 16): OpenBLAS's thread count within a survey
+(`optimizer.blas_threads`), restored after it; no GTSAM for a survey the vectorised solver solves."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import textwrap
 from pathlib import Path
 
 import pytest
@@ -39,3 +43,27 @@ def test_survey_runs_openblas_at_the_configured_count_and_restores_it(recordings
     want = before if n == 0 else [n] * len(before)
     assert all(s == want for s in seen)
     assert _openblas_threads() == before
+
+
+def test_a_wifi_only_survey_never_loads_gtsam(recordings: list[Path], tmp_path: Path) -> None:
+    """GTSAM (~0.1 s to import) is loaded where a GTSAM factor is built: not for the default solver."""
+    code = textwrap.dedent(f"""
+        import sys
+        from graphslam.app.survey import run_survey
+        r = run_survey({[str(p) for p in recordings]!r}, {str(tmp_path / "out")!r})
+        assert not r.alignment.unaligned and r.alignment.tracks, r.alignment.unaligned
+        print(sorted(m for m in sys.modules if m.split(".")[0] == "gtsam"))
+    """)
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip() == "[]"
+
+
+def test_uwb_keys_are_gtsams_symbols() -> None:
+    import gtsam
+
+    from graphslam.core.uwb.factors import L, X
+
+    for j in (0, 1, 7, 123_456, 2**40):
+        assert X(j) == gtsam.symbol_shorthand.X(j) and L(j) == gtsam.symbol_shorthand.L(j)
+        assert gtsam.Symbol(X(j)).chr() == ord("x") and gtsam.Symbol(L(j)).index() == j
