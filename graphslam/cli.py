@@ -972,11 +972,41 @@ def main(argv: Optional[list[str]] = None) -> None:
 def entry() -> None:
     """The ``graphslam`` script and ``python -m graphslam``: :func:`main`, then :func:`_exit_now`."""
     code: object = 0
+    _defer_numpy_extras()
     try:
         main()
     except SystemExit as e:
         code = e.code
     _exit_now(code)
+
+
+# numpy submodules that numpy itself loads on first use, none of which a command needs at start.
+_DEFERRED_NUMPY_MODULES = ("numpy.f2py", "numpy.ctypeslib", "numpy.ma", "numpy.polynomial", "numpy.testing")
+
+
+def _defer_numpy_extras() -> None:
+    """scipy's array-API layer (``scipy._lib.array_api_compat.numpy``, imported with scipy.sparse)
+    does ``from numpy import *``, which imports every submodule numpy keeps lazy — f2py (and,
+    through it, charset_normalizer), ctypeslib, ma, polynomial, testing: ~0.1 s, a fifth of a
+    survey's start-up (docs/benchmarks.md, issue 16). Registered first as lazy modules (the
+    standard library's ``importlib.util.LazyLoader``) they are executed on first attribute access
+    instead, which no survey makes. Console process only (library users and tests are untouched),
+    and only for modules not yet imported."""
+    import importlib.util
+
+    import numpy
+
+    for name in _DEFERRED_NUMPY_MODULES:
+        if name in sys.modules:
+            continue
+        spec = importlib.util.find_spec(name)
+        if spec is None or spec.loader is None:
+            continue
+        spec.loader = importlib.util.LazyLoader(spec.loader)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+        setattr(numpy, name.rpartition(".")[2], module)  # else numpy's __getattr__ imports it again
 
 
 def _exit_now(code: object) -> None:

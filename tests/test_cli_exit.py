@@ -1,10 +1,12 @@
-"""The console entry's fast exit (issue 16): what the interpreter's exit does, minus the teardown."""
+"""The console entry (issue 16): a fast exit (what the interpreter's exit does, minus the teardown),
+numpy's rarely used submodules deferred until used."""
 
 from __future__ import annotations
 
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import pytest
 
@@ -59,3 +61,36 @@ def test_under_a_tracer_the_exit_is_the_normal_one() -> None:
     finally:
         sys.settrace(previous)
     assert e.value.code == 3
+
+
+def test_numpy_extras_load_on_first_use_not_at_start() -> None:
+    p = _python("""
+        import sys
+        from graphslam import cli
+        cli._defer_numpy_extras()
+        import numpy, scipy.sparse  # scipy's array-API layer touches every numpy submodule
+        eager = [m for m in ("numpy.f2py.crackfortran", "charset_normalizer", "numpy.ma.core", "numpy.testing._private")
+                 if m in sys.modules]
+        print(eager)
+        print(numpy.ma.masked_array([1.0, 2.0], mask=[False, True]).sum(), numpy.polynomial.Polynomial([1, 2])(2.0))
+        from numpy.testing import assert_allclose
+        assert_allclose(1.0, 1.0)
+        lazy = type(numpy.f2py).__name__
+        print(lazy, callable(numpy.f2py.run_main), type(numpy.f2py).__name__)  # loaded on that access
+    """)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.splitlines() == ["[]", "1.0 5.0", "_LazyModule True module"]
+
+
+def test_a_survey_through_the_console_entry(tmp_path: Path) -> None:
+    """The whole command in its own process: deferred numpy modules and the fast exit together."""
+    from graphslam.io.mcap_writer import write_session
+    from graphslam.sim import simulate
+
+    for s in simulate("paper", seed=0, size=0.25).survey:
+        write_session(s, tmp_path / "rec" / f"{s.session_id}.mcap")
+    p = subprocess.run([sys.executable, "-m", "graphslam", "survey", str(tmp_path / "rec"), "--out",
+                        str(tmp_path / "out"), "--no-progress"], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.startswith("aligned ") and (tmp_path / "out" / "report.json").is_file()
+    assert (tmp_path / "out" / "radio_map.parquet").is_file() and (tmp_path / "out" / "survey.png").is_file()
