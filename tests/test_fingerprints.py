@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import sparse
 
 from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix, rss_distance
 
@@ -63,3 +64,43 @@ def test_readings_below_floor_are_dropped() -> None:
     fm = FingerprintMatrix.from_scans([{"a": -50.0, "b": -105.0}], min_rssi_dbm=-100.0)
     assert fm.bssids == ("a",) and fm.heard.tolist() == [1]
     np.testing.assert_allclose(fm.dense_rssi(), [[-50.0]])
+
+
+def _encode_by_loop(scans, bssids, index, missing_dbm, min_rssi_dbm):
+    """The reading-by-reading definition the vectorised ``FingerprintMatrix.encode`` must equal."""
+    floor = max(min_rssi_dbm, missing_dbm + 1e-6)
+    rows, cols, vals = [], [], []
+    extra_sq, extra_n = np.zeros(len(scans)), np.zeros(len(scans), np.int64)
+    for i, s in enumerate(scans):
+        for b, r in s.items():
+            if r < floor:
+                continue
+            j = index.get(b)
+            if j is None:
+                extra_sq[i] += (r - missing_dbm) ** 2
+                extra_n[i] += 1
+            else:
+                rows.append(i)
+                cols.append(j)
+                vals.append(r - missing_dbm)
+    return rows, cols, vals, extra_sq, extra_n
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_encode_equals_the_reading_by_reading_definition(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    aps = [f"02:00:00:00:{k // 256:02x}:{k % 256:02x}" for k in range(40)]
+    known = tuple(sorted(aps[:25]))  # the other 15 are unknown to the index
+    index = {b: j for j, b in enumerate(known)}
+    scans = []
+    for _ in range(300):
+        heard = rng.choice(len(aps), size=int(rng.integers(0, 12)), replace=False)  # empty scans too
+        scans.append({aps[k]: (int(rng.integers(-105, -30)) if rng.random() < 0.3 else float(rng.uniform(-105, -30)))
+                      for k in heard})  # ints as JSON gives them, readings below the floor
+    fm = FingerprintMatrix.encode(scans, known, index, -110.0, -100.0)
+    rows, cols, vals, extra_sq, extra_n = _encode_by_loop(scans, known, index, -110.0, -100.0)
+    want = sparse.csr_matrix((vals, (rows, cols)), shape=(len(scans), len(known)))
+    assert (fm.values != want).nnz == 0 and fm.values.nnz == len(vals) > 0
+    # squares: x * x here, the C library's pow() in the loop (within one ulp of it)
+    np.testing.assert_allclose(fm.extra_sq, extra_sq, rtol=4e-16, atol=0)
+    assert np.array_equal(fm.extra_n, extra_n) and extra_n.sum() > 0
