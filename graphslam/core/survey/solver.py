@@ -277,7 +277,15 @@ class _Pardiso:
         self._ja = (indices + 1).astype(np.int32)
         self._a = np.zeros(len(indices))
         self._pt = np.zeros(64, np.int64)  # PARDISO's internal handle
-        self._iparm = np.zeros(64, np.int32)  # iparm[0] = 0: every parameter at its default
+        # iparm[0] = 1: the entries set here, every other one 0 (MKL's default for a real SPD matrix)
+        self._iparm = np.zeros(64, np.int32)
+        self._iparm[0] = 1
+        self._iparm[1] = 2  # fill-reducing ordering: METIS nested dissection (the default)
+        self._iparm[9] = 8  # pivot perturbation 1e-8 (the default; an SPD matrix is not pivoted)
+        self._iparm[17] = -1  # report the factor's non-zeros (the default)
+        # two-level factorisation: paper size 12, 45 M non-zeros, 1.92 -> 1.60 s on 2 threads, 2.9 -> 2.7 s
+        # on 1 (docs/benchmarks.md, issue 16); same solution to rounding
+        self._iparm[23] = 1
         self._threads = threads
         self._live = False
         self._call(11, np.zeros(1), np.zeros(1))  # analysis
