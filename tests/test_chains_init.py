@@ -160,3 +160,27 @@ def test_background_logging_reports_failures_in_one_line() -> None:
     assert "\n" not in str(e.value)
     with pytest.raises(VisualizationError, match="died"):
         BackgroundLog(_dies).wait()
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_spanning_tree_is_scipys_including_ties(seed: int) -> None:
+    """The walk-placement tree without csgraph: the same edges as scipy's Kruskal, ties and all
+    (weights are inlier counts: ties are the rule), and the same components."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
+
+    from graphslam.core.survey.initialise import connected_to, spanning_tree
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(2, 40))
+    pairs = sorted({(int(i), int(j)) for i, j in rng.integers(0, n, (int(rng.integers(1, 3 * n)), 2)) if i < j})
+    if not pairs:
+        pairs = [(0, 1)]
+    wi, wj = [p[0] for p in pairs], [p[1] for p in pairs]
+    cost = -rng.integers(4, 9, len(pairs)).astype(float)  # few distinct values: many ties
+    tree = minimum_spanning_tree(coo_matrix((cost, (wi, wj)), shape=(n, n)).tocsr()).tocoo()
+    kept = spanning_tree(n, wi, wj, cost)
+    assert sorted(zip(tree.row.tolist(), tree.col.tolist())) == [pairs[k] for k in np.flatnonzero(kept)]
+    _, label = connected_components(coo_matrix((np.ones(len(wi)), (wi, wj)), shape=(n, n)), directed=False)
+    ref = int(rng.integers(0, n))
+    assert np.array_equal(connected_to(n, np.array(wi), np.array(wj), ref), label == label[ref])

@@ -20,8 +20,6 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from graphslam.config import GraphSlamConfig
 from graphslam.core.progress import Task
@@ -31,7 +29,7 @@ from graphslam.core.survey import incremental
 from graphslam.core.survey.association import FingerprintNodes, associate
 from graphslam.core.survey.chains import CompressedChains, compress, expand
 from graphslam.core.survey.edges import WifiEdges, propose_edges, window_thresholds
-from graphslam.core.survey.initialise import Placement, register_walks, se2_apply
+from graphslam.core.survey.initialise import Placement, connected_to, register_walks, se2_apply
 from graphslam.core.types import PoseTrack, Survey, wrap_angle
 from graphslam.core.uwb import factors as uwb_factors
 from graphslam.core.uwb.survey import UwbSummary, UwbTerms, uwb_terms
@@ -265,9 +263,7 @@ def build_problem(survey: Survey, cfg: GraphSlamConfig, warm: incremental.WarmSt
             unaligned[s] = why
     else:
         transforms = np.zeros((n_s, 3))
-        g = coo_matrix((np.ones(len(ea)), (node_sess[ea], node_sess[eb])), shape=(n_s, n_s))
-        _, label = connected_components(g, directed=False)
-        included = label == label[ref]
+        included = connected_to(n_s, node_sess[ea], node_sess[eb], ref)
         for s in np.flatnonzero(~included):
             unaligned[survey.sessions[s].session_id] = "no WiFi edge path to the reference walk"
     # --- UWB hook (issue 15, graphslam.core.uwb.survey): range factors; with anchors the site

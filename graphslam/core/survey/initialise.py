@@ -21,11 +21,10 @@ from __future__ import annotations
 import logging
 from collections import deque
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import minimum_spanning_tree
 
 log = logging.getLogger(__name__)
 
@@ -177,12 +176,12 @@ def register_walks(
     inliers[reference] = -1
     if ww:
         # maximum spanning tree = minimum spanning tree of negated weights
-        g = coo_matrix((-np.asarray(ww, float), (wi, wj)), shape=(n_sessions, n_sessions)).tocsr()
-        tree = minimum_spanning_tree(g).tocoo()
+        kept = spanning_tree(n_sessions, wi, wj, -np.asarray(ww, float))
         adj: dict[int, list[tuple[int, int]]] = {}
-        for u, v, w in zip(tree.row, tree.col, tree.data):
-            adj.setdefault(int(u), []).append((int(v), int(-w)))
-            adj.setdefault(int(v), []).append((int(u), int(-w)))
+        for k in np.flatnonzero(kept).tolist():
+            u, v, w = wi[k], wj[k], ww[k]
+            adj.setdefault(int(u), []).append((int(v), int(w)))
+            adj.setdefault(int(v), []).append((int(u), int(w)))
         queue = deque([reference])
         while queue:
             u = queue.popleft()
@@ -217,6 +216,47 @@ def register_walks(
             "do not support a reliable placement (short or non-overlapping walks?)", consistent, loops,
         )
     return pl
+
+
+def spanning_tree(n: int, a: Sequence[int], b: Sequence[int], cost: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Which edges ``(a[k], b[k])`` of an undirected graph on ``n`` nodes form its minimum spanning
+    forest (Kruskal). Ties go to the edge listed first: with the edges in (row, column) order this is
+    ``scipy.sparse.csgraph.minimum_spanning_tree``'s rule (a stable sort of its CSR data), so the same
+    tree — without importing csgraph and scipy.linalg beneath it (~0.07 s of a survey's start-up;
+    the graph here has one node per walk)."""
+    parent = list(range(n))
+
+    def root(x: int) -> int:
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]  # path halving
+            x = parent[x]
+        return x
+
+    kept = np.zeros(len(cost), bool)
+    for k in np.argsort(cost, kind="stable").tolist():
+        ra, rb = root(int(a[k])), root(int(b[k]))
+        if ra != rb:
+            parent[rb] = ra
+            kept[k] = True
+    return kept
+
+
+def connected_to(n: int, a: NDArray[np.int64], b: NDArray[np.int64], node: int) -> NDArray[np.bool_]:
+    """Nodes of the undirected graph (``n`` nodes, edges ``a[k]-b[k]``) with a path to ``node``."""
+    pairs = np.unique(np.stack([np.asarray(a), np.asarray(b)], axis=1), axis=0)  # edges to the walk graph's
+    adj: dict[int, list[int]] = {}
+    for u, v in pairs.tolist():
+        adj.setdefault(u, []).append(v)
+        adj.setdefault(v, []).append(u)
+    seen = np.zeros(n, bool)
+    seen[node] = True
+    queue = deque([node])
+    while queue:
+        for v in adj.get(queue.popleft(), []):
+            if not seen[v]:
+                seen[v] = True
+                queue.append(v)
+    return seen
 
 
 def _inverse(T: NDArray) -> NDArray:
