@@ -969,6 +969,7 @@ def main(argv: Optional[list[str]] = None) -> None:
     if isinstance(code, int) and code:  # typer.Exit(code) returns its code without standalone mode
         sys.exit(code)
 
+
 def entry() -> None:
     """The ``graphslam`` script and ``python -m graphslam``: :func:`main`, then :func:`_exit_now`."""
     code: object = 0

@@ -152,13 +152,13 @@ def run_survey(
     ``update``: a previous output folder of this floor; walks solved there start from their
     solution and only the new walks' neighbourhood is re-solved (``graphslam.app.update``)."""
     cfg = config or GraphSlamConfig()
-    with openblas_threads(cfg.optimizer.blas_threads):
+    with _openblas_threads(cfg.optimizer.blas_threads):
         return _run_survey(paths, out_dir, cfg, progress=progress, rerun_path=rerun_path, floor_plan=floor_plan,
                            floor_size=floor_size, surveyed=surveyed, picture=picture, update=update)
 
 
 @contextlib.contextmanager
-def openblas_threads(n: int) -> Iterator[None]:
+def _openblas_threads(n: int) -> Iterator[None]:
     """Within: OpenBLAS (numpy's and scipy's, whatever their build's prefix) at ``n`` threads;
     ``n`` = 0 leaves it. MKL (the factorisation's, ``optimizer.threads``) is not touched."""
     if n <= 0:
