@@ -981,14 +981,15 @@ def entry() -> None:
     _exit_now(code)
 
 
-# numpy submodules that numpy itself loads on first use, none of which a command needs at start.
-_DEFERRED_NUMPY_MODULES = ("numpy.f2py", "numpy.ctypeslib", "numpy.ma", "numpy.polynomial", "numpy.testing")
+# numpy submodules that numpy itself loads on first use and no survey uses (numpy.ma is not among
+# them: pyarrow loads it anyway, so deferring it would only move its import into a request thread).
+_DEFERRED_NUMPY_MODULES = ("numpy.f2py", "numpy.ctypeslib", "numpy.polynomial", "numpy.testing")
 
 
 def _defer_numpy_extras() -> None:
     """scipy's array-API layer (``scipy._lib.array_api_compat.numpy``, imported with scipy.sparse)
     does ``from numpy import *``, which imports every submodule numpy keeps lazy — f2py (and,
-    through it, charset_normalizer), ctypeslib, ma, polynomial, testing: ~0.1 s, a fifth of a
+    through it, charset_normalizer), ctypeslib, polynomial, testing: ~0.1 s, a fifth of a
     survey's start-up (docs/benchmarks.md, issue 16). Registered first as lazy modules (the
     standard library's ``importlib.util.LazyLoader``) they are executed on first attribute access
     instead, which no survey makes. Console process only (library users and tests are untouched),
