@@ -5,11 +5,14 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Iterable
 
+import numpy as np
 import orjson
+from mcap.records import Channel, Schema
 from mcap.writer import CompressionType, Writer
 
 from graphslam.core.types import PoseTrack, Session, heading_to_quaternion
 from graphslam.io.atomic import atomic_open
+from graphslam.io.mcap_bulk import write_bulk
 from graphslam.io.schemas import (
     SESSION_METADATA,
     TOPIC_GROUND_TRUTH,
@@ -106,7 +109,28 @@ def write_session(session: Session, path: str | Path) -> Path:
 
 
 def write_aligned(tracks: dict[str, PoseTrack], path: str | Path, frame_id: str = "aligned") -> Path:
-    """One ``foxglove.PoseInFrame`` topic per session (``/aligned/<session_id>``), viewable in Foxglove."""
+    """One ``foxglove.PoseInFrame`` topic per session (``/aligned/<session_id>``), viewable in Foxglove.
+    The messages are serialised in bulk (``graphslam.io.mcap_bulk``): the same bytes as mcap's Writer."""
+    if not tracks:  # no channel, hence no schema either: the Writer's file
+        return _write_aligned_by_writer(tracks, path, frame_id)
+    name, schema = TOPIC_SCHEMAS[TOPIC_POSE]
+    channels, times, ids, data = [], [], [], []
+    for k, (sid, track) in enumerate(tracks.items(), start=1):
+        channels.append(Channel(id=k, topic=f"/aligned/{sid}", message_encoding="json", schema_id=1, metadata={}))
+        times.append(np.asarray(track.t_ns, np.int64))
+        ids.append(np.full(len(track.t_ns), k, np.int64))
+        data += [d for _, d in _pose_msgs(track, frame_id)]
+    t, c = np.concatenate(times), np.concatenate(ids)
+    order = np.lexsort((c, t))  # by time, then channel; stable, as the Writer's sorted events
+    path = Path(path)
+    with atomic_open(path, "wb") as fh:
+        write_bulk(fh, Schema(id=1, name=name, encoding="jsonschema", data=schema_bytes(schema)), channels,
+                   c[order], t[order], [data[i] for i in order.tolist()], library="graphslam")
+    return path
+
+
+def _write_aligned_by_writer(tracks: dict[str, PoseTrack], path: str | Path, frame_id: str = "aligned") -> Path:
+    """``write_aligned`` through mcap's Writer, one call per pose (the reference ``write_bulk`` matches)."""
     path = Path(path)
     with atomic_open(path, "wb") as fh:
         writer = Writer(fh, compression=CompressionType.ZSTD, enable_data_crcs=True)
