@@ -49,6 +49,8 @@ def write_bulk(
     prefix = prefix_builder.end()  # the first chunk opens with the schema and channels
 
     n = len(data)
+    if n and (np.min(log_times) < 0 or np.max(channel_ids) > 0xFFFF or np.min(channel_ids) < 1):
+        raise ValueError("MCAP messages need log times >= 0 and channel ids 1..65535")  # the Writer's struct packing
     ch = np.asarray(channel_ids, np.uint16)
     t = np.asarray(log_times, np.uint64)
     size = np.fromiter(map(len, data), np.int64, n)
