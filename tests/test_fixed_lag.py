@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from graphslam.core.tracking.filters import Epochs, ExtendedKalmanFilter, FusionModel, run_epochs
-from graphslam.core.tracking.fixed_lag import FixedLagConfig, fixed_lag_smooth
+from graphslam.core.tracking.fixed_lag import FixedLagConfig, fixed_lag_smooth, mixture_moments
 from graphslam.core.tracking.smoother import MapProblem, map_smooth, rts_smooth
 from graphslam.errors import EstimationError
 
@@ -108,6 +108,52 @@ def test_the_bank_reports_the_start_that_explains_the_fixes():
     fl = fixed_lag_smooth(m, [far, X0], tight, e, FixedLagConfig(lag_s=0.0, window_s=5.0, huber_k=None, prune_cost=30.0))
     assert np.isinf(fl.cost[0]) and np.isfinite(fl.cost[1])
     assert (fl.hypothesis[e.fix_k[2]:] == 1).all()
+
+
+def test_mixture_moments_match_the_raw_moment_formula_and_wrap_the_angle():
+    rng = np.random.default_rng(3)
+    X = rng.normal(0.0, 2.0, (3, 3))
+    Ps = [(lambda A: A @ A.T + np.eye(3))(rng.normal(size=(3, 3))) for _ in range(3)]
+    costs = np.array([4.0, 3.0, 6.5])
+    w = np.exp(-costs / 2) / np.exp(-costs / 2).sum()
+    mean = w @ X  # E[x] and E[x x^T] - E[x] E[x]^T, computed differently from the code
+    cov = sum(wi * (P + np.outer(x, x)) for wi, x, P in zip(w, X, Ps)) - np.outer(mean, mean)
+    for ref in range(3):  # the reference hypothesis changes nothing without an angle
+        m, P = mixture_moments(list(zip(X, Ps)), costs, ref)
+        np.testing.assert_allclose(m, mean, atol=1e-12)
+        np.testing.assert_allclose(P, cov, atol=1e-12)
+    # far more likely one: its own estimate; equal odds at theta = +-(pi - 0.1): pi, not 0
+    m, P = mixture_moments(list(zip(X, Ps)), np.array([0.0, 200.0, 300.0]), 0)
+    np.testing.assert_allclose(m, X[0], atol=1e-12)
+    np.testing.assert_allclose(P, Ps[0], atol=1e-12)
+    a = np.array([0.0, 0.0, np.pi - 0.1])
+    b = np.array([2.0, 0.0, -np.pi + 0.1])
+    m, P = mixture_moments([(a, np.eye(3)), (b, np.eye(3))], np.zeros(2), 0, angle_index=2)
+    np.testing.assert_allclose(m, [1.0, 0.0, np.pi], atol=1e-12)
+    np.testing.assert_allclose(np.diag(P), [2.0, 1.0, 1.01], atol=1e-12)
+
+
+def test_the_mixture_report_spreads_over_undecided_starts_and_follows_a_decided_bank():
+    m, e = _model(), _epochs()
+    tight = np.diag([0.01, 0.01, 0.2, 0.2, 0.01, 0.01])
+    cfg = dict(lag_s=0.0, window_s=5.0, huber_k=None)
+    # two identical starts: the mixture is the single run
+    one = fixed_lag_smooth(m, [X0], tight, e, FixedLagConfig(**cfg))
+    two = fixed_lag_smooth(m, [X0, X0], tight, e, FixedLagConfig(**cfg, report="mixture"))
+    np.testing.assert_allclose(two.x, one.x, atol=1e-9)
+    np.testing.assert_allclose(two.P, one.P, atol=1e-9)
+    # 20 m apart: at the first epoch (no fix yet) the report sits between the two with their
+    # spread in its covariance; once the fixes decide, it is the best start's estimate
+    far = X0 + np.r_[20.0, 0, 0, 0, 0, 0]
+    best = fixed_lag_smooth(m, [far, X0], tight, e, FixedLagConfig(**cfg, prune_cost=30.0))
+    mix = fixed_lag_smooth(m, [far, X0], tight, e, FixedLagConfig(**cfg, prune_cost=30.0, report="mixture"))
+    assert abs(mix.x[0, 0] - (X0[0] + 10.0)) < 1e-6 and mix.P[0, 0, 0] > 99.0
+    assert best.P[0, 0, 0] < 0.1
+    after = slice(e.fix_k[2], None)
+    np.testing.assert_allclose(mix.x[after], best.x[after], atol=1e-9)
+    np.testing.assert_allclose(mix.P[after], best.P[after], atol=1e-9)
+    with pytest.raises(EstimationError, match="report"):
+        FixedLagConfig(report="mean")
 
 
 def test_config_rejects_a_window_shorter_than_the_lag():

@@ -78,6 +78,7 @@ class TrackConfig:
     window_s: float = 20.0  # fixed-lag: older epochs are marginalised into a prior
     prune_cost: float | None = 50.0  # fixed-lag: heading hypotheses this far above the best are dropped
     calibrate_covariance: bool = True  # fixed-lag: covariances also scaled by the walk's own fix-innovation variance factor
+    bank_report: str = "best"  # fixed-lag: best (lowest-cost heading hypothesis) | mixture (posterior mixture of the bank)
     w0: float = 0.1  # UKF weight of the central sigma point (Paper 002's value)
     velocity_sigma_mps: float = 0.15  # step-velocity noise per axis
     q_position: float = 0.01  # m^2/s
@@ -297,7 +298,7 @@ def _track_fixed_lag(
         model, starts, P0, epochs,
         FixedLagConfig(
             lag_s=cfg.lag_s, window_s=max(cfg.window_s, cfg.lag_s), huber_k=cfg.gate_sigma, prune_cost=cfg.prune_cost,
-            adaptive_rssi=cfg.adaptive_rssi,
+            adaptive_rssi=cfg.adaptive_rssi, report=cfg.bank_report, angle_index=None if model.theta_rad is not None else 6,
         ),
         vel_available_s=avail,
     )

@@ -21,7 +21,8 @@ was marginalised before then.
 
 Several starts (e.g. heading hypotheses) run as a bank in lock-step; each output takes the
 hypothesis with the lowest total cost (the marginalised parts' constants plus the window cost,
-i.e. twice the negative log posterior up to a shared constant); a hypothesis whose cost exceeds
+i.e. twice the negative log posterior up to a shared constant), or with ``report="mixture"`` the
+moments of the bank's posterior mixture (weights exp(-cost / 2)); a hypothesis whose cost exceeds
 the best by ``prune_cost`` is dropped (its posterior odds are below exp(-prune_cost / 2)).
 
 Frames and units as the filters (m, m/s, rad, dBm, s).
@@ -63,6 +64,8 @@ class FixedLagConfig:
     prune_cost: float | None = 50.0
     adaptive_rssi: bool = False  # scale an epoch's RSSI std by its innovations' NIS per reading (> 1)
     prior_count: float = 4.0  # pseudo-fixes of NIS 2 in the variance factor
+    report: str = "best"  # best: the lowest-cost hypothesis | mixture: the bank's posterior mixture
+    angle_index: int | None = None  # state entry that is an angle (mixture differences wrapped)
 
     def __post_init__(self) -> None:
         if not (self.lag_s >= 0 and self.window_s >= self.lag_s):
@@ -71,6 +74,8 @@ class FixedLagConfig:
             raise EstimationError(f"fixed-lag: huber_k must be > 0, got {self.huber_k}")
         if self.max_iter < 1 or (self.prune_cost is not None and self.prune_cost <= 0):
             raise EstimationError("fixed-lag: max_iter >= 1 and prune_cost > 0 required")
+        if self.report not in ("best", "mixture"):
+            raise EstimationError(f"fixed-lag: report must be 'best' or 'mixture', got {self.report!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -270,7 +275,13 @@ def fixed_lag_smooth(
         live = [h for h, w in enumerate(bank) if w.alive]
         while out < N and out <= bank[live[0]].hi and t[out] + cfg.lag_s <= upto_time + 1e-9:
             b = min(live, key=lambda h: bank[h].total_cost)
-            xs[out], Ps[out] = bank[b].estimate(out)
+            if cfg.report == "mixture" and len(live) > 1:
+                costs = np.array([bank[h].total_cost for h in live])
+                xs[out], Ps[out] = mixture_moments(
+                    [bank[h].estimate(out) for h in live], costs, live.index(b), cfg.angle_index
+                )
+            else:
+                xs[out], Ps[out] = bank[b].estimate(out)
             hyp[out], at[out], vf[out] = b, stream.now, bank[b].variance_factor
             out += 1
 
@@ -292,6 +303,26 @@ def fixed_lag_smooth(
     report(math.inf)
     costs = np.array([w.total_cost if w.alive else np.inf for w in bank])
     return FixedLagRun(xs, Ps, hyp, at, vf, costs, solves, bank[int(np.argmin(costs))].dropped)
+
+
+def mixture_moments(
+    estimates: Sequence[tuple[NDArray, NDArray]], costs: NDArray, ref: int, angle_index: int | None = None
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Mean and covariance of the Gaussian mixture of the hypotheses' estimates ``(x_h, P_h)``,
+    weighted by their posterior odds ``exp(-cost_h / 2)`` (``cost``: twice the negative log
+    posterior). The minimum-mean-square-error estimate when the bank is unsure, the best
+    hypothesis when it is not; the covariance holds the spread between hypotheses. Differences
+    are taken from hypothesis ``ref``; entry ``angle_index`` is wrapped to (-pi, pi]."""
+    w = np.exp(-0.5 * (np.asarray(costs, float) - np.min(costs)))
+    w /= w.sum()
+    X = np.array([x for x, _ in estimates])
+    d = X - X[ref]
+    if angle_index is not None:
+        d[:, angle_index] = np.remainder(d[:, angle_index] + math.pi, 2 * math.pi) - math.pi
+    mean_d = w @ d
+    e = d - mean_d
+    P = np.einsum("h,hij->ij", w, np.array([P for _, P in estimates])) + (e * w[:, None]).T @ e
+    return X[ref] + mean_d, 0.5 * (P + P.T)
 
 
 def _prune(bank: list[_Window], prune_cost: float | None) -> None:
