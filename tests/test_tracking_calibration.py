@@ -135,3 +135,23 @@ def test_replay_scale_grows_when_the_tracker_claims_too_much_and_scales_the_repo
     b = track_session(walk, fusion_model(models, tight), loc, dataclasses.replace(tight, covariance_scale=3.0))
     np.testing.assert_allclose(b.x, a.x)
     np.testing.assert_allclose(b.P, 3.0 * a.P)
+
+
+def test_replay_leaves_out_the_walks_that_repeat_the_replayed_path():
+    from graphslam.app.track import _repeats
+
+    x = np.linspace(0.0, 20.0, 21)
+    paths = {
+        "a": np.column_stack([x, np.zeros_like(x)]),  # the replayed walk
+        "b": np.column_stack([x, np.full_like(x, 0.8)]),  # the same corridor again
+        "c": np.column_stack([x[:3], np.full_like(x[:3], 0.8)]),  # its first 2 m only
+        "d": np.column_stack([x, np.full_like(x, 6.0)]),  # a parallel corridor
+    }
+    sid = [s for s, p in paths.items() for _ in p]
+    xy = np.vstack(list(paths.values()))
+    rm = RadioMap.from_scans([{"ap": -50.0}] * len(xy), xy, session_ids=sid, t_ns=np.arange(len(xy)), frame="site")
+    own = np.flatnonzero(rm.session_ids == "a")
+    rest = np.flatnonzero(rm.session_ids != "a")
+    assert sorted(_repeats(rm, own, rest, 2.0).tolist()) == ["b"]
+    assert sorted(_repeats(rm, own, rest, 7.0).tolist()) == ["b", "d"]
+    assert _repeats(rm, own, rest, 0.5).tolist() == []

@@ -100,6 +100,7 @@ class TrackConfig:
     replay_sessions: int = 20  # self-calibration: replay this many map walks to scale the covariance (0: off)
     replay_max_scans: int = 40  # self-calibration: replayed segments hold at most this many scans
     replay_seed: int = 0
+    replay_route_radius_m: float = 0.0  # self-calibration: also leave out walks covering half a replayed segment within this (0: off)
     covariance_scale: float = 1.0  # reported covariances are multiplied by this (set by self-calibration)
     self_calibrate: bool = True  # RSSI variance and kNN fix floor measured on the map (self_calibrated)
     smoother: str = "none"  # none | rts | map (offline: uses the whole session)
@@ -460,6 +461,8 @@ def replay_covariance_scale(rm: RadioMap, model: FusionModel, cfg: TrackConfig) 
             start = int(rng.integers(0, len(own) - cfg.replay_max_scans + 1))
             own = own[start : start + cfg.replay_max_scans]
         rest = np.flatnonzero(rm.session_ids != sid)
+        if cfg.replay_route_radius_m > 0:
+            rest = rest[~np.isin(rm.session_ids[rest], _repeats(rm, own, rest, cfg.replay_route_radius_m))]
         others = RadioMap.from_fingerprints(
             rm.fingerprints.rows(rest), rm.xy[rest], session_ids=rm.session_ids[rest].tolist(), t_ns=rm.t_ns[rest],
             frame=rm.frame, min_rssi_dbm=rm.min_rssi_dbm,
@@ -484,6 +487,22 @@ def replay_covariance_scale(rm: RadioMap, model: FusionModel, cfg: TrackConfig) 
     if not d2:
         return 1.0
     return max(1.0, float(np.percentile(np.concatenate(d2), 95)) / CHI2_2DOF_95)
+
+
+def _repeats(rm: RadioMap, own: NDArray[np.int64], rest: NDArray[np.int64], radius_m: float) -> NDArray:
+    """Sessions among ``rest`` that walk the path of fingerprints ``own`` again: a fingerprint
+    within ``radius_m`` of at least half of its positions (map frame, m). A new walk need not
+    follow a surveyed route, so the replay leaves the route's repetitions out too."""
+    from scipy.spatial import cKDTree
+
+    pts = cKDTree(rm.xy[own])
+    hits = pts.query_ball_point(rm.xy[rest], r=radius_m)
+    sid = rm.session_ids[rest]
+    covered: dict[str, set[int]] = {}
+    for s_, h in zip(sid.tolist(), hits):
+        if h:
+            covered.setdefault(s_, set()).update(h)
+    return np.array([s_ for s_, c in covered.items() if len(c) >= 0.5 * len(own)], dtype=sid.dtype)
 
 
 def track_files(
