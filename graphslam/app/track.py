@@ -78,7 +78,7 @@ class TrackConfig:
     window_s: float = 20.0  # fixed-lag: older epochs are marginalised into a prior
     prune_cost: float | None = 50.0  # fixed-lag: heading hypotheses this far above the best are dropped
     calibrate_covariance: bool = True  # fixed-lag: covariances also scaled by the walk's own fix-innovation variance factor
-    bank_report: str = "best"  # fixed-lag: best (lowest-cost heading hypothesis) | mixture (posterior mixture of the bank)
+    bank_report: str = "mixture"  # fixed-lag: mixture (posterior mixture of the heading bank) | best (lowest-cost hypothesis)
     w0: float = 0.1  # UKF weight of the central sigma point (Paper 002's value)
     velocity_sigma_mps: float = 0.15  # step-velocity noise per axis
     q_position: float = 0.01  # m^2/s
