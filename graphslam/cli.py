@@ -704,6 +704,10 @@ def track(
         "fixed-lag", "--filter", help="fixed-lag (online, reports each step --lag s late), or the causal ekf / ukf."
     ),
     lag: float = typer.Option(2.0, "--lag", min=0.0, help="fixed-lag: latency in s (a step is reported once the data up to lag s later are in)."),
+    bank_report: str = typer.Option(
+        "mixture", "--bank-report",
+        help="fixed-lag: mixture (the heading hypotheses' posterior mixture) or best (the most probable one only).",
+    ),
     out: Path = typer.Option(..., "--out", help="Output CSV: one row per step (t_ns, x, y, covariance, ...)."),
     ap_models: Optional[Path] = typer.Option(
         None, "--ap-models", help="AP models JSON (default: ap_models.json beside the map, else fitted now)."
@@ -735,7 +739,7 @@ def track(
 
     cfg = TrackConfig(
         filter=filter_, lag_s=lag, smoother=smooth, knn_fixes=knn_fixes, adaptive_rssi=adaptive_rssi,
-        self_calibrate=self_calibrate,
+        self_calibrate=self_calibrate, bank_report=bank_report,
     )
     run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg, calibration_cache=calibration_cache)
     shown = {}

@@ -67,6 +67,7 @@ TRACK_HEADER = (
 )
 _SWAP = np.array([[0.0, 1.0], [1.0, 0.0]])
 TRACKERS = ("fixed-lag", "ekf", "ukf")
+BANK_REPORTS = ("mixture", "best")  # fixed-lag: the heading bank's posterior mixture, or its best hypothesis
 
 
 @dataclass(frozen=True)
@@ -116,6 +117,10 @@ class TrackConfig:
             raise EstimationError(f"track: lag_s and window_s must be finite and >= 0, got {self.lag_s}, {self.window_s}")
         if self.max_step_speed_mps <= 0 or self.fix_sigma_floor_m <= 0:
             raise EstimationError("track: max_step_speed_mps and fix_sigma_floor_m must be > 0")
+        if self.bank_report not in BANK_REPORTS:
+            raise EstimationError(f"track: unknown bank report {self.bank_report!r}; use {', '.join(BANK_REPORTS)}")
+        if not (math.isfinite(self.replay_route_radius_m) and self.replay_route_radius_m >= 0):
+            raise EstimationError(f"track: replay_route_radius_m must be finite and >= 0, got {self.replay_route_radius_m}")
 
 
 @dataclass(frozen=True, eq=False)
