@@ -80,3 +80,12 @@ def test_bad_lags_are_one_line_usage_errors(command, lags, capsys):
         main([*command, f"--lags={lags}"])
     err = capsys.readouterr().err
     assert e.value.code == 2 and "--lags" in err and len(err.strip().splitlines()) == 1
+
+
+def test_variant_descriptions_name_every_setting_that_differs_from_the_default():
+    from graphslam.app.track import TrackConfig
+    from graphslam.app.tracking_bench import _describe
+
+    a, b = _describe(TrackConfig()), _describe(TrackConfig(bank_report="best", replay_route_radius_m=2.0))
+    assert "bank_report=mixture" in a and "replay_route_radius_m" not in a
+    assert "bank_report=best" in b and "replay_route_radius_m=2.0" in b

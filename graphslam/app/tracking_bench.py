@@ -21,6 +21,7 @@ reported 95 % position ellipse (squared Mahalanobis distance <= 5.991, chi-squar
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import re
 import time
@@ -239,7 +240,11 @@ def tracking_real(
 
 
 def _describe(cfg: TrackConfig) -> str:
+    """The variant's kind, and every other setting that is not ``TrackConfig``'s default."""
     d = {"filter": cfg.filter, "smoother": cfg.smoother, "knn_fixes": cfg.knn_fixes}
     if cfg.filter == "fixed-lag" and cfg.smoother == "none":
-        d.update(lag_s=cfg.lag_s, window_s=cfg.window_s)
+        d.update(lag_s=cfg.lag_s, window_s=cfg.window_s, bank_report=cfg.bank_report)
+    default = TrackConfig()
+    d.update({f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)
+              if f.name not in d and getattr(cfg, f.name) != getattr(default, f.name)})
     return ", ".join(f"{k}={v}" for k, v in d.items())

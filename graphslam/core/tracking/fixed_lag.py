@@ -312,7 +312,7 @@ def mixture_moments(
     weighted by their posterior odds ``exp(-cost_h / 2)`` (``cost``: twice the negative log
     posterior). The minimum-mean-square-error estimate when the bank is unsure, the best
     hypothesis when it is not; the covariance holds the spread between hypotheses. Differences
-    are taken from hypothesis ``ref``; entry ``angle_index`` is wrapped to (-pi, pi]."""
+    are taken from hypothesis ``ref``; entry ``angle_index`` is wrapped to [-pi, pi)."""
     w = np.exp(-0.5 * (np.asarray(costs, float) - np.min(costs)))
     w /= w.sum()
     X = np.array([x for x, _ in estimates])
@@ -321,7 +321,8 @@ def mixture_moments(
         d[:, angle_index] = np.remainder(d[:, angle_index] + math.pi, 2 * math.pi) - math.pi
     mean_d = w @ d
     e = d - mean_d
-    P = np.einsum("h,hij->ij", w, np.array([P for _, P in estimates])) + (e * w[:, None]).T @ e
+    Ps = np.array([Ph for _, Ph in estimates])
+    P = np.einsum("h,hij->ij", w, Ps) + (e * w[:, None]).T @ e  # within + between hypotheses
     return X[ref] + mean_d, 0.5 * (P + P.T)
 
 
