@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from graphslam.app.progress import show_progress
 from graphslam.app.track import TrackConfig
 from graphslam.app.tracking_bench import Variant, _folds, oracle_radio_map, score_walks
 from graphslam.core.radiomap.ivf import limit_blas_threads
@@ -39,6 +40,7 @@ def main(argv: list[str]) -> int:
         name, expr = extra.split("=", 1)
         V[name] = eval(expr, {"TrackConfig": TrackConfig})  # a benchmark script's own argument
     variants = [Variant(n, V[n]) for n in argv[2].split(",")]
+    show_progress()  # folds, walks and the self-calibration replay on stderr (bar on a terminal)
     limit_blas_threads(1)
     walks = [w for w in read_survey([folder]) if len(w.landmarks) >= 2 and len(w.scans) and len(w.steps) >= 2]
     split = _folds(walks, 5, 0)

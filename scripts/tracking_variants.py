@@ -23,6 +23,7 @@ import sys
 import time
 from pathlib import Path
 
+from graphslam.app.progress import show_progress
 from graphslam.app.track import TrackConfig
 from graphslam.app.tracking_bench import Variant, tracking_real
 from graphslam.config import GraphSlamConfig
@@ -49,6 +50,7 @@ def main(argv: list[str]) -> int:
     if unknown:
         print(f"error: unknown variant {unknown[0]!r}", file=sys.stderr)
         return 2
+    show_progress()  # folds, walks and the self-calibration replay on stderr (bar on a terminal)
     limit_blas_threads(1)  # thousands of tiny solves: OpenBLAS threads only slow them down
     t = time.perf_counter()
     try:
