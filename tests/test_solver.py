@@ -161,3 +161,33 @@ def test_the_factorisation_on_every_core_reaches_the_same_minimum() -> None:
     assert sols[0].converged and sols[1].converged
     np.testing.assert_allclose(sols[1].node_xyh, sols[0].node_xyh, atol=1e-6)
     assert abs(sols[1].final_error - sols[0].final_error) <= 1e-9 * max(1.0, sols[0].final_error)
+
+
+def test_nonrigid_rms_ignores_one_rigid_motion_and_measures_the_rest() -> None:
+    rng = np.random.default_rng(3)
+    x, y = rng.normal(size=(2, 200)) * 20.0
+    a = 0.3
+    xr, yr = np.cos(a) * x - np.sin(a) * y + 4.0, np.sin(a) * x + np.cos(a) * y - 7.0
+    assert S.nonrigid_rms(x, y, xr, yr) < 1e-9
+    # a deformation no rigid motion explains: one half of the points moved 1 m along x
+    bump = np.where(np.arange(200) < 100, 1.0, 0.0)
+    got = S.nonrigid_rms(x, y, x + bump, y)
+    assert 0.4 < got < 0.55  # about 0.5 m (a shift of 0.5 explains the mean; rotation absorbs little)
+    # the same deformation, then moved rigidly: the same value
+    xb = x + bump
+    moved = S.nonrigid_rms(x, y, np.cos(a) * xb - np.sin(a) * y + 4.0, np.sin(a) * xb + np.cos(a) * y - 7.0)
+    assert abs(moved - got) < 1e-9
+    assert S.nonrigid_rms(x[:1], y[:1], x[:1] + 5, y[:1]) == 0.0
+
+
+def test_the_shape_tolerance_ends_lm_once_a_step_only_moves_the_map_rigidly() -> None:
+    problem = build_problem(two_walks(), CFG)
+    graph, _ = pose_graph(problem, CFG)
+    active = np.ones(len(problem.wifi_pairs), bool)
+    tight = S.levenberg_marquardt(graph, problem.init_xyh, active, S.LMSettings(shape_tol_m=0.0))
+    loose = S.levenberg_marquardt(graph, problem.init_xyh, active, S.LMSettings(shape_tol_m=1e3))
+    assert tight.iterations > 1
+    # every step is "below" 1 km: LM ends at the first step whose decrease is within 10x the tolerance
+    assert loose.converged and loose.iterations < tight.iterations
+    mid = S.LMSettings(shape_tol_m=1e-4)
+    assert S.levenberg_marquardt(graph, problem.init_xyh, active, mid).iterations <= tight.iterations

@@ -501,6 +501,7 @@ def solve(
                 max_iterations=cfg.optimizer.max_iterations,
                 relative_error_tol=cfg.optimizer.relative_error_tol,
                 absolute_error_tol=cfg.optimizer.absolute_error_tol,
+                shape_tol_m=cfg.optimizer.shape_tol_m,
                 threads=cfg.optimizer.threads,
             )
         else:

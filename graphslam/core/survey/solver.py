@@ -18,6 +18,8 @@ factorisation than MKL PARDISO with the analysis reused (docs/benchmarks.md, iss
    PARDISO's ordering (METIS) and symbolic analysis run once per stage and each lambda try
    or iteration is only a numeric refactorisation. Lambda follows Nielsen's rule, which
    rejects few steps (each rejection costs a factorisation).
+ * Convergence: the error's relative decrease, or (``shape_tol_m``) a step that barely changes
+   the map's shape: held by one pose, a large map's last iterations only turn it about that pose.
 
 Everything here is pure maths on arrays; nothing reads files.
 """
@@ -63,6 +65,9 @@ class LMSettings:
     absolute_error_tol: float = 1e-5
     lambda_initial: float = 1e-5  # damping lambda * diag(J^T J): dimensionless
     lambda_upper: float = 1e8  # a stall beyond this: no step lowers the error
+    # converged once a step moves the poses by less than this (rms, metres) beyond one rigid motion and
+    # lowers the error by less than 10x relative_error_tol; 0: off
+    shape_tol_m: float = 0.0
     threads: int = 0  # MKL threads of the factorisation (0: MKL's default, i.e. MKL_NUM_THREADS or every core)
 
 
@@ -456,8 +461,11 @@ def levenberg_marquardt(
             if hook is not None:
                 hook(it, err, err_new)
             decrease = err - err_new
+            # a step that only turns the map, while the error barely moves (within 10x the tolerance)
+            shape = (settings.shape_tol_m > 0 and decrease <= 10 * settings.relative_error_tol * err
+                     and nonrigid_rms(v[0::3], v[1::3], v_new[0::3], v_new[1::3]) < settings.shape_tol_m)
             v = v_new
-            if decrease <= settings.absolute_error_tol or decrease <= settings.relative_error_tol * err:
+            if shape or decrease <= settings.absolute_error_tol or decrease <= settings.relative_error_tol * err:
                 err = err_new
                 converged = True
                 break
@@ -467,6 +475,25 @@ def levenberg_marquardt(
     out = xyh.copy()
     out[graph.variables] = v.reshape(-1, 3)
     return LMResult(out, it, factorizations, initial, err, converged)
+
+
+def nonrigid_rms(x0: NDArray, y0: NDArray, x1: NDArray, y1: NDArray) -> float:
+    """RMS distance (metres) from points (x1, y1) to the best rigid motion (rotation + translation,
+    least squares: Kabsch) of points (x0, y0).
+
+    Why the solver asks: with one pose held fixed, LM's last iterations on a large survey turn the
+    whole map about it by ~0.4 deg an iteration at almost no change of the error (paper size 8:
+    7 of 15 iterations, non-rigid part 2 mm rms; docs/benchmarks.md issue 16). No distance, and no
+    output up to the frame, depends on that motion."""
+    if len(x0) < 2:
+        return 0.0
+    p = np.column_stack([x0 - x0.mean(), y0 - y0.mean()])
+    q = np.column_stack([x1 - x1.mean(), y1 - y1.mean()])
+    c = p.T @ q  # cross-covariance; the optimal rotation angle in closed form (2-D)
+    ang = np.arctan2(c[0, 1] - c[1, 0], c[0, 0] + c[1, 1])
+    co, si = np.cos(ang), np.sin(ang)
+    rot = p @ np.array([[co, si], [-si, co]])
+    return float(np.sqrt(np.mean(np.sum((q - rot) ** 2, axis=1))))
 
 
 def _sym_matvec(ne: _NormalEquations, upper_data: NDArray, x: NDArray) -> NDArray:
