@@ -11,6 +11,7 @@
 #    and ~3 min at size 12), stage medians, peak RSS, growth exponent, the markdown table;
 # 3. `graphslam bench accuracy paper --seeds 0-2` for both (landmark errors: same minimum?);
 # 4. scripts/bench_linear_solvers.py at sizes 1 and 4 (the solver comparison).
+# Bytecode of both trees is compiled before the runs (see below).
 # Long runs are niced. Output: stdout (JSON lines and tables) and OUT_DIR (default a temp folder).
 set -euo pipefail
 BASE=${1:-4383dd1}
@@ -22,6 +23,10 @@ OUT_DIR=${OUT_DIR:-$(mktemp -d /tmp/graphslam-remeasure-XXXX)}
 WT="$OUT_DIR/base"
 git -C "$HERE" worktree add --detach "$WT" "$BASE" >/dev/null
 trap 'git -C "$HERE" worktree remove --force "$WT"' EXIT
+# Both trees' bytecode compiled first, as `pip install` does (an editable install writes it on
+# the first import, unless PYTHONDONTWRITEBYTECODE is set: then every run would compile every
+# graphslam module again, ~0.1 s, a cost no installed user pays).
+"$PY" -m compileall -q "$HERE/graphslam" "$WT/graphslam" >/dev/null
 echo "load before: $(cat /proc/loadavg)"
 nice -n 10 "$PY" -m graphslam bench scale paper --sizes "$SIZES" --runs "$RUNS" --baseline "$WT" \
     --baseline-max-size 4 | tee "$OUT_DIR/scale.txt"

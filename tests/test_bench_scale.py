@@ -70,3 +70,34 @@ def test_the_baseline_runs_its_own_code_even_from_inside_this_checkout(tmp_path:
     monkeypatch.chdir(Path(__file__).resolve().parents[1])
     run = _run_once(tmp_path / "data", tmp_path / "out", str(tmp_path / "base"), None)
     assert run["iterations"] == 4242
+
+
+def test_rounds_go_round_robin_over_the_sizes(tmp_path: Path, monkeypatch) -> None:
+    """Round r of every size before round r + 1 of any: a host that slows down over minutes slows
+    all sizes alike (the exponent is not tilted by which size ran last)."""
+    import graphslam.sim as sim
+    from graphslam.app import bench_scale
+
+    class _Fake:
+        def write(self, path: Path) -> None:
+            path.mkdir(parents=True)
+
+    calls: list[tuple[str, str | None]] = []
+
+    def fake_run(data: Path, out: Path, base: str | None, config: Path | None) -> dict:
+        calls.append((data.name, base))
+        wall = {"data-1": 1.0, "data-4": 4.0}[data.name]
+        return {"wall": wall, "cpu": wall, "stages": {"total": wall - 0.1, "align.optimise": 0.5}, "rss_mb": 1.0,
+                "final_error": 0.0, "iterations": 1, "edges": 0, "landmark_mean_m": None}
+
+    monkeypatch.setattr(sim, "simulate", lambda *a, **k: _Fake())
+    monkeypatch.setattr(bench_scale, "_run_once", fake_run)
+    base = tmp_path / "base"
+    (base / "graphslam").mkdir(parents=True)
+    (base / "graphslam" / "__init__.py").write_text("")
+    res = bench_scale.scale("paper", 0, [1, 4], [2, 3], baseline=base, baseline_max_size=1)
+    sizes = [c[0] for c in calls]
+    assert sizes == ["data-1", "data-1", "data-4", "data-1", "data-1", "data-4", "data-4"]
+    assert [c[1] is None for c in calls[:2]] == [True, False] and [c[1] is None for c in calls[3:5]] == [False, True]
+    assert res["rows"][0]["new"]["runs"] == 2 and res["rows"][1]["new"]["runs"] == 3
+    assert res["growth_exponent_new"] == 1.0  # walls 1 and 4 at sizes 1 and 4

@@ -103,30 +103,36 @@ def scale(
     config: Path | None = None,
     progress: Any = None,
 ) -> dict[str, Any]:
-    """Per size: ``runs[i]`` rounds of (this checkout, baseline) in alternating order."""
+    """Per size: ``runs[i]`` rounds of (this checkout, baseline) in alternating order. The rounds
+    go round robin over the sizes (round 1 of every size, then round 2, ...): a host whose speed
+    drifts over minutes then slows every size alike instead of tilting the growth exponent."""
     from graphslam.sim import simulate
 
     if baseline is not None and not (baseline / "graphslam" / "__init__.py").is_file():
         raise InputError(baseline, "not a graphslam checkout (no graphslam/__init__.py)")
     rows = []
     with tempfile.TemporaryDirectory(prefix="graphslam-scale-") as tmp:
+        plan = []
         for size, n_runs in zip(sizes, runs):
             data = Path(tmp) / f"data-{size:g}"
             simulate(scenario, seed=seed, size=size).write(data)
             sides = {"new": None}
             if baseline is not None and size <= baseline_max_size:
                 sides["base"] = str(baseline.resolve())
-            results: dict[str, list] = {k: [] for k in sides}
-            load = [os.getloadavg()[0]]
-            for r in range(n_runs):
+            plan.append((size, n_runs, data, sides, {k: [] for k in sides}, [os.getloadavg()[0]]))
+        for r in range(max(runs, default=0)):
+            for size, n_runs, data, sides, results, load in plan:
+                if r >= n_runs:
+                    continue
                 order = list(sides) if r % 2 == 0 else list(reversed(sides))
                 for side in order:
                     out = Path(tmp) / f"out-{size:g}-{side}-{r}"
                     results[side].append(_run_once(data, out, sides[side], config))
                     if progress is not None:
                         progress(f"size {size:g} {side} run {r + 1}/{n_runs}: {results[side][-1]['wall']:.2f} s")
-            load.append(os.getloadavg()[0])
-            row: dict[str, Any] = {"size": size, "load_1min": [round(v, 2) for v in load]}
+                load.append(os.getloadavg()[0])
+        for size, _, _, _, results, load in plan:
+            row: dict[str, Any] = {"size": size, "load_1min": [round(min(load[1:] or load), 2), round(max(load[1:] or load), 2)]}
             for side, res in results.items():
                 row[side] = _summary(res)
             if "base" in row:
@@ -165,7 +171,7 @@ def markdown_table(result: dict[str, Any]) -> str:
     lines.append(f"| landmark error mean (m) | {lm} |")
     loads = ", ".join(f"size {r['size']:g}: {r['load_1min'][0]}-{r['load_1min'][1]}" for r in result["rows"])
     lines.append("")
-    lines.append(f"Load average (1 min, before-after): {loads}.")
+    lines.append(f"Load average (1 min, lowest-highest after its rounds): {loads}.")
     if "growth_exponent_new" in result:
         lines.append(
             f"Wall-time growth exponent (this checkout): {result['growth_exponent_new']} "
