@@ -701,7 +701,8 @@ def track(
     sessions: List[Path] = typer.Argument(..., help="Session recordings (.mcap) or folders of them."),
     radio_map: Path = typer.Option(..., "--radio-map", help="Radio map (.parquet); positions come out in its frame."),
     filter_: str = typer.Option(
-        "fixed-lag", "--filter", help="fixed-lag (online, reports each step --lag s late), or the causal ekf / ukf."
+        "fixed-lag", "--filter", help="fixed-lag (online, reports each step --lag s late), the causal ekf / ukf, or "
+        "particle (map-matching particle filter, --lag s late; docs/tracking.md)."
     ),
     lag: float = typer.Option(2.0, "--lag", min=0.0, help="fixed-lag: latency in s (a step is reported once the data up to lag s later are in)."),
     bank_report: str = typer.Option(

@@ -249,3 +249,23 @@ def test_track_keeps_its_self_calibration_beside_the_map(tiny_case, tmp_path, mo
     cache.unlink()
     T.track_files(rm_path, walk, cfg=cfg, calibration_cache=False)
     assert len(measured) == 5 and not cache.exists()
+
+
+def test_track_cli_particle_filter_follows_the_walk_and_has_no_offline_smoother(tiny_case, capsys):
+    from graphslam.cli import main
+    from graphslam.core.survey.evaluate import interpolate_xy
+
+    d, session = tiny_case
+    out = d / "positions_pf.csv"
+    main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--filter", "particle", "--out", str(out)])
+    rows = list(csv.DictReader(out.open()))
+    assert [int(r["t_ns"]) for r in rows] == session.steps.t_ns.tolist()
+    xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
+    assert all(float(r["cov_xx"]) > 0 and float(r["cov_yy"]) > 0 for r in rows)
+    err = np.linalg.norm(xy - interpolate_xy(session.ground_truth, session.steps.t_ns.astype(float)), axis=1)
+    assert err[len(err) // 2 :].mean() < 4.0, err.mean()
+    bad = d / "positions_pf_map.csv"
+    with pytest.raises(SystemExit) as e:
+        main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--filter", "particle",
+              "--smooth", "map", "--out", str(bad)])
+    assert e.value.code == 2 and "no offline smoother" in capsys.readouterr().err and not bad.exists()

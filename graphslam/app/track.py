@@ -40,6 +40,7 @@ import csv
 import dataclasses
 import logging
 import math
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Sequence
@@ -54,6 +55,7 @@ from graphslam.core.tracking.filters import (
 from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.tracking.fixed_lag import FixedLagConfig, fixed_lag_smooth
+from graphslam.core.tracking.particle import ParticleConfig, RssiReadings, run_particle_filter, scan_matches
 from graphslam.core.tracking.smoother import SMOOTH_METHODS, smooth
 from graphslam.core.progress import Task
 from graphslam.core.types import Session
@@ -66,7 +68,7 @@ TRACK_HEADER = (
     "session_id", "t_ns", "x", "y", "cov_xx", "cov_xy", "cov_yy", "vx", "vy", "theta", "theta_std", "hypothesis",
 )
 _SWAP = np.array([[0.0, 1.0], [1.0, 0.0]])
-TRACKERS = ("fixed-lag", "ekf", "ukf")
+TRACKERS = ("fixed-lag", "ekf", "ukf", "particle")
 BANK_REPORTS = ("mixture", "best")  # fixed-lag: the heading bank's posterior mixture, or its best hypothesis
 
 
@@ -105,6 +107,12 @@ class TrackConfig:
     covariance_scale: float = 1.0  # reported covariances are multiplied by this (set by self-calibration)
     self_calibrate: bool = True  # RSSI variance and kNN fix floor measured on the map (self_calibrated)
     smoother: str = "none"  # none | rts | map (offline: uses the whole session)
+    particles: int = 1000  # particle: particles per walk
+    particle_top_k: int = 16  # particle: map fingerprints in a scan's likelihood mixture
+    particle_temperature_db: float = 2.0  # particle: match weights exp(-(D_j - D_1) / T)
+    particle_kernel_m: float = 4.0  # particle: each match's spatial spread (m)
+    particle_outlier: float = 0.01  # particle: share of a uniform density in a scan's likelihood
+    particle_seed: int = 0
 
     def __post_init__(self) -> None:
         if self.filter not in TRACKERS:
@@ -119,6 +127,13 @@ class TrackConfig:
             raise EstimationError("track: max_step_speed_mps and fix_sigma_floor_m must be > 0")
         if self.bank_report not in BANK_REPORTS:
             raise EstimationError(f"track: unknown bank report {self.bank_report!r}; use {', '.join(BANK_REPORTS)}")
+        if self.filter == "particle" and self.smoother != "none":
+            raise EstimationError("track: the particle filter has no offline smoother (its --lag is the smoothing)")
+        if self.particles < 2 or self.particle_top_k < 1 or not (
+            self.particle_temperature_db > 0 and self.particle_kernel_m > 0
+            and math.isfinite(self.particle_temperature_db) and math.isfinite(self.particle_kernel_m)
+        ):
+            raise EstimationError("track: particles >= 2, particle_top_k >= 1, positive particle temperature and kernel required")
         if not (math.isfinite(self.replay_route_radius_m) and self.replay_route_radius_m >= 0):
             raise EstimationError(f"track: replay_route_radius_m must be finite and >= 0, got {self.replay_route_radius_m}")
 
@@ -204,6 +219,11 @@ def _track_session(
     steps = session.steps
     if len(steps) < 2:
         raise EstimationError(f"track: session {session.session_id} has {len(steps)} steps (need 2)")
+    if cfg.filter == "particle":
+        tr = _track_particles(session, model, locator, cfg)
+        if progress is not None:
+            progress.advance(len(steps))
+        return tr
     filt: KalmanFilter = make_filter("ekf" if cfg.filter == "fixed-lag" else cfg.filter, model, w0=cfg.w0)
     bssids = model.path_loss.bssids
     meas = _scan_measurements(session, bssids, locator.radio_map.min_rssi_dbm, cfg.rssi)
@@ -313,6 +333,51 @@ def _track_fixed_lag(
         session_id, t.copy(), run.x[step_epoch], P[step_epoch], run.hypothesis[step_epoch],
         len(epochs.rss_k), 0,  # every RSSI reading is used (Huber-weighted, never gated)
     )
+
+
+def _track_particles(session: Session, model: FusionModel, locator: KnnLocator, cfg: TrackConfig) -> SessionTrack:
+    """The map-matching particle filter (``graphslam.core.tracking.particle``): state columns x, y
+    and theta (the module-to-map rotation); velocity and bias columns 0."""
+    steps = session.steps
+    t0 = steps.t_ns[0]
+    scans = sorted(session.scans, key=lambda s: s.t_ns)
+    rm = locator.radio_map
+    if scans and len(rm):
+        idx, dist = scan_matches(locator.distances(rm.encode([sc.readings for sc in scans])), cfg.particle_top_k)
+    else:
+        idx, dist = np.full((len(scans), 0), -1, np.int64), np.zeros((len(scans), 0))
+    t_s = (steps.t_ns - t0) / 1e9
+    walked = np.linalg.norm(np.diff(steps.xy, axis=0), axis=1) / np.maximum(np.diff(t_s), 1e-9) <= cfg.max_step_speed_mps
+    rssi = None
+    if cfg.rssi and len(model.path_loss):
+        meas = _scan_measurements(session, model.path_loss.bssids, rm.min_rssi_dbm)  # time order, as ``scans``
+        rssi = RssiReadings(model.path_loss, np.sqrt(model.r_rssi), [m[1] for m in meas], [m[2] for m in meas])
+    pcfg = ParticleConfig(
+        n_particles=cfg.particles, top_k=cfg.particle_top_k, temperature_db=cfg.particle_temperature_db,
+        kernel_m=cfg.particle_kernel_m, outlier=cfg.particle_outlier, area_m2=_area_m2(rm), lag_s=cfg.lag_s,
+        huber_k=cfg.gate_sigma, seed=cfg.particle_seed ^ zlib.crc32(session.session_id.encode()),
+    )
+    try:
+        run = run_particle_filter(
+            t_s, steps.xy, walked, np.array([(sc.t_ns - t0) / 1e9 for sc in scans]), rm.xy[np.maximum(idx, 0)], dist, pcfg,
+            rssi,
+        )
+    except EstimationError as e:
+        raise EstimationError(f"track: session {session.session_id}: {e}") from None
+    n = len(t_s)
+    x = np.zeros((n, 7))
+    x[:, :2], x[:, 6] = run.xy, run.phi
+    P = np.zeros((n, 7, 7))
+    P[:, :2, :2] = run.cov
+    P[:, 6, 6] = run.phi_var
+    return SessionTrack(session.session_id, steps.t_ns.copy(), x, P, np.zeros(n, np.int64), 0, 0)
+
+
+def _area_m2(rm: RadioMap) -> float:
+    """The radio map's bounding box, 5 m around its fingerprints (m^2)."""
+    if not len(rm):
+        return 1.0
+    return float(np.prod(rm.xy.max(axis=0) - rm.xy.min(axis=0) + 10.0))
 
 
 def _session_epochs(
