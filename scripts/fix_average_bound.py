@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from graphslam.app.tracking_bench import oracle_radio_map
-from graphslam.core.radiomap.knn import WEIGHT_EPS_DB, KnnConfig, KnnLocator
+from graphslam.core.tracking.calibration import leave_one_session_out_error_vectors
 from graphslam.io.mcap_reader import read_survey
 
 EDGES_S = np.array([0.0, 1.0, 3.0, 5.0, 7.0, 10.0, 15.0, 20.0, 30.0, 60.0, 120.0, 1e9])
@@ -40,15 +40,7 @@ EDGES_S = np.array([0.0, 1.0, 3.0, 5.0, 7.0, 10.0, 15.0, 20.0, 30.0, 60.0, 120.0
 def loso_errors(walks: list, k: int = 3, extra: int = 30) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(N, 2) leave-one-session-out kNN error vectors (NaN where none), session ids, times (s)."""
     rm = oracle_radio_map(walks)
-    res = KnnLocator(rm, KnnConfig(k=min(k + extra, len(rm)))).locate(rm.fingerprints.rows(np.arange(len(rm))))
-    idx, dist = res.neighbours, res.distances
-    other = (idx >= 0) & (rm.session_ids[np.maximum(idx, 0)] != rm.session_ids[:, None])
-    use = other & (np.cumsum(other, axis=1) <= k)
-    w = np.where(use, 1.0 / (np.where(use, dist, 0.0) + WEIGHT_EPS_DB), 0.0)
-    ok = w.sum(axis=1) > 0
-    e = np.full((len(rm), 2), np.nan)
-    e[ok] = (w[ok, :, None] * rm.xy[np.maximum(idx[ok], 0)]).sum(axis=1) / w[ok].sum(axis=1)[:, None] - rm.xy[ok]
-    return e, rm.session_ids, rm.t_ns / 1e9
+    return leave_one_session_out_error_vectors(rm, k=k, extra=extra), rm.session_ids, rm.t_ns / 1e9
 
 
 def correlation_by_time(e: np.ndarray, sid: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

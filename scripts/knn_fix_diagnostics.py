@@ -24,6 +24,7 @@ import numpy as np
 from graphslam.app.tracking_bench import _folds, _marks, oracle_radio_map
 from graphslam.core.radiomap.knn import WEIGHT_EPS_DB, KnnConfig, KnnLocator
 from graphslam.core.survey.evaluate import interpolate_xy
+from graphslam.core.tracking.calibration import leave_one_session_out_error_vectors
 from graphslam.core.survey.initialise import fit_se2, se2_apply
 from graphslam.io.mcap_reader import read_survey
 
@@ -35,14 +36,7 @@ def _weighted(xy: np.ndarray, d: np.ndarray) -> np.ndarray:
 
 def autocorrelation(walks: list, k: int = 3, extra: int = 30) -> None:
     rm = oracle_radio_map(walks)
-    res = KnnLocator(rm, KnnConfig(k=min(k + extra, len(rm)))).locate(rm.fingerprints.rows(np.arange(len(rm))))
-    idx, dist = res.neighbours, res.distances
-    other = (idx >= 0) & (rm.session_ids[np.maximum(idx, 0)] != rm.session_ids[:, None])
-    use = other & (np.cumsum(other, axis=1) <= k)
-    w = np.where(use, 1.0 / (np.where(use, dist, 0.0) + WEIGHT_EPS_DB), 0.0)
-    ok = w.sum(axis=1) > 0
-    e = np.full((len(rm), 2), np.nan)
-    e[ok] = (w[ok, :, None] * rm.xy[np.maximum(idx[ok], 0)]).sum(axis=1) / w[ok].sum(axis=1)[:, None] - rm.xy[ok]
+    e = leave_one_session_out_error_vectors(rm, k=k, extra=extra)
     order = np.lexsort((rm.t_ns, rm.session_ids))
     e, sid, t = e[order], rm.session_ids[order], rm.t_ns[order]
     finite = np.isfinite(e).all(axis=1)

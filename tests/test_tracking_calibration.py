@@ -10,7 +10,8 @@ import pytest
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.tracking.apmodel import ApModel, ApModels
 from graphslam.core.tracking.calibration import (
-    CHI2_2DOF_95, ellipse_coverage, fix_noise, leave_one_session_out_errors, mahalanobis_sq, rssi_variance_factor,
+    CHI2_2DOF_95, ellipse_coverage, fix_noise, leave_one_session_out_error_vectors,
+    leave_one_session_out_errors, mahalanobis_sq, rssi_variance_factor,
 )
 
 APS = np.array([[0.0, 0.0], [30.0, 0.0], [0.0, 30.0], [30.0, 30.0], [15.0, -5.0], [-5.0, 15.0]])
@@ -55,6 +56,9 @@ def test_leave_one_session_out_errors_measure_the_gap_to_the_other_sessions():
     )
     e = leave_one_session_out_errors(rm, k=1)
     np.testing.assert_allclose(e, 1.5, atol=1e-9)
+    # the vectors point from each session to the other: b's fingerprints found 1.5 m west in a
+    v = leave_one_session_out_error_vectors(rm, np.array([0, 45]), k=1)
+    np.testing.assert_allclose(v, [[1.5, 0.0], [-1.5, 0.0]], atol=1e-9)
     fn = fix_noise(rm, k=1)
     assert fn.median_m == pytest.approx(1.5) and fn.sigma_m == pytest.approx(1.5 / 1.1774, rel=1e-3)
     one = RadioMap.from_scans(scans, xy, session_ids="a", t_ns=list(range(40)), frame="site")

@@ -42,18 +42,16 @@ class FixNoise:
     sigma_m: float
 
 
-def leave_one_session_out_errors(
-    rm: RadioMap, *, k: int = 3, extra: int = 30, max_queries: int = 3000, seed: int = 0
+def leave_one_session_out_error_vectors(
+    rm: RadioMap, rows: NDArray[np.int64] | None = None, *, k: int = 3, extra: int = 30
 ) -> NDArray[np.float64]:
-    """kNN error (m) of (up to ``max_queries``, seeded sample of) the map's fingerprints, each
-    located among the other sessions' fingerprints: the ``k`` nearest of another session among
-    its ``k + extra`` nearest overall, inverse-distance weighted as ``KnnLocator``. Rows whose
-    candidates all come from their own session are left out."""
+    """(len(rows), 2) kNN error vectors (estimate - map position, m) of the map's fingerprints
+    ``rows`` (default all), each located among the other sessions' fingerprints: the ``k``
+    nearest of another session among its ``k + extra`` nearest overall, inverse-distance weighted
+    as ``KnnLocator``. NaN rows: every candidate came from the fingerprint's own session."""
     if len(rm) < 2 or len(set(rm.session_ids.tolist())) < 2:
         raise EstimationError("fix noise: the radio map needs fingerprints of at least 2 sessions")
-    rows = np.arange(len(rm))
-    if len(rows) > max_queries:
-        rows = np.sort(np.random.default_rng(seed).choice(rows, max_queries, replace=False))
+    rows = np.arange(len(rm)) if rows is None else np.asarray(rows, np.int64)
     res = KnnLocator(rm, KnnConfig(k=min(k + extra, len(rm)))).locate(rm.fingerprints.rows(rows))
     idx, dist = res.neighbours, res.distances
     other = (idx >= 0) & (rm.session_ids[np.maximum(idx, 0)] != rm.session_ids[rows][:, None])
@@ -62,8 +60,25 @@ def leave_one_session_out_errors(
     w = np.where(use, 1.0 / (np.where(use, dist, 0.0) + WEIGHT_EPS_DB), 0.0)
     wsum = w.sum(axis=1)
     ok = wsum > 0
-    est = (w[ok, :, None] * rm.xy[np.maximum(idx[ok], 0)]).sum(axis=1) / wsum[ok, None]
-    return np.linalg.norm(est - rm.xy[rows[ok]], axis=1)
+    e = np.full((len(rows), 2), np.nan)
+    e[ok] = (w[ok, :, None] * rm.xy[np.maximum(idx[ok], 0)]).sum(axis=1) / wsum[ok, None] - rm.xy[rows[ok]]
+    return e
+
+
+def leave_one_session_out_errors(
+    rm: RadioMap, *, k: int = 3, extra: int = 30, max_queries: int = 3000, seed: int = 0
+) -> NDArray[np.float64]:
+    """kNN error (m) of (up to ``max_queries``, seeded sample of) the map's fingerprints, each
+    located among the other sessions' fingerprints (``leave_one_session_out_error_vectors``).
+    Rows whose candidates all come from their own session are left out."""
+    if len(rm) < 2 or len(set(rm.session_ids.tolist())) < 2:
+        raise EstimationError("fix noise: the radio map needs fingerprints of at least 2 sessions")
+    rows = np.arange(len(rm))
+    if len(rows) > max_queries:
+        rows = np.sort(np.random.default_rng(seed).choice(rows, max_queries, replace=False))
+    e = leave_one_session_out_error_vectors(rm, rows, k=k, extra=extra)
+    e = e[np.isfinite(e).all(axis=1)]
+    return np.linalg.norm(e, axis=1)
 
 
 def fix_noise(rm: RadioMap, *, k: int = 3) -> FixNoise:
