@@ -121,7 +121,9 @@ def test_replay_scale_grows_when_the_tracker_claims_too_much_and_scales_the_repo
 
     names = [f"ap{j}" for j in range(len(APS))]
     rm, models = _corridor_map(1.0), _models(names, APS)
-    small = dict(replay_sessions=2, replay_max_scans=12, n_theta_hypotheses=2, self_calibrate=False)
+    # leave-one-walk-out replay: the two walks repeat each other 1 m apart, so the default route
+    # radius (1 m) would leave nothing to replay on
+    small = dict(replay_sessions=2, replay_max_scans=12, n_theta_hypotheses=2, self_calibrate=False, replay_route_radius_m=0.0)
     tight = TrackConfig(fix_sigma_floor_m=0.05, rssi_sigma_floor_db=0.1, **small)
     loose = TrackConfig(fix_sigma_floor_m=20.0, rssi_sigma_floor_db=30.0, **small)
     s_tight = replay_covariance_scale(rm, fusion_model(_models(names, APS), tight), tight)
