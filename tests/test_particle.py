@@ -88,3 +88,13 @@ def test_rssi_readings_weigh_positions_by_the_path_loss_models_with_a_huber_tail
     # one reading 40 dB off costs k |z| - k^2 / 2 (linear), not z^2 / 2
     off = RssiReadings(pl, np.full(3, 4.0), [np.arange(1)], [rss[:1] + 40.0])
     assert off.log_likelihood(truth, 0, huber_k=3.0)[0] == pytest.approx(-(3.0 * 10.0 - 4.5))
+
+
+def test_the_start_is_the_earliest_matching_scan_whatever_the_order() -> None:
+    rng = np.random.default_rng(4)
+    t, path, odo, scan_t, mx, md = _walk(rng, rot=0.5)
+    perm = rng.permutation(len(scan_t))
+    a = run_particle_filter(t, odo, np.ones(len(t) - 1, bool), scan_t, mx, md, ParticleConfig(lag_s=0.0, seed=3))
+    b = run_particle_filter(t, odo, np.ones(len(t) - 1, bool), scan_t[perm], mx[perm], md[perm],
+                            ParticleConfig(lag_s=0.0, seed=3))
+    np.testing.assert_allclose(b.xy, a.xy)

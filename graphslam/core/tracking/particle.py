@@ -9,8 +9,8 @@ over its ``top_k`` nearest map fingerprints ``j`` (distances ``D_j``, dB):
     p(x) = (1 - eps) sum_j w_j N(x; m_j, h^2 I) + eps / A,   w_j ~ exp(-(D_j - D_1) / T)
 
 with ``m_j`` the fingerprint's map position, ``h`` the kernel width (m), ``T`` the match
-temperature (dB) and a uniform share ``eps`` over the map's area ``A``; the walker's steps move every particle, so only the modes that the walk's
-geometry connects survive.
+temperature (dB) and a uniform share ``eps`` over the map's area ``A``; the walker's steps move
+every particle, so only the modes that the walk's geometry connects survive.
 
 State per particle: position (m, map frame), the rotation ``phi`` (rad) from the foot module's
 own frame to the map frame, and a step-length scale. A step interval moves a particle by
@@ -41,7 +41,7 @@ class ParticleConfig:
     n_particles: int = 1000
     top_k: int = 16  # map fingerprints in a scan's likelihood mixture
     temperature_db: float = 2.0  # T: match weights exp(-(D_j - D_1) / T)
-    kernel_m: float = 2.0  # h: each match's spatial spread (m)
+    kernel_m: float = 4.0  # h: each match's spatial spread (m)
     outlier: float = 0.01  # eps: share of a uniform density in a scan's likelihood (no scan kills every particle)
     area_m2: float = 10000.0  # the uniform density's area (the map's bounding box)
     step_sigma_m: float = 0.05  # position noise per step, per axis (m)
@@ -155,7 +155,8 @@ def run_particle_filter(
     has = np.isfinite(match_d).any(axis=1) if match_d.size else np.zeros(len(scan_t_s), bool)
     if not has.any():
         raise EstimationError("particle filter: no scan matches the radio map")
-    first = int(np.flatnonzero(has)[0])
+    cand = np.flatnonzero(has)
+    first = int(cand[np.argmin(scan_t_s[cand])])  # the earliest scan with a match
     w0 = _mixture(match_d[first], cfg)
     pick = rng.choice(len(w0), size=N, p=w0)
     pos = match_xy[first, pick] + rng.normal(scale=cfg.init_spread_m, size=(N, 2))
@@ -182,7 +183,7 @@ def run_particle_filter(
         dp = p - m
         cov_out[k] = (w[:, None] * dp).T @ dp
         xy_out[k] = m
-        c, s = w @ np.cos(phi), w @ np.sin(phi)
+        c, s = w @ np.cos(phi), w @ np.sin(phi)  # the particles' rotation now (it drifts ~0.01 rad a step)
         phi_out[k] = math.atan2(s, c)
         phi_var[k] = -2.0 * math.log(max(math.hypot(c, s), 1e-12))
 
