@@ -98,3 +98,14 @@ def test_the_start_is_the_earliest_matching_scan_whatever_the_order() -> None:
     b = run_particle_filter(t, odo, np.ones(len(t) - 1, bool), scan_t[perm], mx[perm], md[perm],
                             ParticleConfig(lag_s=0.0, seed=3))
     np.testing.assert_allclose(b.xy, a.xy)
+
+
+def test_track_config_checks_the_particle_settings_up_front() -> None:
+    from graphslam.app.track import TrackConfig
+
+    for bad in (dict(particles=1), dict(particle_outlier=1.5), dict(particle_kernel_m=0.0), dict(particle_top_k=0)):
+        with pytest.raises(EstimationError, match="particle filter"):
+            TrackConfig(filter="particle", **bad)
+    TrackConfig(particles=1)  # not the particle filter: not its business
+    cfg = TrackConfig(filter="particle", particle_seed=5).particle_config(area_m2=20.0, seed=3)
+    assert cfg.seed == 5 ^ 3 and cfg.area_m2 == 20.0 and cfg.kernel_m == 4.0 and cfg.lag_s == 2.0

@@ -132,13 +132,20 @@ class TrackConfig:
             raise EstimationError(f"track: unknown bank report {self.bank_report!r}; use {', '.join(BANK_REPORTS)}")
         if self.filter == "particle" and self.smoother != "none":
             raise EstimationError("track: the particle filter has no offline smoother (its --lag is the smoothing)")
-        if self.particles < 2 or self.particle_top_k < 1 or not (
-            self.particle_temperature_db > 0 and self.particle_kernel_m > 0
-            and math.isfinite(self.particle_temperature_db) and math.isfinite(self.particle_kernel_m)
-        ):
-            raise EstimationError("track: particles >= 2, particle_top_k >= 1, positive particle temperature and kernel required")
+        if self.filter == "particle":
+            self.particle_config()  # its own checks, before any file is read
         if not (math.isfinite(self.replay_route_radius_m) and self.replay_route_radius_m >= 0):
             raise EstimationError(f"track: replay_route_radius_m must be finite and >= 0, got {self.replay_route_radius_m}")
+
+
+    def particle_config(self, area_m2: float = 1.0, seed: int = 0) -> ParticleConfig:
+        """The particle filter's settings (``EstimationError`` when invalid); ``seed`` is mixed with
+        ``particle_seed``."""
+        return ParticleConfig(
+            n_particles=self.particles, top_k=self.particle_top_k, temperature_db=self.particle_temperature_db,
+            kernel_m=self.particle_kernel_m, outlier=self.particle_outlier, area_m2=area_m2, lag_s=self.lag_s,
+            huber_k=self.gate_sigma, seed=self.particle_seed ^ seed,
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -355,11 +362,7 @@ def _track_particles(session: Session, model: FusionModel, locator: KnnLocator, 
     if cfg.rssi and len(model.path_loss):
         meas = _scan_measurements(session, model.path_loss.bssids, rm.min_rssi_dbm)  # time order, as ``scans``
         rssi = RssiReadings(model.path_loss, np.sqrt(model.r_rssi), [m[1] for m in meas], [m[2] for m in meas])
-    pcfg = ParticleConfig(
-        n_particles=cfg.particles, top_k=cfg.particle_top_k, temperature_db=cfg.particle_temperature_db,
-        kernel_m=cfg.particle_kernel_m, outlier=cfg.particle_outlier, area_m2=_area_m2(rm), lag_s=cfg.lag_s,
-        huber_k=cfg.gate_sigma, seed=cfg.particle_seed ^ zlib.crc32(session.session_id.encode()),
-    )
+    pcfg = cfg.particle_config(_area_m2(rm), zlib.crc32(session.session_id.encode()))
     try:
         run = run_particle_filter(
             t_s, steps.xy, walked, np.array([(sc.t_ns - t0) / 1e9 for sc in scans]), rm.xy[np.maximum(idx, 0)], dist, pcfg,
