@@ -127,6 +127,17 @@ class OptimizerConfig(_Strict):
         "MKL_NUM_THREADS (survey-batch workers: 1). Measured (docs/benchmarks.md issue 16): 2 threads 1.7x faster than 1 "
         "on an idle 2-core machine, equal with one other job, slower with six",
     )
+    factor_precision: Literal["auto", "single", "double"] = Field(
+        "auto",
+        description="solver=pardiso: precision of the factorisation; single: float32 Cholesky, each step refined in "
+        "double (PCG) to a 1e-10 relative residual, i.e. the double step (double on a matrix float32 cannot resolve); "
+        "auto: single above single_above_variables unknowns. Measured (docs/benchmarks.md issue 16): factorisations "
+        "30-45 % cheaper, paper size 12 optimise 18 -> 13 s, size 4 slower (the refinement's solves), same minimum",
+    )
+    single_above_variables: int = Field(
+        40_000, ge=0, description="factor_precision=auto: single precision above this many unknowns (3 per solved pose; "
+        "paper size 4: 27k, size 8: 54k)",
+    )
     blas_threads: int = Field(
         1, ge=0, description="OpenBLAS threads (numpy's and scipy's) during a survey; 0 = OpenBLAS's default: every "
         "core, or OPENBLAS_NUM_THREADS. 1 measured faster (docs/benchmarks.md issue 16): the survey's many small "

@@ -191,3 +191,101 @@ def test_the_shape_tolerance_ends_lm_once_a_step_only_moves_the_map_rigidly() ->
     assert loose.converged and loose.iterations < tight.iterations
     mid = S.LMSettings(shape_tol_m=1e-4)
     assert S.levenberg_marquardt(graph, problem.init_xyh, active, mid).iterations <= tight.iterations
+
+
+def _chain_system(
+    rng: np.random.Generator, n_vars: int, scale_range: float, ridge: float = 1e-3, anchored: bool = True
+) -> tuple[S._NormalEquations, np.ndarray]:
+    """A chain of 3x3 blocks plus random extra edges (the survey's pattern) as upper-triangle CSR
+    data on ``ne``'s pattern: variables scaled over ``scale_range`` (as metres vs radians, dense vs
+    sparse areas), ``ridge`` on the diagonal; not ``anchored``: no edge to the fixed reference, so
+    only the ridge makes it positive definite."""
+    first = -1 if anchored else 0
+    va = np.concatenate([np.arange(first, n_vars - 1), rng.integers(0, n_vars, n_vars)])
+    vb = np.concatenate([np.arange(first + 1, n_vars), rng.integers(0, n_vars, n_vars)])
+    keep = va != vb
+    ne = S._NormalEquations(n_vars, va[keep], vb[keep])
+    m = int(keep.sum())
+    J = rng.normal(size=(m, 3, 3))
+    tr = lambda a: np.transpose(a, (0, 2, 1))
+    zero = np.zeros((m, 3))
+    H, _ = ne.assemble(tr(J) @ J, tr(J) @ J, -(tr(J) @ J), zero, zero)
+    # scale the variables over the condition range (as metres vs radians and dense vs sparse areas do)
+    s = np.exp(np.linspace(0.0, 0.5 * np.log(scale_range), ne.n))
+    rng.shuffle(s)
+    rows = np.repeat(np.arange(ne.n), np.diff(ne.indptr))
+    H = H * s[rows] * s[ne.indices]
+    H[ne.diag_pos] += ridge * s**2
+    return ne, H
+
+
+@pytest.mark.parametrize("scale_range", [1.0, 1e8])
+def test_a_single_precision_factorisation_refined_in_double_gives_the_double_solution(scale_range: float) -> None:
+    rng = np.random.default_rng(11)
+    ne, H = _chain_system(rng, 300, scale_range)
+    b = rng.normal(size=ne.n)
+    exact = S._DampedSystem(ne, 1, single=False)
+    fast = S._DampedSystem(ne, 1, single=True)
+    try:
+        exact.factor(H)
+        fast.factor(H)
+        want, got = exact.solve(b), fast.solve(b)
+        assert fast.fallbacks == 0  # refined, not redone in double
+        # the float32 factor alone is far off; the refined solve is the double one
+        raw = fast._pardiso.solve(b)
+        assert np.linalg.norm(S._sym_matvec(ne, H, raw) - b) > 1e3 * np.linalg.norm(S._sym_matvec(ne, H, got) - b)
+        assert np.linalg.norm(S._sym_matvec(ne, H, got) - b) <= 1e-10 * np.linalg.norm(b) * 1.0001
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-6 * np.abs(want).max())
+    finally:
+        exact.free()
+        fast.free()
+
+
+def test_a_matrix_float32_cannot_resolve_is_solved_in_double() -> None:
+    rng = np.random.default_rng(12)
+    # singular but for a ridge of 1e-12 (the gauge of an unanchored graph): condition ~1e14, beyond float32
+    ne, H = _chain_system(rng, 300, 1.0, ridge=1e-12, anchored=False)
+    b = rng.normal(size=ne.n)
+    exact = S._DampedSystem(ne, 1, single=False)
+    fast = S._DampedSystem(ne, 1, single=True)
+    try:
+        exact.factor(H)
+        fast.factor(H)
+        want, got = exact.solve(b), fast.solve(b)
+        assert fast.fallbacks == 1
+        np.testing.assert_array_equal(got, want)  # the very same double solve
+        fast.factor(H)  # ...and double for the rest of the stage
+        np.testing.assert_array_equal(fast.solve(b), want)
+        assert fast.fallbacks == 1
+    finally:
+        exact.free()
+        fast.free()
+
+
+def test_lm_with_the_single_precision_factorisation_reaches_the_double_minimum() -> None:
+    problem = build_problem(two_walks(), CFG)
+    graph, _ = pose_graph(problem, CFG)
+    active = np.ones(len(problem.wifi_pairs), bool)
+    runs = [S.levenberg_marquardt(graph, problem.init_xyh, active, S.LMSettings(precision=p)) for p in ("double", "single")]
+    assert runs[0].converged and runs[1].converged
+    assert runs[1].iterations == runs[0].iterations
+    assert abs(runs[1].error - runs[0].error) <= 1e-9 * max(1.0, runs[0].error)
+    np.testing.assert_allclose(runs[1].xyh, runs[0].xyh, atol=1e-7)
+
+
+def test_auto_precision_factorises_in_single_only_above_the_variable_count(monkeypatch: pytest.MonkeyPatch) -> None:
+    problem = build_problem(two_walks(), CFG)
+    graph, _ = pose_graph(problem, CFG)
+    active = np.ones(len(problem.wifi_pairs), bool)
+    seen: list[bool] = []
+
+    class Spy(S._DampedSystem):
+        def __init__(self, ne: S._NormalEquations, threads: int, single: bool) -> None:
+            seen.append(single)
+            super().__init__(ne, threads, single)
+
+    monkeypatch.setattr(S, "_DampedSystem", Spy)
+    n = 3 * len(graph.variables)
+    for precision, above in (("auto", n - 1), ("auto", n), ("double", 0), ("single", 10 * n)):
+        S.levenberg_marquardt(graph, problem.init_xyh, active, S.LMSettings(precision=precision, single_above_variables=above))
+    assert seen == [True, False, False, True]

@@ -503,6 +503,8 @@ def solve(
                 absolute_error_tol=cfg.optimizer.absolute_error_tol,
                 shape_tol_m=cfg.optimizer.shape_tol_m,
                 threads=cfg.optimizer.threads,
+                precision=cfg.optimizer.factor_precision,
+                single_above_variables=cfg.optimizer.single_above_variables,
             )
         else:
             imu_graph, wifi_factors, values, chains = native_graph(problem, cfg)

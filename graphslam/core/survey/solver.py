@@ -29,7 +29,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -69,6 +69,10 @@ class LMSettings:
     # lowers the error by less than 10x relative_error_tol; 0: off
     shape_tol_m: float = 0.0
     threads: int = 0  # MKL threads of the factorisation (0: MKL's default, i.e. MKL_NUM_THREADS or every core)
+    # of the factorisation: "single" refines each solve in double (``_DampedSystem``); "auto": single from
+    # ``single_above_variables`` unknowns on, where the cheaper factorisation outweighs the refinement's solves
+    precision: Literal["auto", "single", "double"] = "auto"
+    single_above_variables: int = 40_000
 
 
 @dataclass(frozen=True, eq=False)
@@ -275,12 +279,15 @@ class _Pardiso:
     """MKL PARDISO for a symmetric positive-definite matrix (upper triangle, CSR): the ordering
     (METIS nested dissection) and symbolic factorisation once, then numeric refactorisations."""
 
-    def __init__(self, indptr: NDArray[np.int32], indices: NDArray[np.int32], threads: int = 0) -> None:
+    def __init__(
+        self, indptr: NDArray[np.int32], indices: NDArray[np.int32], threads: int = 0, single: bool = False
+    ) -> None:
         self._lib = _mkl_runtime()
         self._n = len(indptr) - 1
         self._ia = (indptr + 1).astype(np.int32)  # PARDISO's default: one-based indices
         self._ja = (indices + 1).astype(np.int32)
-        self._a = np.zeros(len(indices))
+        self._dtype = np.float32 if single else np.float64
+        self._a = np.zeros(len(indices), self._dtype)
         self._pt = np.zeros(64, np.int64)  # PARDISO's internal handle
         # iparm[0] = 1: the entries set here, every other one 0 (MKL's default for a real SPD matrix)
         self._iparm = np.zeros(64, np.int32)
@@ -291,9 +298,10 @@ class _Pardiso:
         # two-level factorisation: paper size 12, 45 M non-zeros, 1.92 -> 1.60 s on 2 threads, 2.9 -> 2.7 s
         # on 1 (docs/benchmarks.md, issue 16); same solution to rounding
         self._iparm[23] = 1
+        self._iparm[27] = int(single)  # matrix, right-hand side and solution in single precision
         self._threads = threads
         self._live = False
-        self._call(11, np.zeros(1), np.zeros(1))  # analysis
+        self._call(11, self._none(), self._none())  # analysis
         self._live = True
 
     def _call(self, phase: int, b: NDArray, x: NDArray) -> None:
@@ -320,20 +328,94 @@ class _Pardiso:
         if err.value != 0:  # e.g. -4: zero pivot, the matrix is not positive definite
             raise np.linalg.LinAlgError(f"PARDISO phase {phase} failed with error {err.value}")
 
+    def _none(self) -> NDArray:
+        return np.zeros(1, self._dtype)
+
     def factor(self, data: NDArray) -> None:
         self._a[:] = data
-        self._call(22, np.zeros(1), np.zeros(1))
+        self._call(22, self._none(), self._none())
 
-    def solve(self, b: NDArray) -> NDArray:
-        b = np.ascontiguousarray(b, dtype=np.float64)
+    def solve(self, b: NDArray) -> NDArray[np.float64]:
+        b = np.ascontiguousarray(b, dtype=self._dtype)
         x = np.zeros_like(b)
         self._call(33, b, x)
-        return x
+        return x.astype(np.float64, copy=False)
 
     def free(self) -> None:
         if self._live:
             self._live = False
-            self._call(-1, np.zeros(1), np.zeros(1))
+            self._call(-1, self._none(), self._none())
+
+
+class _DampedSystem:
+    """Solves the damped normal equations (upper triangle ``data`` on the pattern of ``ne``).
+
+    ``single``: PARDISO factorises in single precision and each solve is refined by conjugate
+    gradients in float64, preconditioned by that factor, to a relative residual of
+    ``REFINE_TOL`` (the double solve's step, to rounding). Why: the factorisation is the large
+    survey's floor (paper size 12: ~2 s of a 2.2 s iteration) and float32 halves its memory
+    traffic; the refinement costs 2-6 triangular solves (docs/benchmarks.md, issue 16). A
+    matrix whose refinement does not converge (too ill-conditioned for float32), or that
+    float32 does not find positive definite, is solved in double from then on in this stage."""
+
+    REFINE_TOL = 1e-10  # relative residual |b - A x| / |b| at which a refined solve stops
+    MAX_REFINE = 12
+
+    def __init__(self, ne: _NormalEquations, threads: int, single: bool) -> None:
+        self._ne = ne
+        self._threads = threads
+        self._single = single
+        self._pardiso = _Pardiso(ne.indptr, ne.indices, threads, single=single)
+        self._data: NDArray = np.zeros(0)
+        self.fallbacks = 0  # switches to double precision (diagnostics, tests)
+
+    def _to_double(self) -> None:
+        log.debug("single-precision factorisation not accurate enough here: double from now on")
+        self._pardiso.free()
+        self._pardiso = _Pardiso(self._ne.indptr, self._ne.indices, self._threads)
+        self._single = False
+        self.fallbacks += 1
+        self._pardiso.factor(self._data)
+
+    def factor(self, data: NDArray[np.float64]) -> None:
+        self._data = data
+        try:
+            self._pardiso.factor(data)
+        except np.linalg.LinAlgError:
+            if not self._single:
+                raise
+            self._to_double()  # raises LinAlgError itself when double does not find it positive definite
+
+    def solve(self, b: NDArray[np.float64]) -> NDArray[np.float64]:
+        x = self._pardiso.solve(b)
+        if not self._single:
+            return x
+        # conjugate gradients in double, preconditioned by the float32 factorisation: as many
+        # float32 solves as plain refinement needs on a well-conditioned matrix, far fewer late in LM
+        tol = self.REFINE_TOL * float(np.linalg.norm(b))
+        r = b - _sym_matvec(self._ne, self._data, x)
+        if float(np.linalg.norm(r)) <= tol:
+            return x
+        z = self._pardiso.solve(r)
+        p, rz = z, float(r @ z)
+        for _ in range(self.MAX_REFINE):
+            Ap = _sym_matvec(self._ne, self._data, p)
+            pAp = float(p @ Ap)
+            if not pAp > 0:
+                break
+            alpha = rz / pAp
+            x = x + alpha * p
+            r = r - alpha * Ap
+            if float(np.linalg.norm(r)) <= tol:
+                return x
+            z = self._pardiso.solve(r)
+            rz, rz_prev = float(r @ z), rz
+            p = z + (rz / rz_prev) * p
+        self._to_double()  # float32 cannot resolve this matrix
+        return self._pardiso.solve(b)
+
+    def free(self) -> None:
+        self._pardiso.free()
 
 
 def pardiso_available() -> bool:
@@ -420,7 +502,8 @@ def levenberg_marquardt(
         err = obj.error(v)
         return LMResult(xyh.copy(), 0, 0, err, err, True)
     ne = obj.normal
-    solver = _Pardiso(ne.indptr, ne.indices, settings.threads)
+    single = settings.precision == "single" or (settings.precision == "auto" and ne.n > settings.single_above_variables)
+    solver = _DampedSystem(ne, settings.threads, single)
     H, grad, err = obj.linearise(v)
     initial = err
     lam = settings.lambda_initial
