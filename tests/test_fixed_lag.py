@@ -129,8 +129,14 @@ def test_mixture_moments_match_the_raw_moment_formula_and_wrap_the_angle():
     a = np.array([0.0, 0.0, np.pi - 0.1])
     b = np.array([2.0, 0.0, -np.pi + 0.1])
     m, P = mixture_moments([(a, np.eye(3)), (b, np.eye(3))], np.zeros(2), 0, angle_index=2)
-    np.testing.assert_allclose(m, [1.0, 0.0, np.pi], atol=1e-12)
+    np.testing.assert_allclose(m[:2], [1.0, 0.0], atol=1e-12)
+    assert -np.pi <= m[2] < np.pi and abs(abs(m[2]) - np.pi) < 1e-12
     np.testing.assert_allclose(np.diag(P), [2.0, 1.0, 1.01], atol=1e-12)
+    # the mean across the cut: pi - 0.1 and -pi + 0.3 average to -pi + 0.1, inside [-pi, pi)
+    c = np.array([0.0, 0.0, -np.pi + 0.3])
+    for ref in (0, 1):
+        m, _ = mixture_moments([(a, np.eye(3)), (c, np.eye(3))], np.zeros(2), ref, angle_index=2)
+        assert abs(m[2] - (-np.pi + 0.1)) < 1e-12
 
 
 def test_the_mixture_report_spreads_over_undecided_starts_and_follows_a_decided_bank():

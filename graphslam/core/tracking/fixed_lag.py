@@ -312,7 +312,8 @@ def mixture_moments(
     weighted by their posterior odds ``exp(-cost_h / 2)`` (``cost``: twice the negative log
     posterior). The minimum-mean-square-error estimate when the bank is unsure, the best
     hypothesis when it is not; the covariance holds the spread between hypotheses. Differences
-    are taken from hypothesis ``ref``; entry ``angle_index`` is wrapped to [-pi, pi)."""
+    are taken from hypothesis ``ref``; entry ``angle_index`` (differences and the mean) is wrapped
+    to [-pi, pi)."""
     w = np.exp(-0.5 * (np.asarray(costs, float) - np.min(costs)))
     w /= w.sum()
     X = np.array([x for x, _ in estimates])
@@ -323,7 +324,10 @@ def mixture_moments(
     e = d - mean_d
     Ps = np.array([Ph for _, Ph in estimates])
     P = np.einsum("h,hij->ij", w, Ps) + (e * w[:, None]).T @ e  # within + between hypotheses
-    return X[ref] + mean_d, 0.5 * (P + P.T)
+    mean = X[ref] + mean_d
+    if angle_index is not None:  # the reference's angle plus a wrapped difference can leave [-pi, pi)
+        mean[angle_index] = np.remainder(mean[angle_index] + math.pi, 2 * math.pi) - math.pi
+    return mean, 0.5 * (P + P.T)
 
 
 def _prune(bank: list[_Window], prune_cost: float | None) -> None:
