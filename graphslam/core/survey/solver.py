@@ -17,7 +17,8 @@ factorisation than MKL PARDISO with the analysis reused (docs/benchmarks.md, iss
  * Linear algebra: the normal equations' pattern is fixed for one active edge set, so
    PARDISO's ordering (METIS) and symbolic analysis run once per stage and each lambda try
    or iteration is only a numeric refactorisation. Lambda follows Nielsen's rule, which
-   rejects few steps (each rejection costs a factorisation).
+   rejects few steps (each rejection costs a factorisation). Large systems are factorised
+   in single precision, each step refined in double to the double step (``_DampedSystem``).
  * Convergence: the error's relative decrease, or (``shape_tol_m``) a step that barely changes
    the map's shape: held by one pose, a large map's last iterations only turn it about that pose.
 
