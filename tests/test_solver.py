@@ -3,7 +3,9 @@ and the same minimum as GTSAM's optimiser."""
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import replace
+from typing import Iterator
 
 import gtsam
 import numpy as np
@@ -219,16 +221,25 @@ def _chain_system(
     return ne, H
 
 
+@contextlib.contextmanager
+def _double_and_single(ne: S._NormalEquations, H: np.ndarray) -> Iterator[tuple[S._DampedSystem, S._DampedSystem]]:
+    """The same matrix factorised in double and in single precision (one thread), freed after."""
+    exact, fast = S._DampedSystem(ne, 1, single=False), S._DampedSystem(ne, 1, single=True)
+    try:
+        exact.factor(H)
+        fast.factor(H)
+        yield exact, fast
+    finally:
+        exact.free()
+        fast.free()
+
+
 @pytest.mark.parametrize("scale_range", [1.0, 1e8])
 def test_a_single_precision_factorisation_refined_in_double_gives_the_double_solution(scale_range: float) -> None:
     rng = np.random.default_rng(11)
     ne, H = _chain_system(rng, 300, scale_range)
     b = rng.normal(size=ne.n)
-    exact = S._DampedSystem(ne, 1, single=False)
-    fast = S._DampedSystem(ne, 1, single=True)
-    try:
-        exact.factor(H)
-        fast.factor(H)
+    with _double_and_single(ne, H) as (exact, fast):
         want, got = exact.solve(b), fast.solve(b)
         assert fast.fallbacks == 0  # refined, not redone in double
         # the float32 factor alone is far off; the refined solve is the double one
@@ -236,9 +247,6 @@ def test_a_single_precision_factorisation_refined_in_double_gives_the_double_sol
         assert np.linalg.norm(S._sym_matvec(ne, H, raw) - b) > 1e3 * np.linalg.norm(S._sym_matvec(ne, H, got) - b)
         assert np.linalg.norm(S._sym_matvec(ne, H, got) - b) <= 1e-10 * np.linalg.norm(b) * 1.0001
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-6 * np.abs(want).max())
-    finally:
-        exact.free()
-        fast.free()
 
 
 def test_a_matrix_float32_cannot_resolve_is_solved_in_double() -> None:
@@ -246,20 +254,13 @@ def test_a_matrix_float32_cannot_resolve_is_solved_in_double() -> None:
     # singular but for a ridge of 1e-12 (the gauge of an unanchored graph): condition ~1e14, beyond float32
     ne, H = _chain_system(rng, 300, 1.0, ridge=1e-12, anchored=False)
     b = rng.normal(size=ne.n)
-    exact = S._DampedSystem(ne, 1, single=False)
-    fast = S._DampedSystem(ne, 1, single=True)
-    try:
-        exact.factor(H)
-        fast.factor(H)
+    with _double_and_single(ne, H) as (exact, fast):
         want, got = exact.solve(b), fast.solve(b)
         assert fast.fallbacks == 1
         np.testing.assert_array_equal(got, want)  # the very same double solve
         fast.factor(H)  # ...and double for the rest of the stage
         np.testing.assert_array_equal(fast.solve(b), want)
         assert fast.fallbacks == 1
-    finally:
-        exact.free()
-        fast.free()
 
 
 def test_lm_with_the_single_precision_factorisation_reaches_the_double_minimum() -> None:
