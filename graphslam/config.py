@@ -132,7 +132,8 @@ class OptimizerConfig(_Strict):
         description="solver=pardiso: precision of the factorisation; single: float32 Cholesky, each step refined in "
         "double (PCG) to a 1e-10 relative residual, i.e. the double step (double on a matrix float32 cannot resolve); "
         "auto: single above single_above_variables unknowns. Measured (docs/benchmarks.md issue 16): factorisations "
-        "30-45 % cheaper, paper size 12 optimise 18 -> 13 s, size 4 slower (the refinement's solves), same minimum",
+        "23-37 % cheaper, paper size 8 optimise 8.7 -> 7.4 s, size 12 22.0 -> 17.0 s, size 4 slower (the refinement's "
+        "solves), the same minimum",
     )
     single_above_variables: int = Field(
         40_000, ge=0, description="factor_precision=auto: single precision above this many unknowns (3 per solved pose; "

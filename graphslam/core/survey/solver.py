@@ -505,6 +505,7 @@ def levenberg_marquardt(
     ne = obj.normal
     single = settings.precision == "single" or (settings.precision == "auto" and ne.n > settings.single_above_variables)
     solver = _DampedSystem(ne, settings.threads, single)
+    log.debug("LM over %d unknowns, factorisation in %s precision", ne.n, "single" if single else "double")
     H, grad, err = obj.linearise(v)
     initial = err
     lam = settings.lambda_initial
