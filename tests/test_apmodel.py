@@ -185,17 +185,26 @@ def test_track_skips_an_odometry_jump_instead_of_flying_off(tiny_case):
     assert err[1e9] > 3 * err[3.0], err  # the guard is what keeps it on the map
 
 
-def test_track_cli_default_is_the_fixed_lag_tracker_and_rejects_a_negative_lag(tiny_case, capsys):
+def _track_rows_and_errors(tiny_case, name: str, *args: str) -> tuple[list[dict], np.ndarray]:
+    """``graphslam track`` on the tiny case's walk with ``args``: the CSV's rows (one per step, in
+    step order: asserted) and each step's error against the walk's ground truth (scoring only)."""
     from graphslam.cli import main
     from graphslam.core.survey.evaluate import interpolate_xy
 
     d, session = tiny_case
-    out = d / "positions_lag.csv"
-    main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--lag", "1", "--out", str(out)])
+    out = d / name
+    main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), *args, "--out", str(out)])
     rows = list(csv.DictReader(out.open()))
     assert [int(r["t_ns"]) for r in rows] == session.steps.t_ns.tolist()
     xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
-    err = np.linalg.norm(xy - interpolate_xy(session.ground_truth, session.steps.t_ns.astype(float)), axis=1)
+    return rows, np.linalg.norm(xy - interpolate_xy(session.ground_truth, session.steps.t_ns.astype(float)), axis=1)
+
+
+def test_track_cli_default_is_the_fixed_lag_tracker_and_rejects_a_negative_lag(tiny_case, capsys):
+    from graphslam.cli import main
+
+    d, _ = tiny_case
+    _, err = _track_rows_and_errors(tiny_case, "positions_lag.csv", "--lag", "1")
     assert err[len(err) // 2 :].mean() < 4.0, err.mean()
     bad = d / "positions_neg.csv"
     with pytest.raises(SystemExit) as e:
@@ -253,16 +262,10 @@ def test_track_keeps_its_self_calibration_beside_the_map(tiny_case, tmp_path, mo
 
 def test_track_cli_particle_filter_follows_the_walk_and_has_no_offline_smoother(tiny_case, capsys):
     from graphslam.cli import main
-    from graphslam.core.survey.evaluate import interpolate_xy
 
-    d, session = tiny_case
-    out = d / "positions_pf.csv"
-    main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--filter", "particle", "--out", str(out)])
-    rows = list(csv.DictReader(out.open()))
-    assert [int(r["t_ns"]) for r in rows] == session.steps.t_ns.tolist()
-    xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
+    d, _ = tiny_case
+    rows, err = _track_rows_and_errors(tiny_case, "positions_pf.csv", "--filter", "particle")
     assert all(float(r["cov_xx"]) > 0 and float(r["cov_yy"]) > 0 for r in rows)
-    err = np.linalg.norm(xy - interpolate_xy(session.ground_truth, session.steps.t_ns.astype(float)), axis=1)
     assert err[len(err) // 2 :].mean() < 4.0, err.mean()
     bad = d / "positions_pf_map.csv"
     with pytest.raises(SystemExit) as e:
