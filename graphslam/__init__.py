@@ -45,7 +45,7 @@ _EXPORTS: dict[str, str] = {
     **{n: "graphslam.core.tracking.apmodel" for n in ("ApFitConfig", "ApModel", "ApModels", "UnfittedAp")},
     # filters, smoothers, tracking
     **{n: "graphslam.core.tracking.filters" for n in (
-        "PathLossModel", "FusionModel", "GaussianState", "Epochs", "FilterRun", "make_filter", "run_epochs",
+        "PathLossModel", "FusionModel", "Shadowing", "GaussianState", "Epochs", "FilterRun", "make_filter", "run_epochs",
     )},
     **{n: "graphslam.core.tracking.smoother" for n in ("SmoothedRun", "smooth", "rts_smooth", "map_smooth", "MapProblem")},
     **{n: "graphslam.app.track" for n in ("TrackConfig", "SessionTrack", "track_sessions")},
@@ -81,7 +81,7 @@ if TYPE_CHECKING:  # static analysers see the real objects
     from graphslam.core.tracking.apmodel import ApFitConfig, ApModel, ApModels, UnfittedAp
     from graphslam.core.survey.evaluate import ErrorStats, Evaluation, evaluate
     from graphslam.core.tracking.filters import (
-        Epochs, FilterRun, FusionModel, GaussianState, PathLossModel, make_filter, run_epochs,
+        Epochs, FilterRun, FusionModel, GaussianState, PathLossModel, Shadowing, make_filter, run_epochs,
     )
     from graphslam.core.radiomap.knn import KnnConfig, KnnLocator, KnnResult
     from graphslam.core.radiomap.radiomap import RadioMap

@@ -761,6 +761,10 @@ def bench_filters(
     lags: str = typer.Option("2", help="Fixed-lag smoother latencies also reported (s, comma-separated; '' for none)."),
     window: float = typer.Option(480.0, min=0.0, help="Fixed-lag window (s): older epochs are marginalised."),
     restart_every: int = typer.Option(10, min=0, help="Fixed-lag: also solve from dead-reckoning starts every N epochs (0: never)."),
+    shadowing: str = typer.Option(
+        "0.5,3", help="Fixed-lag also with this share of the RSSI variance as shadowing correlated over this "
+        "distance (SHARE,CORR_M; '' for none).",
+    ),
 ) -> None:
     """The filter papers' experiment simulated: RMS error in x and y of EKF and UKF (and smoothed) over seeds."""
     from graphslam.app.bench import filters_cart
@@ -770,7 +774,7 @@ def bench_filters(
 
     res = filters_cart(
         _seeds(seeds), shadowing_db=shadowing_db, plot_dir=plot_dir, smoothers=_smoothers(smoothers),
-        lags=_lags(lags), window_s=window, restart_every=restart_every,
+        lags=_lags(lags), window_s=window, restart_every=restart_every, shadowing=_shadowing(shadowing),
     )
     typer.echo(json.dumps(res))
 
@@ -913,6 +917,21 @@ def _lags(text: str) -> list[float]:
 
         raise ConfigError(f"--lags: {text!r} is not a comma-separated list of latencies >= 0 (s), e.g. 0,1,2")
     return lags
+
+
+def _shadowing(text: str) -> tuple[float, float] | None:
+    """'0.5,3': share of the RSSI variance in (0, 1) and correlation distance > 0 (m); '' for none."""
+    if not text.strip():
+        return None
+    try:
+        share, corr = (float(v) for v in text.split(","))
+    except ValueError:
+        share = corr = math.nan
+    if not (0.0 < share < 1.0 and math.isfinite(corr) and corr > 0):
+        from graphslam.errors import ConfigError
+
+        raise ConfigError(f"--shadowing: {text!r} is not SHARE,CORR_M with 0 < SHARE < 1 and CORR_M > 0, e.g. 0.5,3")
+    return share, corr
 
 
 def _smoothers(text: str) -> list[str]:

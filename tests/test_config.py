@@ -54,3 +54,8 @@ def test_cli_seed_lists_take_ranges_and_reject_garbage(capsys) -> None:
     with pytest.raises(SystemExit) as e:
         main(["bench", "filters", "--seeds", "0", "--smoothers", "ks"])
     assert e.value.code == 2 and "unknown smoother 'ks'" in capsys.readouterr().err
+    for bad in ("1.5,3", "0.5", "0.5,-1", "a,b"):
+        with pytest.raises(SystemExit) as e:
+            main(["bench", "filters", "--seeds", "0", "--shadowing", bad])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and f"--shadowing: {bad!r}" in err and len(err.strip().splitlines()) == 1

@@ -267,6 +267,7 @@ def filters_cart(
     lags: Sequence[float] = (),
     window_s: float = 480.0,
     restart_every: int = 10,
+    shadowing: tuple[float, float] | None = (0.5, 3.0),
 ) -> dict[str, Any]:
     """The filter papers' experiment (cart, 5 rounds, 4 APs) simulated per seed; EKF with Paper 000's
     constants, UKF with Paper 002's (each paper's P0/gamma for truth and filter, their Q, R, x0, P0).
@@ -277,7 +278,10 @@ def filters_cart(
     number of seeds meeting the papers' figures. Per lag in ``lags`` (s), the fixed-lag smoother
     under the same model (``{kind}+fixed-lag:LAG``: each epoch reported LAG s after it, from a
     window of ``max(window_s, LAG)`` s, Gaussian losses, also solved from dead-reckoning starts
-    every ``restart_every`` epochs). ``shadowing_db`` overrides the documented
+    every ``restart_every`` epochs). With ``shadowing = (share, corr_m)`` the fixed-lag smoother is
+    also run (``{kind}+fixed-lag:LAG+shadowing``) under the same model with ``share`` of its RSSI
+    variance as correlated shadowing states (``FusionModel.with_shadowing``: same total R, errors
+    correlated over ``corr_m`` of the distance moved). ``shadowing_db`` overrides the documented
     default (4 dB) for a sensitivity sweep. ``plot_dir``: one PNG per filter (path, |error|,
     trace P) for the first seed.
     """
@@ -293,8 +297,12 @@ def filters_cart(
     noise = CartNoise() if shadowing_db is None else dataclasses.replace(CartNoise(), shadowing_sigma_db=shadowing_db)
     out: dict[str, Any] = {"seeds": list(seeds), "noise": dataclasses.asdict(noise)}
     for kind, model in (("ekf", FusionModel.paper_ekf()), ("ukf", FusionModel.paper_ukf())):
+        fl_models = {"": model}
+        if shadowing is not None:
+            fl_models["+shadowing"] = model.with_shadowing(*shadowing)
         rms: dict[str, list[tuple[float, float]]] = {
-            kind: [], **{f"{kind}+{sm}": [] for sm in smoothers}, **{f"{kind}+fixed-lag:{lag:g}": [] for lag in lags}
+            kind: [], **{f"{kind}+{sm}": [] for sm in smoothers},
+            **{f"{kind}+fixed-lag:{lag:g}{tag}": [] for lag in lags for tag in fl_models},
         }
         tp, secs = [], {name: 0.0 for name in rms}
         for i, seed in enumerate(progress_over(seeds, f"bench filters {kind}", unit="seeds")):
@@ -309,13 +317,15 @@ def filters_cart(
                 ests[f"{kind}+{sm}"] = smooth(model, PAPER_X0, PAPER_P0, epochs, res, sm).x
                 secs[f"{kind}+{sm}"] += time.perf_counter() - t0
             for lag in lags:
-                t0 = time.perf_counter()
                 flc = FixedLagConfig(
                     lag_s=float(lag), window_s=max(window_s, float(lag)), huber_k=None, prune_cost=None,
                     restart_every=restart_every,
                 )
-                ests[f"{kind}+fixed-lag:{lag:g}"] = fixed_lag_smooth(model, [PAPER_X0], PAPER_P0, epochs, flc).x
-                secs[f"{kind}+fixed-lag:{lag:g}"] += time.perf_counter() - t0
+                for tag, fl_model in fl_models.items():
+                    t0 = time.perf_counter()
+                    x0, P0 = fl_model.prior(PAPER_X0, PAPER_P0)
+                    ests[f"{kind}+fixed-lag:{lag:g}{tag}"] = fixed_lag_smooth(fl_model, [x0], P0, epochs, flc).x
+                    secs[f"{kind}+fixed-lag:{lag:g}{tag}"] += time.perf_counter() - t0
             for name, X in ests.items():
                 e = X[:, :2] - run.xy
                 rms[name].append((float(np.sqrt(np.mean(e[:, 0] ** 2))), float(np.sqrt(np.mean(e[:, 1] ** 2)))))

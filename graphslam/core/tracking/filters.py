@@ -20,6 +20,13 @@ RSSI measurement (eq. 5-6), one row per access point ``i``::
 
 ``d0`` (``min_distance_m``) keeps the model finite and smooth at the AP.
 
+Optional (``FusionModel.shadowing``, not in the papers): the RSSI error of AP ``i`` is a
+shadowing offset ``s_i`` in the state plus white noise, ``y_i = h_i(p) + s_i + n_i``. The
+shadowing is spatially correlated (Gudmundson: ``exp(-d / corr_m)`` over a distance ``d``
+moved), so between epochs it is an Ornstein-Uhlenbeck process in the distance walked:
+``s_i <- rho s_i + w``, ``rho = exp(-d / corr_m)``, ``var w = sigma^2 (1 - rho^2)``, with ``d``
+from the epochs' velocity readings (``Epochs.travel_m``). States ``[base..., s_0 .. s_A-1]``.
+
 EKF: eq. 8 of Paper 000, covariance update in Joseph form. UKF: eq. 8-10 of
 Paper 002 (sigma points ``x +- columns of chol(n / (1 - w0) P)``, weights
 ``w0`` and ``(1 - w0) / 2n``), two deliberate departures, both documented in
@@ -31,6 +38,7 @@ the measurement statistics (the textbook additive-noise UKF).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 from typing import Literal, Sequence
@@ -130,6 +138,32 @@ class PathLossModel:
 _PAPER_APS = np.array([[0.0, 0.0], [0.0, 14.6], [8.2, 14.6], [8.2, 0.0]])
 
 
+# 1 - rho^2 of a shadowing state is floored here: a walker standing still (rho = 1) keeps a
+# tiny process noise, so the whitened process rows stay finite.
+_MIN_DECORRELATION = 1e-6
+
+
+@dataclass(frozen=True)
+class Shadowing:
+    """Spatially correlated RSSI error, one state per AP (module docstring): stationary std
+    ``sigma_db`` (dB) and correlation distance ``corr_m`` (m, exp(-d / corr_m))."""
+
+    sigma_db: float
+    corr_m: float
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.sigma_db) and self.sigma_db > 0 and np.isfinite(self.corr_m) and self.corr_m > 0):
+            raise FilterError(f"shadowing: sigma_db and corr_m must be finite and > 0, got {self.sigma_db}, {self.corr_m}")
+
+    def decay(self, travel_m: NDArray | float) -> NDArray[np.float64]:
+        """``rho = exp(-d / corr_m)`` for distances ``d`` (m) moved."""
+        return np.exp(-np.abs(np.asarray(travel_m, float)) / self.corr_m)
+
+    def noise_var(self, rho: NDArray | float) -> NDArray[np.float64]:
+        """Variance of the OU step with decay ``rho`` (keeps the stationary variance sigma^2)."""
+        return self.sigma_db**2 * np.maximum(1.0 - np.asarray(rho, float) ** 2, _MIN_DECORRELATION)
+
+
 @dataclass(frozen=True, eq=False)
 class FusionModel:
     """Process and measurement models of the papers, with their noise covariances.
@@ -137,20 +171,23 @@ class FusionModel:
     ``q_diag`` is the process-noise variance per nominal period ``period_s`` (the papers'
     ``Q`` with T = 4 s); for another ``dt`` it scales by ``dt / period_s`` (white-noise
     rates), so irregular step times keep the same noise per second. ``theta_rad`` fixes the
-    alignment angle (the papers); ``None`` puts it in the state (index 6).
+    alignment angle (the papers); ``None`` puts it in the state (index 6). ``shadowing``: one
+    correlated RSSI offset per AP appended to the state (module docstring); ``r_rssi`` is then
+    the white part only, and the process needs the distance moved (``dist_m``) per interval.
     """
 
     path_loss: PathLossModel
-    q_diag: NDArray[np.float64]  # (n,) per period_s
+    q_diag: NDArray[np.float64]  # (n_base,) per period_s
     r_velocity: NDArray[np.float64]  # (2,) variance of y_v, (m/s)^2
-    r_rssi: NDArray[np.float64]  # (A,) variance per AP, dB^2
+    r_rssi: NDArray[np.float64]  # (A,) variance per AP, dB^2 (white part when shadowing is set)
     period_s: float = 4.0
     theta_rad: float | None = 0.1
+    shadowing: Shadowing | None = None
 
     def __post_init__(self) -> None:
         q = np.asarray(self.q_diag, float).ravel()
-        if q.shape != (self.n,):
-            raise FilterError(f"fusion model: q_diag has {q.size} entries, state has {self.n}")
+        if q.shape != (self.n_base,):
+            raise FilterError(f"fusion model: q_diag has {q.size} entries, state has {self.n_base}")
         rv = np.broadcast_to(np.asarray(self.r_velocity, float), (2,))
         rr = np.broadcast_to(np.asarray(self.r_rssi, float), (len(self.path_loss),))
         if (q < 0).any() or (rv <= 0).any() or (rr <= 0).any() or self.period_s <= 0:
@@ -180,23 +217,69 @@ class FusionModel:
         )
 
     @property
-    def n(self) -> int:
+    def n_base(self) -> int:
+        """The papers' state (6), or 7 with theta."""
         return 6 if self.theta_rad is not None else 7
 
-    def transition(self, dt: float) -> NDArray[np.float64]:
-        """``A`` of eq. 3 for a period ``dt`` (s)."""
+    @property
+    def n(self) -> int:
+        return self.n_base + (len(self.path_loss) if self.shadowing is not None else 0)
+
+    def shadow_state(self, ap_idx: NDArray | int) -> NDArray[np.int64]:
+        """State index of AP ``ap_idx``'s shadowing offset (only with ``shadowing``)."""
+        return self.n_base + np.asarray(ap_idx, np.int64)
+
+    def _rho(self, dist_m: float | None) -> float:
+        if self.shadowing is None:
+            return 1.0
+        if dist_m is None:
+            raise FilterError("fusion model: the shadowing states need the distance moved in each interval")
+        return float(self.shadowing.decay(dist_m))
+
+    def transition(self, dt: float, dist_m: float | None = None) -> NDArray[np.float64]:
+        """``A`` of eq. 3 for a period ``dt`` (s); shadowing states decay over ``dist_m`` (m)."""
         F = np.eye(self.n)
         F[0, 2] = F[1, 3] = dt
+        if self.shadowing is not None:
+            F[self.n_base:, self.n_base:] *= self._rho(dist_m)
         return F
 
-    def process_noise(self, dt: float) -> NDArray[np.float64]:
-        return np.diag(self.q_diag * (dt / self.period_s))
+    def process_noise(self, dt: float, dist_m: float | None = None) -> NDArray[np.float64]:
+        q = self.q_diag * (dt / self.period_s)
+        if self.shadowing is not None:
+            q = np.concatenate([q, np.full(len(self.path_loss), float(self.shadowing.noise_var(self._rho(dist_m))))])
+        return np.diag(q)
 
-    def propagate(self, X: NDArray, dt: float) -> NDArray[np.float64]:
+    def propagate(self, X: NDArray, dt: float, dist_m: float | None = None) -> NDArray[np.float64]:
         """Eq. 3 without noise, for states in rows (m, n)."""
         out = np.array(X, dtype=float, copy=True)
         out[..., 0:2] += dt * out[..., 2:4]
+        if self.shadowing is not None:
+            out[..., self.n_base:] *= self._rho(dist_m)
         return out
+
+    def with_shadowing(self, share: float, corr_m: float) -> "FusionModel":
+        """This model with its RSSI variance split: ``share`` of it (of the mean over APs) becomes
+        correlated shadowing states (``corr_m``), the rest stays white noise. Same total variance
+        per reading; what changes is that errors at nearby places are no longer independent."""
+        if not 0.0 < share < 1.0:
+            raise FilterError(f"shadowing: the correlated share must be in (0, 1), got {share}")
+        if self.shadowing is not None:
+            raise FilterError("shadowing: the model has shadowing states already")
+        sigma = float(np.sqrt(share * float(np.mean(self.r_rssi))))
+        return dataclasses.replace(self, r_rssi=self.r_rssi * (1.0 - share), shadowing=Shadowing(sigma, corr_m))
+
+    def prior(self, x0: NDArray, P0: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """A prior on the base state extended to the model's: shadowing states at 0 with their
+        stationary variance (unchanged without shadowing)."""
+        x0, P0 = np.asarray(x0, float).ravel(), np.asarray(P0, float)
+        extra = self.n - len(x0)
+        if extra <= 0 or self.shadowing is None:
+            return x0, P0
+        P = np.zeros((self.n, self.n))
+        P[: len(x0), : len(x0)] = P0
+        P[len(x0):, len(x0):] = np.eye(extra) * self.shadowing.sigma_db**2
+        return np.concatenate([x0, np.zeros(extra)]), P
 
     def measure(self, X: NDArray, use_velocity: bool, ap_idx: NDArray) -> NDArray[np.float64]:
         """Predicted measurements (m, p) of states (m, n): [y_v (2) if used; RSSI of ``ap_idx``]."""
@@ -207,7 +290,10 @@ class FusionModel:
             M = velocity_matrix(th)  # (m, 2, 2)
             parts.append(np.einsum("mij,mj->mi", M, X[:, 2:4]) + X[:, 4:6])
         if len(ap_idx):
-            parts.append(self.path_loss.mean_rss(X[:, 0:2], ap_idx))
+            rss = self.path_loss.mean_rss(X[:, 0:2], ap_idx)
+            if self.shadowing is not None:
+                rss = rss + X[:, self.shadow_state(ap_idx)]
+            parts.append(rss)
         return np.concatenate(parts, axis=1) if parts else np.zeros((len(X), 0))
 
     def measurement_jacobian(self, x: NDArray, use_velocity: bool, ap_idx: NDArray) -> NDArray[np.float64]:
@@ -226,6 +312,8 @@ class FusionModel:
         if len(ap_idx):
             Hr = np.zeros((len(ap_idx), self.n))
             Hr[:, 0:2] = self.path_loss.jacobian(x[0:2], ap_idx)
+            if self.shadowing is not None:
+                Hr[np.arange(len(ap_idx)), self.shadow_state(ap_idx)] = 1.0
             rows.append(Hr)
         return np.vstack(rows) if rows else np.zeros((0, self.n))
 
@@ -310,9 +398,9 @@ class ExtendedKalmanFilter:
     model: FusionModel
     kind: FilterKind = field(default="ekf", init=False)
 
-    def predict(self, s: GaussianState, dt: float) -> GaussianState:
-        F = self.model.transition(dt)
-        return GaussianState(F @ s.x, F @ s.P @ F.T + self.model.process_noise(dt))
+    def predict(self, s: GaussianState, dt: float, dist_m: float | None = None) -> GaussianState:
+        F = self.model.transition(dt, dist_m)
+        return GaussianState(F @ s.x, F @ s.P @ F.T + self.model.process_noise(dt, dist_m))
 
     def update(
         self, s: GaussianState, y: NDArray, *, use_velocity: bool, ap_idx: NDArray = _EMPTY_IDX,
@@ -370,10 +458,10 @@ class UnscentedKalmanFilter:
     w0: float = 0.1
     kind: FilterKind = field(default="ukf", init=False)
 
-    def predict(self, s: GaussianState, dt: float) -> GaussianState:
+    def predict(self, s: GaussianState, dt: float, dist_m: float | None = None) -> GaussianState:
         X, w = sigma_points(s.x, s.P, self.w0)
-        mu, P = unscented_transform(self.model.propagate(X, dt), w)
-        return GaussianState(mu, P + self.model.process_noise(dt))
+        mu, P = unscented_transform(self.model.propagate(X, dt, dist_m), w)
+        return GaussianState(mu, P + self.model.process_noise(dt, dist_m))
 
     def update(
         self, s: GaussianState, y: NDArray, *, use_velocity: bool, ap_idx: NDArray = _EMPTY_IDX,
@@ -440,8 +528,10 @@ class Epochs:
     ``rss_y[j]`` (dBm) of access point ``rss_ap[j]`` (a row of the path-loss model) to epoch
     ``rss_k[j]`` (its std is the model's times ``rss_scale[j]``, default 1: the whole-run and
     fixed-lag MAP use it, the causal filters do not); optional position fixes ``fix_xy[l]`` (m, e.g. a kNN fix on the radio map)
-    with isotropic std ``fix_sigma[l]`` (m) to epoch ``fix_k[l]``. Times strictly increase
-    (readings at one time share an epoch); an epoch may hold no reading. Read-only arrays.
+    with isotropic std ``fix_sigma[l]`` (m) to epoch ``fix_k[l]``. ``travel_m`` (N - 1,): the
+    distance moved between consecutive epochs (m), which a model with shadowing states needs.
+    Times strictly increase (readings at one time share an epoch); an epoch may hold no
+    reading. Read-only arrays.
     """
 
     t_s: NDArray[np.float64]
@@ -454,6 +544,7 @@ class Epochs:
     fix_xy: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
     fix_sigma: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     rss_scale: NDArray[np.float64] | None = None  # per RSSI reading: std multiplier (>= 1; None: all 1)
+    travel_m: NDArray[np.float64] | None = None  # (N - 1,) distance moved per interval, m (None: not known)
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t_s, float).ravel()
@@ -482,6 +573,11 @@ class Epochs:
         if rs.shape != ry.shape or not (np.isfinite(rs).all() and (rs > 0).all()):
             raise FilterError("epochs: rss_scale needs one positive finite value per RSSI reading")
         object.__setattr__(self, "rss_scale", _ro(rs))
+        if self.travel_m is not None:
+            tr = np.asarray(self.travel_m, float).ravel()
+            if tr.shape != (len(t) - 1,) or not (np.isfinite(tr).all() and (tr >= 0).all()):
+                raise FilterError(f"epochs: travel_m needs {len(t) - 1} finite distances >= 0, got {tr.shape[0]}")
+            object.__setattr__(self, "travel_m", _ro(tr))
         if len(np.unique(vk)) != len(vk):
             raise FilterError("epochs: more than one velocity reading in an epoch")
         for name, a in (("t_s", t), ("vel_k", vk), ("vel_y", vy), ("rss_k", rk), ("rss_ap", ra), ("rss_y", ry),
@@ -491,12 +587,18 @@ class Epochs:
     @classmethod
     def fixed_rate(cls, y_velocity: NDArray, y_rssi: NDArray, dt: float) -> "Epochs":
         """The papers' loop: epoch ``k`` at ``k dt`` holds ``y_velocity[k]`` and the finite entries
-        of ``y_rssi[k]`` (NaN = AP not heard)."""
+        of ``y_rssi[k]`` (NaN = AP not heard). Distance moved from epoch ``k`` to ``k + 1``:
+        ``|y_velocity[k]| dt`` (eq. 4's ``M`` keeps lengths, so this is the speed up to the bias)."""
         yv, yr = np.asarray(y_velocity, float), np.asarray(y_rssi, float)
         if yv.ndim != 2 or yv.shape[1] != 2 or yr.ndim != 2 or len(yr) != len(yv) or dt <= 0:
             raise FilterError(f"epochs: y_velocity {yv.shape} / y_rssi {yr.shape} / dt {dt} do not fit together")
         k, a = np.nonzero(np.isfinite(yr))
-        return cls(np.arange(len(yv)) * float(dt), np.arange(len(yv)), yv, k, a, yr[k, a])
+        travel = np.linalg.norm(yv[:-1], axis=1) * float(dt)
+        return cls(np.arange(len(yv)) * float(dt), np.arange(len(yv)), yv, k, a, yr[k, a], travel_m=travel)
+
+    def interval_travel(self, k: int) -> float | None:
+        """Distance moved from epoch ``k`` to ``k + 1`` (m), None when not known."""
+        return None if self.travel_m is None else float(self.travel_m[k])
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -546,7 +648,7 @@ def run_epochs(
     ll, used, gated = 0.0, 0, 0
     for k in range(n_ep):
         if k:
-            s = filt.predict(s, float(dts[k - 1]))
+            s = filt.predict(s, float(dts[k - 1]), epochs.interval_travel(k - 1))
         rows = order[bounds[k]:bounds[k + 1]]
         use_v = vel_at[k] >= 0
         if use_v or len(rows):

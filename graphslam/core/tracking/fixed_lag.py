@@ -140,19 +140,19 @@ class _Window:
             return
         m = self.s.model
         Pk = self.problem.marginal(self.X[: j - self.lo], j - 1 - self.lo)
-        dt = float(e.t_s[j] - e.t_s[j - 1])
-        F = m.transition(dt)
-        Pp = (F @ Pk @ F.T + m.process_noise(dt))[:2, :2]
+        dt, dist = float(e.t_s[j] - e.t_s[j - 1]), e.interval_travel(j - 1)
+        F = m.transition(dt, dist)
+        Pp = F @ Pk @ F.T + m.process_noise(dt, dist)
         xp = self.X[-1, :2]
         for i in rows:
             nu = e.fix_xy[i] - xp
-            S = Pp + np.eye(2) * e.fix_sigma[i] ** 2
+            S = Pp[:2, :2] + np.eye(2) * e.fix_sigma[i] ** 2
             self.sum_nis += float(nu @ np.linalg.solve(S, nu))
             self.n_fix += 1
         if len(rss):
-            h, g = m.path_loss.rss_pairs(np.tile(xp, (len(rss), 1)), e.rss_ap[rss])
-            nu = e.rss_y[rss] - h
-            S = g @ Pp @ g.T + np.diag(m.r_rssi[e.rss_ap[rss]] * self.rss_scale[rss] ** 2)
+            H = m.measurement_jacobian(self.X[-1], False, e.rss_ap[rss])
+            nu = e.rss_y[rss] - m.measure(self.X[-1], False, e.rss_ap[rss])[0]
+            S = H @ Pp @ H.T + np.diag(m.r_rssi[e.rss_ap[rss]] * self.rss_scale[rss] ** 2)
             ratio = float(nu @ np.linalg.solve(S, nu)) / len(rss)
             if ratio > 1.0:
                 self.rss_scale[rss] *= np.sqrt(ratio)
@@ -174,7 +174,7 @@ class _Window:
         rows = [self.X]
         x = self.X[-1]
         for k in range(self.hi + 1, hi + 1):
-            x = m.propagate(x[None, :], float(t[k] - t[k - 1]))[0]
+            x = m.propagate(x[None, :], float(t[k] - t[k - 1]), self.s.epochs.interval_travel(k - 1))[0]
             rows.append(x[None, :])
         self.X, self.hi = np.vstack(rows), hi
 
@@ -242,6 +242,7 @@ class _Stream:
         win = Epochs(
             e.t_s[lo : hi + 1], e.vel_k[v] - lo, e.vel_y[v], e.rss_k[r] - lo, e.rss_ap[r], e.rss_y[r],
             e.fix_k[f] - lo, e.fix_xy[f], e.fix_sigma[f], rss_scale[r],
+            None if e.travel_m is None else e.travel_m[lo:hi],
         )
         return MapProblem(self.model, x0, P0, win, huber_k=self.cfg.huber_k)
 

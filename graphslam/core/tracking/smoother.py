@@ -66,7 +66,8 @@ class MapProblem:
 
     Row blocks: prior (n), process ((N - 1) n), velocity (2 per reading), then the map rows:
     RSSI (1 per reading) and position fixes (2 per fix). ``huber_k`` (in standard deviations)
-    turns the map rows' squares into Huber's loss.
+    turns the map rows' squares into Huber's loss. With ``model.shadowing`` an RSSI row also
+    holds its AP's offset state, and the process decays the offsets over ``epochs.travel_m``.
     """
 
     def __init__(
@@ -90,6 +91,16 @@ class MapProblem:
         self._W0 = sla.solve_triangular(C, np.eye(n), lower=True)  # C^-1: whitens x - x0
         self._dt = epochs.dt
         self._sq = np.sqrt(np.outer(self._dt / model.period_s, model.q_diag))  # (N-1, n) process std
+        self._rho = np.ones((N - 1, n))  # (N-1, n) diagonal of the transition (1; shadowing: its decay)
+        self._shadow = model.shadowing is not None
+        if model.shadowing is not None:
+            if epochs.travel_m is None:
+                raise EstimationError("map smoothing: a model with shadowing states needs the distance moved (Epochs.travel_m)")
+            rho = model.shadowing.decay(epochs.travel_m)
+            self._rho[:, model.n_base:] = rho[:, None]
+            sd = np.sqrt(model.shadowing.noise_var(rho))
+            self._sq = np.hstack([self._sq, np.repeat(sd[:, None], n - model.n_base, axis=1)])
+            self._rss_col = model.shadow_state(epochs.rss_ap)  # state index of each reading's offset
         self._sv = np.sqrt(model.r_velocity)
         self._sr = np.sqrt(model.r_rssi[epochs.rss_ap]) * epochs.rss_scale
         self._rows = np.cumsum([0, n, (N - 1) * n, 2 * len(epochs.vel_k), len(epochs.rss_k) + 2 * len(epochs.fix_k)])
@@ -104,12 +115,14 @@ class MapProblem:
         """All whitened residuals (unweighted) at states ``X`` (N, n)."""
         m, e = self.model, self.epochs
         X = np.asarray(X, float).reshape(self.N, self.n)
-        proc = X[1:] - X[:-1]
+        proc = X[1:] - self._rho * X[:-1]
         proc[:, 0:2] -= self._dt[:, None] * X[:-1, 2:4]
         xv = X[e.vel_k]
         th = xv[:, 6] if m.theta_rad is None else np.full(len(xv), m.theta_rad)
         vel = e.vel_y - np.einsum("mij,mj->mi", velocity_matrix(th), xv[:, 2:4]) - xv[:, 4:6]
         h, _ = m.path_loss.rss_pairs(X[e.rss_k, 0:2], e.rss_ap)
+        if self._shadow:
+            h = h + X[e.rss_k, self._rss_col]
         return np.concatenate([
             self._W0 @ (X[0] - self.x0), (proc / self._sq).ravel(), (vel / self._sv).ravel(), (e.rss_y - h) / self._sr,
             ((e.fix_xy - X[e.fix_k, 0:2]) / e.fix_sigma[:, None]).ravel(),
@@ -152,6 +165,9 @@ class MapProblem:
         rr = self._rows[3] + np.arange(len(e.rss_k))
         rows += [rr, rr]
         cols += [e.rss_k * n, e.rss_k * n + 1]
+        if self._shadow:
+            rows.append(rr)
+            cols.append(e.rss_k * n + self._rss_col)
         fr = self._rows[3] + len(e.rss_k) + np.arange(2 * len(e.fix_k))  # x, y row of each fix
         rows.append(fr)
         cols.append((e.fix_k[:, None] * n + np.arange(2)).ravel())
@@ -167,7 +183,7 @@ class MapProblem:
         m, e, n = self.model, self.epochs, self.n
         X = np.asarray(X, float).reshape(self.N, n)
         inv_sq = 1.0 / self._sq
-        vals = [self._W0.ravel(), inv_sq.ravel(), -inv_sq.ravel(), (-self._dt[:, None] * inv_sq[:, 0:2]).ravel()]
+        vals = [self._W0.ravel(), inv_sq.ravel(), (-self._rho * inv_sq).ravel(), (-self._dt[:, None] * inv_sq[:, 0:2]).ravel()]
         xv = X[e.vel_k]
         th = xv[:, 6] if m.theta_rad is None else np.full(len(xv), m.theta_rad)
         M = velocity_matrix(th)  # (Mv, 2, 2)
@@ -179,7 +195,8 @@ class MapProblem:
             dM = np.stack([np.stack([-c, -s], -1), np.stack([-s, c], -1)], -2)  # d M / d theta
             vals.append((-np.einsum("mij,mj->mi", dM, xv[:, 2:4]) * inv_sv).ravel())
         _, g = m.path_loss.rss_pairs(X[e.rss_k, 0:2], e.rss_ap)
-        vals += [-g[:, 0] / self._sr, -g[:, 1] / self._sr, -np.repeat(1.0 / e.fix_sigma, 2)]
+        vals += [-g[:, 0] / self._sr, -g[:, 1] / self._sr] + ([-1.0 / self._sr] if self._shadow else [])
+        vals.append(-np.repeat(1.0 / e.fix_sigma, 2))
         return np.concatenate(vals)
 
     def _band_pairs(self) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
@@ -321,9 +338,9 @@ def rts_smooth(model: FusionModel, filtered: FilterRun, epochs: Epochs) -> Smoot
         raise EstimationError(f"rts: {filtered.x.shape[0]} filtered states for {N} epochs")
     xs, Ps = filtered.x.copy(), filtered.P.copy()
     for k in range(N - 2, -1, -1):
-        dt = float(epochs.t_s[k + 1] - epochs.t_s[k])
-        F = model.transition(dt)
-        Pp = F @ filtered.P[k] @ F.T + model.process_noise(dt)
+        dt, dist = float(epochs.t_s[k + 1] - epochs.t_s[k]), epochs.interval_travel(k)
+        F = model.transition(dt, dist)
+        Pp = F @ filtered.P[k] @ F.T + model.process_noise(dt, dist)
         G = np.linalg.solve(Pp, F @ filtered.P[k]).T  # P_k F^T Pp^-1 (Pp symmetric)
         xs[k] = filtered.x[k] + G @ (xs[k + 1] - F @ filtered.x[k])
         Ps[k] = filtered.P[k] + G @ (Ps[k + 1] - Pp) @ G.T
@@ -353,7 +370,8 @@ def dead_reckoning_starts(
             b = np.array([bx, by])
             v = np.where((held >= 0)[:, None], (y - b) @ Minv.T, x0[2:4])
             p = x0[0:2] + np.vstack([np.zeros(2), np.cumsum(v[:-1] * e.dt[:, None], axis=0)])
-            X = np.column_stack([p, v, np.tile(b, (len(p), 1))] + ([np.full(len(p), theta)] if m.theta_rad is None else []))
+            X = np.column_stack([p, v, np.tile(b, (len(p), 1))] + ([np.full(len(p), theta)] if m.theta_rad is None else [])
+                                + [np.tile(x0[m.n_base:], (len(p), 1))])  # shadowing offsets (if any) held at the prior's
             out.append((problem.cost(problem.residual(X)), X))
     out.sort(key=lambda t: t[0])
     return [X for _, X in out[:keep]]
