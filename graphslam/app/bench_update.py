@@ -143,9 +143,13 @@ _ONE_THREAD = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THR
 def batch_speed(
     scenario: str, *, floors: int, size: float, workers: int, runs: int = 1, corrupt: bool = True
 ) -> dict[str, Any]:
-    """``survey-batch --workers N`` vs the same floors one after another in one process (no cluster),
-    and vs ``--workers 1``. The control: N plain processes side by side, each surveying every N-th
-    floor (no Dask), shows what parallelism the (shared) machine gives at that moment. Floors: the
+    """``survey-batch --workers N`` vs two sequential baselines, and vs ``--workers 1``. The
+    sequential baselines: the shell loop the issue starts from (``graphslam survey FLOOR --out
+    OUT`` once per floor, a fresh process each, as floors run without ``survey-batch``), and the
+    same floors one after another in one process (no cluster, no per-floor start-up: a loop no
+    command offers, the stricter baseline). The control: N plain processes side by side, each
+    surveying every N-th floor (no Dask), shows what parallelism the (shared) machine gives at
+    that moment. Floors: the
     scenario with seeds 0..floors-1; with ``corrupt`` one more floor whose one recording is
     truncated must come out as one failed row naming the file."""
     from graphslam.io.mcap_writer import write_session
@@ -159,9 +163,13 @@ def batch_speed(
             for s in simulate(scenario, seed=k, size=size).survey:
                 write_session(s, sites / name / f"{s.session_id}.mcap")
         load = [_load()]
-        seq, w1, wn, plain, cpu_seq, cpu_wn = [], [], [], [], [], []
+        seq, shell, w1, wn, plain, cpu_seq, cpu_wn = [], [], [], [], [], [], []
         env = {**os.environ, "RERUN": "off"}
         for r in range(runs):
+            t = time.perf_counter()
+            for name in names:
+                _graphslam("-q", "survey", str(sites / name), "--out", str(root / f"shell{r}" / name))
+            shell.append(time.perf_counter() - t)
             t, c = time.perf_counter(), _children_cpu()
             proc = subprocess.run(
                 [sys.executable, "-c", _SEQUENTIAL, str(sites), str(root / f"seq{r}"), json.dumps(names)],
@@ -189,11 +197,13 @@ def batch_speed(
             "scenario": scenario, "size": size, "floors": floors, "workers": workers, "runs": runs,
             "walks_per_floor": rows[0]["walks"],
             "floor_seconds_median": round(statistics.median(r["seconds"] for r in rows), 3),
+            "sequential_shell_loop_wall_s": round(statistics.median(shell), 2),
             "sequential_one_process_wall_s": round(statistics.median(seq), 2),
             "sequential_cpu_s_per_floor": round(statistics.median(cpu_seq) / floors, 3),
             f"batch_workers{workers}_cpu_s_per_floor": round(statistics.median(cpu_wn) / floors, 3),
             f"batch_workers{workers}_wall_s": round(statistics.median(wn), 2),
             "batch_workers1_wall_s": round(statistics.median(w1), 2),
+            "throughput_ratio_vs_shell_loop": round(statistics.median(shell) / statistics.median(wn), 3),
             "throughput_ratio_vs_sequential": round(statistics.median(seq) / statistics.median(wn), 3),
             "throughput_ratio_vs_workers1": round(statistics.median(w1) / statistics.median(wn), 3),
             f"control_{workers}_plain_processes_wall_s": round(statistics.median(plain), 2),
