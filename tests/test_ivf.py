@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -143,3 +147,18 @@ def test_fingerprints_outside_the_index_count_as_extra_aps() -> None:
     np.testing.assert_allclose(ivf.distances, exact.distances, rtol=1e-12)
     fm = rm.encode(q2)
     assert isinstance(fm, FingerprintMatrix) and (fm.extra_n == 2).all()
+
+
+def test_blas_limit_reaches_the_openblas_that_scipy_linalg_loads_later() -> None:
+    # A fresh interpreter: numpy's OpenBLAS is loaded, scipy.linalg's (its own copy in the wheels)
+    # not yet -- as in a command that limits threads before importing the trackers lazily.
+    code = (
+        "from graphslam.core.radiomap.ivf import limit_blas_threads\n"
+        "limit_blas_threads(1)\n"
+        "import scipy.linalg\n"
+        "from threadpoolctl import threadpool_info\n"
+        "print(max(i['num_threads'] for i in threadpool_info() if i['user_api'] == 'blas'))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    assert out.stdout.strip() == "1"

@@ -51,11 +51,16 @@ def limit_blas_threads(n: int = 1) -> bool:
     Why: an IVF search is hundreds of tiny GEMMs, and OpenBLAS's thread hand-off made them
     ~15x slower on a 2-core machine (and far worse when two searches overlap, or when the
     count is toggled per call). A process-wide setting, so it is the caller's decision:
-    ``graphslam serve`` calls this once at start-up; the service parallelises over requests."""
+    ``graphslam serve`` calls this once at start-up; the service parallelises over requests.
+    threadpoolctl reaches only the libraries loaded so far, and scipy's wheels bring their own
+    OpenBLAS, loaded by ``scipy.linalg`` (the trackers' banded solves): it is loaded here first,
+    or a command that imports it later keeps two threads there (5x slower on the cart)."""
     try:
         from threadpoolctl import threadpool_limits
     except ImportError:  # pragma: no cover - optional speed-up
         return False
+    import scipy.linalg  # noqa: F401 - load scipy's OpenBLAS, so that the limit applies to it too
+
     threadpool_limits(limits=n, user_api="blas")
     return True
 
