@@ -278,9 +278,9 @@ def filters_cart(
     number of seeds meeting the papers' figures. Per lag in ``lags`` (s), the fixed-lag smoother
     under the same model (``{kind}+fixed-lag:LAG``: each epoch reported LAG s after it, from a
     window of ``max(window_s, LAG)`` s, Gaussian losses, also solved from dead-reckoning starts
-    every ``restart_every`` epochs). With ``shadowing = (share, corr_m)`` the fixed-lag smoother is
-    also run (``{kind}+fixed-lag:LAG+shadowing``) under the same model with ``share`` of its RSSI
-    variance as correlated shadowing states (``FusionModel.with_shadowing``: same total R, errors
+    every ``restart_every`` epochs). With ``shadowing = (share, corr_m)`` the fixed-lag smoother
+    (``{kind}+fixed-lag:LAG+shadowing``) and the causal filter (``{kind}+shadowing``) also run under
+    the same model with ``share`` of its RSSI variance as correlated shadowing states (``FusionModel.with_shadowing``: same total R, errors
     correlated over ``corr_m`` of the distance moved). ``shadowing_db`` overrides the documented
     default (4 dB) for a sensitivity sweep. ``plot_dir``: one PNG per filter (path, |error|,
     trace P) for the first seed.
@@ -301,7 +301,8 @@ def filters_cart(
         if shadowing is not None:
             fl_models["+shadowing"] = model.with_shadowing(*shadowing)
         rms: dict[str, list[tuple[float, float]]] = {
-            kind: [], **{f"{kind}+{sm}": [] for sm in smoothers},
+            kind: [], **({f"{kind}+shadowing": []} if shadowing is not None else {}),
+            **{f"{kind}+{sm}": [] for sm in smoothers},
             **{f"{kind}+fixed-lag:{lag:g}{tag}": [] for lag in lags for tag in fl_models},
         }
         tp, secs = [], {name: 0.0 for name in rms}
@@ -312,6 +313,11 @@ def filters_cart(
             res = run_epochs(make_filter(kind, model), PAPER_X0, PAPER_P0, epochs)
             secs[kind] += time.perf_counter() - t0
             ests = {kind: res.x}
+            if shadowing is not None:
+                t0 = time.perf_counter()
+                ests[f"{kind}+shadowing"] = run_epochs(make_filter(kind, fl_models["+shadowing"]),
+                                                       *fl_models["+shadowing"].prior(PAPER_X0, PAPER_P0), epochs).x
+                secs[f"{kind}+shadowing"] += time.perf_counter() - t0
             for sm in smoothers:
                 t0 = time.perf_counter()
                 ests[f"{kind}+{sm}"] = smooth(model, PAPER_X0, PAPER_P0, epochs, res, sm).x

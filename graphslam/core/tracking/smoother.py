@@ -95,7 +95,8 @@ class MapProblem:
         self._shadow = model.shadowing is not None
         if model.shadowing is not None:
             if epochs.travel_m is None:
-                raise EstimationError("map smoothing: a model with shadowing states needs the distance moved (Epochs.travel_m)")
+                raise EstimationError(
+                    "map smoothing: a model with shadowing states needs the distance moved (Epochs.travel_m)")
             rho = model.shadowing.decay(epochs.travel_m)
             self._rho[:, model.n_base:] = rho[:, None]
             sd = np.sqrt(model.shadowing.noise_var(rho))
