@@ -109,6 +109,8 @@ def test_epochs_carry_the_distance_walked_and_a_shadowing_model_needs_it():
     no_travel = Epochs(e.t_s, e.vel_k, e.vel_y, e.rss_k, e.rss_ap, e.rss_y)
     with pytest.raises(EstimationError, match="distance moved"):
         MapProblem(m, *m.prior(PAPER_X0, PAPER_P0), no_travel)
+    with pytest.raises(EstimationError, match="prior of size 5"):
+        m.prior(PAPER_X0[:5], PAPER_P0[:5, :5])
     with pytest.raises(EstimationError, match="share"):
         FusionModel.paper_ekf().with_shadowing(1.0, 3.0)
     with pytest.raises(EstimationError, match="already"):

@@ -273,13 +273,14 @@ class FusionModel:
         """A prior on the base state extended to the model's: shadowing states at 0 with their
         stationary variance (unchanged without shadowing)."""
         x0, P0 = np.asarray(x0, float).ravel(), np.asarray(P0, float)
-        extra = self.n - len(x0)
-        if extra <= 0 or self.shadowing is None:
+        if len(x0) == self.n:
             return x0, P0
+        if len(x0) != self.n_base or P0.shape != (self.n_base, self.n_base):
+            raise FilterError(f"fusion model: a prior of size {len(x0)} / {P0.shape} for a base state of {self.n_base}")
         P = np.zeros((self.n, self.n))
-        P[: len(x0), : len(x0)] = P0
-        P[len(x0):, len(x0):] = np.eye(extra) * self.shadowing.sigma_db**2
-        return np.concatenate([x0, np.zeros(extra)]), P
+        P[: self.n_base, : self.n_base] = P0
+        P[self.n_base:, self.n_base:] = np.eye(self.n - self.n_base) * self.shadowing.sigma_db**2
+        return np.concatenate([x0, np.zeros(self.n - self.n_base)]), P
 
     def measure(self, X: NDArray, use_velocity: bool, ap_idx: NDArray) -> NDArray[np.float64]:
         """Predicted measurements (m, p) of states (m, n): [y_v (2) if used; RSSI of ``ap_idx``]."""
