@@ -425,6 +425,10 @@ def bench_batch(
 INDEX_HELP = "kNN search: exact, ivf (approximate inverted file) or auto."
 IVF_CLUSTERS_HELP = "IVF: k-means clusters (default ~2 sqrt(N))."
 IVF_PROBES_HELP = "IVF: clusters searched per query (default 8)."
+METRIC_HELP = (
+    "Fingerprint distance: eq9 (the paper's RMS dB difference) or sorensen (Sørensen on powed RSS, "
+    "Torres-Sospedra 2015; exact search only)."
+)
 
 
 @bench_app.command("ujiindoorloc")
@@ -439,8 +443,10 @@ def bench_ujiindoorloc(
     index: str = typer.Option("exact", "--index", help=INDEX_HELP + " Default: exact."),
     ivf_clusters: Optional[int] = typer.Option(None, "--ivf-clusters", min=1, help=IVF_CLUSTERS_HELP),
     ivf_probes: Optional[int] = typer.Option(None, "--ivf-probes", min=1, help=IVF_PROBES_HELP),
+    metric: str = typer.Option("eq9", "--metric", help=METRIC_HELP),
 ) -> None:
     """kNN on UJIIndoorLoc (train: trainingData, test: validationData); prints one JSON line."""
+    metric = _metric(metric)
     from graphslam.app.uji_bench import run_ujiindoorloc_benchmark
 
     if index != "exact":
@@ -451,6 +457,7 @@ def bench_ujiindoorloc(
     r = run_ujiindoorloc_benchmark(
         data_dir, k=k, weighted=weighted, min_rssi_dbm=min_rssi, missing_dbm=missing_dbm,
         min_common=min_common, repeats=repeats, index=index, ivf_clusters=ivf_clusters, ivf_probes=ivf_probes,
+        metric=metric,
     )
     typer.echo(json.dumps(r.as_dict()))
 
@@ -471,13 +478,15 @@ def locate(
         "evaluation.site_from_aligned), for the truth overlay."
     ),
     index: str = typer.Option("exact", "--index", help=INDEX_HELP + " Default: exact."),
+    metric: str = typer.Option("eq9", "--metric", help=METRIC_HELP),
     picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: answers (and truth)."),
 ) -> None:
     """Locate every /wifi/scan of the query sessions by kNN against a radio map."""
+    metric = _metric(metric)
     from graphslam.app.locate import locate_files
 
     run = locate_files(
-        radio_map, query_paths, out=out, k=k, weighted=weighted, min_common=min_common, index=index
+        radio_map, query_paths, out=out, k=k, weighted=weighted, min_common=min_common, index=index, metric=metric
     )
     if rerun is not None:
         from graphslam.app.locate import query_truth
@@ -531,15 +540,17 @@ def serve(
         "does not load is refused and the old one kept. No request fails during a swap.",
     ),
     watch_interval: float = typer.Option(1.0, "--watch-interval", min=0.05, help="--watch: seconds between checks."),
+    metric: str = typer.Option("eq9", "--metric", help=METRIC_HELP),
 ) -> None:
     """Serve kNN positioning over HTTP (POST /v1/locate, GET /v1/radio-map, GET /healthz, /openapi.json, /docs)."""
+    metric = _metric(metric)
     from graphslam.service.server import serve as serve_map
 
     serve_map(
         radio_map, host=host, port=port, k=k, weighted=weighted, min_common=min_common,
         max_batch=max_batch, max_body_bytes=max_body_bytes, index=index, ivf_clusters=ivf_clusters,
         ivf_probes=ivf_probes, workers=workers, search_processes=search_processes, log_level=log_level.lower(),
-        token=token,
+        token=token, metric=metric,
         watch=watch_interval if watch else None,
     )
 
@@ -730,6 +741,7 @@ def track(
         True, "--calibration-cache/--no-calibration-cache",
         help="Keep the self-calibration in track_calibration.json beside the map; reuse it for the same map, AP models and options.",
     ),
+    knn_metric: str = typer.Option("eq9", "--knn-metric", help="kNN fixes' " + METRIC_HELP[0].lower() + METRIC_HELP[1:]),
     picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: the tracks (and truth)."),
 ) -> None:
     """Track walks on a radio map: fusion of step velocity, WiFi RSSI and kNN fixes (fixed-lag MAP, or EKF/UKF)."""
@@ -737,10 +749,10 @@ def track(
     from graphslam.core.radiomap.ivf import limit_blas_threads
 
     limit_blas_threads(1)  # thousands of tiny solves: OpenBLAS threads only slow them down
-
+    knn_metric = _metric(knn_metric, "--knn-metric")
     cfg = TrackConfig(
         filter=filter_, lag_s=lag, smoother=smooth, knn_fixes=knn_fixes, adaptive_rssi=adaptive_rssi,
-        self_calibrate=self_calibrate, bank_report=bank_report,
+        self_calibrate=self_calibrate, bank_report=bank_report, knn_metric=knn_metric,
     )
     run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg, calibration_cache=calibration_cache)
     shown = {}
@@ -917,6 +929,16 @@ def _lags(text: str) -> list[float]:
 
         raise ConfigError(f"--lags: {text!r} is not a comma-separated list of latencies >= 0 (s), e.g. 0,1,2")
     return lags
+
+
+def _metric(text: str, option: str = "--metric") -> str:
+    """A kNN fingerprint distance (``KnnConfig.metric``), checked before any file is read."""
+    from graphslam.core.radiomap.knn import METRICS
+    from graphslam.errors import ConfigError
+
+    if text not in METRICS:
+        raise ConfigError(f"{option}: {text!r} is not one of {', '.join(METRICS)}")
+    return text
 
 
 def _shadowing(text: str) -> tuple[float, float] | None:

@@ -59,3 +59,32 @@ def test_cli_seed_lists_take_ranges_and_reject_garbage(capsys) -> None:
             main(["bench", "filters", "--seeds", "0", "--shadowing", bad])
         err = capsys.readouterr().err
         assert e.value.code == 2 and f"--shadowing: {bad!r}" in err and len(err.strip().splitlines()) == 1
+
+
+def test_cli_metric_options_reject_unknown_metrics_before_reading_files(capsys, tmp_path: Path) -> None:
+    from graphslam.cli import main
+
+    missing = str(tmp_path / "no_map.parquet")  # the metric is checked first: no "no such file" here
+    for argv, option in (
+        (["locate", str(tmp_path), "--radio-map", missing, "--out", str(tmp_path / "o.csv"), "--metric", "cosine"], "--metric"),
+        (["serve", "--radio-map", missing, "--metric", "cosine"], "--metric"),
+        (["track", str(tmp_path), "--radio-map", missing, "--out", str(tmp_path / "o.csv"), "--knn-metric", "cosine"], "--knn-metric"),
+        (["bench", "ujiindoorloc", str(tmp_path), "--metric", "cosine"], "--metric"),
+    ):
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and f"{option}: 'cosine' is not one of eq9, sorensen" in err, argv
+        assert len(err.strip().splitlines()) == 1
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_track_config_knn_metric() -> None:
+    from graphslam.app.track import TrackConfig
+    from graphslam.errors import EstimationError
+
+    assert TrackConfig(knn_metric="sorensen").knn_config().metric == "sorensen"
+    # the particle filter's match temperature is in eq. 9 dB: it matches on eq. 9 whatever is asked
+    assert TrackConfig(filter="particle", knn_metric="sorensen").knn_config().metric == "eq9"
+    with pytest.raises(EstimationError, match="unknown kNN metric 'cosine'"):
+        TrackConfig(knn_metric="cosine")

@@ -213,3 +213,70 @@ def test_empty_query_batch_and_non_finite_rssi() -> None:
     assert len(res) == 0 and res.xy.shape == (0, 2) and res.floor is not None and len(res.floor) == 0
     with pytest.raises(QueryError, match="non-finite"):
         loc.locate([{"a": float("nan")}])
+
+
+def _sorensen_brute(rm: RadioMap, queries: list[dict[str, float]], min_common: int) -> np.ndarray:
+    """The Sørensen distance on powed RSS from its definition, over the map's APs only."""
+    known = set(rm.bssids)
+    m = -rm.missing_dbm
+
+    def powed(s: dict[str, float]) -> dict[str, float]:
+        return {b: ((r + m) / m) ** np.e for b, r in s.items() if b in known and r >= rm.min_rssi_dbm}
+
+    refs = [powed(dict(zip(rm.bssids, row))) for row in rm.fingerprints.dense_rssi()]
+    refs = [{b: v for b, v in r.items() if v > 0 and b in known} for r in refs]
+    out = np.full((len(queries), len(refs)), np.inf)
+    for i, q in enumerate(map(powed, queries)):
+        for j, r in enumerate(refs):
+            union = set(q) | set(r)
+            if len(set(q) & set(r)) >= max(1, min_common):
+                num = sum(abs(q.get(b, 0.0) - r.get(b, 0.0)) for b in union)
+                out[i, j] = num / (sum(q.values()) + sum(r.values()))
+    return out
+
+
+@pytest.mark.parametrize("min_common", [1, 2])
+def test_sorensen_distances_and_neighbours_equal_their_definition(min_common: int) -> None:
+    rng = np.random.default_rng(5)
+    refs = _random_scans(rng, 150, 80, 8)
+    rm = RadioMap.from_scans(refs, rng.uniform(0, 50, (150, 2)), session_ids="s", t_ns=np.arange(150), frame="f")
+    queries = _random_scans(rng, 25, 95, 10)  # includes APs unknown to the map: left out
+    expect = _sorensen_brute(rm, queries, min_common)
+    assert np.isfinite(expect).sum() >= 50 and (~np.isfinite(expect)).any()
+    for cells in (600, 10**6):  # several query blocks, one block
+        loc = KnnLocator(rm, KnnConfig(k=4, min_common=min_common, metric="sorensen"), block_cells=cells, threads=2)
+        got = loc.distances(rm.encode(queries))
+        assert np.array_equal(np.isfinite(got), np.isfinite(expect))
+        np.testing.assert_allclose(got[np.isfinite(got)], expect[np.isfinite(expect)], rtol=1e-12, atol=1e-15)
+        res = loc.locate(queries)
+        for i in range(len(queries)):
+            order = np.lexsort((np.arange(expect.shape[1]), expect[i]))[:4]
+            assert res.neighbours[i].tolist() == [int(j) if np.isfinite(expect[i, j]) else -1 for j in order]
+
+
+def test_sorensen_weighs_a_reading_by_its_strength_where_eq9_charges_a_fixed_gap() -> None:
+    # The query matches A on its one strong AP and misses two weak readings A lacks; B hears the weak
+    # ones exactly but the strong AP 15 dB lower. Eq. 9 charges each missing reading as -110 dBm
+    # (20 dB each) and picks B; on powed RSS a -90 dBm reading weighs ~4 % of a -45 dBm one: A.
+    rm = RadioMap.from_scans(
+        [{"a": -45.0}, {"a": -60.0, "b": -90.0, "c": -90.0}], np.array([[0.0, 0.0], [20.0, 0.0]]),
+        session_ids="s", t_ns=[1, 2], frame="f",
+    )
+    q = [{"a": -45.0, "b": -90.0, "c": -90.0}]
+    assert KnnLocator(rm, KnnConfig(k=1)).locate(q).neighbours[0, 0] == 1
+    res = KnnLocator(rm, KnnConfig(k=1, metric="sorensen")).locate(q)
+    assert res.neighbours[0, 0] == 0 and res.xy[0].tolist() == [0.0, 0.0]
+    assert 0.0 < res.score[0] < 0.1  # a unitless distance in [0, 1]
+
+
+def test_sorensen_config_and_index() -> None:
+    with pytest.raises(ConfigError, match="metric must be one of"):
+        KnnConfig(metric="cosine")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="IVF index searches eq. 9"):
+        KnnConfig(metric="sorensen", index="ivf")
+    rng = np.random.default_rng(6)
+    n = 5000  # IVF_AUTO_MIN_REFS: "auto" would pick the IVF index for eq. 9
+    rm = RadioMap.from_scans(_random_scans(rng, n, 300, 6), rng.uniform(0, 50, (n, 2)), session_ids="s",
+                             t_ns=np.arange(n), frame="f")
+    assert KnnLocator(rm, KnnConfig(index="auto")).index_kind == "ivf"
+    assert KnnLocator(rm, KnnConfig(index="auto", metric="sorensen")).index_kind == "exact"

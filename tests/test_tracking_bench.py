@@ -54,11 +54,13 @@ def test_tracking_real_scores_knn_and_the_tracker_on_the_same_landmarks(folder):
     res = tracking_real(folder, GraphSlamConfig(), [light], maps=["oracle"], folds=2)
     assert res["walks"] == 4 and res["folds"] == ["fold 0", "fold 1"]
     s = res["oracle"]["summary"]
-    assert set(s) == {"knn", "fixed-lag:1"}
-    assert s["knn"]["n"] == s["fixed-lag:1"]["n"] > 0  # the same landmarks scored for both
+    assert set(s) == {"knn", "knn:sorensen", "fixed-lag:1"}
+    assert s["knn"]["n"] == s["knn:sorensen"]["n"] == s["fixed-lag:1"]["n"] > 0  # the same landmarks scored for all
+    assert s["knn"]["mean_m"] != s["knn:sorensen"]["mean_m"]  # two kNN metrics, two answers
     row = s["fixed-lag:1"]
     assert row["median_m"] <= row["p75_m"] <= row["p90_m"] and 0.0 <= row["inside_95"] <= 1.0
     assert row["vs_knn"] == pytest.approx(row["mean_m"] / s["knn"]["mean_m"] - 1.0, abs=2e-3)
+    assert row["vs_knn_sorensen"] == pytest.approx(row["mean_m"] / s["knn:sorensen"]["mean_m"] - 1.0, abs=2e-3)
     folds = res["oracle"]["per_fold"]
     assert [f["test_walks"] for f in folds] == [2, 2] and all("fixed-lag:1_mean_m" in f for f in folds)
 

@@ -79,15 +79,16 @@ def locate_files(
     weighted: bool = True,
     min_common: int = 1,
     index: str = "exact",
+    metric: str = "eq9",
 ) -> LocateRun:
     """Read the radio map and the query sessions (MCAP), locate every scan, write ``out`` (CSV).
-    ``index``: kNN search (``KnnConfig.index``): exact by default."""
+    ``index``: kNN search (``KnnConfig.index``): exact by default; ``metric``: ``KnnConfig.metric``."""
     from graphslam.io.mcap_reader import read_survey
     from graphslam.io.radiomap_io import read_radio_map
 
     rm = read_radio_map(radio_map_path)
     survey = read_survey(list(query_paths))
-    locator = KnnLocator(rm, KnnConfig(k=k, weighted=weighted, min_common=min_common, index=index))  # type: ignore[arg-type]
+    locator = KnnLocator(rm, KnnConfig(k=k, weighted=weighted, min_common=min_common, index=index, metric=metric))  # type: ignore[arg-type]
     with Task("locate", total=survey.n_scans, unit="scans") as task:
         positions = locate_survey(locator, survey)
         task.advance(len(positions))

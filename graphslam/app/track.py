@@ -52,7 +52,7 @@ from graphslam.core.tracking.apmodel import ApModels
 from graphslam.core.tracking.filters import (
     Epochs, FusionModel, GaussianState, KalmanFilter, make_filter, position_update, run_epochs,
 )
-from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
+from graphslam.core.radiomap.knn import METRICS as KNN_METRICS, KnnConfig, KnnLocator
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.tracking.fixed_lag import FixedLagConfig, fixed_lag_smooth
 from graphslam.core.tracking.particle import ParticleConfig, RssiReadings, run_particle_filter, scan_matches
@@ -95,6 +95,9 @@ class TrackConfig:
     rssi_sigma_floor_db: float = 4.0
     gate_sigma: float = 3.0
     knn_k: int = 3
+    # kNN fixes' fingerprint distance (``KnnConfig.metric``); the particle filter's match temperature
+    # is in eq. 9 dB, so it always matches on eq. 9
+    knn_metric: str = "eq9"
     max_step_speed_mps: float = 3.0  # faster step intervals are odometry jumps: no velocity reading
     knn_fixes: bool = True  # also fuse each scan's kNN fix on the radio map as a position reading
     fix_sigma_floor_m: float = 2.0  # a fix's std = max(kNN neighbour spread, this)
@@ -134,9 +137,14 @@ class TrackConfig:
             raise EstimationError("track: the particle filter has no offline smoother (its --lag is the smoothing)")
         if self.filter == "particle":
             self.particle_config()  # its own checks, before any file is read
+        if self.knn_metric not in KNN_METRICS:
+            raise EstimationError(f"track: unknown kNN metric {self.knn_metric!r}; use {', '.join(KNN_METRICS)}")
         if not (math.isfinite(self.replay_route_radius_m) and self.replay_route_radius_m >= 0):
             raise EstimationError(f"track: replay_route_radius_m must be finite and >= 0, got {self.replay_route_radius_m}")
 
+    def knn_config(self) -> KnnConfig:
+        """The kNN fixes' search (the particle filter matches on eq. 9, its temperature being in dB)."""
+        return KnnConfig(k=self.knn_k, metric="eq9" if self.filter == "particle" else self.knn_metric)  # type: ignore[arg-type]
 
     def particle_config(self, area_m2: float = 1.0, seed: int = 0) -> ParticleConfig:
         """The particle filter's settings (``EstimationError`` when invalid); ``seed`` is mixed with
@@ -452,7 +460,7 @@ class Tracker:
             calibration = SelfCalibration.measure(rm, models, model, cfg)
         if calibration is not None:
             model, cfg = calibration.apply(model, cfg)
-        return cls(model, KnnLocator(rm, KnnConfig(k=cfg.knn_k)), cfg, calibration)
+        return cls(model, KnnLocator(rm, cfg.knn_config()), cfg, calibration)
 
     def track(self, session: Session, progress: Task | None = None) -> SessionTrack:
         return track_session(session, self.model, self.locator, self.cfg, progress)
@@ -485,7 +493,7 @@ class SelfCalibration:
 
         kappa = rssi_variance_factor(rm, models, np.sqrt(model.r_rssi)) if len(models.fitted) else 1.0
         try:
-            floor = max(cfg.fix_sigma_floor_m, fix_noise(rm, k=cfg.knn_k).sigma_m)
+            floor = max(cfg.fix_sigma_floor_m, fix_noise(rm, k=cfg.knn_k, metric=cfg.knn_config().metric).sigma_m)
         except EstimationError as e:  # a one-session map: keep the configured floor
             log.info("track: no leave-one-session-out fix noise (%s)", e)
             floor = cfg.fix_sigma_floor_m
@@ -554,7 +562,7 @@ def replay_covariance_scale(rm: RadioMap, model: FusionModel, cfg: TrackConfig) 
         )
         walk = Session(str(sid), PoseTrack(rm.t_ns[own], (xy - xy[0]) @ R.T, np.zeros(len(own))), scans)
         try:
-            tr = track_session(walk, model, KnnLocator(others, KnnConfig(k=cfg.knn_k)), cfg)
+            tr = track_session(walk, model, KnnLocator(others, cfg.knn_config()), cfg)
         except EstimationError:
             continue
         d2.append(mahalanobis_sq(tr.xy - xy, tr.P[:, :2, :2]))

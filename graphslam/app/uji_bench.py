@@ -49,6 +49,7 @@ class UjiBenchResult:
     repeats: int
     threads: int
     index: str  # "exact" or "ivf"
+    metric: str  # KnnConfig.metric
     ivf_clusters: int  # 0 for exact
     ivf_probes: int
     recall: float  # queries whose k neighbours (as a set) are the exact search's; 1.0 for exact
@@ -82,6 +83,7 @@ def run_ujiindoorloc_benchmark(
     index: str = "exact",
     ivf_clusters: int | None = None,
     ivf_probes: int | None = None,
+    metric: str = "eq9",
 ) -> UjiBenchResult:
     """Build the radio map from trainingData, locate every validationData fingerprint. With an
     IVF index, ``recall`` is the fraction of queries whose k neighbours are the exact search's."""
@@ -89,7 +91,7 @@ def run_ujiindoorloc_benchmark(
     test = read_ujiindoorloc(find_uji_file(data_dir, TEST_FILE))
     rm = train.to_radio_map(missing_dbm=missing_dbm, min_rssi_dbm=min_rssi_dbm)
     ivf = {"ivf_clusters": ivf_clusters} | ({"ivf_probes": ivf_probes} if ivf_probes is not None else {})
-    config = KnnConfig(k=k, weighted=weighted, min_common=min_common, index=index, **ivf)  # type: ignore[arg-type]
+    config = KnnConfig(k=k, weighted=weighted, min_common=min_common, index=index, metric=metric, **ivf)  # type: ignore[arg-type]
     t0 = time.perf_counter()
     locator = KnnLocator(rm, config, threads=threads)
     build_s = time.perf_counter() - t0
@@ -103,7 +105,7 @@ def run_ujiindoorloc_benchmark(
     assert res is not None
     recall = 1.0
     if locator.index_kind != "exact":
-        ref = KnnLocator(rm, KnnConfig(k=k, weighted=weighted, min_common=min_common), threads=threads).locate(queries)
+        ref = KnnLocator(rm, KnnConfig(k=k, weighted=weighted, min_common=min_common, metric=metric), threads=threads).locate(queries)  # type: ignore[arg-type]
         same = (np.sort(ref.neighbours, axis=1) == np.sort(res.neighbours, axis=1)).all(axis=1)
         recall = float(same.mean())
     ok = res.valid
@@ -133,6 +135,7 @@ def run_ujiindoorloc_benchmark(
         repeats=len(times),
         threads=locator.threads,
         index=locator.index_kind,
+        metric=config.metric,
         ivf_clusters=locator.ivf.n_clusters if locator.ivf is not None else 0,
         ivf_probes=config.ivf_probes if locator.ivf is not None else 0,
         recall=recall,

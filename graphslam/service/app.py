@@ -207,6 +207,7 @@ def create_app(
     ivf_probes: int | None = None,
     search_processes: int = 0,
     token: str | None = None,
+    metric: str = "eq9",
 ) -> FastAPI:
     """The service for ``radio_map``. ``threads``: search threads per large request (default:
     up to 2, the machine's cores; small requests use one). ``index``: kNN search (see
@@ -215,9 +216,9 @@ def create_app(
     search workers for large batches (``graphslam.service.pool``; 0 = search in this process).
     The workers are started here and stopped at the app's lifespan shutdown (or by
     ``app.state.search_pool.close()``), so an app with workers is served once. ``token``:
-    bearer token required on ``/v1/`` (None: no authentication)."""
+    bearer token required on ``/v1/`` (None: no authentication). ``metric``: ``KnnConfig.metric``."""
     ivf = {"ivf_clusters": ivf_clusters} | ({"ivf_probes": ivf_probes} if ivf_probes is not None else {})
-    config = KnnConfig(k=k, weighted=weighted, min_common=min_common, index=index, **ivf)  # type: ignore[arg-type]
+    config = KnnConfig(k=k, weighted=weighted, min_common=min_common, index=index, metric=metric, **ivf)  # type: ignore[arg-type]
     locator = KnnLocator(radio_map, config, threads=threads)
     # After the locator: the workers fork a complete copy of it (copy-on-write).
     pool = SearchPool(locator, search_processes)
@@ -284,7 +285,8 @@ def create_app(
 
     @app.get("/v1/radio-map", response_model=RadioMapInfo)
     def radio_map_info() -> dict[str, Any]:
-        return {**summary, "k": k, "weighted": weighted, "min_common": min_common, "index": locator.index_kind}
+        return {**summary, "k": k, "weighted": weighted, "min_common": min_common, "index": locator.index_kind,
+                "metric": config.metric}
 
     def answer(scans: list[Any]) -> Response:
         return respond(pool.locate(scans, strict=True))  # QueryError -> 422 with the bad indices

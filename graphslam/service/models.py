@@ -58,7 +58,9 @@ class LocateRequest(BaseModel):
 class Position(BaseModel):
     x: float = Field(description="metres, in the radio map's frame")
     y: float
-    score: float = Field(description="mean eq. 9 RSS distance (dB) of the neighbours used; lower = closer match")
+    score: float = Field(
+        description="mean fingerprint distance of the neighbours used (metric eq9: dB; sorensen: 0-1; see GET /v1/radio-map); lower = closer match"
+    )
     spread: float = Field(description="weighted RMS distance (m) of the neighbours' positions to the estimate")
     n_neighbours: int
     floor: str | None = None
@@ -90,6 +92,7 @@ class RadioMapInfo(BaseModel):
     weighted: bool
     min_common: int
     index: str = Field(description="kNN search in use: 'exact' or 'ivf' (approximate inverted file)")
+    metric: str = Field(description="fingerprint distance: 'eq9' (the paper's, dB) or 'sorensen' (powed RSS, 0-1)")
 
 
 class Health(BaseModel):

@@ -99,6 +99,7 @@ def serve(
     search_processes: int | None = None,
     token: str | None = None,
     watch: float | None = None,
+    metric: str = "eq9",
 ) -> None:
     """Load the radio map and serve it until interrupted. Why processes: a search holds the GIL
     most of the time, so one process searches on about one core.
@@ -129,7 +130,7 @@ def serve(
         k=k, weighted=weighted, min_common=min_common,
         max_batch=max_batch or DEFAULT_MAX_BATCH, max_body_bytes=max_body_bytes or DEFAULT_MAX_BODY_BYTES,
         index=index, ivf_clusters=ivf_clusters, ivf_probes=ivf_probes, search_processes=search_processes,
-        token=token or None,
+        token=token or None, metric=metric,
     )
     log.info(
         "serving %s on http://%s:%d (%d worker process(es), %d search process(es) each)", radio_map_path, host,

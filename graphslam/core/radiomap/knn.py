@@ -28,6 +28,7 @@ from typing import Literal, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import sparse
 
 from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix
 from graphslam.core.radiomap.ivf import IvfIndex
@@ -52,6 +53,10 @@ DEFAULT_IVF_PROBES = 8
 IVF_BLOCK_ROWS = 4096
 
 IndexKind = Literal["exact", "ivf", "auto"]
+Metric = Literal["eq9", "sorensen"]
+METRICS = ("eq9", "sorensen")
+# Torres-Sospedra et al. 2015's "powed" representation: (shifted RSS / its range) ** e.
+POWED_EXPONENT = float(np.e)
 
 STATUS_OK = "ok"
 STATUS_NO_KNOWN_AP = "no_known_ap"
@@ -67,7 +72,16 @@ class KnnConfig:
     file (``graphslam.core.radiomap.ivf``: k-means clusters of the references, eq. 9 evaluated exactly on
     the members of the ``ivf_probes`` clusters nearest to the query; approximate, ~10x faster on
     UJIIndoorLoc); ``"auto"``: IVF from ``IVF_AUTO_MIN_REFS`` references, exact below.
-    ``ivf_clusters``: ``None`` = ~2 sqrt(N); ``ivf_seed`` makes the clustering reproducible."""
+    ``ivf_clusters``: ``None`` = ~2 sqrt(N); ``ivf_seed`` makes the clustering reproducible.
+
+    ``metric``: ``"eq9"`` (the paper's RMS dB difference over the union of heard APs, missing =
+    ``missing_dbm``) or ``"sorensen"``: the Sørensen (Bray-Curtis) distance on the *powed*
+    representation ``p = (v / -missing_dbm) ** e`` of the shifted RSS ``v`` (Torres-Sospedra et al.,
+    "Comprehensive analysis of distance and similarity measures for Wi-Fi fingerprinting indoor
+    positioning systems", 2015): ``1 - 2 sum min(p_q, p_r) / (sum p_q + sum p_r)`` over the map's
+    APs. Strong readings dominate and a missing reading costs what it weighs, not a fixed -110 dBm
+    gap; query APs the map never heard are left out (equally far from every reference). Exact
+    search only."""
 
     k: int = 3
     weighted: bool = True
@@ -76,8 +90,13 @@ class KnnConfig:
     ivf_clusters: int | None = None
     ivf_probes: int = DEFAULT_IVF_PROBES
     ivf_seed: int = 0
+    metric: Metric = "eq9"
 
     def __post_init__(self) -> None:
+        if self.metric not in METRICS:
+            raise ConfigError(f"kNN: metric must be one of {', '.join(METRICS)}, got {self.metric!r}")
+        if self.metric != "eq9" and self.index == "ivf":
+            raise ConfigError(f"kNN: the IVF index searches eq. 9 distances; metric {self.metric!r} needs index 'exact'")
         if self.index not in ("exact", "ivf", "auto"):
             raise ConfigError(f"kNN: index must be 'exact', 'ivf' or 'auto', got {self.index!r}")
         for name in ("ivf_probes", "ivf_clusters"):
@@ -100,10 +119,10 @@ class KnnResult:
     no neighbours and an empty label."""
 
     xy: NDArray[np.float64]  # (Q, 2) estimate, metres in the map's frame
-    score: NDArray[np.float64]  # (Q,) mean eq. 9 distance (dB) of the neighbours used: lower = better match
+    score: NDArray[np.float64]  # (Q,) mean distance of the neighbours used (eq. 9: dB; sorensen: 0-1): lower = better
     spread: NDArray[np.float64]  # (Q,) weighted RMS distance (m) of neighbour positions to the estimate
     neighbours: NDArray[np.int64]  # (Q, k) radio map rows, nearest first, -1 padded
-    distances: NDArray[np.float64]  # (Q, k) their eq. 9 distances (dB), inf padded
+    distances: NDArray[np.float64]  # (Q, k) their distances (``config.metric``), inf padded
     n_known_aps: NDArray[np.int64]  # (Q,) query APs that the map knows
     floor: NDArray[np.str_] | None  # (Q,) weighted vote of the neighbours' labels, when the map has labels
     building: NDArray[np.str_] | None
@@ -195,6 +214,47 @@ def _gather_block(eng: DistanceEngine, q: FingerprintMatrix, min_common: int) ->
 GATHER_MAX_ROWS = 16
 
 
+class SorensenRefs:
+    """What the Sørensen distance needs of the reference set (``KnnConfig.metric``): powed values
+    by AP (postings, (A, N) csr) and their sum per reference."""
+
+    def __init__(self, ref: FingerprintMatrix) -> None:
+        scale = -ref.missing_dbm if ref.missing_dbm < 0 else float(ref.values.data.max(initial=1.0))
+        self.scale = scale
+        p = ref.values.copy()
+        p.data = (p.data / scale) ** POWED_EXPONENT
+        self.sum = np.asarray(p.sum(axis=1)).ravel()
+        self.pT = p.T.tocsr()
+
+    def powed(self, q: FingerprintMatrix) -> sparse.csr_matrix:
+        p = q.values.copy()
+        p.data = (p.data / self.scale) ** POWED_EXPONENT
+        return p
+
+
+def _sorensen_block(refs: SorensenRefs, q: FingerprintMatrix, min_common: int) -> NDArray[np.float64]:
+    """(len(q), N) Sørensen distances of powed fingerprints, by gathering the postings of each
+    query AP: sum min(p_q, p_r) accumulated per (query, reference) pair with ``bincount``; pairs
+    sharing fewer than ``max(1, min_common)`` APs are ``inf``. Memory: the block's postings."""
+    qp = refs.powed(q)
+    ref = refs.pT
+    b, n = qp.shape[0], len(refs.sum)
+    aps = qp.indices
+    starts = ref.indptr[aps]
+    lens = ref.indptr[aps + 1] - starts
+    total = int(lens.sum())
+    pos = np.repeat(starts - (np.cumsum(lens) - lens), lens) + np.arange(total)
+    key = np.repeat(np.repeat(np.arange(b) * n, np.diff(qp.indptr)), lens) + ref.indices[pos]
+    both = np.bincount(key, weights=np.minimum(np.repeat(qp.data, lens), ref.data[pos]), minlength=b * n)
+    common = np.bincount(key, minlength=b * n)
+    qsum = np.asarray(qp.sum(axis=1)).ravel()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = 1.0 - 2.0 * both.reshape(b, n) / (qsum[:, None] + refs.sum[None, :])
+    d = np.maximum(d, 0.0)
+    d[common.reshape(b, n) < max(1, min_common)] = np.inf
+    return d
+
+
 def _nearest(d: NDArray[np.float64], k: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
     """Rows' k smallest entries, nearest first (ties by index); non-finite -> index -1."""
     b, n = d.shape
@@ -262,7 +322,11 @@ class KnnLocator:
         self.engine = DistanceEngine(radio_map.fingerprints)
         self.block_rows = max(1, block_cells // max(1, len(radio_map)))
         cfg = self.config
-        use_ivf = cfg.index == "ivf" or (cfg.index == "auto" and len(radio_map) >= IVF_AUTO_MIN_REFS)
+        self._sorensen = SorensenRefs(radio_map.fingerprints) if cfg.metric == "sorensen" else None
+        # "auto" never picks the IVF index for a metric it does not search
+        use_ivf = cfg.index == "ivf" or (
+            cfg.index == "auto" and cfg.metric == "eq9" and len(radio_map) >= IVF_AUTO_MIN_REFS
+        )
         # The exact engine stays: IVF queries that find fewer than k candidates are re-run exactly.
         self.ivf: IvfIndex | None = (
             IvfIndex(radio_map.fingerprints, clusters=cfg.ivf_clusters, seed=cfg.ivf_seed)
@@ -276,9 +340,12 @@ class KnnLocator:
         self._buildings = _Labels(radio_map.buildings) if radio_map.buildings is not None else None
 
     def distances(self, q: FingerprintMatrix) -> NDArray[np.float64]:
-        """(len(q), len(map)) eq. 9 distances; ``inf`` for pairs sharing < ``min_common`` APs."""
+        """(len(q), len(map)) distances (``KnnConfig.metric``); ``inf`` for pairs sharing <
+        ``min_common`` APs."""
         if len(self.radio_map) == 0:
             return np.full((len(q), 0), np.inf)
+        if self._sorensen is not None:
+            return _sorensen_block(self._sorensen, q, self.config.min_common)
         if self.engine.dense:
             return self.engine.block(q, min_common=self.config.min_common)[0]
         if len(q) <= GATHER_MAX_ROWS:

@@ -43,16 +43,17 @@ class FixNoise:
 
 
 def leave_one_session_out_error_vectors(
-    rm: RadioMap, rows: NDArray[np.int64] | None = None, *, k: int = 3, extra: int = 30
+    rm: RadioMap, rows: NDArray[np.int64] | None = None, *, k: int = 3, extra: int = 30, metric: str = "eq9"
 ) -> NDArray[np.float64]:
     """(len(rows), 2) kNN error vectors (estimate - map position, m) of the map's fingerprints
     ``rows`` (default all), each located among the other sessions' fingerprints: the ``k``
     nearest of another session among its ``k + extra`` nearest overall, inverse-distance weighted
-    as ``KnnLocator``. NaN rows: every candidate came from the fingerprint's own session."""
+    as ``KnnLocator`` (``metric``: ``KnnConfig.metric``). NaN rows: every candidate came from the fingerprint's own session."""
     if len(rm) < 2 or len(set(rm.session_ids.tolist())) < 2:
         raise EstimationError("fix noise: the radio map needs fingerprints of at least 2 sessions")
     rows = np.arange(len(rm)) if rows is None else np.asarray(rows, np.int64)
-    res = KnnLocator(rm, KnnConfig(k=min(k + extra, len(rm)))).locate(rm.fingerprints.rows(rows))
+    cfg = KnnConfig(k=min(k + extra, len(rm)), metric=metric)  # type: ignore[arg-type]
+    res = KnnLocator(rm, cfg).locate(rm.fingerprints.rows(rows))
     idx, dist = res.neighbours, res.distances
     other = (idx >= 0) & (rm.session_ids[np.maximum(idx, 0)] != rm.session_ids[rows][:, None])
     rank = np.cumsum(other, axis=1)
@@ -66,7 +67,7 @@ def leave_one_session_out_error_vectors(
 
 
 def leave_one_session_out_errors(
-    rm: RadioMap, *, k: int = 3, extra: int = 30, max_queries: int = 3000, seed: int = 0
+    rm: RadioMap, *, k: int = 3, extra: int = 30, max_queries: int = 3000, seed: int = 0, metric: str = "eq9"
 ) -> NDArray[np.float64]:
     """kNN error (m) of (up to ``max_queries``, seeded sample of) the map's fingerprints, each
     located among the other sessions' fingerprints (``leave_one_session_out_error_vectors``).
@@ -74,14 +75,14 @@ def leave_one_session_out_errors(
     rows = np.arange(len(rm))
     if len(rows) > max_queries:
         rows = np.sort(np.random.default_rng(seed).choice(rows, max_queries, replace=False))
-    e = leave_one_session_out_error_vectors(rm, rows, k=k, extra=extra)
+    e = leave_one_session_out_error_vectors(rm, rows, k=k, extra=extra, metric=metric)
     e = e[np.isfinite(e).all(axis=1)]
     return np.linalg.norm(e, axis=1)
 
 
-def fix_noise(rm: RadioMap, *, k: int = 3) -> FixNoise:
+def fix_noise(rm: RadioMap, *, k: int = 3, metric: str = "eq9") -> FixNoise:
     """``FixNoise`` of ``rm`` from ``leave_one_session_out_errors``."""
-    e = leave_one_session_out_errors(rm, k=k)
+    e = leave_one_session_out_errors(rm, k=k, metric=metric)
     if not len(e):
         raise EstimationError("fix noise: no fingerprint could be located among other sessions")
     med = float(np.median(e))
