@@ -741,7 +741,7 @@ def track(
         True, "--calibration-cache/--no-calibration-cache",
         help="Keep the self-calibration in track_calibration.json beside the map; reuse it for the same map, AP models and options.",
     ),
-    knn_metric: str = typer.Option("eq9", "--knn-metric", help="kNN fixes' " + METRIC_HELP[0].lower() + METRIC_HELP[1:]),
+    knn_metric: str = typer.Option("sorensen", "--knn-metric", help="kNN fixes' " + METRIC_HELP[0].lower() + METRIC_HELP[1:]),
     picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: the tracks (and truth)."),
 ) -> None:
     """Track walks on a radio map: fusion of step velocity, WiFi RSSI and kNN fixes (fixed-lag MAP, or EKF/UKF)."""

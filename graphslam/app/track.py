@@ -95,9 +95,10 @@ class TrackConfig:
     rssi_sigma_floor_db: float = 4.0
     gate_sigma: float = 3.0
     knn_k: int = 3
-    # kNN fixes' fingerprint distance (``KnnConfig.metric``); the particle filter's match temperature
-    # is in eq. 9 dB, so it always matches on eq. 9
-    knn_metric: str = "eq9"
+    # kNN fixes' fingerprint distance (``KnnConfig.metric``). Sørensen on powed RSS since 2026-12-02:
+    # better fixes, means and ellipses on IPIN b100_f-2 and all five ILC site1 floors (docs/tracking.md).
+    # The particle filter's match temperature is in eq. 9 dB, so it always matches on eq. 9
+    knn_metric: str = "sorensen"
     max_step_speed_mps: float = 3.0  # faster step intervals are odometry jumps: no velocity reading
     knn_fixes: bool = True  # also fuse each scan's kNN fix on the radio map as a position reading
     fix_sigma_floor_m: float = 2.0  # a fix's std = max(kNN neighbour spread, this)
