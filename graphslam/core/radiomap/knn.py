@@ -219,6 +219,8 @@ class SorensenRefs:
     by AP (postings, (A, N) csr) and their sum per reference."""
 
     def __init__(self, ref: FingerprintMatrix) -> None:
+        # the shifted values' range: 0 (missing_dbm) to 0 dBm; a map whose missing_dbm is not negative
+        # has no such range, so its strongest reading stands in
         scale = -ref.missing_dbm if ref.missing_dbm < 0 else float(ref.values.data.max(initial=1.0))
         self.scale = scale
         p = ref.values.copy()
