@@ -187,6 +187,21 @@ def _candidate_block(eng: DistanceEngine, q: FingerprintMatrix, min_common: int)
     return out.reshape(b, n)
 
 
+def _postings(
+    q: sparse.csr_matrix, ref_by_ap: sparse.csr_matrix
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+    """Every (query, reference) pair sharing an AP, once per shared AP: the flat cell index
+    ``query * N + reference`` (N = ``ref_by_ap``'s columns), the query's and the reference's value
+    of that AP. ``ref_by_ap``: (A, N) csr, row j = the references that heard AP j."""
+    n = ref_by_ap.shape[1]
+    aps = q.indices
+    starts = ref_by_ap.indptr[aps]
+    lens = ref_by_ap.indptr[aps + 1] - starts
+    pos = np.repeat(starts - (np.cumsum(lens) - lens), lens) + np.arange(int(lens.sum()))
+    key = np.repeat(np.repeat(np.arange(q.shape[0]) * n, np.diff(q.indptr)), lens) + ref_by_ap.indices[pos]
+    return key, np.repeat(q.data, lens), ref_by_ap.data[pos]
+
+
 def _gather_block(eng: DistanceEngine, q: FingerprintMatrix, min_common: int) -> NDArray[np.float64]:
     """Same as ``_candidate_block`` for a few queries, without sparse-matrix products: gather the
     postings (AP -> references) of each query AP and sum with ``bincount``. Why: a sparse product
@@ -194,13 +209,8 @@ def _gather_block(eng: DistanceEngine, q: FingerprintMatrix, min_common: int) ->
     qv = q.values
     ref = eng.ref_vT  # (A, N) csr: row j = the references that heard AP j
     b, n = qv.shape[0], eng.ref_sq.shape[0]
-    aps = qv.indices
-    starts = ref.indptr[aps]
-    lens = ref.indptr[aps + 1] - starts
-    total = int(lens.sum())
-    pos = np.repeat(starts - (np.cumsum(lens) - lens), lens) + np.arange(total)
-    key = np.repeat(np.repeat(np.arange(b) * n, np.diff(qv.indptr)), lens) + ref.indices[pos]
-    dot = np.bincount(key, weights=np.repeat(qv.data, lens) * ref.data[pos], minlength=b * n).reshape(b, n)
+    key, qval, rval = _postings(qv, ref)
+    dot = np.bincount(key, weights=qval * rval, minlength=b * n).reshape(b, n)
     common = np.bincount(key, minlength=b * n).reshape(b, n)
     num = _sq_norms(q)[:, None] + eng.ref_sq[None, :] - 2.0 * dot
     den = q.heard.astype(np.float64)[:, None] + eng.ref_n[None, :] - common
@@ -239,15 +249,9 @@ def _sorensen_block(refs: SorensenRefs, q: FingerprintMatrix, min_common: int) -
     query AP: sum min(p_q, p_r) accumulated per (query, reference) pair with ``bincount``; pairs
     sharing fewer than ``max(1, min_common)`` APs are ``inf``. Memory: the block's postings."""
     qp = refs.powed(q)
-    ref = refs.pT
     b, n = qp.shape[0], len(refs.sum)
-    aps = qp.indices
-    starts = ref.indptr[aps]
-    lens = ref.indptr[aps + 1] - starts
-    total = int(lens.sum())
-    pos = np.repeat(starts - (np.cumsum(lens) - lens), lens) + np.arange(total)
-    key = np.repeat(np.repeat(np.arange(b) * n, np.diff(qp.indptr)), lens) + ref.indices[pos]
-    both = np.bincount(key, weights=np.minimum(np.repeat(qp.data, lens), ref.data[pos]), minlength=b * n)
+    key, qval, rval = _postings(qp, refs.pT)
+    both = np.bincount(key, weights=np.minimum(qval, rval), minlength=b * n)
     common = np.bincount(key, minlength=b * n)
     qsum = np.asarray(qp.sum(axis=1)).ravel()
     with np.errstate(divide="ignore", invalid="ignore"):
