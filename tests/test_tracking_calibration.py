@@ -161,3 +161,22 @@ def test_replay_leaves_out_the_walks_that_repeat_the_replayed_path():
     assert sorted(_repeats(rm, own, rest, 2.0).tolist()) == ["b"]
     assert sorted(_repeats(rm, own, rest, 7.0).tolist()) == ["b", "d"]
     assert _repeats(rm, own, rest, 0.5).tolist() == []
+
+
+def test_the_tracker_locates_and_self_calibrates_its_fixes_with_the_configured_metric(monkeypatch):
+    import graphslam.core.tracking.calibration as calibration
+    from graphslam.app.track import TrackConfig, Tracker
+
+    seen: list[str] = []
+    real = calibration.fix_noise
+
+    def spy(rm, *, k=3, metric="eq9"):
+        seen.append(metric)
+        return real(rm, k=k, metric=metric)
+
+    monkeypatch.setattr(calibration, "fix_noise", spy)
+    names = [f"ap{j}" for j in range(len(APS))]
+    for asked, used in (("sorensen", "sorensen"), ("eq9", "eq9")):
+        tr = Tracker.on_map(_corridor_map(6.0), _models(names, APS), TrackConfig(replay_sessions=0, knn_metric=asked))
+        assert tr.locator.config.metric == used and seen[-1] == used
+    assert TrackConfig().knn_metric == "sorensen"  # the default since 2026-12-02 (docs/tracking.md)
