@@ -75,6 +75,27 @@ def test_locate_library_k2_interpolates(tmp_path: Path) -> None:
     assert run.positions.result.xy[0].tolist() == pytest.approx([12.5, 0.0])  # midpoint of 10 and 15
 
 
+def test_locate_cli_metric_sorensen_answers_as_the_library(tmp_path: Path) -> None:
+    from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
+    from graphslam.io.radiomap_io import read_radio_map
+
+    rm_path = make_map(tmp_path)
+    queries = [{**readings_at(12.0), "ap0": -60.0}, readings_at(31.0), readings_at(3.0)]
+    t = T0 + np.arange(4, dtype=np.int64) * 1_000_000_000
+    session = Session("q", PoseTrack(t, np.zeros((4, 2)), np.zeros(4)), tuple(Scan(int(t[i]) + 10, r) for i, r in enumerate(queries)))
+    write_session(session, tmp_path / "q.mcap")
+    expect = {m: KnnLocator(read_radio_map(rm_path), KnnConfig(k=2, metric=m)).locate(queries) for m in ("eq9", "sorensen")}
+    assert not np.allclose(expect["eq9"].xy, expect["sorensen"].xy)  # the metric matters for these queries
+    out = tmp_path / "positions.csv"
+    res = CliRunner().invoke(app, ["locate", "--radio-map", str(rm_path), str(tmp_path / "q.mcap"), "--out", str(out),
+                                   "--k", "2", "--metric", "sorensen", "--no-picture"])
+    assert res.exit_code == 0, res.output
+    rows = list(csv.DictReader(out.open()))
+    got = np.array([[float(r["x"]), float(r["y"])] for r in rows])
+    np.testing.assert_allclose(got, expect["sorensen"].xy, atol=1e-3)  # the CSV's 4 decimals
+    assert [float(r["score"]) for r in rows] == pytest.approx(expect["sorensen"].score.tolist(), abs=1e-4)
+
+
 def test_locate_cli_bad_radio_map_is_one_line_error(tmp_path: Path) -> None:
     bad = tmp_path / "map.parquet"
     bad.write_text("nope")
