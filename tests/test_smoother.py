@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
+from graphslam.core.tracking.axes import WalkAxes
 from graphslam.core.tracking.filters import Epochs, ExtendedKalmanFilter, FusionModel, PathLossModel, make_filter, run_epochs
 from graphslam.core.tracking.smoother import MapProblem, map_smooth, rts_smooth, smooth
 from graphslam.errors import EstimationError
@@ -47,12 +49,12 @@ def test_linear_gaussian_map_equals_rts_in_mean_and_covariance():
     assert not np.allclose(rts.x[0], filtered.x[0], atol=1e-3)  # earlier ones do
 
 
-@pytest.mark.parametrize("theta_in_state", [False, True])
-def test_map_jacobian_matches_numerical_differentiation(theta_in_state):
+@pytest.mark.parametrize("theta_in_state,axes", [(False, None), (True, None), (True, WalkAxes(0.3, 0.2))])
+def test_map_jacobian_matches_numerical_differentiation(theta_in_state, axes):
     rng = np.random.default_rng(5)
     m = _model(theta_in_state)
     epochs = _irregular_epochs(rng, n_aps=4, n=12)
-    pr = MapProblem(m, np.r_[1.0, 1.0, 0.0, 0.1, 0.0, 0.0, 0.3][: m.n], np.eye(m.n) * 0.3, epochs)
+    pr = MapProblem(m, np.r_[1.0, 1.0, 0.0, 0.1, 0.0, 0.0, 0.3][: m.n], np.eye(m.n) * 0.3, epochs, axes=axes)
     X = rng.normal(0.0, 1.0, (12, m.n)) + np.r_[4.0, 7.0, 0, 0, 0, 0, 0][: m.n]
     J = pr.jacobian(X).toarray()
     num = np.zeros_like(J)
@@ -62,6 +64,15 @@ def test_map_jacobian_matches_numerical_differentiation(theta_in_state):
         e[j] = 1e-6
         num[:, j] = (pr.residual(flat + e) - pr.residual(flat - e)) / 2e-6
     np.testing.assert_allclose(J, num, rtol=1e-5, atol=1e-6)
+    # the banded normal equations the solver uses hold the same J^T W J and J^T W r
+    pr2 = MapProblem(m, np.r_[1.0, 1.0, 0.0, 0.1, 0.0, 0.0, 0.3][: m.n], np.eye(m.n) * 0.3, epochs, huber_k=1.0, axes=axes)
+    r = pr2.residual(X)
+    band, g = pr2.normal_equations(X, r)
+    W = pr2.weights(r) ** 2
+    np.testing.assert_allclose(band, pr2.banded(sp.csr_matrix(J.T @ (W[:, None] * J))), atol=1e-8)
+    np.testing.assert_allclose(g, J.T @ (W * r), atol=1e-8)
+    if axes is not None:  # one prior row per velocity reading, after the fixes
+        assert len(r) == len(MapProblem(m, X[0], np.eye(m.n), epochs).residual(X)) + len(epochs.vel_k)
 
 
 def test_marginals_are_the_diagonal_blocks_of_the_inverse_information():

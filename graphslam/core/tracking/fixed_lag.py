@@ -25,6 +25,9 @@ i.e. twice the negative log posterior up to a shared constant), or with ``report
 moments of the bank's posterior mixture (weights exp(-cost / 2)); a hypothesis whose cost exceeds
 the best by ``prune_cost`` is dropped (its posterior odds are below exp(-prune_cost / 2)).
 
+With ``axes`` every window also holds the walk-axes prior on its velocities
+(``graphslam.core.tracking.axes``), marginalised with its epoch like any other row.
+
 Frames and units as the filters (m, m/s, rad, dBm, s).
 """
 
@@ -40,6 +43,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from graphslam.core.tracking.axes import WalkAxes
 from graphslam.core.tracking.filters import Epochs, FusionModel
 from graphslam.core.tracking.smoother import MapProblem, dead_reckoning_starts, levenberg_marquardt
 from graphslam.errors import EstimationError
@@ -223,8 +227,11 @@ def _without(r: NDArray, rows: NDArray) -> NDArray:
 class _Stream:
     """The run's readings, sliced into window problems by epoch range and availability time."""
 
-    def __init__(self, model: FusionModel, epochs: Epochs, cfg: FixedLagConfig, vel_available_s: NDArray | None) -> None:
-        self.model, self.epochs, self.cfg = model, epochs, cfg
+    def __init__(
+        self, model: FusionModel, epochs: Epochs, cfg: FixedLagConfig, vel_available_s: NDArray | None,
+        axes: WalkAxes | None = None,
+    ) -> None:
+        self.model, self.epochs, self.cfg, self.axes = model, epochs, cfg, axes
         e = epochs
         va = e.t_s[e.vel_k] if vel_available_s is None else np.asarray(vel_available_s, float).ravel()
         if va.shape != e.vel_k.shape or (va < e.t_s[e.vel_k] - 1e-9).any():
@@ -244,7 +251,7 @@ class _Stream:
             e.fix_k[f] - lo, e.fix_xy[f], e.fix_sigma[f], rss_scale[r],
             None if e.travel_m is None else e.travel_m[lo:hi],
         )
-        return MapProblem(self.model, x0, P0, win, huber_k=self.cfg.huber_k)
+        return MapProblem(self.model, x0, P0, win, huber_k=self.cfg.huber_k, axes=self.axes)
 
 
 def fixed_lag_smooth(
@@ -255,15 +262,17 @@ def fixed_lag_smooth(
     cfg: FixedLagConfig = FixedLagConfig(),
     *,
     vel_available_s: NDArray | None = None,
+    axes: WalkAxes | None = None,
 ) -> FixedLagRun:
     """Stream ``epochs`` through a bank of fixed-lag smoothers, one per start state ``x0`` (prior
     N(x0, P0) on the first epoch); report every epoch ``lag_s`` after its time (see module
     docstring). RSSI and fixes are available at their epoch; velocity readings at their epoch or
-    at ``vel_available_s`` (one per reading, s, same clock as ``epochs.t_s``)."""
+    at ``vel_available_s`` (one per reading, s, same clock as ``epochs.t_s``). ``axes``: the walk-axes
+    prior on the velocity (``graphslam.core.tracking.axes``; a map row of every window)."""
     if not len(starts):
         raise EstimationError("fixed-lag: no start state")
     epochs.check_model(model)
-    stream = _Stream(model, epochs, cfg, vel_available_s)
+    stream = _Stream(model, epochs, cfg, vel_available_s, axes)
     t = epochs.t_s
     N, n = len(epochs), model.n
     bank = [_Window(stream, x0, P0) for x0 in starts]
