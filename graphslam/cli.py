@@ -742,6 +742,11 @@ def track(
         help="Keep the self-calibration in track_calibration.json beside the map; reuse it for the same map, AP models and options.",
     ),
     knn_metric: str = typer.Option("sorensen", "--knn-metric", help="kNN fixes' " + METRIC_HELP[0].lower() + METRIC_HELP[1:]),
+    walk_axes: bool = typer.Option(
+        True, "--walk-axes/--no-walk-axes",
+        help="fixed-lag / --smooth map: walkers keep to the two perpendicular directions the map's own walks keep to "
+        "(measured on the map; off by itself where they keep to none; docs/tracking.md).",
+    ),
     picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: the tracks (and truth)."),
 ) -> None:
     """Track walks on a radio map: fusion of step velocity, WiFi RSSI and kNN fixes (fixed-lag MAP, or EKF/UKF)."""
@@ -752,7 +757,7 @@ def track(
     knn_metric = _metric(knn_metric, "--knn-metric")
     cfg = TrackConfig(
         filter=filter_, lag_s=lag, smoother=smooth, knn_fixes=knn_fixes, adaptive_rssi=adaptive_rssi,
-        self_calibrate=self_calibrate, bank_report=bank_report, knn_metric=knn_metric,
+        self_calibrate=self_calibrate, bank_report=bank_report, knn_metric=knn_metric, walk_axes=walk_axes,
     )
     run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg, calibration_cache=calibration_cache)
     shown = {}

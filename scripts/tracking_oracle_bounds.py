@@ -48,7 +48,7 @@ _TRUTH: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # held-out session id -> 
 _product_fixed_lag = track_module._track_fixed_lag
 
 
-def _oracle_fixed_lag(session_id, model, starts, P0, t, y_v, walked, meas, fixes, cfg):  # noqa: ANN001, ANN202
+def _oracle_fixed_lag(session_id, model, starts, P0, t, y_v, walked, meas, fixes, cfg, axes=None):  # noqa: ANN001, ANN202
     """The product's fixed-lag tracker with its start replaced by the oracle's (``cfg.oracle``)."""
     oracle = getattr(cfg, "oracle", None)
     if oracle is not None and session_id in _TRUTH:  # a held-out walk (not the self-calibration's replay)
@@ -61,7 +61,7 @@ def _oracle_fixed_lag(session_id, model, starts, P0, t, y_v, walked, meas, fixes
             P0[0, 0] = P0[1, 1] = 1.0
         n = ORACLES[oracle]
         starts = [np.concatenate([x0[:6], [T[2] + 2.0 * math.pi * k / n]]) for k in range(n)]
-    return _product_fixed_lag(session_id, model, starts, P0, t, y_v, walked, meas, fixes, cfg)
+    return _product_fixed_lag(session_id, model, starts, P0, t, y_v, walked, meas, fixes, cfg, axes)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -23,6 +23,10 @@ Per session (positions in the radio map's frame, m):
 - adaptive RSSI noise (``adaptive_rssi``, default on; the papers' future work): when a scan's
   RSSI innovations are larger than their covariance says (NIS per reading > 1), that scan's R
   is scaled by the ratio (``filters._inflate_rssi_noise``); consistent scans are unchanged;
+- walk axes (``walk_axes``, default on; fixed-lag and ``--smooth map``; not in the papers): the two
+  perpendicular directions the map's own walks keep to (``graphslam.core.tracking.axes``, measured on
+  the map; none where its walks keep to no axes) as a robust prior on the map-frame walking
+  direction: corridors fix the heading the fixes find only slowly (docs/tracking.md);
 - start: position = kNN fix of the first locatable scan (the radio map itself); heading
   unknown, so a bank of ``n_theta_hypotheses`` filters with theta_0 spread over the circle runs
   in lock-step and each step reports the one with the highest cumulative innovation
@@ -49,6 +53,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graphslam.core.tracking.apmodel import ApModels
+from graphslam.core.tracking.axes import WalkAxes
 from graphslam.core.tracking.filters import (
     Epochs, FusionModel, GaussianState, KalmanFilter, make_filter, position_update, run_epochs,
 )
@@ -100,6 +105,14 @@ class TrackConfig:
     # The particle filter's match temperature is in eq. 9 dB, so it always matches on eq. 9
     knn_metric: str = "sorensen"
     max_step_speed_mps: float = 3.0  # faster step intervals are odometry jumps: no velocity reading
+    # walk-axes prior (``graphslam.core.tracking.axes``; fixed-lag and --smooth map only): walkers keep to
+    # the two perpendicular directions the map's own walks keep to, when they keep to them this much
+    walk_axes: bool = True
+    # std of a step's velocity across the nearest axis: a weak prior per step (one row per step, whose
+    # directions are correlated along a leg); 1.0 of 0.25 / 0.5 / 1.0, the one better than none on all six
+    # real floors (IPIN b100_f-2, ILC site1 B1-F4; docs/tracking.md)
+    axis_sigma_mps: float = 1.0
+    axis_min_concentration: float = 0.3  # the map's |m4| (0: no preferred direction, 1: all on the axes)
     knn_fixes: bool = True  # also fuse each scan's kNN fix on the radio map as a position reading
     fix_sigma_floor_m: float = 2.0  # a fix's std = max(kNN neighbour spread, this)
     adaptive_rssi: bool = True  # inflate a scan's RSSI noise when its innovations say so
@@ -140,8 +153,19 @@ class TrackConfig:
             self.particle_config()  # its own checks, before any file is read
         if self.knn_metric not in KNN_METRICS:
             raise EstimationError(f"track: unknown kNN metric {self.knn_metric!r}; use {', '.join(KNN_METRICS)}")
+        if not (self.axis_sigma_mps > 0 and 0.0 <= self.axis_min_concentration <= 1.0):
+            raise EstimationError(
+                f"track: axis_sigma_mps must be > 0 and axis_min_concentration in [0, 1], got "
+                f"{self.axis_sigma_mps}, {self.axis_min_concentration}")
         if not (math.isfinite(self.replay_route_radius_m) and self.replay_route_radius_m >= 0):
             raise EstimationError(f"track: replay_route_radius_m must be finite and >= 0, got {self.replay_route_radius_m}")
+
+    def walk_axes_of(self, rm: RadioMap) -> WalkAxes | None:
+        """The walk-axes prior measured on ``rm``'s own walks (None: off, or no axes there)."""
+        if not self.walk_axes:
+            return None
+        return WalkAxes.from_walks(rm.xy, rm.session_ids, rm.t_ns, sigma_mps=self.axis_sigma_mps,
+                                   min_concentration=self.axis_min_concentration)
 
     def knn_config(self) -> KnnConfig:
         """The kNN fixes' search (the particle filter matches on eq. 9, its temperature being in dB)."""
@@ -269,8 +293,9 @@ def _track_session(
         + [cfg.init_bias_sigma_mps**2] * 2 + [(math.pi / H) ** 2]
     )
     starts = [np.array([p0[0], p0[1], 0, 0, 0, 0, 2 * math.pi * h / H]) for h in range(H)]
+    axes = cfg.walk_axes_of(locator.radio_map) if cfg.filter == "fixed-lag" or cfg.smoother == "map" else None
     if cfg.filter == "fixed-lag" and cfg.smoother == "none":
-        tr = _track_fixed_lag(session.session_id, model, starts, P0, t, y_v, walked, meas, fixes, cfg)
+        tr = _track_fixed_lag(session.session_id, model, starts, P0, t, y_v, walked, meas, fixes, cfg, axes)
         if progress is not None:
             progress.advance(len(t))
         return tr
@@ -323,7 +348,7 @@ def _track_session(
     x0 = np.array([p0[0], p0[1], 0, 0, 0, 0, 2 * math.pi * h / H])
     epochs, step_epoch = _session_epochs(t, y_v, walked, meas, fixes)
     filtered = run_epochs(filt, x0, P0, epochs, gate_sigma=cfg.gate_sigma)
-    sm = smooth(model, x0, P0, epochs, filtered, cfg.smoother, huber_k=cfg.gate_sigma)
+    sm = smooth(model, x0, P0, epochs, filtered, cfg.smoother, huber_k=cfg.gate_sigma, axes=axes)
     return SessionTrack(
         session.session_id, t.copy(), sm.x[step_epoch], sm.P[step_epoch], np.full(len(t), h, np.int64),
         filtered.n_rssi_used, filtered.n_rssi_gated,
@@ -333,7 +358,7 @@ def _track_session(
 def _track_fixed_lag(
     session_id: str, model: FusionModel, starts: list[NDArray], P0: NDArray, t: NDArray[np.int64], y_v: NDArray,
     walked: NDArray[np.bool_], meas: Sequence[tuple[int, NDArray, NDArray]], fixes: dict[int, tuple[NDArray, float]],
-    cfg: TrackConfig,
+    cfg: TrackConfig, axes: WalkAxes | None = None,
 ) -> SessionTrack:
     """The fixed-lag smoother over the session's epochs; a step interval's velocity is known at its
     end step (``vel_available_s``), so a lag of 0 reports each step from the data up to it."""
@@ -345,7 +370,7 @@ def _track_fixed_lag(
             lag_s=cfg.lag_s, window_s=max(cfg.window_s, cfg.lag_s), huber_k=cfg.gate_sigma, prune_cost=cfg.prune_cost,
             adaptive_rssi=cfg.adaptive_rssi, report=cfg.bank_report, angle_index=None if model.theta_rad is not None else 6,
         ),
-        vel_available_s=avail,
+        vel_available_s=avail, axes=axes,
     )
     P = run.P * (run.variance_factor[:, None, None] if cfg.calibrate_covariance else 1.0)
     return SessionTrack(
@@ -461,6 +486,12 @@ class Tracker:
             calibration = SelfCalibration.measure(rm, models, model, cfg)
         if calibration is not None:
             model, cfg = calibration.apply(model, cfg)
+        if cfg.walk_axes and (cfg.filter == "fixed-lag" or cfg.smoother == "map"):
+            axes = cfg.walk_axes_of(rm)
+            if axes is None:
+                log.info("track: walk axes: none on this map (concentration below %.2f)", cfg.axis_min_concentration)
+            else:
+                log.info("track: walk axes at %.1f deg + k 90 deg (concentration %.2f)", math.degrees(axes.angle_rad), axes.concentration)
         return cls(model, KnnLocator(rm, cfg.knn_config()), cfg, calibration)
 
     def track(self, session: Session, progress: Task | None = None) -> SessionTrack:
