@@ -138,23 +138,27 @@ def test_track_cli_rejects_unknown_filter_or_smoother(tiny_case, capsys, option,
     assert not out.exists()
 
 
-def test_track_cli_smoothed_output_uses_the_whole_walk(tiny_case):
-    # --smooth map: one hypothesis for the whole walk, the start-up no longer lost (the filter
-    # needs ~half the walk to find the heading; the smoother sees it all at once).
+def _track_cli(d, session, name: str, *args: str) -> tuple[list[dict], np.ndarray]:
+    """``graphslam track`` on the tiny case's walk: the CSV rows and each step's error (m)."""
     from graphslam.cli import main
     from graphslam.core.survey.evaluate import interpolate_xy
 
+    out = d / f"positions_{name}.csv"
+    main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--out", str(out), *args])
+    rows = list(csv.DictReader(out.open()))
+    assert [int(r["t_ns"]) for r in rows] == session.steps.t_ns.tolist()
+    xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
+    return rows, np.linalg.norm(xy - interpolate_xy(session.ground_truth, session.steps.t_ns.astype(float)), axis=1)
+
+
+def test_track_cli_smoothed_output_uses_the_whole_walk(tiny_case):
+    # --smooth map: one hypothesis for the whole walk, the start-up no longer lost (the filter
+    # needs ~half the walk to find the heading; the smoother sees it all at once).
     d, session = tiny_case
-    truth = interpolate_xy(session.ground_truth, session.steps.t_ns.astype(float))
     errs = {}
     for smooth in ("none", "map"):
-        out = d / f"positions_{smooth}.csv"
-        main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--out", str(out), "--smooth", smooth,
-              "--no-walk-axes"])  # the axes prior closes most of this gap online (next test)
-        rows = list(csv.DictReader(out.open()))
-        assert [int(r["t_ns"]) for r in rows] == session.steps.t_ns.tolist()
-        xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
-        errs[smooth] = np.linalg.norm(xy - truth, axis=1)
+        # without the walk axes, which close most of this gap online (next test)
+        rows, errs[smooth] = _track_cli(d, session, smooth, "--smooth", smooth, "--no-walk-axes")
         if smooth == "map":
             assert len({r["hypothesis"] for r in rows}) == 1
             assert all(float(r["cov_xx"]) > 0 and float(r["cov_yy"]) > 0 for r in rows)
@@ -168,20 +172,10 @@ def test_track_cli_walk_axes_prior_helps_on_a_corridor_floor(tiny_case):
     # walking direction fixes the heading the online tracker otherwise finds only slowly (measured:
     # 1.13 vs 1.19 m at the default sigma 1.0 m/s, 0.96 m at 0.25; --no-walk-axes is the tracker before
     # the prior, and a flag that did not reach the tracker would make the two equal).
-    from graphslam.cli import main
-    from graphslam.core.survey.evaluate import interpolate_xy
-
     d, session = tiny_case
-    truth = interpolate_xy(session.ground_truth, session.steps.t_ns.astype(float))
-    errs = {}
-    for flag in ("--walk-axes", "--no-walk-axes"):
-        out = d / f"positions{flag}.csv"
-        main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--out", str(out), flag,
-              "--no-picture"])
-        rows = list(csv.DictReader(out.open()))
-        xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
-        errs[flag] = float(np.linalg.norm(xy - truth, axis=1).mean())
-    assert errs["--walk-axes"] < 0.98 * errs["--no-walk-axes"], errs
+    on = _track_cli(d, session, "axes", "--walk-axes", "--no-picture")[1].mean()
+    off = _track_cli(d, session, "no_axes", "--no-walk-axes", "--no-picture")[1].mean()
+    assert on < 0.98 * off, (on, off)
 
 
 def test_track_skips_an_odometry_jump_instead_of_flying_off(tiny_case):
