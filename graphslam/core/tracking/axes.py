@@ -39,7 +39,7 @@ class WalkAxes:
     ``concentration``: the map's |m4| they were measured with (NaN when given by hand)."""
 
     angle_rad: float
-    sigma_mps: float = 0.25
+    sigma_mps: float = 1.0  # per step: weak, since a walker's steps along a leg share one direction
     v0_mps: float = 0.3
     concentration: float = math.nan
 
@@ -56,7 +56,7 @@ class WalkAxes:
         session_ids: NDArray,
         t_ns: NDArray,
         *,
-        sigma_mps: float = 0.25,
+        sigma_mps: float = 1.0,
         min_concentration: float = 0.3,
         max_gap_s: float = 15.0,
         min_segment_m: float = 0.5,
