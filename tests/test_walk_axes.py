@@ -80,6 +80,12 @@ def test_walks_with_no_preferred_direction_give_no_prior_and_gaps_break_segments
     t_gappy[200:] += int(60e9)  # a minute's gap: the segment over it is no walk
     assert axis_statistics(xy, sid, t_gappy)[2] == axis_statistics(xy, sid, t)[2] - 1
     assert axis_statistics(xy[:1], sid[:1], t[:1]) is None
+    # a few segments on a grid are concentrated, but too few to trust (a static-fingerprint map)
+    gx, gs, gt = _grid_walks(10.0, np.random.default_rng(1), n_sessions=1)
+    _, conc, used = axis_statistics(gx[:31], gs[:31], gt[:31])
+    assert conc > 0.8 and used == 30
+    assert WalkAxes.from_walks(gx[:31], gs[:31], gt[:31]) is None
+    assert WalkAxes.from_walks(gx[:31], gs[:31], gt[:31], min_segments=30) is not None
     with pytest.raises(EstimationError, match="positions"):
         axis_statistics(xy, sid[:-1], t)
     with pytest.raises(EstimationError, match="sigma"):

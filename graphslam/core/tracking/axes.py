@@ -58,15 +58,17 @@ class WalkAxes:
         *,
         sigma_mps: float = 1.0,
         min_concentration: float = 0.3,
+        min_segments: int = 50,
         max_gap_s: float = 15.0,
         min_segment_m: float = 0.5,
     ) -> "WalkAxes | None":
         """The axes of the walks through positions ``xy`` (N, 2; m) of sessions ``session_ids`` at
         ``t_ns``: segments between consecutive positions of one session at most ``max_gap_s``
-        apart and at least ``min_segment_m`` long. None when no segment qualifies or the
-        concentration is below ``min_concentration`` (no axes worth a prior)."""
+        apart and at least ``min_segment_m`` long. None when fewer than ``min_segments`` qualify
+        (a map of static fingerprints, e.g. UJIIndoorLoc's floors hold 6-48: a concentration from
+        so few says nothing) or the concentration is below ``min_concentration``."""
         s = axis_statistics(xy, session_ids, t_ns, max_gap_s=max_gap_s, min_segment_m=min_segment_m)
-        if s is None or s[1] < min_concentration:
+        if s is None or s[2] < min_segments or s[1] < min_concentration:
             return None
         return cls(s[0], sigma_mps=sigma_mps, concentration=s[1])
 
