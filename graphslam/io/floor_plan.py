@@ -1,0 +1,55 @@
+"""Floor plans: the image and the site-frame rectangle it covers (``floor_info.json`` beside it, as in
+the ILC data, or a size given in metres)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from graphslam.errors import ConfigError, InputError
+
+
+@dataclass(frozen=True)
+class FloorPlan:
+    """A floor plan image and the site-frame rectangle it covers: x in [0, width], y in [0, height]."""
+
+    path: Path
+    width_m: float
+    height_m: float
+    pixels: tuple[int, int]  # (columns, rows)
+
+
+def load_floor_plan(path: str | Path | None, size: tuple[float, float] | None) -> FloorPlan | None:
+    """The floor plan image and its size in metres.
+
+    Without ``size``, a ``floor_info.json`` beside the image (``{"map_info": {"width": W,
+    "height": H}}``, as in the ILC data) gives it.
+    """
+    if path is None:
+        if size is not None:
+            raise ConfigError("--floor-size given without --floor-plan")
+        return None
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "floor plan image not found")
+    if size is None:
+        info = p.parent / "floor_info.json"
+        try:
+            mi = json.loads(info.read_text(encoding="utf-8"))["map_info"]
+            size = (float(mi["width"]), float(mi["height"]))
+        except (OSError, ValueError, KeyError, TypeError):
+            raise ConfigError(f"floor plan {p}: give --floor-size W H (metres); no usable {info.name} beside it") from None
+    w, h = float(size[0]), float(size[1])
+    if not (np.isfinite(w) and np.isfinite(h) and w > 0 and h > 0):
+        raise ConfigError(f"floor size must be two positive numbers of metres, got {size}")
+    try:
+        from PIL import Image  # reads the header only
+
+        with Image.open(p) as im:
+            px = (int(im.size[0]), int(im.size[1]))
+    except Exception as e:  # PIL raises many types for bad images
+        raise InputError(p, f"cannot read the floor plan image ({e})") from None
+    return FloorPlan(p, w, h, px)
