@@ -747,6 +747,18 @@ def track(
         help="fixed-lag / --smooth map: walkers keep to the two perpendicular directions the map's own walks keep to "
         "(measured on the map; off by itself where they keep to none; docs/tracking.md).",
     ),
+    floor_plan: Optional[Path] = typer.Option(
+        None, "--floor-plan", help="A floor plan image (site frame, as the radio map): its blank area inside the outline "
+        "is walkable; positions off it are moved to it (docs/tracking.md).",
+    ),
+    floor_size: Optional[tuple[float, float]] = typer.Option(
+        None, "--floor-size", help="W H of the floor plan (m); default: floor_info.json beside the image."
+    ),
+    floor_plan_use: str = typer.Option(
+        "snap", "--floor-plan-use", help="snap (each position off the walkable area to its nearest cell), prior (a "
+        "row per step in the fixed-lag / --smooth map problem, std --walkable-sigma) or both.",
+    ),
+    walkable_sigma: float = typer.Option(2.0, "--walkable-sigma", help="--floor-plan-use prior / both: std (m) of a step's distance to the walkable area."),
     picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: the tracks (and truth)."),
 ) -> None:
     """Track walks on a radio map: fusion of step velocity, WiFi RSSI and kNN fixes (fixed-lag MAP, or EKF/UKF)."""
@@ -758,8 +770,10 @@ def track(
     cfg = TrackConfig(
         filter=filter_, lag_s=lag, smoother=smooth, knn_fixes=knn_fixes, adaptive_rssi=adaptive_rssi,
         self_calibrate=self_calibrate, bank_report=bank_report, knn_metric=knn_metric, walk_axes=walk_axes,
+        walkable_sigma_m=walkable_sigma, walkable_mode=floor_plan_use,
     )
-    run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg, calibration_cache=calibration_cache)
+    run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg, calibration_cache=calibration_cache,
+                      floor_plan=floor_plan, floor_size=floor_size)
     shown = {}
     if picture:
         from graphslam.app.pictures import write_track_picture
@@ -829,17 +843,23 @@ def bench_tracking_real(
     seed: int = typer.Option(0, help="Seed of the random folds."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="Survey configuration (crowdsourced map)."),
     set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a survey config value."),
+    floor_plan: str = typer.Option(
+        "auto", "--floor-plan", help="Walkable-area prior for the trackers on the oracle maps: auto (floor_image.png "
+        "beside the walks, when there is one), none, or a plan image (floor_info.json beside it).",
+    ),
 ) -> None:
     """Held-out real walks tracked on a map of the other walks vs kNN: mean/median/p75/p90, 95 % ellipse coverage."""
-    from graphslam.app.tracking_bench import standard_variants, tracking_real
+    from graphslam.app.tracking_bench import floor_plan_area, standard_variants, tracking_real
     from graphslam.core.radiomap.ivf import limit_blas_threads
 
     limit_blas_threads(1)
     variants = standard_variants(
         _lags(lags), [f for f in filters.split(",") if f.strip()], _smoothers(smoothers)
     )
+    area = floor_plan_area(folder, floor_plan)
     res = tracking_real(
-        folder, _config(config, set_), variants, maps=[m for m in maps.split(",") if m.strip()], folds=folds, seed=seed
+        folder, _config(config, set_), variants, maps=[m for m in maps.split(",") if m.strip()], folds=folds, seed=seed,
+        area=area,
     )
     typer.echo(json.dumps(res))
 

@@ -11,7 +11,9 @@ reported). Folds: ``route`` (leave one route out; IPIN) or a number of seeded ra
     python scripts/tracking_variants.py ../shared/data/ipin2023/b100_f-2 oracle route mixroute \\
         'mixroute=TrackConfig(replay_route_radius_m=2.0)'
 
-Built-in names: ``best`` (the lowest-cost heading hypothesis), ``mixture`` (the default), ``ekf``.
+Built-in names: ``best`` (the lowest-cost heading hypothesis), ``mixture`` (the default), ``ekf``,
+``noplan`` (the default without the floor plan). Every other variant gets the floor's walkable area
+when ``floor_image.png`` lies beside the walks (the ILC floors; oracle maps only).
 ``NAME=EXPR`` adds a variant whose ``TrackConfig(...)`` expression is evaluated here. One JSON
 line (the floor's result) on stdout.
 """
@@ -25,15 +27,16 @@ from pathlib import Path
 
 from graphslam.app.progress import show_progress
 from graphslam.app.track import TrackConfig
-from graphslam.app.tracking_bench import Variant, tracking_real
+from graphslam.app.tracking_bench import Variant, floor_plan_area, tracking_real
 from graphslam.config import GraphSlamConfig
 from graphslam.core.radiomap.ivf import limit_blas_threads
 from graphslam.errors import GraphSlamError
 
 VARIANTS = {
-    "best": TrackConfig(bank_report="best"),
-    "mixture": TrackConfig(bank_report="mixture"),
-    "ekf": TrackConfig(filter="ekf"),
+    "best": Variant("best", TrackConfig(bank_report="best")),
+    "mixture": Variant("mixture", TrackConfig(bank_report="mixture")),
+    "ekf": Variant("ekf", TrackConfig(filter="ekf")),
+    "noplan": Variant("noplan", TrackConfig(), floor_plan=False),
 }
 
 
@@ -45,7 +48,8 @@ def main(argv: list[str]) -> int:
     variants = dict(VARIANTS)
     for extra in argv[4:]:
         name, expr = extra.split("=", 1)
-        variants[name] = eval(expr, {"TrackConfig": TrackConfig})  # a benchmark script's own argument
+        cfg = eval(expr, {"TrackConfig": TrackConfig})  # a benchmark script's own argument
+        variants[name] = Variant(name, cfg)
     unknown = [n for n in names if n not in variants]
     if unknown:
         print(f"error: unknown variant {unknown[0]!r}", file=sys.stderr)
@@ -54,8 +58,9 @@ def main(argv: list[str]) -> int:
     limit_blas_threads(1)  # thousands of tiny solves: OpenBLAS threads only slow them down
     t = time.perf_counter()
     try:
-        res = tracking_real(folder, GraphSlamConfig(), [Variant(n, variants[n]) for n in names], maps=maps,
-                            folds=None if folds == "route" else int(folds), seed=0)
+        area = floor_plan_area(folder)  # floor_image.png beside the walks (ILC), else none
+        res = tracking_real(folder, GraphSlamConfig(), [variants[n] for n in names], maps=maps,
+                            folds=None if folds == "route" else int(folds), seed=0, area=area)
     except GraphSlamError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import logging
 
 import numpy as np
 import pytest
@@ -176,6 +177,58 @@ def test_track_cli_walk_axes_prior_helps_on_a_corridor_floor(tiny_case):
     on = _track_cli(d, session, "axes", "--walk-axes", "--no-picture")[1].mean()
     off = _track_cli(d, session, "no_axes", "--no-walk-axes", "--no-picture")[1].mean()
     assert on < 0.98 * off, (on, off)
+
+
+def _path_plan(d, session, half_width_m: float = 1.5):
+    """A floor plan PNG (0.25 m pixels) whose walkable (transparent) area is the band within
+    ``half_width_m`` of the walk's true path; everything else drawn (opaque)."""
+    from PIL import Image
+    from scipy import ndimage
+
+    cell, gt = 0.25, session.ground_truth.xy
+    w, h = float(gt[:, 0].max() + 10.0), float(gt[:, 1].max() + 10.0)
+    cols, rows = int(round(w / cell)), int(round(h / cell))
+    on_path = np.zeros((rows, cols), bool)
+    dense = np.vstack([np.linspace(a, b, 20) for a, b in zip(gt[:-1], gt[1:])])
+    on_path[(rows - 1 - (dense[:, 1] / cell).astype(int)).clip(0, rows - 1), (dense[:, 0] / cell).astype(int).clip(0, cols - 1)] = True
+    band = ndimage.distance_transform_edt(~on_path) * cell <= half_width_m
+    px = np.zeros((rows, cols, 4), np.uint8)
+    px[~band] = (195, 235, 245, 255)
+    Image.fromarray(px, "RGBA").save(d / "plan.png")
+    return d / "plan.png", (cols * cell, rows * cell)
+
+
+def test_track_cli_floor_plan_keeps_the_track_on_the_walkable_area(tiny_case, capsys, caplog):
+    # The plan's walkable area is a 1.5-m band along the walk: snapped reports (the default) and the
+    # prior in the window both keep the track closer to the truth than without the plan.
+    from graphslam.cli import main
+
+    d, session = tiny_case
+    plan, (w, h) = _path_plan(d, session, 0.75)
+    caplog.set_level(logging.INFO, logger="graphslam")
+    given = ["--floor-plan", str(plan), "--floor-size", f"{w}", f"{h}", "--no-picture"]
+    snap = _track_cli(d, session, "snap", *given)[1]
+    assert "walkable area from the floor plan" in caplog.text
+    prior = _track_cli(d, session, "prior", *given, "--floor-plan-use", "prior", "--walkable-sigma", "1")[1].mean()
+    off = _track_cli(d, session, "no_plan", "--no-picture")[1].mean()
+    assert snap.mean() < 0.9 * off and prior < 0.9 * off, (snap.mean(), prior, off)
+    capsys.readouterr()
+    # bad input: one line naming the file, exit 2, nothing written
+    out = d / "bad_plan.csv"
+    (d / "not_a_plan.png").write_bytes(b"\x89PNG not really")
+    for args, message in (
+        (["--floor-plan", str(d / "not_a_plan.png"), "--floor-size", "10", "10"], "not_a_plan.png"),
+        (["--floor-plan", str(d / "missing.png"), "--floor-size", "10", "10"], "missing.png"),
+        (["--floor-size", "10", "10"], "--floor-size given without --floor-plan"),
+        (["--floor-plan", str(plan), "--floor-size", f"{w}", f"{h}", "--walkable-sigma", "0"], "walkable_sigma_m"),
+        (["--floor-plan", str(plan), "--floor-size", f"{w}", f"{h}", "--floor-plan-use", "teleport"], "walkable_mode"),
+    ):
+        with pytest.raises(SystemExit) as e:
+            main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--out", str(out), *args])
+        assert e.value.code == 2
+        err = capsys.readouterr().err.strip()
+        assert message in err and len(err.splitlines()) == 1, err
+        assert not out.exists()
 
 
 def test_track_skips_an_odometry_jump_instead_of_flying_off(tiny_case):

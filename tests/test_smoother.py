@@ -7,6 +7,7 @@ import pytest
 import scipy.sparse as sp
 
 from graphslam.core.tracking.axes import WalkAxes
+from graphslam.core.tracking.walkable import WalkableArea
 from graphslam.core.tracking.filters import Epochs, ExtendedKalmanFilter, FusionModel, PathLossModel, make_filter, run_epochs
 from graphslam.core.tracking.smoother import MapProblem, map_smooth, rts_smooth, smooth
 from graphslam.errors import EstimationError
@@ -49,12 +50,18 @@ def test_linear_gaussian_map_equals_rts_in_mean_and_covariance():
     assert not np.allclose(rts.x[0], filtered.x[0], atol=1e-3)  # earlier ones do
 
 
-@pytest.mark.parametrize("theta_in_state,axes", [(False, None), (True, None), (True, WalkAxes(0.3, 0.2))])
-def test_map_jacobian_matches_numerical_differentiation(theta_in_state, axes):
+# a walkable area whose distance field is non-zero around the test states (x ~ 4, y ~ 7): a band at y 0-5 m
+_AREA = WalkableArea(np.r_[np.zeros((40, 50), bool), np.ones((10, 50), bool)], 25.0, 25.0, sigma_m=1.5)
+
+
+@pytest.mark.parametrize("theta_in_state,axes,area", [
+    (False, None, None), (True, None, None), (True, WalkAxes(0.3, 0.2), None), (True, WalkAxes(0.3, 0.2), _AREA),
+])
+def test_map_jacobian_matches_numerical_differentiation(theta_in_state, axes, area):
     rng = np.random.default_rng(5)
     m = _model(theta_in_state)
     epochs = _irregular_epochs(rng, n_aps=4, n=12)
-    pr = MapProblem(m, np.r_[1.0, 1.0, 0.0, 0.1, 0.0, 0.0, 0.3][: m.n], np.eye(m.n) * 0.3, epochs, axes=axes)
+    pr = MapProblem(m, np.r_[1.0, 1.0, 0.0, 0.1, 0.0, 0.0, 0.3][: m.n], np.eye(m.n) * 0.3, epochs, axes=axes, area=area)
     X = rng.normal(0.0, 1.0, (12, m.n)) + np.r_[4.0, 7.0, 0, 0, 0, 0, 0][: m.n]
     J = pr.jacobian(X).toarray()
     num = np.zeros_like(J)
@@ -65,14 +72,17 @@ def test_map_jacobian_matches_numerical_differentiation(theta_in_state, axes):
         num[:, j] = (pr.residual(flat + e) - pr.residual(flat - e)) / 2e-6
     np.testing.assert_allclose(J, num, rtol=1e-5, atol=1e-6)
     # the banded normal equations the solver uses hold the same J^T W J and J^T W r
-    pr2 = MapProblem(m, np.r_[1.0, 1.0, 0.0, 0.1, 0.0, 0.0, 0.3][: m.n], np.eye(m.n) * 0.3, epochs, huber_k=1.0, axes=axes)
+    pr2 = MapProblem(m, np.r_[1.0, 1.0, 0.0, 0.1, 0.0, 0.0, 0.3][: m.n], np.eye(m.n) * 0.3, epochs, huber_k=1.0, axes=axes,
+                     area=area)
     r = pr2.residual(X)
     band, g = pr2.normal_equations(X, r)
     W = pr2.weights(r) ** 2
     np.testing.assert_allclose(band, pr2.banded(sp.csr_matrix(J.T @ (W[:, None] * J))), atol=1e-8)
     np.testing.assert_allclose(g, J.T @ (W * r), atol=1e-8)
-    if axes is not None:  # one prior row per velocity reading, after the fixes
-        assert len(r) == len(MapProblem(m, X[0], np.eye(m.n), epochs).residual(X)) + len(epochs.vel_k)
+    if axes is not None:  # one prior row per velocity reading (each prior), after the fixes
+        assert len(r) == len(MapProblem(m, X[0], np.eye(m.n), epochs).residual(X)) + len(epochs.vel_k) * (1 + (area is not None))
+    if area is not None:  # the area's rows are not all zero here: the test exercises them
+        assert (area.residual(X[epochs.vel_k, :2]) > 0).all()
 
 
 def test_marginals_are_the_diagonal_blocks_of_the_inverse_information():

@@ -27,6 +27,10 @@ Per session (positions in the radio map's frame, m):
   perpendicular directions the map's own walks keep to (``graphslam.core.tracking.axes``, measured on
   the map; none where its walks keep to no axes) as a robust prior on the map-frame walking
   direction: corridors fix the heading the fixes find only slowly (docs/tracking.md);
+- floor plan (only when given, ``track --floor-plan``; ``walkable_mode``): the plan's walkable area
+  (``graphslam.core.tracking.walkable``) either moves each reported position that lies off it to the
+  nearest walkable cell (``snap``, default; any filter; covariance unchanged), or is a robust prior
+  row per step in the fixed-lag / ``--smooth map`` problem (``prior``), or both;
 - start: position = kNN fix of the first locatable scan (the radio map itself); heading
   unknown, so a bank of ``n_theta_hypotheses`` filters with theta_0 spread over the circle runs
   in lock-step and each step reports the one with the highest cumulative innovation
@@ -62,9 +66,10 @@ from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.tracking.fixed_lag import FixedLagConfig, fixed_lag_smooth
 from graphslam.core.tracking.particle import ParticleConfig, RssiReadings, run_particle_filter, scan_matches
 from graphslam.core.tracking.smoother import SMOOTH_METHODS, smooth
+from graphslam.core.tracking.walkable import WalkableArea
 from graphslam.core.progress import Task
 from graphslam.core.types import Session
-from graphslam.errors import EstimationError
+from graphslam.errors import ConfigError, EstimationError
 from graphslam.io.atomic import atomic_open
 
 log = logging.getLogger(__name__)
@@ -74,6 +79,7 @@ TRACK_HEADER = (
 )
 _SWAP = np.array([[0.0, 1.0], [1.0, 0.0]])
 TRACKERS = ("fixed-lag", "ekf", "ukf", "particle")
+WALKABLE_MODES = ("snap", "prior", "both")  # how a floor plan's walkable area is used (TrackConfig.walkable_mode)
 BANK_REPORTS = ("mixture", "best")  # fixed-lag: the heading bank's posterior mixture, or its best hypothesis
 
 
@@ -113,6 +119,12 @@ class TrackConfig:
     # real floors (IPIN b100_f-2, ILC site1 B1-F4; docs/tracking.md)
     axis_sigma_mps: float = 1.0
     axis_min_concentration: float = 0.3  # the map's |m4| (0: no preferred direction, 1: all on the axes)
+    # a floor plan's walkable area (``graphslam.core.tracking.walkable``; only with ``track --floor-plan``):
+    # snap (each reported position off the area to its nearest walkable cell; any filter) | prior (one row per
+    # step in the fixed-lag / --smooth map problem) | both. snap: the one better than none on every ILC site1
+    # floor; the prior helps F2 / F3 more and hurts B1 (docs/tracking.md)
+    walkable_mode: str = "snap"
+    walkable_sigma_m: float = 2.0  # prior: std (m) of a step's distance to the walkable area
     knn_fixes: bool = True  # also fuse each scan's kNN fix on the radio map as a position reading
     fix_sigma_floor_m: float = 2.0  # a fix's std = max(kNN neighbour spread, this)
     adaptive_rssi: bool = True  # inflate a scan's RSSI noise when its innovations say so
@@ -157,6 +169,10 @@ class TrackConfig:
             raise EstimationError(
                 f"track: axis_sigma_mps must be > 0 and axis_min_concentration in [0, 1], got "
                 f"{self.axis_sigma_mps}, {self.axis_min_concentration}")
+        if self.walkable_mode not in WALKABLE_MODES:
+            raise EstimationError(f"track: unknown walkable_mode {self.walkable_mode!r}; use {', '.join(WALKABLE_MODES)}")
+        if not (math.isfinite(self.walkable_sigma_m) and self.walkable_sigma_m > 0):
+            raise EstimationError(f"track: walkable_sigma_m must be finite and > 0, got {self.walkable_sigma_m}")
         if not (math.isfinite(self.replay_route_radius_m) and self.replay_route_radius_m >= 0):
             raise EstimationError(f"track: replay_route_radius_m must be finite and >= 0, got {self.replay_route_radius_m}")
 
@@ -166,6 +182,12 @@ class TrackConfig:
             return None
         return WalkAxes.from_walks(rm.xy, rm.session_ids, rm.t_ns, sigma_mps=self.axis_sigma_mps,
                                    min_concentration=self.axis_min_concentration)
+
+    def walkable_area(self, area: WalkableArea | None) -> WalkableArea | None:
+        """``area`` with this configuration's std (None stays None)."""
+        if area is None or area.sigma_m == self.walkable_sigma_m:
+            return area
+        return dataclasses.replace(area, sigma_m=self.walkable_sigma_m)
 
     def knn_config(self) -> KnnConfig:
         """The kNN fixes' search (the particle filter matches on eq. 9, its temperature being in dB)."""
@@ -245,19 +267,27 @@ def _scan_measurements(
 
 def track_session(
     session: Session, model: FusionModel, locator: KnnLocator, cfg: TrackConfig = TrackConfig(),
-    progress: Task | None = None,
+    progress: Task | None = None, area: WalkableArea | None = None,
 ) -> SessionTrack:
     """Track one session (see module docstring). ``EstimationError`` if it has < 2 steps or no scan
     the radio map can locate. Covariances come out multiplied by ``cfg.covariance_scale``;
-    ``progress`` advances by one per step."""
-    tr = _track_session(session, model, locator, cfg, progress)
-    if cfg.covariance_scale == 1.0:
-        return tr
-    return dataclasses.replace(tr, P=tr.P * cfg.covariance_scale)
+    ``progress`` advances by one per step. ``area``: the floor's walkable area in the radio map's
+    frame, used as ``cfg.walkable_mode`` says (the prior: fixed-lag and ``--smooth map`` only)."""
+    tr = _track_session(session, model, locator, cfg, progress, area if cfg.walkable_mode in ("prior", "both") else None)
+    if cfg.covariance_scale != 1.0:
+        tr = dataclasses.replace(tr, P=tr.P * cfg.covariance_scale)
+    if area is not None and cfg.walkable_mode in ("snap", "both"):
+        x = tr.x.copy()
+        x[:, :2] = area.snap(x[:, :2])  # covariance kept: the snap does not make the estimate surer
+        tr = dataclasses.replace(tr, x=x)
+    return tr
+
+
 
 
 def _track_session(
-    session: Session, model: FusionModel, locator: KnnLocator, cfg: TrackConfig, progress: Task | None
+    session: Session, model: FusionModel, locator: KnnLocator, cfg: TrackConfig, progress: Task | None,
+    area: WalkableArea | None = None,
 ) -> SessionTrack:
     steps = session.steps
     if len(steps) < 2:
@@ -293,9 +323,11 @@ def _track_session(
         + [cfg.init_bias_sigma_mps**2] * 2 + [(math.pi / H) ** 2]
     )
     starts = [np.array([p0[0], p0[1], 0, 0, 0, 0, 2 * math.pi * h / H]) for h in range(H)]
-    axes = cfg.walk_axes_of(locator.radio_map) if cfg.filter == "fixed-lag" or cfg.smoother == "map" else None
+    windowed = cfg.filter == "fixed-lag" or cfg.smoother == "map"  # the MAP problems that hold priors
+    axes = cfg.walk_axes_of(locator.radio_map) if windowed else None
+    area = cfg.walkable_area(area) if windowed else None
     if cfg.filter == "fixed-lag" and cfg.smoother == "none":
-        tr = _track_fixed_lag(session.session_id, model, starts, P0, t, y_v, walked, meas, fixes, cfg, axes)
+        tr = _track_fixed_lag(session.session_id, model, starts, P0, t, y_v, walked, meas, fixes, cfg, axes, area)
         if progress is not None:
             progress.advance(len(t))
         return tr
@@ -348,7 +380,7 @@ def _track_session(
     x0 = np.array([p0[0], p0[1], 0, 0, 0, 0, 2 * math.pi * h / H])
     epochs, step_epoch = _session_epochs(t, y_v, walked, meas, fixes)
     filtered = run_epochs(filt, x0, P0, epochs, gate_sigma=cfg.gate_sigma)
-    sm = smooth(model, x0, P0, epochs, filtered, cfg.smoother, huber_k=cfg.gate_sigma, axes=axes)
+    sm = smooth(model, x0, P0, epochs, filtered, cfg.smoother, huber_k=cfg.gate_sigma, axes=axes, area=area)
     return SessionTrack(
         session.session_id, t.copy(), sm.x[step_epoch], sm.P[step_epoch], np.full(len(t), h, np.int64),
         filtered.n_rssi_used, filtered.n_rssi_gated,
@@ -358,7 +390,7 @@ def _track_session(
 def _track_fixed_lag(
     session_id: str, model: FusionModel, starts: list[NDArray], P0: NDArray, t: NDArray[np.int64], y_v: NDArray,
     walked: NDArray[np.bool_], meas: Sequence[tuple[int, NDArray, NDArray]], fixes: dict[int, tuple[NDArray, float]],
-    cfg: TrackConfig, axes: WalkAxes | None = None,
+    cfg: TrackConfig, axes: WalkAxes | None = None, area: WalkableArea | None = None,
 ) -> SessionTrack:
     """The fixed-lag smoother over the session's epochs; a step interval's velocity is known at its
     end step (``vel_available_s``), so a lag of 0 reports each step from the data up to it."""
@@ -370,7 +402,7 @@ def _track_fixed_lag(
             lag_s=cfg.lag_s, window_s=max(cfg.window_s, cfg.lag_s), huber_k=cfg.gate_sigma, prune_cost=cfg.prune_cost,
             adaptive_rssi=cfg.adaptive_rssi, report=cfg.bank_report, angle_index=None if model.theta_rad is not None else 6,
         ),
-        vel_available_s=avail, axes=axes,
+        vel_available_s=avail, axes=axes, area=area,
     )
     P = run.P * (run.variance_factor[:, None, None] if cfg.calibrate_covariance else 1.0)
     return SessionTrack(
@@ -471,19 +503,22 @@ class Tracker:
     locator: KnnLocator
     cfg: TrackConfig
     calibration: SelfCalibration | None = None  # what self-calibration applied (None: off)
+    area: WalkableArea | None = None  # the floor plan's walkable area in the map's frame (None: no plan)
 
     @classmethod
     def on_map(
-        cls, rm: RadioMap, models: ApModels, cfg: TrackConfig = TrackConfig(), calibration: SelfCalibration | None = None
+        cls, rm: RadioMap, models: ApModels, cfg: TrackConfig = TrackConfig(), calibration: SelfCalibration | None = None,
+        area: WalkableArea | None = None,
     ) -> "Tracker":
-        """``calibration``: one measured on this map with this ``cfg`` before (else measured now)."""
+        """``calibration``: one measured on this map with this ``cfg`` before (else measured now);
+        ``area``: the floor's walkable area in the map's frame (``TrackConfig.walkable_mode``)."""
         if models.frame != rm.frame:
             raise EstimationError(f"track: AP models are in frame {models.frame!r}, radio map in {rm.frame!r}")
         model = fusion_model(models, cfg)
         if not cfg.self_calibrate:
             calibration = None
         elif calibration is None:
-            calibration = SelfCalibration.measure(rm, models, model, cfg)
+            calibration = SelfCalibration.measure(rm, models, model, cfg, cfg.walkable_area(area))
         if calibration is not None:
             model, cfg = calibration.apply(model, cfg)
         if cfg.walk_axes and (cfg.filter == "fixed-lag" or cfg.smoother == "map"):
@@ -492,10 +527,14 @@ class Tracker:
                 log.info("track: walk axes: none on this map (concentration below %.2f)", cfg.axis_min_concentration)
             else:
                 log.info("track: walk axes at %.1f deg + k 90 deg (concentration %.2f)", math.degrees(axes.angle_rad), axes.concentration)
-        return cls(model, KnnLocator(rm, cfg.knn_config()), cfg, calibration)
+        area = cfg.walkable_area(area)
+        if area is not None:
+            log.info("track: walkable area from the floor plan: %.0f %% of %.0f x %.0f m (%s)",
+                     100 * area.fraction_walkable(), area.width_m, area.height_m, cfg.walkable_mode)
+        return cls(model, KnnLocator(rm, cfg.knn_config()), cfg, calibration, area)
 
     def track(self, session: Session, progress: Task | None = None) -> SessionTrack:
-        return track_session(session, self.model, self.locator, self.cfg, progress)
+        return track_session(session, self.model, self.locator, self.cfg, progress, self.area)
 
 
 def track_sessions(
@@ -517,10 +556,13 @@ class SelfCalibration:
     covariance_scale: float  # reported covariances x this (>= 1)
 
     @classmethod
-    def measure(cls, rm: RadioMap, models: ApModels, model: FusionModel, cfg: TrackConfig) -> "SelfCalibration":
+    def measure(
+        cls, rm: RadioMap, models: ApModels, model: FusionModel, cfg: TrackConfig, area: WalkableArea | None = None
+    ) -> "SelfCalibration":
         """The map's own RSSI variance factor, its leave-one-session-out kNN error as the fix floor
         (``graphslam.core.tracking.calibration``), and the covariance scale from replaying its walks
-        under those two: noise levels measured on the map, not chosen per building."""
+        under those two (and the walkable ``area`` the tracker will use): noise levels measured on the
+        map, not chosen per building."""
         from graphslam.core.tracking.calibration import fix_noise, rssi_variance_factor
 
         kappa = rssi_variance_factor(rm, models, np.sqrt(model.r_rssi)) if len(models.fitted) else 1.0
@@ -530,7 +572,7 @@ class SelfCalibration:
             log.info("track: no leave-one-session-out fix noise (%s)", e)
             floor = cfg.fix_sigma_floor_m
         half = cls(float(kappa), float(floor), 1.0)
-        scale = replay_covariance_scale(rm, *half.apply(model, cfg)) if cfg.replay_sessions > 0 else 1.0
+        scale = replay_covariance_scale(rm, *half.apply(model, cfg), area=area) if cfg.replay_sessions > 0 else 1.0
         log.info("track: self-calibration: RSSI variance x %.2f, kNN fix std floor %.2f m, covariance x %.2f", kappa, floor, scale)
         return cls(float(kappa), float(floor), float(scale))
 
@@ -546,7 +588,7 @@ def self_calibrated(rm: RadioMap, models: ApModels, model: FusionModel, cfg: Tra
     return SelfCalibration.measure(rm, models, model, cfg).apply(model, cfg)
 
 
-def replay_covariance_scale(rm: RadioMap, model: FusionModel, cfg: TrackConfig) -> float:
+def replay_covariance_scale(rm: RadioMap, model: FusionModel, cfg: TrackConfig, area: WalkableArea | None = None) -> float:
     """How over-confident is the tracker on this map? Replay (a seeded sample of) the map's own
     walks through it: each walk's fingerprints, at their map positions, become steps (in an
     odometry frame turned by a random angle) and scans; it is tracked on the map without its own
@@ -594,7 +636,7 @@ def replay_covariance_scale(rm: RadioMap, model: FusionModel, cfg: TrackConfig) 
         )
         walk = Session(str(sid), PoseTrack(rm.t_ns[own], (xy - xy[0]) @ R.T, np.zeros(len(own))), scans)
         try:
-            tr = track_session(walk, model, KnnLocator(others, cfg.knn_config()), cfg)
+            tr = track_session(walk, model, KnnLocator(others, cfg.knn_config()), cfg, area=area)
         except EstimationError:
             continue
         d2.append(mahalanobis_sq(tr.xy - xy, tr.P[:, :2, :2]))
@@ -629,16 +671,29 @@ def track_files(
     out: str | Path | None = None,
     cfg: TrackConfig = TrackConfig(),
     calibration_cache: bool = True,
+    floor_plan: str | Path | None = None,
+    floor_size: tuple[float, float] | None = None,
 ) -> TrackRun:
     """Read the radio map, its AP models (``ap_models_path``, else ``ap_models.json`` beside the map,
     else fitted now), the sessions (MCAP); track; write ``out`` (CSV). ``calibration_cache``: keep
     the self-calibration in ``track_calibration.json`` beside the map and reuse it while the map,
-    AP models and configuration are the same."""
+    AP models and configuration are the same. ``floor_plan`` (image; ``floor_size`` W H in metres,
+    else ``floor_info.json`` beside it): its walkable area constrains the positions
+    (``TrackConfig.walkable_mode``); the radio map must be in the plan's site frame."""
     from graphslam.io.apmodel_io import StaleApModelsError, read_ap_models
+    from graphslam.io.floor_plan import load_floor_plan, read_walkable_area
     from graphslam.io.mcap_reader import read_survey
     from graphslam.io.radiomap_io import read_radio_map
 
+    plan = load_floor_plan(floor_plan, floor_size)  # bad input fails before any work
     rm = read_radio_map(radio_map_path)
+    area = None
+    if plan is not None:
+        if rm.frame != "site":
+            raise ConfigError(
+                f"--floor-plan: the radio map {radio_map_path} is in the {rm.frame!r} frame; a floor plan's walkable "
+                "area needs a map in the plan's site frame")
+        area = read_walkable_area(plan, cfg.walkable_sigma_m)
     beside = Path(radio_map_path).with_name("ap_models.json")
     if ap_models_path is not None:
         models = read_ap_models(ap_models_path, radio_map=rm)  # another map's models: an error
@@ -656,9 +711,9 @@ def track_files(
     if cfg.self_calibrate and calibration_cache:
         cache = Path(radio_map_path).with_name(CALIBRATION_FILE)
         models_source = Path(ap_models_path) if ap_models_path is not None else beside if beside.exists() else None
-        key = _calibration_key(Path(radio_map_path), models_source, models, cfg)
+        key = _calibration_key(Path(radio_map_path), models_source, models, cfg, plan.path if plan is not None else None)
         cached = _read_calibration(cache, key)
-    tracker = Tracker.on_map(rm, models, cfg, calibration=cached)
+    tracker = Tracker.on_map(rm, models, cfg, calibration=cached, area=area)
     if cache is not None and cached is None and tracker.calibration is not None:
         _write_calibration(cache, key, tracker.calibration)
     with Task("track", total=sum(len(s.steps) for s in survey.sessions), unit="steps") as task:
@@ -673,9 +728,12 @@ CALIBRATION_FILE = "track_calibration.json"
 _CALIBRATION_FORMAT = 1
 
 
-def _calibration_key(radio_map: Path, models_source: Path | None, models: ApModels, cfg: TrackConfig) -> str:
+def _calibration_key(
+    radio_map: Path, models_source: Path | None, models: ApModels, cfg: TrackConfig, floor_plan: Path | None = None
+) -> str:
     """sha256 over what the calibration depends on: the map's bytes, the AP models' (or that they
-    were fitted now, from the map), the tracking configuration and this graphslam's version."""
+    were fitted now, from the map), the floor plan's (its walkable area is replayed too), the tracking
+    configuration and this graphslam's version."""
     import hashlib
     import json
 
@@ -684,6 +742,8 @@ def _calibration_key(radio_map: Path, models_source: Path | None, models: ApMode
     h = hashlib.sha256()
     h.update(radio_map.read_bytes())
     h.update(models_source.read_bytes() if models_source is not None else f"fitted:{len(models.fitted)}".encode())
+    if floor_plan is not None:
+        h.update(b"plan:" + floor_plan.read_bytes())
     h.update(json.dumps(dataclasses.asdict(cfg), sort_keys=True, default=str).encode())
     h.update(f"{__version__}/{_CALIBRATION_FORMAT}".encode())
     return h.hexdigest()

@@ -40,6 +40,7 @@ from graphslam.core.survey.evaluate import interpolate_xy
 from graphslam.core.survey.initialise import fit_se2, se2_apply
 from graphslam.core.tracking.apmodel import ApModels
 from graphslam.core.tracking.calibration import ellipse_coverage, mahalanobis_sq
+from graphslam.core.tracking.walkable import WalkableArea
 from graphslam.core.types import PoseTrack, Session
 from graphslam.errors import GraphSlamError, InputError
 
@@ -54,10 +55,12 @@ _ROUTE = re.compile(r"Trial(\d+)_repetition\d+")
 
 @dataclass(frozen=True)
 class Variant:
-    """A named tracker configuration (``knn`` is always reported besides)."""
+    """A named tracker configuration (``knn`` is always reported besides); ``floor_plan``: whether it
+    gets the floor's walkable area, when the benchmark has one (oracle maps only)."""
 
     name: str
     cfg: TrackConfig
+    floor_plan: bool = True
 
 
 def standard_variants(lags: Sequence[float], filters: Sequence[str] = ("ekf",), smoothers: Sequence[str] = ()) -> list[Variant]:
@@ -128,14 +131,17 @@ def crowdsourced_map(walks: Sequence[Session], cfg: GraphSlamConfig) -> tuple[Ra
 
 
 def score_walks(
-    rm: RadioMap, models: ApModels, walks: Sequence[Session], variants: Sequence[Variant], *, knn_k: int = 3
+    rm: RadioMap, models: ApModels, walks: Sequence[Session], variants: Sequence[Variant], *, knn_k: int = 3,
+    area: WalkableArea | None = None,
 ) -> dict[str, dict[str, list]]:
     """Per variant and per kNN baseline (``KNN_BASELINES``: the paper's eq. 9 as ``knn``, the
     Sørensen metric as ``knn:sorensen``): landmark errors (m), and for trackers whether each
-    landmark lies in the reported 95 % ellipse, plus seconds spent."""
+    landmark lies in the reported 95 % ellipse, plus seconds spent. ``area``: the floor plan's
+    walkable area in ``rm``'s frame, for the variants that take it."""
     out: dict[str, dict[str, list]] = {v: {"err": [], "inside": [], "s": []} for v in (*KNN_BASELINES, *(v.name for v in variants))}
     locators = {name: KnnLocator(rm, KnnConfig(k=knn_k, metric=metric)) for name, metric in KNN_BASELINES.items()}  # type: ignore[arg-type]
-    trackers = {v.name: Tracker.on_map(rm, models, v.cfg) for v in variants}  # self-calibration once per map
+    trackers = {v.name: Tracker.on_map(rm, models, v.cfg, area=area if v.floor_plan else None)
+                for v in variants}  # self-calibration once per map
     for w in walks:
         t, marks = _marks(w)
         for name, locator in locators.items():
@@ -166,6 +172,19 @@ def score_walks(
     return out
 
 
+def floor_plan_area(folder: Path | str, spec: str = "auto", sigma_m: float = TrackConfig().walkable_sigma_m) -> WalkableArea | None:
+    """The walkable area for ``tracking_real``: ``auto``: from ``floor_image.png`` beside the walks
+    (with its ``floor_info.json``, as the ILC floors) when there is one; ``none``; or a plan image."""
+    from graphslam.io.floor_plan import load_floor_plan, read_walkable_area
+
+    if spec == "none":
+        return None
+    path = Path(folder) / "floor_image.png" if spec == "auto" else Path(spec)
+    if spec == "auto" and not path.is_file():
+        return None
+    return read_walkable_area(load_floor_plan(path, None), sigma_m)
+
+
 def _folds(walks: Sequence[Session], folds: int | None, seed: int) -> list[tuple[str, list[int]]]:
     """Leave one route out when every walk names its route, else ``folds`` seeded random folds."""
     routes = [route_of(w) for w in walks]
@@ -184,8 +203,11 @@ def tracking_real(
     maps: Sequence[str] = MAP_KINDS,
     folds: int | None = None,
     seed: int = 0,
+    area: WalkableArea | None = None,
 ) -> dict[str, Any]:
-    """Held-out walks of ``folder`` tracked on maps of the other walks (module docstring)."""
+    """Held-out walks of ``folder`` tracked on maps of the other walks (module docstring). ``area``:
+    the floor plan's walkable area (site frame), given to the variants that take it on the oracle
+    maps only (a crowdsourced map reaches the site frame only through the landmarks)."""
     from graphslam.io.mcap_reader import read_survey
 
     bad = [m for m in maps if m not in MAP_KINDS]
@@ -200,6 +222,7 @@ def tracking_real(
     result: dict[str, Any] = {
         "folder": str(folder), "walks": len(walks), "walks_skipped": len(survey) - len(walks),
         "folds": [name for name, _ in split], "variants": {v.name: _describe(v.cfg) for v in variants},
+        "floor_plan": {v.name: area is not None and v.floor_plan for v in variants},
     }
     for kind in maps:
         acc: dict[str, dict[str, list]] = {}
@@ -220,7 +243,7 @@ def tracking_real(
                 info["error"] = str(e)
                 per_fold.append(info)
                 continue
-            res = score_walks(rm, models, [walks[i] for i in test], variants)
+            res = score_walks(rm, models, [walks[i] for i in test], variants, area=area if kind == "oracle" else None)
             for v, d in res.items():
                 for key, vals in d.items():
                     acc.setdefault(v, {}).setdefault(key, []).extend(vals)

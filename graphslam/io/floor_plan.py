@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from graphslam.core.tracking.walkable import WalkableArea
 from graphslam.errors import ConfigError, InputError
 
 
@@ -53,3 +54,28 @@ def load_floor_plan(path: str | Path | None, size: tuple[float, float] | None) -
     except Exception as e:  # PIL raises many types for bad images
         raise InputError(p, f"cannot read the floor plan image ({e})") from None
     return FloorPlan(p, w, h, px)
+
+
+# A plan pixel is background (not drawn) when transparent or this near white (0-255, every channel).
+BACKGROUND_MIN_RGB = 240
+
+
+def read_walkable_area(plan: FloorPlan, sigma_m: float = 2.0) -> WalkableArea:
+    """The walkable area of a floor plan image: its background pixels (transparent, or white within
+    ``BACKGROUND_MIN_RGB``) that the drawing encloses. Plans draw walls, rooms and shops and leave the
+    corridors and open floor blank (the ILC plans: corridors transparent inside the building's
+    outline, shops filled); the blank outside the outline is not walkable. ``InputError`` naming the
+    file when the image cannot be read or encloses no blank area (e.g. an outline with a gap)."""
+    from PIL import Image
+    from scipy import ndimage
+
+    try:
+        with Image.open(plan.path) as im:
+            px = np.asarray(im.convert("RGBA"))
+    except Exception as e:  # PIL raises many types for bad images
+        raise InputError(plan.path, f"cannot read the floor plan image ({e})") from None
+    background = (px[..., 3] == 0) | (px[..., :3].min(axis=-1) >= BACKGROUND_MIN_RGB)
+    walkable = ndimage.binary_fill_holes(~background) & background
+    if not walkable.any():
+        raise InputError(plan.path, "the floor plan encloses no blank (walkable) area: no closed outline around the corridors")
+    return WalkableArea(walkable, plan.width_m, plan.height_m, sigma_m=sigma_m)

@@ -26,7 +26,8 @@ moments of the bank's posterior mixture (weights exp(-cost / 2)); a hypothesis w
 the best by ``prune_cost`` is dropped (its posterior odds are below exp(-prune_cost / 2)).
 
 With ``axes`` every window also holds the walk-axes prior on its velocities
-(``graphslam.core.tracking.axes``), marginalised with its epoch like any other row.
+(``graphslam.core.tracking.axes``), with ``area`` the walkable-area prior on its step positions
+(``graphslam.core.tracking.walkable``), each marginalised with its epoch like any other row.
 
 Frames and units as the filters (m, m/s, rad, dBm, s).
 """
@@ -46,6 +47,7 @@ from numpy.typing import NDArray
 from graphslam.core.tracking.axes import WalkAxes
 from graphslam.core.tracking.filters import Epochs, FusionModel
 from graphslam.core.tracking.smoother import MapProblem, dead_reckoning_starts, levenberg_marquardt
+from graphslam.core.tracking.walkable import WalkableArea
 from graphslam.errors import EstimationError
 
 log = logging.getLogger(__name__)
@@ -229,9 +231,9 @@ class _Stream:
 
     def __init__(
         self, model: FusionModel, epochs: Epochs, cfg: FixedLagConfig, vel_available_s: NDArray | None,
-        axes: WalkAxes | None = None,
+        axes: WalkAxes | None = None, area: WalkableArea | None = None,
     ) -> None:
-        self.model, self.epochs, self.cfg, self.axes = model, epochs, cfg, axes
+        self.model, self.epochs, self.cfg, self.axes, self.area = model, epochs, cfg, axes, area
         e = epochs
         va = e.t_s[e.vel_k] if vel_available_s is None else np.asarray(vel_available_s, float).ravel()
         if va.shape != e.vel_k.shape or (va < e.t_s[e.vel_k] - 1e-9).any():
@@ -251,7 +253,7 @@ class _Stream:
             e.fix_k[f] - lo, e.fix_xy[f], e.fix_sigma[f], rss_scale[r],
             None if e.travel_m is None else e.travel_m[lo:hi],
         )
-        return MapProblem(self.model, x0, P0, win, huber_k=self.cfg.huber_k, axes=self.axes)
+        return MapProblem(self.model, x0, P0, win, huber_k=self.cfg.huber_k, axes=self.axes, area=self.area)
 
 
 def fixed_lag_smooth(
@@ -263,16 +265,18 @@ def fixed_lag_smooth(
     *,
     vel_available_s: NDArray | None = None,
     axes: WalkAxes | None = None,
+    area: WalkableArea | None = None,
 ) -> FixedLagRun:
     """Stream ``epochs`` through a bank of fixed-lag smoothers, one per start state ``x0`` (prior
     N(x0, P0) on the first epoch); report every epoch ``lag_s`` after its time (see module
     docstring). RSSI and fixes are available at their epoch; velocity readings at their epoch or
     at ``vel_available_s`` (one per reading, s, same clock as ``epochs.t_s``). ``axes``: the walk-axes
-    prior on the velocity (``graphslam.core.tracking.axes``; a map row of every window)."""
+    prior on the velocity (``graphslam.core.tracking.axes``), ``area``: the walkable-area prior on the
+    position (``graphslam.core.tracking.walkable``); map rows of every window."""
     if not len(starts):
         raise EstimationError("fixed-lag: no start state")
     epochs.check_model(model)
-    stream = _Stream(model, epochs, cfg, vel_available_s, axes)
+    stream = _Stream(model, epochs, cfg, vel_available_s, axes, area)
     t = epochs.t_s
     N, n = len(epochs), model.n
     bank = [_Window(stream, x0, P0) for x0 in starts]

@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 
 from graphslam.core.tracking.axes import WalkAxes
 from graphslam.core.tracking.filters import Epochs, FilterRun, FusionModel, velocity_matrix
+from graphslam.core.tracking.walkable import WalkableArea
 from graphslam.errors import EstimationError
 
 log = logging.getLogger(__name__)
@@ -66,15 +67,17 @@ class MapProblem:
     """Whitened residuals of a whole run under ``model`` and their sparse Jacobian.
 
     Row blocks: prior (n), process ((N - 1) n), velocity (2 per reading), then the map rows:
-    RSSI (1 per reading), position fixes (2 per fix) and, with ``axes``, the walk-axes prior on the
-    velocity (1 per velocity reading; ``graphslam.core.tracking.axes``). ``huber_k`` (in standard
+    RSSI (1 per reading), position fixes (2 per fix), with ``axes`` the walk-axes prior on the
+    velocity (1 per velocity reading; ``graphslam.core.tracking.axes``) and with ``area`` the
+    walkable-area prior on the position (1 per velocity reading, i.e. per step;
+    ``graphslam.core.tracking.walkable``). ``huber_k`` (in standard
     deviations) turns the map rows' squares into Huber's loss. With ``model.shadowing`` an RSSI row also
     holds its AP's offset state, and the process decays the offsets over ``epochs.travel_m``.
     """
 
     def __init__(
         self, model: FusionModel, x0: NDArray, P0: NDArray, epochs: Epochs, *, huber_k: float | None = None,
-        axes: WalkAxes | None = None,
+        axes: WalkAxes | None = None, area: WalkableArea | None = None,
     ) -> None:
         epochs.check_model(model)
         n, N = model.n, len(epochs)
@@ -90,6 +93,7 @@ class MapProblem:
         except np.linalg.LinAlgError:
             raise EstimationError("map smoothing: P0 is not positive definite") from None
         self.model, self.epochs, self.n, self.N, self.huber_k, self.axes = model, epochs, n, N, huber_k, axes
+        self.area = area
         self.x0, self.P0 = x0, np.asarray(P0, float)
         self._W0 = sla.solve_triangular(C, np.eye(n), lower=True)  # C^-1: whitens x - x0
         self._dt = epochs.dt
@@ -108,8 +112,9 @@ class MapProblem:
         self._sv = np.sqrt(model.r_velocity)
         self._sr = np.sqrt(model.r_rssi[epochs.rss_ap]) * epochs.rss_scale
         n_axes = len(epochs.vel_k) if axes is not None else 0
+        n_area = len(epochs.vel_k) if area is not None else 0
         self._rows = np.cumsum(
-            [0, n, (N - 1) * n, 2 * len(epochs.vel_k), len(epochs.rss_k) + 2 * len(epochs.fix_k) + n_axes])
+            [0, n, (N - 1) * n, 2 * len(epochs.vel_k), len(epochs.rss_k) + 2 * len(epochs.fix_k) + n_axes + n_area])
         self._pattern = self._structure()
         self._pairs: tuple[NDArray, NDArray, NDArray, NDArray] | None = None
 
@@ -133,6 +138,7 @@ class MapProblem:
             self._W0 @ (X[0] - self.x0), (proc / self._sq).ravel(), (vel / self._sv).ravel(), (e.rss_y - h) / self._sr,
             ((e.fix_xy - X[e.fix_k, 0:2]) / e.fix_sigma[:, None]).ravel(),
             self.axes.residual(xv[:, 2:4]) if self.axes is not None else np.zeros(0),
+            self.area.residual(xv[:, 0:2]) if self.area is not None else np.zeros(0),
         ])
 
     def weights(self, r: NDArray) -> NDArray[np.float64]:
@@ -178,10 +184,15 @@ class MapProblem:
         fr = self._rows[3] + len(e.rss_k) + np.arange(2 * len(e.fix_k))  # x, y row of each fix
         rows.append(fr)
         cols.append((e.fix_k[:, None] * n + np.arange(2)).ravel())
+        n_axes = len(e.vel_k) if self.axes is not None else 0
         if self.axes is not None:  # one row per velocity reading, on that epoch's vx, vy
             ar = self._rows[3] + len(e.rss_k) + 2 * len(e.fix_k) + np.arange(len(e.vel_k))
             rows += [ar, ar]
             cols += [e.vel_k * n + 2, e.vel_k * n + 3]
+        if self.area is not None:  # one row per velocity reading (a step), on that epoch's x, y
+            wr = self._rows[3] + len(e.rss_k) + 2 * len(e.fix_k) + n_axes + np.arange(len(e.vel_k))
+            rows += [wr, wr]
+            cols += [e.vel_k * n, e.vel_k * n + 1]
         return np.concatenate(rows), np.concatenate(cols)
 
     def jacobian(self, X: NDArray) -> sp.csr_matrix:
@@ -211,6 +222,9 @@ class MapProblem:
         if self.axes is not None:
             Ja = self.axes.jacobian(xv[:, 2:4])
             vals += [Ja[:, 0], Ja[:, 1]]
+        if self.area is not None:
+            Jw = self.area.jacobian(xv[:, 0:2])
+            vals += [Jw[:, 0], Jw[:, 1]]
         return np.concatenate(vals)
 
     def _band_pairs(self) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
@@ -412,14 +426,15 @@ def smooth(
     *,
     huber_k: float | None = None,
     axes: WalkAxes | None = None,
+    area: WalkableArea | None = None,
 ) -> SmoothedRun:
     """``"rts"``: RTS over ``filtered``; ``"map"``: whole-run MAP started from the filter's and the
     RTS trajectories and from ``dead_reckoning_starts`` (nothing else), lowest cost kept; ``axes``
-    (MAP only): the walk-axes prior on the velocity."""
+    and ``area`` (MAP only): the walk-axes prior on the velocity, the walkable-area prior on the position."""
     if method not in SMOOTH_METHODS:
         raise EstimationError(f"unknown smoother {method!r}; use {' or '.join(SMOOTH_METHODS)}")
     rts = rts_smooth(model, filtered, epochs)
     if method == "rts":
         return rts
-    problem = MapProblem(model, x0, P0, epochs, huber_k=huber_k, axes=axes)
+    problem = MapProblem(model, x0, P0, epochs, huber_k=huber_k, axes=axes, area=area)
     return map_smooth(problem, [filtered.x, rts.x, *dead_reckoning_starts(problem)])
