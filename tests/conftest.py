@@ -113,3 +113,25 @@ def run_cli(args: list[str]) -> int:
     except SystemExit as e:
         return int(e.code or 0)
     return 0
+
+
+def walking_model() -> Any:
+    """The tracker's fusion model for a walker (the papers' path loss; track's process noise, heading
+    in the state): what the walk-axes and walkable-area tests track with."""
+    from graphslam.core.tracking.filters import FusionModel
+
+    base = FusionModel.paper_ekf()
+    return FusionModel(base.path_loss, np.array([0.01, 0.01, 1.0, 1.0, 1e-6, 1e-6, 1e-4]), np.full(2, 0.15**2),
+                       base.r_rssi, period_s=1.0, theta_rad=None)
+
+
+def walk_epochs(t: np.ndarray, v: np.ndarray, p: np.ndarray, theta: float, fix_k: np.ndarray, rng: np.random.Generator) -> Any:
+    """Epochs of a walk with true velocities ``v`` and positions ``p`` at times ``t`` (map frame):
+    odometry turned by ``theta`` (eq. 4: y_v = M(theta) v, noise 0.05 m/s), a fix (std 4 m) at the
+    epochs ``fix_k``, no RSSI."""
+    from graphslam.core.tracking.filters import Epochs, velocity_matrix
+
+    y_v = np.einsum("ij,kj->ki", velocity_matrix(theta), v) + rng.normal(0.0, 0.05, v.shape)
+    none = np.zeros(0, np.int64)
+    return Epochs(t, np.arange(len(t) - 1), y_v[:-1], none, none, np.zeros(0),
+                  fix_k, p[fix_k] + rng.normal(0.0, 4.0, (len(fix_k), 2)), np.full(len(fix_k), 4.0))

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from graphslam.core.tracking.axes import WalkAxes, axis_statistics
-from graphslam.core.tracking.filters import Epochs, FusionModel, velocity_matrix
 from graphslam.core.tracking.fixed_lag import FixedLagConfig, fixed_lag_smooth
 from graphslam.errors import EstimationError
+
+from conftest import walk_epochs, walking_model
 
 
 def _unit(deg: float) -> np.ndarray:
@@ -99,20 +100,13 @@ def _l_walk(theta: float, rng: np.random.Generator):
     t = np.arange(0.0, 40.0, 0.5)
     v = np.where((t < 20.0)[:, None], [1.2, 0.0], [0.0, 1.2])
     p = np.vstack([[0.0, 0.0], np.cumsum(v[:-1] * 0.5, axis=0)])
-    y_v = np.einsum("ij,kj->ki", velocity_matrix(theta), v) + rng.normal(0.0, 0.05, v.shape)
-    fix_k = np.arange(4, len(t), 4)
-    none = np.zeros(0, np.int64)
-    e = Epochs(t, np.arange(len(t) - 1), y_v[:-1], none, none, np.zeros(0),
-               fix_k, p[fix_k] + rng.normal(0.0, 4.0, (len(fix_k), 2)), np.full(len(fix_k), 4.0))
-    return e, p
+    return walk_epochs(t, v, p, theta, np.arange(4, len(t), 4), rng), p
 
 
 def test_the_prior_corrects_a_heading_the_fixes_leave_wrong():
     # One start whose heading is 14 deg off: the sparse, noisy fixes hardly move it in 40 s; the
     # walker's legs along the axes do (both turned by the same odometry rotation).
-    base = FusionModel.paper_ekf()
-    m = FusionModel(base.path_loss, np.array([0.01, 0.01, 1.0, 1.0, 1e-6, 1e-6, 1e-4]), np.full(2, 0.15**2),
-                    base.r_rssi, period_s=1.0, theta_rad=None)
+    m = walking_model()
     theta = 0.7
     errs: dict[str, list[float]] = {"off": [], "on": []}
     for seed in range(4):

@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from graphslam.core.tracking.filters import Epochs, FusionModel, velocity_matrix
 from graphslam.core.tracking.fixed_lag import FixedLagConfig, fixed_lag_smooth
 from graphslam.core.tracking.walkable import WalkableArea
 from graphslam.errors import EstimationError, InputError
 from graphslam.io.floor_plan import FloorPlan, load_floor_plan, read_walkable_area
+
+from conftest import walk_epochs, walking_model
 
 
 def _corridor(width_m: float = 30.0, height_m: float = 20.0) -> WalkableArea:
@@ -106,18 +107,11 @@ def _corridor_walk(theta: float, rng: np.random.Generator):
     t = np.arange(0.0, 20.0, 0.5)
     v = np.tile([1.2, 0.0], (len(t), 1))
     p = np.c_[3.0 + 1.2 * t, np.full(len(t), 13.5)]
-    y_v = np.einsum("ij,kj->ki", velocity_matrix(theta), v) + rng.normal(0.0, 0.05, v.shape)
-    fix_k = np.arange(2, len(t), 4)
-    none = np.zeros(0, np.int64)
-    e = Epochs(t, np.arange(len(t) - 1), y_v[:-1], none, none, np.zeros(0),
-               fix_k, p[fix_k] + rng.normal(0.0, 4.0, (len(fix_k), 2)), np.full(len(fix_k), 4.0))
-    return e, p
+    return walk_epochs(t, v, p, theta, np.arange(2, len(t), 4), rng), p
 
 
 def test_the_prior_keeps_a_track_in_the_corridor_its_fixes_stray_from():
-    base = FusionModel.paper_ekf()
-    m = FusionModel(base.path_loss, np.array([0.01, 0.01, 1.0, 1.0, 1e-6, 1e-6, 1e-4]), np.full(2, 0.15**2),
-                    base.r_rssi, period_s=1.0, theta_rad=None)
+    m = walking_model()
     theta = 0.4
     cross: dict[str, list[float]] = {"off": [], "on": []}
     for seed in range(6):
