@@ -224,7 +224,7 @@ def test_track_cli_floor_plan_keeps_the_track_on_the_walkable_area(tiny_case, ca
         (["--floor-plan", str(plan), "--floor-size", f"{w}", f"{h}", "--floor-plan-use", "teleport"], "walkable_mode"),
     ):
         with pytest.raises(SystemExit) as e:
-            main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--out", str(out), *args])
+            main(["-q", "track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--out", str(out), *args])
         assert e.value.code == 2
         err = capsys.readouterr().err.strip()
         assert message in err and len(err.splitlines()) == 1, err

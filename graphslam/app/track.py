@@ -283,8 +283,6 @@ def track_session(
     return tr
 
 
-
-
 def _track_session(
     session: Session, model: FusionModel, locator: KnnLocator, cfg: TrackConfig, progress: Task | None,
     area: WalkableArea | None = None,
