@@ -17,6 +17,8 @@ docs/benchmarks.md) and tracked by each variant (``graphslam.app.track``, positi
 in time). Errors at the walk's landmark times against the landmarks (m): mean, median, p75 (the
 IPIN competition's metric), p90. Calibration: the share of landmarks inside the tracker's
 reported 95 % position ellipse (squared Mahalanobis distance <= 5.991, chi-square with 2 dof).
+With a floor plan (``floor_plan_area``: ``floor_image.png`` beside the walks, as on the ILC floors)
+the trackers on the oracle maps get its walkable area (``track --floor-plan``); kNN never does.
 """
 
 from __future__ import annotations
