@@ -231,6 +231,26 @@ def test_track_cli_floor_plan_keeps_the_track_on_the_walkable_area(tiny_case, ca
         assert not out.exists()
 
 
+def test_track_cli_refuses_a_floor_plan_for_a_map_in_another_frame(tiny_case, tmp_path, capsys):
+    # A survey's own (aligned) frame is not the plan's site frame: snapping to it would be wrong.
+    from graphslam.cli import main
+    from graphslam.io.radiomap_io import read_radio_map, write_radio_map
+
+    d, session = tiny_case
+    plan, (w, h) = _path_plan(d, session)
+    rm = read_radio_map(d / "radio_map.parquet")
+    aligned = RadioMap.from_fingerprints(rm.fingerprints, rm.xy, session_ids=rm.session_ids.tolist(), t_ns=rm.t_ns,
+                                         frame="aligned", min_rssi_dbm=rm.min_rssi_dbm)
+    write_radio_map(aligned, tmp_path / "radio_map.parquet")
+    out = tmp_path / "t.csv"
+    with pytest.raises(SystemExit) as e:
+        main(["-q", "track", str(d / "walk.mcap"), "--radio-map", str(tmp_path / "radio_map.parquet"), "--out", str(out),
+              "--floor-plan", str(plan), "--floor-size", f"{w}", f"{h}"])
+    err = capsys.readouterr().err.strip()
+    assert e.value.code == 2 and "'aligned' frame" in err and len(err.splitlines()) == 1, err
+    assert not out.exists()
+
+
 def test_track_skips_an_odometry_jump_instead_of_flying_off(tiny_case):
     # ILC's converter puts the origin pose 1 ms before the first step (0.7 m in 1 ms = 700 m/s).
     # As a velocity reading that throws the estimate hundreds of metres; it must be skipped.
