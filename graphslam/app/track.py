@@ -513,10 +513,11 @@ class Tracker:
         if models.frame != rm.frame:
             raise EstimationError(f"track: AP models are in frame {models.frame!r}, radio map in {rm.frame!r}")
         model = fusion_model(models, cfg)
+        area = cfg.walkable_area(area)  # once: its distance field is rebuilt for another std
         if not cfg.self_calibrate:
             calibration = None
         elif calibration is None:
-            calibration = SelfCalibration.measure(rm, models, model, cfg, cfg.walkable_area(area))
+            calibration = SelfCalibration.measure(rm, models, model, cfg, area)
         if calibration is not None:
             model, cfg = calibration.apply(model, cfg)
         if cfg.walk_axes and (cfg.filter == "fixed-lag" or cfg.smoother == "map"):
@@ -525,7 +526,6 @@ class Tracker:
                 log.info("track: walk axes: none on this map (concentration below %.2f)", cfg.axis_min_concentration)
             else:
                 log.info("track: walk axes at %.1f deg + k 90 deg (concentration %.2f)", math.degrees(axes.angle_rad), axes.concentration)
-        area = cfg.walkable_area(area)
         if area is not None:
             log.info("track: walkable area from the floor plan: %.0f %% of %.0f x %.0f m (%s)",
                      100 * area.fraction_walkable(), area.width_m, area.height_m, cfg.walkable_mode)
