@@ -741,7 +741,9 @@ def track(
         True, "--calibration-cache/--no-calibration-cache",
         help="Keep the self-calibration in track_calibration.json beside the map; reuse it for the same map, AP models and options.",
     ),
-    knn_metric: str = typer.Option("sorensen", "--knn-metric", help="kNN fixes' " + METRIC_HELP[0].lower() + METRIC_HELP[1:]),
+    knn_metric: str = typer.Option(
+        "sorensen", "--knn-metric",
+        help="kNN fixes' (and the particle filter's scan matches') " + METRIC_HELP[0].lower() + METRIC_HELP[1:]),
     walk_axes: bool = typer.Option(
         True, "--walk-axes/--no-walk-axes",
         help="fixed-lag / --smooth map: walkers keep to the two perpendicular directions the map's own walks keep to "

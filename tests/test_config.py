@@ -84,7 +84,16 @@ def test_track_config_knn_metric() -> None:
     from graphslam.errors import EstimationError
 
     assert TrackConfig(knn_metric="sorensen").knn_config().metric == "sorensen"
-    # the particle filter's match temperature is in eq. 9 dB: it matches on eq. 9 whatever is asked
-    assert TrackConfig(filter="particle", knn_metric="sorensen").knn_config().metric == "eq9"
+    # the particle filter matches on the same distance, its temperature in that distance's units
+    from graphslam.app.track import PARTICLE_TEMPERATURE
+
+    pf = TrackConfig(filter="particle")
+    assert pf.knn_config().metric == "sorensen" and pf.particle_config().temperature == PARTICLE_TEMPERATURE["sorensen"]
+    assert PARTICLE_TEMPERATURE["sorensen"] < 1.0 < PARTICLE_TEMPERATURE["eq9"]  # unitless in [0, 1] / dB
+    eq9 = TrackConfig(filter="particle", knn_metric="eq9")
+    assert eq9.knn_config().metric == "eq9" and eq9.particle_config().temperature == PARTICLE_TEMPERATURE["eq9"]
+    assert TrackConfig(filter="particle", particle_temperature=0.1).particle_config().temperature == 0.1
+    with pytest.raises(EstimationError, match="temperature"):
+        TrackConfig(filter="particle", particle_temperature=0.0)
     with pytest.raises(EstimationError, match="unknown kNN metric 'cosine'"):
         TrackConfig(knn_metric="cosine")

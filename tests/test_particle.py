@@ -22,7 +22,7 @@ def test_scan_matches_are_the_nearest_first_and_padded() -> None:
 
 
 def test_the_likelihood_peaks_at_the_best_match() -> None:
-    cfg = ParticleConfig(kernel_m=1.0, temperature_db=1.0, area_m2=2500.0)
+    cfg = ParticleConfig(kernel_m=1.0, temperature=1.0, area_m2=2500.0)
     centres = np.array([[0.0, 0.0], [10.0, 0.0]])
     w = np.array([0.8, 0.2])
     ll = log_likelihood(np.array([[0.0, 0.0], [10.0, 0.0], [5.0, 0.0], [50.0, 50.0]]), centres, w, cfg)

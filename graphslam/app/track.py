@@ -79,6 +79,10 @@ TRACK_HEADER = (
 )
 _SWAP = np.array([[0.0, 1.0], [1.0, 0.0]])
 TRACKERS = ("fixed-lag", "ekf", "ukf", "particle")
+# The particle filter's match temperature T per fingerprint distance (its units: eq. 9 dB; Sørensen, unitless
+# in [0, 1]): each the maximum of the leave-one-session-out log-likelihood of the ILC B1 training maps' own
+# fingerprint positions under the scan-match mixture (the map only; the surface is flat near it: docs/tracking.md)
+PARTICLE_TEMPERATURE = {"eq9": 2.0, "sorensen": 0.05}
 WALKABLE_MODES = ("snap", "prior", "both")  # how a floor plan's walkable area is used (TrackConfig.walkable_mode)
 BANK_REPORTS = ("mixture", "best")  # fixed-lag: the heading bank's posterior mixture, or its best hypothesis
 
@@ -108,7 +112,7 @@ class TrackConfig:
     knn_k: int = 3
     # kNN fixes' fingerprint distance (``KnnConfig.metric``). Sørensen on powed RSS since 2026-12-02:
     # better fixes, means and ellipses on IPIN b100_f-2 and all five ILC site1 floors (docs/tracking.md).
-    # The particle filter's match temperature is in eq. 9 dB, so it always matches on eq. 9
+    # The particle filter's scan matches use it too (its temperature in this distance's units)
     knn_metric: str = "sorensen"
     max_step_speed_mps: float = 3.0  # faster step intervals are odometry jumps: no velocity reading
     # walk-axes prior (``graphslam.core.tracking.axes``; fixed-lag and --smooth map only): walkers keep to
@@ -141,7 +145,8 @@ class TrackConfig:
     smoother: str = "none"  # none | rts | map (offline: uses the whole session)
     particles: int = 1000  # particle: particles per walk
     particle_top_k: int = 16  # particle: map fingerprints in a scan's likelihood mixture
-    particle_temperature_db: float = 2.0  # particle: match weights exp(-(D_j - D_1) / T)
+    # particle: match weights exp(-(D_j - D_1) / T), T in knn_metric's units; None: PARTICLE_TEMPERATURE's
+    particle_temperature: float | None = None
     particle_kernel_m: float = 4.0  # particle: each match's spatial spread (m)
     particle_outlier: float = 0.01  # particle: share of a uniform density in a scan's likelihood
     particle_seed: int = 0
@@ -190,14 +195,15 @@ class TrackConfig:
         return dataclasses.replace(area, sigma_m=self.walkable_sigma_m)
 
     def knn_config(self) -> KnnConfig:
-        """The kNN fixes' search (the particle filter matches on eq. 9, its temperature being in dB)."""
-        return KnnConfig(k=self.knn_k, metric="eq9" if self.filter == "particle" else self.knn_metric)  # type: ignore[arg-type]
+        """The kNN fixes' search (and the particle filter's scan matches)."""
+        return KnnConfig(k=self.knn_k, metric=self.knn_metric)  # type: ignore[arg-type]
 
     def particle_config(self, area_m2: float = 1.0, seed: int = 0) -> ParticleConfig:
         """The particle filter's settings (``EstimationError`` when invalid); ``seed`` is mixed with
         ``particle_seed``."""
         return ParticleConfig(
-            n_particles=self.particles, top_k=self.particle_top_k, temperature_db=self.particle_temperature_db,
+            n_particles=self.particles, top_k=self.particle_top_k,
+            temperature=PARTICLE_TEMPERATURE[self.knn_metric] if self.particle_temperature is None else self.particle_temperature,
             kernel_m=self.particle_kernel_m, outlier=self.particle_outlier, area_m2=area_m2, lag_s=self.lag_s,
             huber_k=self.gate_sigma, seed=self.particle_seed ^ seed,
         )

@@ -4,12 +4,12 @@ weighed by its fingerprint matches as a multimodal likelihood, reported with a f
 Why besides the Gaussian trackers: a kNN fix is unimodal; when a scan's best matches lie in two
 places (a repeated corridor, a hall heard from both ends) its mean lies between them and a
 Gaussian tracker has to choose one. Here a scan's likelihood at a position ``x`` is the mixture
-over its ``top_k`` nearest map fingerprints ``j`` (distances ``D_j``, dB):
+over its ``top_k`` nearest map fingerprints ``j`` (distances ``D_j``: eq. 9 dB or Sørensen, unitless):
 
     p(x) = (1 - eps) sum_j w_j N(x; m_j, h^2 I) + eps / A,   w_j ~ exp(-(D_j - D_1) / T)
 
 with ``m_j`` the fingerprint's map position, ``h`` the kernel width (m), ``T`` the match
-temperature (dB) and a uniform share ``eps`` over the map's area ``A``; the walker's steps move
+temperature (the distance's units) and a uniform share ``eps`` over the map's area ``A``; the walker's steps move
 every particle, so only the modes that the walk's geometry connects survive.
 
 State per particle: position (m, map frame), the rotation ``phi`` (rad) from the foot module's
@@ -40,7 +40,7 @@ from graphslam.errors import EstimationError
 class ParticleConfig:
     n_particles: int = 1000
     top_k: int = 16  # map fingerprints in a scan's likelihood mixture
-    temperature_db: float = 2.0  # T: match weights exp(-(D_j - D_1) / T)
+    temperature: float = 2.0  # T: match weights exp(-(D_j - D_1) / T), the distances' units (eq. 9: dB)
     kernel_m: float = 4.0  # h: each match's spatial spread (m)
     outlier: float = 0.01  # eps: share of a uniform density in a scan's likelihood (no scan kills every particle)
     area_m2: float = 10000.0  # the uniform density's area (the map's bounding box)
@@ -57,9 +57,9 @@ class ParticleConfig:
     def __post_init__(self) -> None:
         if self.n_particles < 2 or self.top_k < 1:
             raise EstimationError("particle filter: n_particles >= 2 and top_k >= 1 required")
-        vals = (self.temperature_db, self.kernel_m, self.init_spread_m)
+        vals = (self.temperature, self.kernel_m, self.init_spread_m)
         if not all(math.isfinite(v) and v > 0 for v in vals):
-            raise EstimationError("particle filter: temperature_db, kernel_m and init_spread_m must be > 0")
+            raise EstimationError("particle filter: temperature, kernel_m and init_spread_m must be > 0")
         if not (0 < self.resample_ess <= 1) or self.lag_s < 0 or not (0 < self.outlier < 1) or not self.area_m2 > 0:
             raise EstimationError("particle filter: 0 < resample_ess <= 1, lag_s >= 0, 0 < outlier < 1 and area_m2 > 0 required")
 
@@ -109,7 +109,7 @@ def _mixture(d: NDArray, cfg: ParticleConfig) -> NDArray[np.float64]:
     ok = np.isfinite(d)
     if not ok.any():
         return np.zeros_like(d)
-    w = np.where(ok, np.exp(-(np.where(ok, d, 0.0) - d[ok].min()) / cfg.temperature_db), 0.0)
+    w = np.where(ok, np.exp(-(np.where(ok, d, 0.0) - d[ok].min()) / cfg.temperature), 0.0)
     return w / w.sum()
 
 
@@ -145,7 +145,7 @@ def run_particle_filter(
     ``t_s`` (n,) step times (s, ascending); ``odo_xy`` (n, 2) the foot module's positions (its own
     frame, m); ``walked`` (n - 1,) whether a step interval is a usable displacement (else only
     noise moves the particles); ``scan_t_s`` (S,) scan times; ``match_xy`` (S, K, 2) and
-    ``match_d`` (S, K) each scan's nearest map fingerprints (positions, distances in dB; ``inf``
+    ``match_d`` (S, K) each scan's nearest map fingerprints (positions, distances in the metric's units; ``inf``
     for none). ``rssi``: each scan's readings under path-loss models, weighed too (Huber). The
     first scan with a match places the particles; ``EstimationError`` if none has.
     """
