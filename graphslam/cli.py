@@ -720,6 +720,11 @@ def track(
         "mixture", "--bank-report",
         help="fixed-lag: mixture (the heading hypotheses' posterior mixture) or best (the most probable one only).",
     ),
+    bank_temper: Optional[float] = typer.Option(
+        None, "--bank-temper",
+        help="fixed-lag: divide the heading hypotheses' costs by this (>= 1) before weighing them; default: measured on "
+        "the map by self-calibration (its fixes' error correlation along a walk), 1 without it.",
+    ),
     out: Path = typer.Option(..., "--out", help="Output CSV: one row per step (t_ns, x, y, covariance, ...)."),
     ap_models: Optional[Path] = typer.Option(
         None, "--ap-models", help="AP models JSON (default: ap_models.json beside the map, else fitted now)."
@@ -771,7 +776,7 @@ def track(
     knn_metric = _metric(knn_metric, "--knn-metric")
     cfg = TrackConfig(
         filter=filter_, lag_s=lag, smoother=smooth, knn_fixes=knn_fixes, adaptive_rssi=adaptive_rssi,
-        self_calibrate=self_calibrate, bank_report=bank_report, knn_metric=knn_metric, walk_axes=walk_axes,
+        self_calibrate=self_calibrate, bank_report=bank_report, bank_temper=bank_temper, knn_metric=knn_metric, walk_axes=walk_axes,
         walkable_sigma_m=walkable_sigma, walkable_mode=floor_plan_use,
     )
     run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg, calibration_cache=calibration_cache,

@@ -97,3 +97,5 @@ def test_track_config_knn_metric() -> None:
         TrackConfig(filter="particle", particle_temperature=0.0)
     with pytest.raises(EstimationError, match="unknown kNN metric 'cosine'"):
         TrackConfig(knn_metric="cosine")
+    with pytest.raises(EstimationError, match="bank_temper"):
+        TrackConfig(bank_temper=0.5)  # below 1 would sharpen the bank's odds beyond its own likelihood

@@ -162,6 +162,29 @@ def test_the_mixture_report_spreads_over_undecided_starts_and_follows_a_decided_
         FixedLagConfig(report="mean")
 
 
+def test_a_tempered_bank_weighs_its_starts_as_if_the_costs_were_divided():
+    # temper T: the mixture's weights exp(-cost / 2T) and pruning at T x prune_cost. A cost gap of
+    # 2 T ln 3 makes the odds 3 : 1, whatever T; the tempered bank keeps a start the plain one prunes.
+    m, e = _model(), _epochs()
+    tight = np.diag([0.01, 0.01, 0.2, 0.2, 0.01, 0.01])
+    far = X0 + np.r_[20.0, 0, 0, 0, 0, 0]
+    cfg = dict(lag_s=0.0, window_s=5.0, huber_k=None, report="mixture")
+    plain = fixed_lag_smooth(m, [far, X0], tight, e, FixedLagConfig(**cfg, prune_cost=30.0))
+    temp = fixed_lag_smooth(m, [far, X0], tight, e, FixedLagConfig(**cfg, prune_cost=30.0, temper=1e4))
+    assert np.isinf(plain.cost[0]) and np.isfinite(temp.cost).all()
+    k = len(e) - 1  # the last report: the plain bank's one start, the tempered bank's even mixture of both
+    assert abs(plain.x[k, 0] - temp.x[k, 0]) > 1.0
+    same = fixed_lag_smooth(m, [far, X0], tight, e, FixedLagConfig(**cfg, prune_cost=30.0, temper=1.0))
+    np.testing.assert_array_equal(same.x, plain.x)  # temper 1: the bank's own costs
+    for bad in (0.5, float("inf")):
+        with pytest.raises(EstimationError, match="temper"):
+            FixedLagConfig(temper=bad)
+    costs = temp.cost
+    w = np.exp(-0.5 * (costs - costs.min()) / 1e4)
+    w /= w.sum()
+    assert 0.4 < w[0] < 0.6  # nearly even odds after tempering
+
+
 def test_config_rejects_a_window_shorter_than_the_lag():
     with pytest.raises(EstimationError, match="lag"):
         FixedLagConfig(lag_s=3.0, window_s=1.0)

@@ -10,7 +10,7 @@ import pytest
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.tracking.apmodel import ApModel, ApModels
 from graphslam.core.tracking.calibration import (
-    CHI2_2DOF_95, ellipse_coverage, fix_noise, leave_one_session_out_error_vectors,
+    CHI2_2DOF_95, bank_temper, ellipse_coverage, fix_error_correlation, fix_noise, leave_one_session_out_error_vectors,
     leave_one_session_out_errors, mahalanobis_sq, rssi_variance_factor,
 )
 
@@ -66,6 +66,35 @@ def test_leave_one_session_out_errors_measure_the_gap_to_the_other_sessions():
         leave_one_session_out_errors(one)
 
 
+def test_fix_error_correlation_tells_slow_map_errors_from_white_ones_and_tempers_the_bank():
+    # Session b repeats a's fingerprints, laid off its true path: by a slowly varying shift (the
+    # errors of neighbouring fixes agree: correlation near 1) or by an independent shift per
+    # fingerprint (near 0). Sessions are stored out of time order: the pairs follow t_ns.
+    rng = np.random.default_rng(2)
+    n = 60
+    xy = np.column_stack([np.linspace(0, 59, n), np.full(n, 10.0)])
+    rss = _rss(xy) + rng.normal(0, 0.3, (n, len(APS)))
+    scans = [{f"ap{j}": float(r[j]) for j in range(len(APS))} for r in rss]
+    order = rng.permutation(n)
+
+    def two_sessions(shift: np.ndarray) -> RadioMap:
+        return RadioMap.from_scans(
+            [scans[i] for i in order] + scans, np.vstack([xy[order], xy + shift]), session_ids=["a"] * n + ["b"] * n,
+            t_ns=list(order) + list(range(n)), frame="site",
+        )
+
+    slow = np.column_stack([np.zeros(n), 4.0 * np.sin(np.arange(n) / 8.0)])
+    white = rng.normal(0.0, 3.0, (n, 2))
+    rho_slow = fix_error_correlation(two_sessions(slow), k=1)
+    rho_white = fix_error_correlation(two_sessions(white), k=1)
+    assert rho_slow > 0.9 and abs(rho_white) < 0.3
+    assert bank_temper(0.0) == 1.0 and bank_temper(-0.4) == 1.0 and bank_temper(0.5) == pytest.approx(3.0)
+    assert bank_temper(0.99) == pytest.approx(19.0)  # clipped at rho 0.9
+    assert bank_temper(rho_slow) > 10.0
+    with pytest.raises(Exception, match="2 sessions"):
+        fix_error_correlation(RadioMap.from_scans(scans, xy, session_ids="a", t_ns=list(range(n)), frame="site"))
+
+
 def test_rssi_variance_factor_is_one_for_independent_readings_and_grows_with_duplicated_bssids():
     # Readings with the stated 4 dB independent noise: the map positions sit where the readings
     # put them, chi-square distributed (factor ~1). The same physical APs announced under 8
@@ -109,6 +138,10 @@ def test_self_calibration_takes_the_fix_noise_from_the_map_and_keeps_the_configu
     assert near.cfg.fix_sigma_floor_m == cfg.fix_sigma_floor_m  # never below the configured floor
     off = Tracker.on_map(_corridor_map(6.0), _models(names, APS), TrackConfig(self_calibrate=False))
     assert off.cfg.fix_sigma_floor_m == cfg.fix_sigma_floor_m and off.cfg.covariance_scale == 1.0
+    assert off.cfg.bank_temper is None and far.cfg.bank_temper >= 1.0  # measured on the map (None: the bank's own costs)
+    assert far.calibration.bank_temper == far.cfg.bank_temper
+    fixed = Tracker.on_map(_corridor_map(6.0), _models(names, APS), dataclasses.replace(cfg, bank_temper=2.5))
+    assert fixed.cfg.bank_temper == 2.5 and fixed.calibration.bank_temper == 1.0  # configured: not measured
     assert (far.model.r_rssi >= off.model.r_rssi - 1e-12).all()  # RSSI variance only ever inflated
 
 

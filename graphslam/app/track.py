@@ -4,7 +4,8 @@
 ``lag_s`` after it from a sliding-window MAP of the last ``window_s``, Huber loss instead of the
 gate, the heading bank ranked by total cost), or the causal ``ekf`` / ``ukf`` described below.
 All share the model, readings and start. ``self_calibrate`` (default on): the kNN fix floor,
-the RSSI variance and a covariance scale measured on the radio map itself (``Tracker.on_map``,
+the RSSI variance, a covariance scale and the heading bank's temper (how much the correlated
+fixes overstate the odds between headings) measured on the radio map itself (``Tracker.on_map``,
 ``graphslam.core.tracking.calibration``; docs/tracking.md).
 
 Per session (positions in the radio map's frame, m):
@@ -95,6 +96,9 @@ class TrackConfig:
     lag_s: float = 2.0  # fixed-lag: a step's position is reported once the data up to lag_s later are in
     window_s: float = 20.0  # fixed-lag: older epochs are marginalised into a prior
     prune_cost: float | None = 50.0  # fixed-lag: heading hypotheses this far above the best are dropped
+    # fixed-lag: the heading bank's costs over this in its weights and pruning; None: measured on the map with
+    # self-calibration (the fixes' error correlation along a walk, ``calibration.bank_temper``), else 1
+    bank_temper: float | None = None
     calibrate_covariance: bool = True  # fixed-lag: covariances also scaled by the walk's own fix-innovation variance factor
     bank_report: str = "mixture"  # fixed-lag: mixture (posterior mixture of the heading bank) | best (lowest-cost hypothesis)
     w0: float = 0.1  # UKF weight of the central sigma point (Paper 002's value)
@@ -162,6 +166,8 @@ class TrackConfig:
             raise EstimationError(f"track: lag_s and window_s must be finite and >= 0, got {self.lag_s}, {self.window_s}")
         if self.max_step_speed_mps <= 0 or self.fix_sigma_floor_m <= 0:
             raise EstimationError("track: max_step_speed_mps and fix_sigma_floor_m must be > 0")
+        if self.bank_temper is not None and not (math.isfinite(self.bank_temper) and self.bank_temper >= 1):
+            raise EstimationError(f"track: bank_temper must be >= 1 (or None), got {self.bank_temper}")
         if self.bank_report not in BANK_REPORTS:
             raise EstimationError(f"track: unknown bank report {self.bank_report!r}; use {', '.join(BANK_REPORTS)}")
         if self.filter == "particle" and self.smoother != "none":
@@ -405,6 +411,7 @@ def _track_fixed_lag(
         FixedLagConfig(
             lag_s=cfg.lag_s, window_s=max(cfg.window_s, cfg.lag_s), huber_k=cfg.gate_sigma, prune_cost=cfg.prune_cost,
             adaptive_rssi=cfg.adaptive_rssi, report=cfg.bank_report, angle_index=None if model.theta_rad is not None else 6,
+            temper=1.0 if cfg.bank_temper is None else cfg.bank_temper,
         ),
         vel_available_s=avail, axes=axes, area=area,
     )
@@ -552,12 +559,13 @@ def track_sessions(
 
 @dataclass(frozen=True)
 class SelfCalibration:
-    """What self-calibration measured on one radio map for one ``TrackConfig``: three numbers,
+    """What self-calibration measured on one radio map for one ``TrackConfig``: four numbers,
     so that they can be kept beside the map (``track_files``) instead of measured per call."""
 
     rssi_variance_factor: float  # RSSI variances x this
     fix_sigma_floor_m: float  # kNN fix std floor (m)
     covariance_scale: float  # reported covariances x this (>= 1)
+    bank_temper: float = 1.0  # the heading bank's costs / this (>= 1; only where TrackConfig.bank_temper is None)
 
     @classmethod
     def measure(
@@ -566,8 +574,9 @@ class SelfCalibration:
         """The map's own RSSI variance factor, its leave-one-session-out kNN error as the fix floor
         (``graphslam.core.tracking.calibration``), and the covariance scale from replaying its walks
         under those two (and the walkable ``area`` the tracker will use): noise levels measured on the
-        map, not chosen per building."""
-        from graphslam.core.tracking.calibration import fix_noise, rssi_variance_factor
+        map, not chosen per building. With ``cfg.bank_temper`` None also the heading bank's temper from
+        the correlation of consecutive fix errors along the map's walks (``calibration.bank_temper``)."""
+        from graphslam.core.tracking.calibration import bank_temper, fix_error_correlation, fix_noise, rssi_variance_factor
 
         kappa = rssi_variance_factor(rm, models, np.sqrt(model.r_rssi)) if len(models.fitted) else 1.0
         try:
@@ -575,15 +584,23 @@ class SelfCalibration:
         except EstimationError as e:  # a one-session map: keep the configured floor
             log.info("track: no leave-one-session-out fix noise (%s)", e)
             floor = cfg.fix_sigma_floor_m
-        half = cls(float(kappa), float(floor), 1.0)
+        temper = 1.0
+        if cfg.bank_temper is None:
+            try:
+                temper = bank_temper(fix_error_correlation(rm, k=cfg.knn_k, metric=cfg.knn_config().metric))
+            except EstimationError as e:  # a one-session map: the bank's costs as they are
+                log.info("track: no fix error correlation (%s)", e)
+        half = cls(float(kappa), float(floor), 1.0, temper)
         scale = replay_covariance_scale(rm, *half.apply(model, cfg), area=area) if cfg.replay_sessions > 0 else 1.0
-        log.info("track: self-calibration: RSSI variance x %.2f, kNN fix std floor %.2f m, covariance x %.2f", kappa, floor, scale)
-        return cls(float(kappa), float(floor), float(scale))
+        log.info("track: self-calibration: RSSI variance x %.2f, kNN fix std floor %.2f m, covariance x %.2f, "
+                 "heading bank temper %.2f", kappa, floor, scale, temper)
+        return cls(float(kappa), float(floor), float(scale), float(temper))
 
     def apply(self, model: FusionModel, cfg: TrackConfig) -> tuple[FusionModel, TrackConfig]:
         model = dataclasses.replace(model, r_rssi=model.r_rssi * self.rssi_variance_factor)
         cfg = dataclasses.replace(cfg, fix_sigma_floor_m=self.fix_sigma_floor_m, self_calibrate=False,
-                                  covariance_scale=cfg.covariance_scale * self.covariance_scale)
+                                  covariance_scale=cfg.covariance_scale * self.covariance_scale,
+                                  bank_temper=self.bank_temper if cfg.bank_temper is None else cfg.bank_temper)
         return model, cfg
 
 
@@ -729,7 +746,7 @@ def track_files(
 # Self-calibration kept beside the radio map: measuring it replays the map's walks (~46 s on the
 # IPIN floor), the same for every call with the same map, AP models and configuration.
 CALIBRATION_FILE = "track_calibration.json"
-_CALIBRATION_FORMAT = 1
+_CALIBRATION_FORMAT = 2  # 2: with the heading bank's temper
 
 
 def _calibration_key(
@@ -765,11 +782,12 @@ def _read_calibration(path: Path, key: str) -> SelfCalibration | None:
         if d.get("format") != _CALIBRATION_FORMAT or d.get("key") != key:
             log.info("%s: for another map, AP models or configuration: measuring again", path)
             return None
-        cal = SelfCalibration(*(float(d[k]) for k in ("rssi_variance_factor", "fix_sigma_floor_m", "covariance_scale")))
+        cal = SelfCalibration(*(float(d[k]) for k in ("rssi_variance_factor", "fix_sigma_floor_m", "covariance_scale",
+                                                       "bank_temper")))
     except (OSError, ValueError, TypeError, KeyError, AttributeError) as e:
         log.warning("%s: unreadable (%s): measuring the self-calibration again", path, e)
         return None
-    if not all(math.isfinite(v) and v > 0 for v in dataclasses.astuple(cal)) or cal.covariance_scale < 1:
+    if not all(math.isfinite(v) and v > 0 for v in dataclasses.astuple(cal)) or min(cal.covariance_scale, cal.bank_temper) < 1:
         log.warning("%s: values out of range: measuring the self-calibration again", path)
         return None
     log.info("track: self-calibration from %s", path)

@@ -8,6 +8,10 @@ area will see; on a crowdsourced map it is the error in the map's own frame (whi
 frame the tracker reports in). Why not a constant: kNN errors differ by building (UJIIndoorLoc
 ~5 m, ILC mall ~6 m, IPIN museum ~9 m, the simulator ~2 m: docs/benchmarks.md), and a fix
 standard deviation chosen on one misweights fixes against steps on the others.
+
+The same errors in time order along each of the map's walks say how correlated consecutive fixes
+are (``fix_error_correlation``): a walk's fixes are fewer independent looks than their number, and
+the heading bank's odds, a sum over fixes, are overstated by ``bank_temper``'s factor.
 """
 
 from __future__ import annotations
@@ -87,6 +91,40 @@ def fix_noise(rm: RadioMap, *, k: int = 3, metric: str = "eq9") -> FixNoise:
         raise EstimationError("fix noise: no fingerprint could be located among other sessions")
     med = float(np.median(e))
     return FixNoise(len(e), med, float(np.percentile(e, 90)), med / RAYLEIGH_MEDIAN)
+
+
+def fix_error_correlation(
+    rm: RadioMap, *, k: int = 3, metric: str = "eq9", max_queries: int = 3000, seed: int = 0
+) -> float:
+    """Correlation of consecutive kNN fix errors along a walk: the leave-one-session-out error
+    vectors (``leave_one_session_out_error_vectors``) of each session's fingerprints in time order,
+    every pair of neighbours, both axes pooled (each axis centred). Whole sessions are sampled
+    (seeded) up to about ``max_queries`` fingerprints. 0 when fewer than 3 pairs."""
+    sid = np.asarray(rm.session_ids)
+    sessions = np.unique(sid)
+    if len(sessions) < 2:
+        raise EstimationError("fix error correlation: the radio map needs fingerprints of at least 2 sessions")
+    sessions = np.random.default_rng(seed).permutation(sessions)
+    sizes = np.array([np.count_nonzero(sid == s) for s in sessions])
+    keep = sessions[: max(2, int(np.searchsorted(np.cumsum(sizes), max_queries, side="right")))]
+    rows = np.flatnonzero(np.isin(sid, keep))
+    rows = rows[np.lexsort((np.asarray(rm.t_ns)[rows], sid[rows]))]  # by session, then time
+    e = leave_one_session_out_error_vectors(rm, rows, k=k, metric=metric)
+    pair = (sid[rows][1:] == sid[rows][:-1]) & np.isfinite(e[1:]).all(axis=1) & np.isfinite(e[:-1]).all(axis=1)
+    if pair.sum() < 3:
+        return 0.0
+    a, b = e[:-1][pair], e[1:][pair]
+    a, b = a - a.mean(axis=0), b - b.mean(axis=0)
+    den = float(np.sqrt((a * a).sum() * (b * b).sum()))
+    return float((a * b).sum() / den) if den > 0 else 0.0
+
+
+def bank_temper(rho: float, *, rho_max: float = 0.9) -> float:
+    """How much a walk's correlated fixes overstate the evidence between heading hypotheses: the
+    variance of a sum of AR(1) terms with lag-1 correlation ``rho`` over that of independent ones,
+    (1 + rho) / (1 - rho) (>= 1; ``rho`` clipped to [0, ``rho_max``])."""
+    r = min(max(float(rho), 0.0), rho_max)
+    return (1.0 + r) / (1.0 - r)
 
 
 def rssi_variance_factor(

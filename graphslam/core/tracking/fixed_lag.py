@@ -23,7 +23,10 @@ Several starts (e.g. heading hypotheses) run as a bank in lock-step; each output
 hypothesis with the lowest total cost (the marginalised parts' constants plus the window cost,
 i.e. twice the negative log posterior up to a shared constant), or with ``report="mixture"`` the
 moments of the bank's posterior mixture (weights exp(-cost / 2)); a hypothesis whose cost exceeds
-the best by ``prune_cost`` is dropped (its posterior odds are below exp(-prune_cost / 2)).
+the best by ``prune_cost`` is dropped (its posterior odds are below exp(-prune_cost / 2)). With
+``temper`` T > 1 the costs are divided by T in both (weights exp(-cost / 2T), pruning at T
+``prune_cost``): readings whose errors are correlated in time count T times too often in the costs,
+so the bank would decide for one hypothesis too early; each hypothesis's own estimate is unchanged.
 
 With ``axes`` every window also holds the walk-axes prior on its velocities
 (``graphslam.core.tracking.axes``), with ``area`` the walkable-area prior on its step positions
@@ -72,6 +75,7 @@ class FixedLagConfig:
     prior_count: float = 4.0  # pseudo-fixes of NIS 2 in the variance factor
     report: str = "best"  # best: the lowest-cost hypothesis | mixture: the bank's posterior mixture
     angle_index: int | None = None  # state entry that is an angle (mixture differences wrapped)
+    temper: float = 1.0  # the bank's costs are divided by this in its weights and pruning (correlated readings)
 
     def __post_init__(self) -> None:
         if not (self.lag_s >= 0 and self.window_s >= self.lag_s):
@@ -80,6 +84,8 @@ class FixedLagConfig:
             raise EstimationError(f"fixed-lag: huber_k must be > 0, got {self.huber_k}")
         if self.max_iter < 1 or (self.prune_cost is not None and self.prune_cost <= 0):
             raise EstimationError("fixed-lag: max_iter >= 1 and prune_cost > 0 required")
+        if not (math.isfinite(self.temper) and self.temper >= 1.0):
+            raise EstimationError(f"fixed-lag: temper must be a finite number >= 1, got {self.temper}")
         if self.report not in ("best", "mixture"):
             raise EstimationError(f"fixed-lag: report must be 'best' or 'mixture', got {self.report!r}")
 
@@ -292,7 +298,7 @@ def fixed_lag_smooth(
             if cfg.report == "mixture" and len(live) > 1:
                 costs = np.array([bank[h].total_cost for h in live])
                 xs[out], Ps[out] = mixture_moments(
-                    [bank[h].estimate(out) for h in live], costs, live.index(b), cfg.angle_index
+                    [bank[h].estimate(out) for h in live], costs / cfg.temper, live.index(b), cfg.angle_index
                 )
             else:
                 xs[out], Ps[out] = bank[b].estimate(out)
@@ -313,7 +319,7 @@ def fixed_lag_smooth(
                 w.marginalise_first()
             w.solve(now, restart=cfg.restart_every > 0 and j % cfg.restart_every == 0 and j > 0)
             solves += 1
-        _prune(bank, cfg.prune_cost)
+        _prune(bank, None if cfg.prune_cost is None else cfg.prune_cost * cfg.temper)
     report(math.inf)
     costs = np.array([w.total_cost if w.alive else np.inf for w in bank])
     return FixedLagRun(xs, Ps, hyp, at, vf, costs, solves, bank[int(np.argmin(costs))].dropped)
