@@ -138,10 +138,12 @@ def test_self_calibration_takes_the_fix_noise_from_the_map_and_keeps_the_configu
     assert near.cfg.fix_sigma_floor_m == cfg.fix_sigma_floor_m  # never below the configured floor
     off = Tracker.on_map(_corridor_map(6.0), _models(names, APS), TrackConfig(self_calibrate=False))
     assert off.cfg.fix_sigma_floor_m == cfg.fix_sigma_floor_m and off.cfg.covariance_scale == 1.0
-    assert off.cfg.bank_temper is None and far.cfg.bank_temper >= 1.0  # measured on the map (None: the bank's own costs)
+    assert off.cfg.bank_temper is None and far.cfg.bank_temper > 1.0  # measured on the map (None: the bank's own costs)
     assert far.calibration.bank_temper == far.cfg.bank_temper
     fixed = Tracker.on_map(_corridor_map(6.0), _models(names, APS), dataclasses.replace(cfg, bank_temper=2.5))
     assert fixed.cfg.bank_temper == 2.5 and fixed.calibration.bank_temper == 1.0  # configured: not measured
+    ekf = Tracker.on_map(_corridor_map(6.0), _models(names, APS), dataclasses.replace(cfg, filter="ekf"))
+    assert ekf.calibration.bank_temper == 1.0  # no weighted bank to temper: not measured
     assert (far.model.r_rssi >= off.model.r_rssi - 1e-12).all()  # RSSI variance only ever inflated
 
 

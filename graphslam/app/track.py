@@ -585,7 +585,7 @@ class SelfCalibration:
             log.info("track: no leave-one-session-out fix noise (%s)", e)
             floor = cfg.fix_sigma_floor_m
         temper = 1.0
-        if cfg.bank_temper is None:
+        if cfg.bank_temper is None and cfg.filter == "fixed-lag":  # only the fixed-lag tracker runs a weighted bank
             try:
                 temper = bank_temper(fix_error_correlation(rm, k=cfg.knn_k, metric=cfg.knn_config().metric))
             except EstimationError as e:  # a one-session map: the bank's costs as they are
