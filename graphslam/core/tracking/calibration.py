@@ -101,11 +101,11 @@ def fix_error_correlation(
     every pair of neighbours, both axes pooled (each axis centred). Whole sessions are sampled
     (seeded) up to about ``max_queries`` fingerprints. 0 when fewer than 3 pairs."""
     sid = np.asarray(rm.session_ids)
-    sessions = np.unique(sid)
+    sessions, counts = np.unique(sid, return_counts=True)  # one pass, not one scan of the map per session
     if len(sessions) < 2:
         raise EstimationError("fix error correlation: the radio map needs fingerprints of at least 2 sessions")
-    sessions = np.random.default_rng(seed).permutation(sessions)
-    sizes = np.array([np.count_nonzero(sid == s) for s in sessions])
+    order = np.random.default_rng(seed).permutation(len(sessions))
+    sessions, sizes = sessions[order], counts[order]
     keep = sessions[: max(2, int(np.searchsorted(np.cumsum(sizes), max_queries, side="right")))]
     rows = np.flatnonzero(np.isin(sid, keep))
     rows = rows[np.lexsort((np.asarray(rm.t_ns)[rows], sid[rows]))]  # by session, then time
