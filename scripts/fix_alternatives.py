@@ -160,12 +160,13 @@ def main(argv: list[str]) -> int:
             t, marks = _marks(w)
             st = np.array([sc.t_ns for sc in w.scans])
             q = rm.encode([sc.readings for sc in w.scans])
-            tracks: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-            for name, loc in locs.items():
-                fx = loc.locate(q if name == "single" else [sc.readings for sc in w.scans])
-                tracks[name] = (st[fx.valid], fx.xy[fx.valid])
             single = locs["single"].locate(q)
             ok = single.valid
+            tracks: dict[str, tuple[np.ndarray, np.ndarray]] = {"single": (st[ok], single.xy[ok])}
+            for name, loc in locs.items():
+                if name != "single":  # a cell map: its own AP index, so the raw readings
+                    fx = loc.locate([sc.readings for sc in w.scans])
+                    tracks[name] = (st[fx.valid], fx.xy[fx.valid])
             if mode == "sequence":
                 D = locs["single"].distances(q)
                 c = np.interp(st.astype(float), w.steps.t_ns.astype(float), _arc(w.steps.xy))
