@@ -22,7 +22,7 @@ censored by the phone's floor, which biases gamma slightly low: documented, not 
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any, Sequence
 
 import numpy as np
@@ -31,6 +31,7 @@ from scipy.optimize import least_squares
 
 from graphslam.core.progress import progress_over
 from graphslam.core.tracking.filters import PathLossModel
+from graphslam.core.tracking.rssi_field import FieldFit, fit_residual_field
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import EstimationError
 
@@ -229,3 +230,25 @@ def ap_position_errors(models: ApModels, true_bssids: Sequence[str], true_xy: ND
         return np.zeros(0)
     est = np.array([[a.x, a.y] for a, _ in pairs])
     return np.linalg.norm(est - np.asarray(true_xy, float)[[i for _, i in pairs]], axis=1)
+
+
+def residual_field(
+    rm: RadioMap, pl: PathLossModel, *, bandwidth_m: float = 3.0, shrink: float = 0.5, cell_m: float = 1.0,
+    leave_out: bool = True, aps: NDArray | None = None,
+) -> FieldFit:
+    """The residual field of ``pl``'s APs (``graphslam.core.tracking.rssi_field``) from ``rm``'s
+    fingerprints, each map walk left out when the noise around it is measured (``leave_out``).
+    ``aps``: only these AP indices get a correction (the others none)."""
+    pl = replace(pl, correction=None)  # residuals around the law itself
+    index = {b: i for i, b in enumerate(pl.bssids)}
+    cols = np.array([index.get(b, -1) for b in rm.bssids], dtype=np.int64)
+    v = rm.fingerprints.values.tocoo()
+    a = cols[v.col]
+    keep = a >= 0
+    if aps is not None:
+        keep &= np.isin(a, np.asarray(aps, np.int64))
+    rows, a = v.row[keep], a[keep]
+    rss = v.data[keep] + rm.missing_dbm
+    h, _ = pl.rss_pairs(rm.xy[rows], a)
+    return fit_residual_field(rm.xy[rows], rss - h, a, rm.session_ids[rows], len(pl), bandwidth_m=bandwidth_m,
+                              shrink=shrink, cell_m=cell_m, leave_out=leave_out)

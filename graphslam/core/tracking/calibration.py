@@ -166,7 +166,7 @@ def rssi_variance_factor(
             except np.linalg.LinAlgError:
                 break
         else:
-            _, g = pl.rss_pairs(np.tile(p, (len(a), 1)), a)
+            g = pl.rss_gradient(np.tile(p, (len(a), 1)), a)
             A = (g * w[:, None]).T @ g
             e = p - rm.xy[r]
             d2.append(float(e @ A @ e))

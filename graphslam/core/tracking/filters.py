@@ -46,6 +46,7 @@ from typing import Literal, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from graphslam.core.tracking.rssi_field import ResidualField
 from graphslam.errors import EstimationError
 
 log = logging.getLogger(__name__)
@@ -80,6 +81,9 @@ class PathLossModel:
     gamma: NDArray[np.float64]  # (A,) path-loss exponent
     min_distance_m: float = 0.1  # d0 in sqrt(d^2 + d0^2)
     bssids: tuple[str, ...] = ()
+    # what the law misses, per AP, added to its mean RSS (``graphslam.core.tracking.rssi_field``; None: the
+    # law alone). ``jacobian`` / ``rss_pairs``' gradient stay the law's: the field's own gradient is noise
+    correction: ResidualField | None = None
 
     def __post_init__(self) -> None:
         xy = np.asarray(self.ap_xy, float).reshape(-1, 2)
@@ -93,6 +97,8 @@ class PathLossModel:
             raise FilterError("path-loss model: min_distance_m must be > 0")
         if self.bssids and len(self.bssids) != a:
             raise FilterError("path-loss model: one BSSID per AP expected")
+        if self.correction is not None and len(self.correction) != a:
+            raise FilterError(f"path-loss model: {a} APs but a residual field of {len(self.correction)}")
         object.__setattr__(self, "ap_xy", _ro(xy))
         object.__setattr__(self, "p0_dbm", _ro(p0))
         object.__setattr__(self, "gamma", _ro(g))
@@ -116,23 +122,37 @@ class PathLossModel:
         idx = np.arange(len(self)) if idx is None else np.asarray(idx, dtype=np.int64)
         d = np.asarray(xy, float)[..., None, :] - self.ap_xy[idx]
         d2 = np.einsum("...k,...k->...", d, d) + self.min_distance_m**2
-        return self.p0_dbm[idx] - 5.0 * self.gamma[idx] * np.log10(d2)  # 10 log10(sqrt(.)) = 5 log10(.)
+        out = self.p0_dbm[idx] - 5.0 * self.gamma[idx] * np.log10(d2)  # 10 log10(sqrt(.)) = 5 log10(.)
+        if self.correction is not None:
+            p = np.broadcast_to(np.asarray(xy, float)[..., None, :], d.shape).reshape(-1, 2)
+            out = out + self.correction.at(p, np.broadcast_to(idx, d.shape[:-1]).ravel()).reshape(out.shape)
+        return out
 
     def jacobian(self, xy: NDArray, idx: NDArray | None = None) -> NDArray[np.float64]:
         """(a, 2) d mean_rss / d (x, y) at one position."""
         idx = np.arange(len(self)) if idx is None else np.asarray(idx, dtype=np.int64)
         d = np.asarray(xy, float).reshape(1, 2) - self.ap_xy[idx]
         d2 = np.einsum("ak,ak->a", d, d) + self.min_distance_m**2
-        return -(10.0 / np.log(10.0)) * self.gamma[idx, None] * d / d2[:, None]
+        return -(10.0 / np.log(10.0)) * self.gamma[idx, None] * d / d2[:, None]  # the law's alone (``correction``)
 
     def rss_pairs(self, xy: NDArray, idx: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Mean RSS (m,) of AP ``idx[j]`` at position ``xy[j]`` (m, 2), and its (m, 2) gradient
+        """Mean RSS (m,) of AP ``idx[j]`` at position ``xy[j]`` (m, 2), and the law's (m, 2) gradient
         in (x, y): ``mean_rss`` / ``jacobian`` for many (position, AP) pairs at once."""
         idx = np.asarray(idx, dtype=np.int64)
         d = np.asarray(xy, float).reshape(-1, 2) - self.ap_xy[idx]
         d2 = np.einsum("ak,ak->a", d, d) + self.min_distance_m**2
         g = self.gamma[idx]
-        return self.p0_dbm[idx] - 5.0 * g * np.log10(d2), -(10.0 / np.log(10.0)) * g[:, None] * d / d2[:, None]
+        h = self.p0_dbm[idx] - 5.0 * g * np.log10(d2)
+        if self.correction is not None:
+            h = h + self.correction.at(xy, idx)
+        return h, -(10.0 / np.log(10.0)) * g[:, None] * d / d2[:, None]
+
+    def rss_gradient(self, xy: NDArray, idx: NDArray) -> NDArray[np.float64]:
+        """``rss_pairs``' gradient alone (m, 2), dB/m: what a Jacobian needs, without the mean."""
+        idx = np.asarray(idx, dtype=np.int64)
+        d = np.asarray(xy, float).reshape(-1, 2) - self.ap_xy[idx]
+        d2 = np.einsum("ak,ak->a", d, d) + self.min_distance_m**2
+        return -(10.0 / np.log(10.0)) * self.gamma[idx, None] * d / d2[:, None]
 
 
 _PAPER_APS = np.array([[0.0, 0.0], [0.0, 14.6], [8.2, 14.6], [8.2, 0.0]])

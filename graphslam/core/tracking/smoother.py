@@ -216,7 +216,7 @@ class MapProblem:
             s, c = np.sin(th), np.cos(th)
             dM = np.stack([np.stack([-c, -s], -1), np.stack([-s, c], -1)], -2)  # d M / d theta
             vals.append((-np.einsum("mij,mj->mi", dM, xv[:, 2:4]) * inv_sv).ravel())
-        _, g = m.path_loss.rss_pairs(X[e.rss_k, 0:2], e.rss_ap)
+        g = m.path_loss.rss_gradient(X[e.rss_k, 0:2], e.rss_ap)
         vals += [-g[:, 0] / self._sr, -g[:, 1] / self._sr] + ([-1.0 / self._sr] if self._shadow else [])
         vals.append(-np.repeat(1.0 / e.fix_sigma, 2))
         if self.axes is not None:
