@@ -754,6 +754,10 @@ def track(
         help="fixed-lag / --smooth map: walkers keep to the two perpendicular directions the map's own walks keep to "
         "(measured on the map; off by itself where they keep to none; docs/tracking.md).",
     ),
+    rssi_field: float = typer.Option(
+        3.0, "--rssi-field", help="Kernel std (m) of each AP's residual field, measured on the map: what the AP models' "
+        "log-distance law misses (walls, shelves), added to it; 0: the law alone (docs/tracking.md).",
+    ),
     floor_plan: Optional[Path] = typer.Option(
         None, "--floor-plan", help="A floor plan image (site frame, as the radio map): its blank area inside the outline "
         "is walkable; positions off it are moved to it (docs/tracking.md).",
@@ -777,7 +781,7 @@ def track(
     cfg = TrackConfig(
         filter=filter_, lag_s=lag, smoother=smooth, knn_fixes=knn_fixes, adaptive_rssi=adaptive_rssi,
         self_calibrate=self_calibrate, bank_report=bank_report, bank_temper=bank_temper, knn_metric=knn_metric, walk_axes=walk_axes,
-        walkable_sigma_m=walkable_sigma, walkable_mode=floor_plan_use,
+        walkable_sigma_m=walkable_sigma, walkable_mode=floor_plan_use, rssi_field_m=rssi_field,
     )
     run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg, calibration_cache=calibration_cache,
                       floor_plan=floor_plan, floor_size=floor_size)

@@ -127,7 +127,7 @@ def test_fit_aps_and_track_cli_end_to_end(tiny_case):
 @pytest.mark.parametrize(
     ("option", "value", "message"),
     [("--filter", "pf", "fixed-lag, ekf, ukf"), ("--smooth", "ks", "unknown smoother"), ("--bank-report", "mean", "mixture, best"),
-     ("--bank-temper", "0.5", "bank_temper must be >= 1")],
+     ("--bank-temper", "0.5", "bank_temper must be >= 1"), ("--rssi-field", "0.5", "rssi_field_m must be 0 (off) or >= 1")],
 )
 def test_track_cli_rejects_unknown_filter_or_smoother(tiny_case, capsys, option, value, message):
     from graphslam.cli import main

@@ -136,6 +136,10 @@ class TrackConfig:
     knn_fixes: bool = True  # also fuse each scan's kNN fix on the radio map as a position reading
     fix_sigma_floor_m: float = 2.0  # a fix's std = max(kNN neighbour spread, this)
     adaptive_rssi: bool = True  # inflate a scan's RSSI noise when its innovations say so
+    # what the AP models' law misses, as a field per AP measured on the map (``rssi_field``): its kernel std
+    # (m; 0: the law alone) and its pull towards 0 where the map's readings are few (pseudo-readings)
+    rssi_field_m: float = 3.0
+    rssi_field_shrink: float = 0.5
     rssi: bool = True  # fuse the RSSI readings through the AP models (False: steps and kNN fixes only)
     replay_sessions: int = 20  # self-calibration: replay this many map walks to scale the covariance (0: off)
     replay_max_scans: int = 40  # self-calibration: replayed segments hold at most this many scans
@@ -184,6 +188,10 @@ class TrackConfig:
             raise EstimationError(f"track: unknown walkable_mode {self.walkable_mode!r}; use {', '.join(WALKABLE_MODES)}")
         if not (math.isfinite(self.walkable_sigma_m) and self.walkable_sigma_m > 0):
             raise EstimationError(f"track: walkable_sigma_m must be finite and > 0, got {self.walkable_sigma_m}")
+        if not (math.isfinite(self.rssi_field_m) and (self.rssi_field_m == 0 or self.rssi_field_m >= 1.0)
+                and math.isfinite(self.rssi_field_shrink) and self.rssi_field_shrink > 0):
+            raise EstimationError(f"track: rssi_field_m must be 0 (off) or >= 1 m and rssi_field_shrink > 0, got "
+                                  f"{self.rssi_field_m}, {self.rssi_field_shrink}")
         if not (math.isfinite(self.replay_route_radius_m) and self.replay_route_radius_m >= 0):
             raise EstimationError(f"track: replay_route_radius_m must be finite and >= 0, got {self.replay_route_radius_m}")
 
@@ -526,6 +534,8 @@ class Tracker:
         if models.frame != rm.frame:
             raise EstimationError(f"track: AP models are in frame {models.frame!r}, radio map in {rm.frame!r}")
         model = fusion_model(models, cfg)
+        if cfg.rssi:
+            model = with_residual_field(model, rm, cfg, leave_out=True)
         area = cfg.walkable_area(area)  # once: its distance field is rebuilt for another std
         if not cfg.self_calibrate:
             calibration = None
@@ -546,6 +556,26 @@ class Tracker:
 
     def track(self, session: Session, progress: Task | None = None) -> SessionTrack:
         return track_session(session, self.model, self.locator, self.cfg, progress, self.area)
+
+
+def with_residual_field(model: FusionModel, rm: RadioMap, cfg: TrackConfig, *, aps: NDArray | None = None,
+                        leave_out: bool = False) -> FusionModel:
+    """``model`` with its AP models' residual field measured on ``rm`` (``cfg.rssi_field_m``; the
+    model as it is when 0). The RSSI noise stays the law's (``rssi_field``). ``aps``: only these APs
+    corrected; ``leave_out``: also log the readings' leave-one-walk-out noise around the field."""
+    if cfg.rssi_field_m <= 0 or not len(model.path_loss):
+        return model
+    from graphslam.core.tracking.apmodel import residual_field
+
+    fit = residual_field(rm, model.path_loss, bandwidth_m=cfg.rssi_field_m, shrink=cfg.rssi_field_shrink,
+                         leave_out=leave_out, aps=aps)
+    if leave_out:
+        ok = np.isfinite(fit.sigma_db)
+        if ok.any():
+            log.info("track: RSSI field (%.1f m): the map's readings scatter %.1f dB around it, %.1f dB around the law "
+                     "(median over %d APs, each map walk left out)", cfg.rssi_field_m, float(np.median(fit.sigma_db[ok])),
+                     float(np.median(fit.sigma_law_db[ok])), int(ok.sum()))
+    return dataclasses.replace(model, path_loss=dataclasses.replace(model.path_loss, correction=fit.field))
 
 
 def track_sessions(
@@ -656,8 +686,15 @@ def replay_covariance_scale(rm: RadioMap, model: FusionModel, cfg: TrackConfig, 
             for i, r in enumerate(own.tolist())
         )
         walk = Session(str(sid), PoseTrack(rm.t_ns[own], (xy - xy[0]) @ R.T, np.zeros(len(own))), scans)
+        replayed = model
+        if model.path_loss.correction is not None:  # the field without the replayed walk's readings, as a new walk's
+            index = {b: i for i, b in enumerate(model.path_loss.bssids)}
+            heard = np.unique([index[b] for sc in scans for b in sc.readings if b in index]).astype(np.int64)
+            replayed = with_residual_field(
+                dataclasses.replace(model, path_loss=dataclasses.replace(model.path_loss, correction=None)), others, cfg,
+                aps=heard)
         try:
-            tr = track_session(walk, model, KnnLocator(others, cfg.knn_config()), cfg, area=area)
+            tr = track_session(walk, replayed, KnnLocator(others, cfg.knn_config()), cfg, area=area)
         except EstimationError:
             continue
         d2.append(mahalanobis_sq(tr.xy - xy, tr.P[:, :2, :2]))
