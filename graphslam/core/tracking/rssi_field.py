@@ -11,7 +11,7 @@ smoothed by a Gaussian kernel of std ``bandwidth_m`` and shrunk towards 0 where 
 model is the law again). This is the mean of a Gaussian-process correction of the law (Ferris et
 al. 2006 put a GP on WiFi signal strength with a path-loss mean), kept cheap: the sums are
 accumulated on a grid of ``cell_m`` cells per AP (only around that AP's readings) and blurred, and
-the field and its gradient are read by bilinear interpolation.
+the field is read by bilinear interpolation.
 
 The trackers' Jacobians keep the law's gradient alone (``PathLossModel.rss_pairs``): the field's own
 gradient is the derivative of a kernel estimate at the bandwidth's scale, far noisier than its value,
