@@ -249,6 +249,6 @@ def residual_field(
         keep &= np.isin(a, np.asarray(aps, np.int64))
     rows, a = v.row[keep], a[keep]
     rss = v.data[keep] + rm.missing_dbm
-    h, _ = pl.rss_pairs(rm.xy[rows], a)
+    h = pl.rss_mean(rm.xy[rows], a)
     return fit_residual_field(rm.xy[rows], rss - h, a, rm.session_ids[rows], len(pl), bandwidth_m=bandwidth_m,
                               shrink=shrink, cell_m=cell_m, leave_out=leave_out)

@@ -138,14 +138,14 @@ class PathLossModel:
     def rss_pairs(self, xy: NDArray, idx: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Mean RSS (m,) of AP ``idx[j]`` at position ``xy[j]`` (m, 2), and the law's (m, 2) gradient
         in (x, y): ``mean_rss`` / ``jacobian`` for many (position, AP) pairs at once."""
+        return self.rss_mean(xy, idx), self.rss_gradient(xy, idx)
+
+    def rss_mean(self, xy: NDArray, idx: NDArray) -> NDArray[np.float64]:
+        """``rss_pairs``' mean alone (m,) dBm: what a residual needs, without the gradient."""
         idx = np.asarray(idx, dtype=np.int64)
         d = np.asarray(xy, float).reshape(-1, 2) - self.ap_xy[idx]
-        d2 = np.einsum("ak,ak->a", d, d) + self.min_distance_m**2
-        g = self.gamma[idx]
-        h = self.p0_dbm[idx] - 5.0 * g * np.log10(d2)
-        if self.correction is not None:
-            h = h + self.correction.at(xy, idx)
-        return h, -(10.0 / np.log(10.0)) * g[:, None] * d / d2[:, None]
+        h = self.p0_dbm[idx] - 5.0 * self.gamma[idx] * np.log10(np.einsum("ak,ak->a", d, d) + self.min_distance_m**2)
+        return h + self.correction.at(xy, idx) if self.correction is not None else h
 
     def rss_gradient(self, xy: NDArray, idx: NDArray) -> NDArray[np.float64]:
         """``rss_pairs``' gradient alone (m, 2), dB/m: what a Jacobian needs, without the mean."""

@@ -131,7 +131,7 @@ class MapProblem:
         xv = X[e.vel_k]
         th = xv[:, 6] if m.theta_rad is None else np.full(len(xv), m.theta_rad)
         vel = e.vel_y - np.einsum("mij,mj->mi", velocity_matrix(th), xv[:, 2:4]) - xv[:, 4:6]
-        h, _ = m.path_loss.rss_pairs(X[e.rss_k, 0:2], e.rss_ap)
+        h = m.path_loss.rss_mean(X[e.rss_k, 0:2], e.rss_ap)
         if self._shadow:
             h = h + X[e.rss_k, self._rss_col]
         return np.concatenate([
