@@ -141,11 +141,37 @@ class UwbRanges:
 
 
 @dataclass(frozen=True, eq=False)
+class HeadingTrack:
+    """The phone's own azimuth (``/phone/heading``): ``yaw[i]`` at ``t_ns[i]``, radians counter-clockwise
+    from east, Earth-fixed (east/north). Not the walking direction in general (the phone's pointing
+    relative to the body is a per-walk offset) and bent indoors by the building's magnetic field."""
+
+    t_ns: NDArray[np.int64]
+    yaw: NDArray[np.float64]
+
+    def __post_init__(self) -> None:
+        t = frozen_array(self.t_ns, np.int64)
+        y = frozen_array(self.yaw, np.float64)
+        if not (t.ndim == 1 and y.ndim == 1 and len(t) == len(y)):
+            raise ValueError("HeadingTrack: t_ns and yaw must have the same length")
+        if not np.isfinite(y).all():
+            raise ValueError("HeadingTrack: non-finite yaw")
+        if len(t) > 1 and np.any(np.diff(t) <= 0):
+            raise ValueError("HeadingTrack: timestamps must strictly increase")
+        object.__setattr__(self, "t_ns", t)
+        object.__setattr__(self, "yaw", y)
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+
+@dataclass(frozen=True, eq=False)
 class Session:
     """One walker's recording.
 
-    ``steps`` and ``scans`` are what the solver sees. ``landmarks`` and
-    ``ground_truth`` are kept apart: evaluation only.
+    ``steps``, ``scans``, ``heading`` and ``uwb_ranges`` are what the solver sees. ``landmarks``
+    and ``ground_truth`` are kept apart: evaluation only (landmark ids a user names as control
+    points are the one exception, ``graphslam.core.survey.control``).
     """
 
     session_id: str
@@ -161,6 +187,7 @@ class Session:
     uwb_id: str = ""
     uwb_ranges: UwbRanges | None = None
     uwb_anchors: Mapping[str, tuple[float, ...]] = field(default_factory=dict)
+    heading: HeadingTrack | None = None  # the phone's azimuth per step (optional ``/phone/heading``)
 
     def __post_init__(self) -> None:
         if not self.session_id:

@@ -24,7 +24,7 @@ import numpy as np
 import orjson
 
 from graphslam.core.progress import progress_over
-from graphslam.core.types import LandmarkMark, PoseTrack, Scan, Session, Survey
+from graphslam.core.types import HeadingTrack, LandmarkMark, PoseTrack, Scan, Session, Survey, wrap_angle
 from graphslam.errors import InputError
 from graphslam.io.mcap_container import DamagedMcap, McapContents, TopicMessages, read_mcap
 from graphslam.io import uwb_io
@@ -32,6 +32,7 @@ from graphslam.io.schemas import (
     MCAP_MAGIC,
     SESSION_METADATA,
     TOPIC_GROUND_TRUTH,
+    TOPIC_HEADING,
     TOPIC_LANDMARKS,
     TOPIC_POSE,
     TOPIC_SCAN,
@@ -343,6 +344,25 @@ def _landmarks(path: Path, topic: str, msgs: TopicMessages) -> tuple[LandmarkMar
     return tuple(sorted(marks, key=lambda m: m.t_ns))
 
 
+def _headings(path: Path, topic: str, msgs: TopicMessages) -> HeadingTrack:
+    """``/phone/heading``: one yaw (rad, CCW from east) per message, time strictly increasing."""
+    objs = _objects(path, topic, msgs.data)
+    try:
+        t, yaw = _stamps_fast(objs), _finite([m["yaw"] for m in objs])
+    except (KeyError, TypeError):
+        t = yaw = None
+    if t is None or yaw is None:  # some message is not certainly valid: check one by one
+        rows = [(p.stamp(m), p.number(m, "yaw")) for p, m in ((_Parse(path, topic, i), m) for i, m in enumerate(objs))]
+        t = np.array([r[0] for r in rows], np.int64)
+        yaw = np.array([r[1] for r in rows], np.float64)
+    bad = np.flatnonzero(np.diff(t) <= 0)
+    if bad.size:
+        i = int(bad[0]) + 1
+        raise _Parse(path, topic, i).fail("timestamp", f"time does not increase ({t[i]} ns after {t[i - 1]} ns)")
+    _log_time_mismatch(path, topic, t, msgs)
+    return HeadingTrack(t, wrap_angle(yaw))
+
+
 def _log_time_mismatch(path: Path, topic: str, t: np.ndarray, msgs: TopicMessages) -> None:
     if not log.isEnabledFor(logging.DEBUG):
         return
@@ -364,6 +384,7 @@ DECODERS: dict[str, Callable[[Path, str, TopicMessages], Any]] = {
     TOPIC_LANDMARKS: _landmarks,
     TOPIC_GROUND_TRUTH: _poses,
     TOPIC_UWB_RANGE: _uwb_ranges,
+    TOPIC_HEADING: _headings,
 }
 
 
@@ -435,6 +456,7 @@ def _session(path: Path, contents: McapContents) -> Session:
         uwb_id=tag_id,
         uwb_ranges=uwb_io.ranges(path, decoded.get(TOPIC_UWB_RANGE, []), anchors, tag_id),
         uwb_anchors=anchors,
+        heading=decoded.get(TOPIC_HEADING),
     )
 
 

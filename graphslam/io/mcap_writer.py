@@ -16,6 +16,7 @@ from graphslam.io.mcap_bulk import write_bulk
 from graphslam.io.schemas import (
     SESSION_METADATA,
     TOPIC_GROUND_TRUTH,
+    TOPIC_HEADING,
     TOPIC_LANDMARKS,
     TOPIC_POSE,
     TOPIC_SCAN,
@@ -99,6 +100,10 @@ def write_session(session: Session, path: str | Path) -> Path:
         if session.ground_truth is not None:
             gt_ch = ch.channel(TOPIC_GROUND_TRUTH)
             events += [(t, gt_ch, d) for t, d in _pose_msgs(session.ground_truth, "site")]
+        if session.heading is not None:
+            hd_ch = ch.channel(TOPIC_HEADING)
+            for t, yaw in zip(session.heading.t_ns.tolist(), session.heading.yaw.tolist()):
+                events.append((t, hd_ch, orjson.dumps({"timestamp": _stamp(t), "yaw": yaw})))
         if session.uwb_ranges is not None:
             uwb_ch = ch.channel(TOPIC_UWB_RANGE)
             events += [(t, uwb_ch, orjson.dumps(body)) for t, body in range_messages(session)]

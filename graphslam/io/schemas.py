@@ -13,6 +13,7 @@ TOPIC_SCAN = "/wifi/scan"
 TOPIC_LANDMARKS = "/landmarks"
 TOPIC_GROUND_TRUTH = "/ground_truth/pose"
 TOPIC_UWB_RANGE = "/uwb/range"
+TOPIC_HEADING = "/phone/heading"
 
 _TIME = {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}}
 _XYZ = {"type": "object", "properties": {k: {"type": "number"} for k in "xyz"}}
@@ -72,6 +73,13 @@ UWB_RANGE = {
     "required": ["timestamp", "responder_id", "responder_kind", "range_m"],
 }
 
+HEADING = {
+    "title": "graphslam.Heading",
+    "type": "object",
+    "properties": {"timestamp": _TIME, "yaw": {"type": "number"}},
+    "required": ["timestamp", "yaw"],
+}
+
 # topic -> (schema name, schema)
 TOPIC_SCHEMAS: dict[str, tuple[str, dict]] = {
     TOPIC_POSE: ("foxglove.PoseInFrame", POSE_IN_FRAME),
@@ -79,6 +87,7 @@ TOPIC_SCHEMAS: dict[str, tuple[str, dict]] = {
     TOPIC_LANDMARKS: ("graphslam.LandmarkMark", LANDMARK_MARK),
     TOPIC_GROUND_TRUTH: ("foxglove.PoseInFrame", POSE_IN_FRAME),
     TOPIC_UWB_RANGE: ("graphslam.UwbRange", UWB_RANGE),
+    TOPIC_HEADING: ("graphslam.Heading", HEADING),
 }
 
 

@@ -60,6 +60,17 @@ class IterationRecord:
 ProgressCallback = Callable[[IterationRecord], None]
 
 
+@dataclass(frozen=True)
+class Component:
+    """Walks the data links into one frame. Component 0 is the main map (the radio map's frame);
+    every other component stands in a frame of its own, its placement relative to component 0
+    unknown (``reason`` says which links are missing)."""
+
+    index: int
+    walks: tuple[str, ...]  # session ids
+    reason: str = ""  # why it stands apart from component 0 ("" for component 0)
+
+
 @dataclass(frozen=True, eq=False)
 class Alignment:
     """Result of ``align``: aligned walks in the reference walk's frame (metres, radians)."""
@@ -80,12 +91,36 @@ class Alignment:
     timings_s: dict[str, float] = field(default_factory=dict)
     edge_states: dict[str, int] = field(default_factory=dict)
     snapshots: tuple[tuple[int, NDArray[np.float64]], ...] = ()  # (stage, node_xyh) after each stage
-    uwb: UwbSummary | None = None  # UWB ranges used (issue 15); frame "site" when anchors fixed it
+    uwb: UwbSummary | None = None  # UWB ranges used; frame "site" when anchors fixed it
+    # the walks of ``tracks`` by component; empty: every aligned walk is in component 0
+    component_list: tuple[Component, ...] = ()
+    # "aligned": the reference walk's first pose; "earth": east/north (x east, y north) from the
+    # phones' headings, origin at the reference walk's first pose; "site": control points or UWB anchors
+    frame_name: str = "aligned"
 
     @property
     def frame(self) -> str:
-        """"site" when UWB anchors fixed the frame, else "aligned" (the reference walk's)."""
-        return self.uwb.frame if self.uwb is not None else "aligned"
+        """Frame of component 0: "site" (control points or UWB anchors), "earth" (east/north, from
+        the phones' headings) or "aligned" (the reference walk's first pose)."""
+        if self.uwb is not None and self.uwb.frame == "site":
+            return "site"
+        return self.frame_name
+
+    @property
+    def components(self) -> tuple[Component, ...]:
+        """Components in order (0 first); one component of every aligned walk when none were formed."""
+        if self.component_list:
+            return self.component_list
+        return (Component(0, tuple(self.tracks)),) if self.tracks else ()
+
+    def component_of(self) -> dict[str, int]:
+        """session id -> component index, for every walk in ``tracks``."""
+        return {sid: c.index for c in self.components for sid in c.walks}
+
+    def main_tracks(self) -> dict[str, PoseTrack]:
+        """The walks of component 0 (the radio map's)."""
+        main = set(self.components[0].walks) if self.components else set()
+        return {sid: t for sid, t in self.tracks.items() if sid in main}
 
     @property
     def n_nodes(self) -> int:
