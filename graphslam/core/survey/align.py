@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Callable, Mapping
 
 import numpy as np
 from numpy.typing import NDArray
@@ -203,8 +203,17 @@ def edge_candidates(cfg: GraphSlamConfig, n_fingerprints: int) -> str:
     return c
 
 
-def build_problem(survey: Survey, cfg: GraphSlamConfig, warm: incremental.WarmStart | None = None) -> Problem:
+def build_problem(
+    survey: Survey,
+    cfg: GraphSlamConfig,
+    warm: incremental.WarmStart | None = None,
+    *,
+    control_points: Mapping[str, tuple[float, float]] | None = None,
+) -> Problem:
     """Steps 1-3 of the method: fingerprints on nodes, WiFi edges, initial placement.
+
+    ``control_points``: landmark id -> site (x, y) of the landmarks a user names as control
+    points (``graphslam survey --control-points``); not used yet.
 
     ``warm`` (``graphslam survey --update``, see ``graphslam.core.survey.incremental``): walks
     solved before start from their previous solution, only the new walks' fingerprints are
@@ -512,12 +521,15 @@ def align(
     config: GraphSlamConfig | None = None,
     progress: ProgressCallback | None = None,
     warm: incremental.WarmStart | None = None,
+    *,
+    control_points: Mapping[str, tuple[float, float]] | None = None,
 ) -> Alignment:
     """Align all walks of ``survey`` into the frame of the reference walk's first pose
-    (``warm``: re-solve only around the walks new since a previous solution, see ``build_problem``)."""
+    (``warm``: re-solve only around the walks new since a previous solution, see ``build_problem``;
+    ``control_points``: landmark id -> site (x, y), passed on to ``build_problem``)."""
     cfg = config or GraphSlamConfig()
     t0 = time.perf_counter()
-    problem = build_problem(survey, cfg, warm)
+    problem = build_problem(survey, cfg, warm, control_points=control_points)
     return solve(problem, cfg, progress, t0=t0)
 
 
