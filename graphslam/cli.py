@@ -166,7 +166,8 @@ def survey(
     ),
 ) -> None:
     """Align every walk into one frame; write trajectories.csv, aligned.mcap, radio_map.parquet,
-    wifi_edges.parquet, report.json, survey_state.npz, the effective config.yaml and survey.png into OUT."""
+    wifi_edges.parquet, report.json, survey_state.npz, the effective config.yaml and survey.png into OUT.
+    Walks the data does not link to the main map form components of their own (report.json)."""
     from graphslam.app.survey import run_survey
 
     cfg = _config(config, set_)
@@ -229,7 +230,8 @@ def survey_batch(
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Progress bar over floors."),
 ) -> None:
     """Survey every floor under SITES_ROOT as one task each on Dask; OUT_ROOT/summary.json lists them.
-    Exit code 0: every floor ok; 1: some failed (their error in summary.json); 2: bad arguments."""
+    A floor whose main map holds under half of its walks is "partial". Exit code 0: no floor failed
+    (ok or partial); 1: some failed (their error in summary.json); 2: bad arguments."""
     from tqdm import tqdm
 
     from graphslam.app.batch import run_batch
@@ -239,7 +241,7 @@ def survey_batch(
     failed = [0]
 
     def on_floor(row: object) -> None:
-        failed[0] += getattr(row, "status") != "ok"
+        failed[0] += getattr(row, "status") == "failed"
         bar.update(1)
         bar.set_postfix(failed=failed[0])
 
@@ -248,9 +250,12 @@ def survey_batch(
                         on_start=lambda n: bar.reset(total=n))
     finally:
         bar.close()
-    typer.echo(f"{len(res.rows) - res.failed}/{len(res.rows)} floors ok in {res.seconds:.1f} s; summary in {res.summary}")
+    typer.echo(f"{len(res.rows)} floors: {res.ok} ok, {res.partial} partial, {res.failed} failed in "
+               f"{res.seconds:.1f} s; summary in {res.summary}")
     for row in res.rows:
-        if row.status != "ok":
+        if row.status == "partial":
+            typer.echo(f"partial: {row.floor}: {row.warning}")
+        elif row.status != "ok":
             typer.echo(f"failed: {row.floor}: {row.error}")
     if res.failed:
         sys.exit(1)  # not typer.Exit: main() runs click with standalone_mode=False, which returns its code
@@ -262,15 +267,24 @@ def evaluate(
     paths: List[Path] = typer.Argument(..., help="The recordings, with /landmarks or /ground_truth/pose."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Write the evaluation as JSON here."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Landmark error histogram (PNG, as the paper's fig. 7)."),
+    component: int = typer.Option(
+        0, "--component", min=0, help="The walks of this component of trajectories.csv (0: the main map); "
+        "each component is in a frame of its own, so one fit covers one component.",
+    ),
 ) -> None:
     """Landmark errors after an SE(2) fit, heading alignment and raw-vs-aligned comparison."""
     from graphslam.core.survey.evaluate import evaluate as run_evaluation
     from graphslam.errors import InputError
     from graphslam.io.atomic import atomic_write_json, json_safe
-    from graphslam.io.csv_io import read_trajectories
+    from graphslam.io.csv_io import read_trajectory_file
     from graphslam.io.mcap_reader import read_survey
 
-    tracks = read_trajectories(trajectories)
+    traj = read_trajectory_file(trajectories)
+    tracks = traj.of_component(component)
+    if not tracks:
+        found = sorted(set(traj.components.values()))
+        raise InputError(trajectories, f"no walk in component {component} (components in the file: {found})",
+                         field="component")
     survey_ = read_survey(paths)
     if not survey_.has_ground_truth:
         raise InputError(", ".join(map(str, paths)), "no /landmarks or /ground_truth/pose to evaluate against")
@@ -283,6 +297,8 @@ def evaluate(
         landmark_histogram(ev, plot)
     lm, raw = ev.landmarks, ev.landmarks_raw
     summary = {
+        "component": component,
+        "walks": len(tracks),
         "landmarks": {k: getattr(lm, k) for k in ("n", "mean_m", "median_m", "p90_m", "max_m")},
         "raw_landmarks_mean_m": raw.mean_m,
         "heading_mean_deg": ev.heading_mean_deg,

@@ -36,9 +36,10 @@ def test_batch_surveys_every_floor_and_reports_the_broken_one(
     assert _run(["survey-batch", str(sites), "--out", str(out), "--workers", "2", "--no-progress"]) == 1
     rows = json.loads((out / "summary.json").read_text())
     assert [r["floor"] for r in rows] == ["b1/F1", "b1/F2", "b2/F1"]
-    assert set(rows[0]) == {"floor", "status", "error", "walks", "aligned", "seconds"}
+    assert set(rows[0]) == {"floor", "status", "error", "walks", "aligned", "seconds", "main", "warning"}
     ok = [r for r in rows if r["status"] == "ok"]
     assert len(ok) == 2 and all(r["error"] is None and r["walks"] == 6 and r["aligned"] >= 1 for r in ok)
+    assert all(r["warning"] is None and 2 * r["main"] >= r["walks"] for r in ok)
     bad = rows[2]
     bad_file = sorted((sites / "b2/F1").glob("*.mcap"))[1]
     assert bad["status"] == "failed" and str(bad_file) in bad["error"] and bad["walks"] == 0

@@ -7,6 +7,10 @@ has imported the survey code once, no Dask profiler) is started by default;
 ``address`` joins a running Dask scheduler instead, whose workers must see SITES_ROOT and
 OUT_ROOT at the same paths (a shared file system) and have graphslam installed.
 
+A floor surveyed whose main map (component 0) holds under half of its walks is ``partial``
+(``graphslam.app.survey.main_map_warning``, the rule ``graphslam survey`` warns by; the text is
+the row's ``warning``): its outputs are written, the batch still succeeds.
+
 Failures stay per floor: bad input or a solver error is the floor's ``error`` (the message
 names the file); a worker that dies while surveying a floor (OOM killer, a lost machine)
 makes the scheduler run the floor again on another worker, up to
@@ -39,6 +43,7 @@ from graphslam.io.atomic import atomic_write_json
 log = logging.getLogger(__name__)
 
 SUMMARY_FILE = "summary.json"
+STATUSES = ("ok", "partial", "failed")
 # One thread per floor process: a survey is single-threaded in GTSAM; BLAS threads on top of
 # two workers on two cores would only compete.
 _WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "RERUN": "off"}
@@ -54,11 +59,13 @@ class FloorRow:
     """One line of summary.json."""
 
     floor: str  # folder relative to SITES_ROOT ("." for SITES_ROOT itself)
-    status: str  # "ok" | "failed"
+    status: str  # "ok" | "partial" (the main map holds under half of the walks) | "failed"
     error: str | None
     walks: int
     aligned: int
     seconds: float
+    main: int = 0  # walks in the main map (component 0, the radio map's)
+    warning: str | None = None  # why the floor is partial
 
 
 def find_floors(sites_root: Path, out_root: Path) -> list[Path]:
@@ -84,12 +91,12 @@ def find_floors(sites_root: Path, out_root: Path) -> list[Path]:
 def survey_floor(floor_dir: str, out_dir: str, config_json: str, floor: str, update: bool = False) -> dict[str, Any]:
     """The task: survey one floor, never raise for the floor's own failures (they are its row).
     ``update``: a previous output in ``out_dir`` seeds ``survey --update`` (none: a full survey)."""
-    from graphslam.app.survey import run_survey
+    from graphslam.app.survey import main_map_warning, run_survey
     from graphslam.io.survey_state import STATE_FILE
 
     t = time.perf_counter()
-    walks = aligned = 0
-    error = None
+    walks = aligned = main = 0
+    error = warning = None
     try:
         import json
 
@@ -97,13 +104,16 @@ def survey_floor(floor_dir: str, out_dir: str, config_json: str, floor: str, upd
         previous = out_dir if update and (Path(out_dir) / STATE_FILE).is_file() else None
         result = run_survey([floor_dir], out_dir, cfg, update=previous)
         walks, aligned = result.report["sessions"], result.report["aligned_sessions"]
+        main = result.report["radio_map"]["walks"]
+        warning = main_map_warning(result.report)
     except GraphSlamError as e:
         error = str(e)
     except Exception as e:  # noqa: BLE001 - a floor's internal error must not stop the others
         log.exception("floor %s", floor)
         error = f"internal error: {type(e).__name__}: {e}"
     seconds = round(time.perf_counter() - t, 3)
-    return asdict(FloorRow(floor, "failed" if error else "ok", error, walks, aligned, seconds))
+    status = "failed" if error else "partial" if warning else "ok"
+    return asdict(FloorRow(floor, status, error, walks, aligned, seconds, main, None if error else warning))
 
 
 @dataclass(frozen=True)
@@ -114,7 +124,15 @@ class BatchResult:
 
     @property
     def failed(self) -> int:
-        return sum(r.status != "ok" for r in self.rows)
+        return sum(r.status == "failed" for r in self.rows)
+
+    @property
+    def partial(self) -> int:
+        return sum(r.status == "partial" for r in self.rows)
+
+    @property
+    def ok(self) -> int:
+        return sum(r.status == "ok" for r in self.rows)
 
 
 def run_batch(
@@ -165,7 +183,7 @@ def run_batch(
                 why = "worker lost after retries" if isinstance(e, KilledWorker) else f"{type(e).__name__}: {e}"
                 row = FloorRow(rel, "failed", why, 0, 0, 0.0)
             rows[rel] = row
-            if row.status != "ok":
+            if row.status == "failed":
                 log.warning("floor %s failed: %s", rel, row.error)
             if on_floor is not None:
                 on_floor(row)

@@ -6,11 +6,12 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -45,6 +46,13 @@ OUTPUT_FILES = {
 # other commands (fit-aps, plot)
 DERIVED_FILES = ("ap_models.json", "survey.png", "radio_map.png")
 
+# report.json's ``frame_description``: what the coordinates of component 0 mean
+FRAME_DESCRIPTIONS = {
+    "aligned": "aligned: origin at the reference walk's first pose, x along its first heading (metres)",
+    "earth": "earth: x east, y north (phones' headings), origin at the reference walk's first pose",
+    "site": "site: the site frame of the control points or UWB anchors (metres)",
+}
+
 
 @dataclass(frozen=True, eq=False)
 class SurveyResult:
@@ -56,14 +64,34 @@ class SurveyResult:
     files: dict[str, Path] = field(default_factory=dict)
 
 
-def build_report(survey: Survey, al: Alignment, ev: Evaluation | None, cfg: GraphSlamConfig, timings: dict) -> dict:
+def build_report(
+    survey: Survey, al: Alignment, ev: Evaluation | None, cfg: GraphSlamConfig, timings: dict, *, floor: str = ""
+) -> dict:
     fp = al.fingerprints
+    main = main_alignment(al)
+    n_main_rows = int(np.isfinite(main.fingerprint_xy()).all(axis=1).sum())
+    n_main = len(main.tracks)
     report: dict[str, Any] = {
         "version": REPORT_VERSION,
+        "floor": floor or floor_name((), survey),
         "sessions": len(survey),
         "aligned_sessions": len(al.tracks),
         "reference_session": al.reference,
         "unaligned": [{"session_id": k, "reason": v} for k, v in al.unaligned.items()],
+        "frame": al.frame,
+        "frame_description": FRAME_DESCRIPTIONS.get(al.frame, al.frame)
+        + ("; every other component in a frame of its own (its placement relative to component 0 unknown)"
+           if len(al.components) > 1 else ""),
+        "components": [
+            {"index": c.index, "walks": list(c.walks), "n_walks": len(c.walks), "reason": c.reason}
+            for c in al.components
+        ],
+        "radio_map": {
+            "component": 0,
+            "walks": n_main,
+            "fingerprints": n_main_rows,
+            "walks_in_other_components": len(al.tracks) - n_main,
+        },
         "nodes": al.n_nodes,
         "fingerprints": len(fp),
         "scans_dropped": fp.dropped,
@@ -88,14 +116,66 @@ def build_report(survey: Survey, al: Alignment, ev: Evaluation | None, cfg: Grap
     if al.placement is not None:
         report.update(_placement_report(al))
     if ev is not None:
-        report["evaluation"] = ev.as_dict()
+        report["evaluation"] = {**ev.as_dict(), "component": 0}
     if al.uwb is not None:  # UWB ranges (issue 15); in the site frame the error needs no fit
         report["uwb"] = al.uwb.as_dict()
         if ev is not None and al.frame == "site":
             from graphslam.core.survey.evaluate import trajectory_errors
 
-            report["evaluation"]["steps_site_frame"] = trajectory_errors(al.tracks, survey, np.zeros(3)).as_dict()
+            report["evaluation"]["steps_site_frame"] = trajectory_errors(al.main_tracks(), survey, np.zeros(3)).as_dict()
     return report
+
+
+def main_alignment(al: Alignment) -> Alignment:
+    """``al`` restricted to component 0, the main map: the other components' walks leave ``tracks``
+    and their step nodes become NaN (as unaligned walks' are), so that the radio map and the WiFi
+    edges built from it hold component 0 only. ``al`` itself when it has one component."""
+    comps = al.components
+    if len(comps) <= 1:
+        return al
+    main = set(comps[0].walks)
+    offsets = al.fingerprints.offsets
+    xyh = al.node_xyh.copy()
+    for s, sid in enumerate(al.session_ids):
+        if sid in al.tracks and sid not in main:
+            xyh[int(offsets[s]):int(offsets[s + 1])] = np.nan
+    return dataclasses.replace(al, tracks=al.main_tracks(), node_xyh=xyh, component_list=(comps[0],))
+
+
+def floor_name(paths: Sequence[str | Path], survey: Survey) -> str:
+    """The floor a survey is of, for messages: the input folder's name (the folder of the files),
+    with the sessions' ``site/floor`` metadata when they all share one."""
+    folders = {(Path(p) if Path(p).is_dir() else Path(p).parent).resolve() for p in paths}
+    folder = next(iter(folders)).name if len(folders) == 1 else ""
+    meta = {(s.site, s.floor) for s in survey}
+    site, fl = next(iter(meta)) if len(meta) == 1 else ("", "")
+    tag = f"{site}/{fl}" if site and fl else ""
+    if not folder:
+        return tag or "survey"
+    if not tag or folder == fl:
+        return tag or folder
+    return f"{folder} ({tag})"
+
+
+def main_map_warning(report: Mapping[str, Any]) -> str | None:
+    """The warning of a survey whose main map (component 0) holds under half of the walks read
+    (unaligned walks counted), else None. ``graphslam survey`` logs it; ``survey-batch`` marks
+    the floor ``partial`` by it."""
+    n = int(report.get("sessions") or 0)
+    comps = report.get("components") or []
+    n_main = int(comps[0]["n_walks"]) if comps else 0
+    if not n or 2 * n_main >= n:
+        return None
+    others = comps[1:]
+    n_other = sum(int(c["n_walks"]) for c in others)
+    n_unaligned = len(report.get("unaligned") or [])
+    parts = []
+    if others:
+        parts.append(f"{n_other} in {len(others)} other component{'s' if len(others) != 1 else ''}")
+    if n_unaligned or not others:
+        parts.append(f"{n_unaligned} unaligned")
+    return (f"{report.get('floor') or 'survey'}: the main map holds {n_main} of {n} walks; "
+            f"{n - n_main} are not in it: {', '.join(parts)} (report.json: components, unaligned)")
 
 
 def _placement_report(al: Alignment) -> dict[str, Any]:
@@ -119,8 +199,9 @@ def _placement_report(al: Alignment) -> dict[str, Any]:
         return None if a is None or not np.isfinite(a[s]) else round(float(a[s]), 4)
 
     walks = []
+    component = al.component_of()
     for s in range(len(ids)):
-        row: dict[str, Any] = {"session_id": ids[s], "aligned": ids[s] in al.tracks}
+        row: dict[str, Any] = {"session_id": ids[s], "aligned": ids[s] in al.tracks, "component": component.get(ids[s])}
         if pl.method == "growth":
             # support: vote weight per fingerprint; margin: over the runner-up placement (seed: null);
             # consistency: share of the walk's match weight whose partners end within placement.consistent_m
@@ -203,7 +284,8 @@ def _run_survey(
     timings.update({f"align.{k}": v for k, v in alignment.timings_s.items()})
 
     t = time.perf_counter()
-    evaluation = evaluate(alignment.tracks, survey) if survey.has_ground_truth else None
+    # component 0 only: one site fit over walks in unrelated frames would measure nothing
+    evaluation = evaluate(alignment.main_tracks(), survey) if survey.has_ground_truth else None
     timings["evaluate"] = time.perf_counter() - t
 
     viz = None
@@ -213,7 +295,7 @@ def _run_survey(
         # forked now: imports rerun and logs on the other core while the outputs are written
         viz = start_log_survey(rerun_path, survey, alignment, cfg, floor_plan=floor_plan, floor_size=floor_size)
     files: dict[str, Path] = {}
-    report = build_report(survey, alignment, evaluation, cfg, timings)
+    report = build_report(survey, alignment, evaluation, cfg, timings, floor=floor_name(paths, survey))
     if update_info is not None:
         report["update"] = update_info
     if out_dir is not None:
@@ -237,6 +319,9 @@ def _run_survey(
     report["timings_s"] = {k: round(v, 4) for k, v in timings.items()}
     if out_dir is not None:
         atomic_write_json(Path(out_dir) / "report.json", report)
+    warning = main_map_warning(report)
+    if warning is not None:
+        log.warning("%s", warning)
     return SurveyResult(survey, alignment, evaluation, report, Path(out_dir) if out_dir else None, files)
 
 
@@ -302,15 +387,19 @@ def write_outputs(
     stage = FolderStage.create(out_dir, set(OUTPUT_FILES.values()) | set(DERIVED_FILES))
     try:
         names = {k: v for k, v in OUTPUT_FILES.items() if k != "radio_map_surveyed" or surveyed}
-        write_trajectories(al.tracks, stage.path / names["trajectories"])
-        write_aligned(al.tracks, stage.path / names["aligned"], frame_id=al.frame)
-        _write_radio_map(survey, al, cfg, stage.path / names["radio_map"])
-        _write_wifi_edges(al, cfg, stage.path / names["wifi_edges"])
+        component = al.component_of()
+        write_trajectories(al.tracks, stage.path / names["trajectories"], component)
+        write_aligned(al.tracks, stage.path / names["aligned"], frame_id=al.frame,
+                      frame_ids={sid: component_frame_id(al, k) for sid, k in component.items()})
+        main = main_alignment(al)  # the radio map and its edges: component 0 only
+        _write_radio_map(survey, main, cfg, stage.path / names["radio_map"])
+        _write_wifi_edges(main, cfg, stage.path / names["wifi_edges"])
         if surveyed:  # evaluation: the same fingerprints at their ground-truth positions
             from graphslam.core.radiomap.survey_maps import surveyed_radio_map
             from graphslam.io.radiomap_io import write_radio_map
 
-            write_radio_map(surveyed_radio_map(survey, al, cfg), stage.path / names["radio_map_surveyed"])
+            write_radio_map(surveyed_radio_map(_without_other_components(survey, al), al, cfg),
+                            stage.path / names["radio_map_surveyed"])
         atomic_write_text(stage.path / names["config"], cfg.to_yaml())
         write_survey_state(stage.path / names["state"], survey, al, cfg)
         atomic_write_json(stage.path / names["report"], report)
@@ -321,6 +410,22 @@ def write_outputs(
         raise
     stage.publish()
     return {key: out_dir / name for key, name in names.items()}
+
+
+def component_frame_id(al: Alignment, index: int) -> str:
+    """aligned.mcap's ``frame_id`` of a walk in component ``index``: the frame's name for the
+    main map ("aligned", "earth", "site"), ``component_<index>`` for the others (a frame each)."""
+    return al.frame if index == 0 else f"component_{index}"
+
+
+def _without_other_components(survey: Survey, al: Alignment) -> Survey:
+    """``survey`` with no ground truth on the walks of components >= 1 (the surveyed map leaves
+    them out, as the crowdsourced one does)."""
+    comps = al.components
+    other = {sid for c in comps[1:] for sid in c.walks}
+    if not other:
+        return survey
+    return Survey(tuple(dataclasses.replace(s, ground_truth=None) if s.session_id in other else s for s in survey))
 
 
 def _write_wifi_edges(al: Alignment, cfg: GraphSlamConfig, path: Path) -> None:

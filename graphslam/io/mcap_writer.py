@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Mapping
 
 import numpy as np
 import orjson
@@ -113,9 +113,14 @@ def write_session(session: Session, path: str | Path) -> Path:
     return path
 
 
-def write_aligned(tracks: dict[str, PoseTrack], path: str | Path, frame_id: str = "aligned") -> Path:
-    """One ``foxglove.PoseInFrame`` topic per session (``/aligned/<session_id>``), viewable in Foxglove.
+def write_aligned(
+    tracks: dict[str, PoseTrack], path: str | Path, frame_id: str = "aligned",
+    frame_ids: Mapping[str, str] | None = None,
+) -> Path:
+    """One ``foxglove.PoseInFrame`` topic per session (``/aligned/<session_id>``), viewable in Foxglove;
+    every pose's ``frame_id`` is ``frame_ids[session_id]`` where given, else ``frame_id``.
     The messages are serialised in bulk (``graphslam.io.mcap_bulk``): the same bytes as mcap's Writer."""
+    frames = {sid: (frame_ids or {}).get(sid, frame_id) for sid in tracks}
     if not tracks:  # no channel, hence no schema either: the Writer's file
         return _write_aligned_by_writer(tracks, path, frame_id)
     name, schema = TOPIC_SCHEMAS[TOPIC_POSE]
@@ -124,7 +129,7 @@ def write_aligned(tracks: dict[str, PoseTrack], path: str | Path, frame_id: str 
         channels.append(Channel(id=k, topic=f"/aligned/{sid}", message_encoding="json", schema_id=1, metadata={}))
         times.append(np.asarray(track.t_ns, np.int64))
         ids.append(np.full(len(track.t_ns), k, np.int64))
-        data += [d for _, d in _pose_msgs(track, frame_id)]
+        data += [d for _, d in _pose_msgs(track, frames[sid])]
     t, c = np.concatenate(times), np.concatenate(ids)
     order = np.lexsort((c, t))  # by time, then channel; stable, as the Writer's sorted events
     path = Path(path)
@@ -134,7 +139,10 @@ def write_aligned(tracks: dict[str, PoseTrack], path: str | Path, frame_id: str 
     return path
 
 
-def _write_aligned_by_writer(tracks: dict[str, PoseTrack], path: str | Path, frame_id: str = "aligned") -> Path:
+def _write_aligned_by_writer(
+    tracks: dict[str, PoseTrack], path: str | Path, frame_id: str = "aligned",
+    frame_ids: Mapping[str, str] | None = None,
+) -> Path:
     """``write_aligned`` through mcap's Writer, one call per pose (the reference ``write_bulk`` matches)."""
     path = Path(path)
     with atomic_open(path, "wb") as fh:
@@ -145,7 +153,7 @@ def _write_aligned_by_writer(tracks: dict[str, PoseTrack], path: str | Path, fra
         events = []
         for sid, track in tracks.items():
             c = ch.channel(f"/aligned/{sid}", name, schema)
-            events += [(t, c, d) for t, d in _pose_msgs(track, frame_id)]
+            events += [(t, c, d) for t, d in _pose_msgs(track, (frame_ids or {}).get(sid, frame_id))]
         for t, c, d in sorted(events, key=lambda e: (e[0], e[1])):
             ch.add(c, t, d)
         writer.finish()

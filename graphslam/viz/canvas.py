@@ -291,8 +291,11 @@ class Picture:
     colourbars: list[tuple[tuple[int, int, int, int], NDArray, float, float, str]] = field(default_factory=list)
     captions: list[tuple[tuple[int, int], str, int]] = field(default_factory=list)
 
-    def panel(self, box: tuple[int, int, int, int], bounds: Sequence[float]) -> Panel:
+    def panel(self, box: tuple[int, int, int, int], bounds: Sequence[float], *, tick_labels: bool = True) -> Panel:
+        """A panel at ``box``; ``tick_labels``: metre labels beside the frame (off: the grid alone)."""
         p = Panel(box, bounds)
+        if not tick_labels:
+            p.ticks = []
         self.panels.append(p)
         return p
 

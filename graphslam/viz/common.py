@@ -16,6 +16,7 @@ from graphslam.core.radiomap.fingerprints import FingerprintMatrix
 from graphslam.core.survey.evaluate import ErrorStats, interpolate_xy, landmark_errors
 from graphslam.core.types import PoseTrack, Survey
 from graphslam.errors import InputError
+from graphslam.io.csv_io import TrajectoryFile
 from graphslam.io.floor_plan import FloorPlan, load_floor_plan  # noqa: F401 (re-exported: the pictures' API)
 
 
@@ -88,14 +89,20 @@ def site_to_frame(site_from_frame: NDArray, xy: NDArray) -> NDArray[np.float64]:
 def survey_folder_tracks(out_dir: str | Path) -> dict[str, PoseTrack]:
     """The aligned walks of a finished ``graphslam survey --out`` folder (its trajectories.csv);
     ``InputError`` when it is not one."""
-    from graphslam.io.csv_io import read_trajectories
+    return survey_folder_trajectories(out_dir).tracks
+
+
+def survey_folder_trajectories(out_dir: str | Path) -> TrajectoryFile:
+    """trajectories.csv of a finished ``graphslam survey --out`` folder: the aligned walks and
+    their components; ``InputError`` when it is not one."""
+    from graphslam.io.csv_io import read_trajectory_file
 
     d = Path(out_dir)
     if not d.is_dir():
         raise InputError(d, "not a folder (expected a `graphslam survey --out` folder)")
     if not (d / "trajectories.csv").exists():
         raise InputError(d, "no trajectories.csv: not a finished survey output folder")
-    tracks = read_trajectories(d / "trajectories.csv")
-    if not tracks:
+    traj = read_trajectory_file(d / "trajectories.csv")
+    if not traj.tracks:
         raise InputError(d / "trajectories.csv", "no aligned walk in the file")
-    return tracks
+    return traj

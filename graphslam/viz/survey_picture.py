@@ -6,9 +6,16 @@ final state, landmark truth / estimate / error when the recordings have marks, a
 and the floor plan underneath when one is given. Unaligned walks are listed in the legend,
 grouped by their reason.
 
+Components: the big panel is the main map (component 0, the radio map's walks). Walks in
+other components (each in a frame of its own, its placement relative to the main map
+unknown) are drawn apart, in a strip of small panels under it, each at its own scale and
+labelled "component k: n walks (own frame)": the ``MAX_INSETS`` largest; the legend counts the
+rest (not drawn) and groups all of them by why they stand apart.
+
 Frames: the picture is drawn in the output frame (trajectories.csv) unless a floor plan is
 given and the landmarks gave a site-from-output fit: then everything is drawn in the plan's
-site frame through that fit (display only; the subtitle says which).
+site frame through that fit (display only; the subtitle says which). In the "earth" frame
+(x east, y north from the phones' headings) a north arrow marks the main panel.
 
 Two sources, one ``SurveyScene``: ``scene_of_alignment`` (in memory, by ``graphslam survey``)
 and ``scene_of_folder`` (a finished output folder, by ``graphslam plot``).
@@ -34,7 +41,7 @@ from graphslam.core.types import Survey
 from graphslam.errors import InputError
 from graphslam.viz.common import (
     FloorPlan, LandmarkMarks, fitted_site_from_aligned, landmark_marks, session_colours, site_to_frame,
-    survey_folder_tracks,
+    survey_folder_trajectories,
 )
 from graphslam.viz.canvas import BLACK, GREY, LegendEntry, Picture, bounds_of
 
@@ -42,6 +49,8 @@ SIZE_PX = (1600, 1000)
 MAX_EDGES = 20_000  # drawn; more are subsampled (deterministically), the legend gives both counts
 MAX_LEGEND_WALKS = 16  # more aligned walks: one legend line for all (the colours still differ)
 MAX_REASONS = 6  # unaligned walks are grouped by reason; at most this many groups listed
+MAX_INSETS = 6  # other components drawn in the strip under the main map (the largest first)
+INSET_STRIP_PX = 200  # height of that strip, its labels included
 EDGE_COLOURS = ((70, 170, 90), (255, 160, 0), (220, 40, 40))  # inactive, ramp, saturated (as in Rerun)
 MAGENTA = (215, 0, 215)
 EDGE_NAMES = ("inactive", "ramp", "saturated")
@@ -65,6 +74,25 @@ class SurveyScene:
     n_sessions: int
     n_poses: int
     notes: tuple[str, ...] = ()  # what could not be shown, and why
+    # (index, walks, reason) of every component, 0 first; empty: every walk of ``tracks`` in component 0
+    components: tuple[tuple[int, tuple[str, ...], str], ...] = ()
+    frame: str = "aligned"  # of component 0: "aligned" | "earth" | "site"
+
+    def main_ids(self) -> list[str]:
+        """The walks of the main map (component 0), in ``tracks`` order."""
+        if not self.components:
+            return list(self.tracks)
+        main = set(self.components[0][1])
+        return [s for s in self.tracks if s in main]
+
+    def other_components(self) -> list[tuple[int, tuple[str, ...], str]]:
+        """Components >= 1 with their walks that are in ``tracks``; empty ones left out."""
+        out = []
+        for k, walks, why in self.components[1:]:
+            w = tuple(s for s in walks if s in self.tracks)
+            if w:
+                out.append((k, w, why))
+        return out
 
 
 def scene_of_alignment(
@@ -74,14 +102,23 @@ def scene_of_alignment(
     """The scene of a survey just aligned (``graphslam survey``)."""
     tracks = {sid: np.asarray(tr.xy) for sid, tr in al.tracks.items()}
     xy = al.fingerprint_xy()
-    rows_xy = xy[np.isfinite(xy).all(axis=1)]
-    marks = landmark_marks(al.tracks, survey)
+    finite = np.isfinite(xy).all(axis=1)
+    rows_xy = xy[finite]
+    edges = crowdsourced_edges(al, cfg)
+    comps = tuple((c.index, tuple(c.walks), c.reason) for c in al.components)
+    if len(comps) > 1:  # the main map's edges only: an edge to another component joins two frames
+        main = np.isin(np.asarray(al.session_ids, dtype=object)[al.fingerprints.session[finite]],
+                       list(comps[0][1]))
+        ok = main[edges.a] & main[edges.b]
+        edges = WifiEdgeRows(edges.a[ok], edges.b[ok], edges.distance_m[ok], edges.state[ok])
+    marks = landmark_marks(al.main_tracks(), survey)  # one fit: the main map's walks
     T = marks.site_from_output if marks is not None else None
     if T is None and evaluation is not None and evaluation.steps.n:  # fitted on true poses (simulations)
         T = np.asarray(evaluation.site_from_aligned, float)
     return _scene(
-        tracks, al.session_ids, al.reference, dict(al.unaligned), rows_xy, crowdsourced_edges(al, cfg), marks, T,
+        tracks, al.session_ids, al.reference, dict(al.unaligned), rows_xy, edges, marks, T,
         _landmark_text(marks.stats.as_dict() if marks is not None else None), survey.n_steps, max_edges, (),
+        comps, al.frame,
     )
 
 
@@ -95,7 +132,8 @@ def scene_of_folder(
     ``recordings`` add the landmark marks and the walks that were not aligned.
     """
     d = Path(out_dir)
-    pose_tracks = survey_folder_tracks(d)
+    traj = survey_folder_trajectories(d)
+    pose_tracks = traj.tracks
     report = _read_json(d / "report.json")
     notes: list[str] = []
     survey = None
@@ -121,23 +159,34 @@ def scene_of_folder(
         edges = read_wifi_edges(d / "wifi_edges.parquet", len(rows_xy))
     else:
         notes.append("WiFi edges not shown: no wifi_edges.parquet + radio_map.parquet in the folder")
-    marks = landmark_marks(pose_tracks, survey)
+    marks = landmark_marks(traj.of_component(0), survey)
     ev = report.get("evaluation") if isinstance(report.get("evaluation"), dict) else {}
     T = marks.site_from_output if marks is not None else None
     if T is None:
         T = fitted_site_from_aligned(ev)
     lm = marks.stats.as_dict() if marks is not None else ev.get("landmarks")
     n_poses = int(report.get("nodes") or sum(len(t) for t in pose_tracks.values()))
+    reasons = {
+        c.get("index"): str(c.get("reason") or "") for c in report.get("components") or [] if isinstance(c, dict)
+    }
+    by_index: dict[int, list[str]] = {}
+    for sid in pose_tracks:
+        by_index.setdefault(traj.components.get(sid, 0), []).append(sid)
+    comps = tuple((k, tuple(by_index[k]), reasons.get(k, "")) for k in sorted(by_index))
+    if comps and comps[0][0] != 0:  # no walk in the main map: an empty component 0 first
+        comps = ((0, (), ""),) + comps
+    frame = report.get("frame") if report.get("frame") in ("aligned", "earth", "site") else "aligned"
     return _scene(
         {sid: np.asarray(t.xy) for sid, t in pose_tracks.items()}, ids, reference, unaligned, rows_xy, edges,
-        marks, T, _landmark_text(lm), n_poses, max_edges, tuple(notes),
+        marks, T, _landmark_text(lm), n_poses, max_edges, tuple(notes), comps if len(comps) > 1 else (), frame,
     )
 
 
 def _scene(
     tracks: dict[str, NDArray], ids: Sequence[str], reference: str, unaligned: dict[str, str], rows_xy: NDArray,
     edges: WifiEdgeRows | None, marks: LandmarkMarks | None, T: NDArray | None, landmark_text: str, n_poses: int,
-    max_edges: int, notes: tuple[str, ...],
+    max_edges: int, notes: tuple[str, ...], components: tuple[tuple[int, tuple[str, ...], str], ...] = (),
+    frame: str = "aligned",
 ) -> SurveyScene:
     if edges is None or not len(edges.a):
         seg, state, counts = np.zeros((0, 2, 2)), np.zeros(0, np.int8), (0, 0, 0)
@@ -151,7 +200,7 @@ def _scene(
         state = edges.state[pick]
     return SurveyScene(
         tracks, session_colours(ids), reference, unaligned, seg, state, counts, marks, T, landmark_text,
-        len(ids), n_poses, notes,
+        len(ids), n_poses, notes, components if len(components) > 1 else (), frame,
     )
 
 
@@ -187,11 +236,13 @@ def draw_survey(
 
 
 def survey_picture(scene: SurveyScene, *, floor_plan: FloorPlan | None = None, size_px: tuple[int, int] = SIZE_PX) -> Picture:
-    """The picture, not yet rendered: one panel, the legend in a column on its right."""
+    """The picture, not yet rendered: the main map's panel (a strip of small panels under it for the
+    other components), the legend in a column on its right."""
     T = scene.site_from_output
     in_site = floor_plan is not None and T is not None
     move = (lambda xy: se2_apply(T, xy)) if in_site else (lambda xy: xy)  # noqa: E731
-    ids = list(scene.tracks)
+    ids = scene.main_ids()
+    others = scene.other_components()
     lines = [move(scene.tracks[s]) for s in ids]
     colours = [scene.colours[s] for s in ids]
     est = truth = None
@@ -203,7 +254,9 @@ def survey_picture(scene: SurveyScene, *, floor_plan: FloorPlan | None = None, s
     w, h = size_px
     pic = Picture(size_px, title_lines=_title(scene, floor_plan, in_site), legend_x=int(0.685 * w))
     top = 16 + 20 * len(pic.title_lines)
-    panel = pic.panel((62, top, int(0.665 * w), h - 30), bounds_of(*lines, truth, plan_box))
+    right = int(0.665 * w)
+    bottom = h - 30 - (INSET_STRIP_PX if others else 0)
+    panel = pic.panel((62, top, right, bottom), bounds_of(*lines, truth, plan_box))
     legend = pic.legend
 
     if floor_plan is not None:
@@ -225,15 +278,18 @@ def survey_picture(scene: SurveyScene, *, floor_plan: FloorPlan | None = None, s
 
     if est is not None and truth is not None:  # under the walks: big errors must not hide them
         panel.faint_segments(np.stack([est, truth], axis=1), MAGENTA, alpha=0.45)
-    width = 2 if len(ids) <= 40 else 1
+    n_walks = len(scene.tracks)
+    width = 2 if n_walks <= 40 else 1
     panel.polylines(lines, colours, width=width)
-    if len(ids) <= MAX_LEGEND_WALKS:
-        legend += [LegendEntry(s + (" (reference)" if s == scene.reference else ""), c, width=4)
-                   for s, c in zip(ids, colours)]
+    component = {sid: k for k, walks, _ in others for sid in walks}
+    if n_walks <= MAX_LEGEND_WALKS:
+        legend += [LegendEntry(s + (" (reference)" if s == scene.reference else "")
+                               + (f" (component {component[s]})" if s in component else ""), scene.colours[s], width=4)
+                   for s in scene.tracks]
     else:
-        legend.append(LegendEntry(f"{len(ids)} aligned walks, one colour each", colours[0], width=4))
+        legend.append(LegendEntry(f"{n_walks} aligned walks, one colour each", colours[0] if colours else GREY, width=4))
 
-    if scene.reference in scene.tracks and len(scene.tracks[scene.reference]):
+    if scene.reference in ids and len(scene.tracks[scene.reference]):
         ref = lines[ids.index(scene.reference)]
         panel.polylines([ref], [BLACK], width=1)  # thin, on top: marks the walk without hiding others
         panel.points(ref[:1], BLACK, radius=11, kind="star")
@@ -246,9 +302,98 @@ def survey_picture(scene: SurveyScene, *, floor_plan: FloorPlan | None = None, s
         legend.append(LegendEntry("landmark truth", BLACK, "cross"))
         legend.append(LegendEntry(
             f"landmark estimate and error line ({scene.marks.stats.mean_m:.2f} m mean)", MAGENTA, "point"))
+    if scene.frame == "earth":
+        north = se2_apply(np.array([0.0, 0.0, T[2]]), np.array([[0.0, 1.0]]))[0] if in_site and T is not None \
+            else np.array([0.0, 1.0])
+        _north_arrow(panel, north)
+        legend.append(LegendEntry(
+            "north arrow: the main map is east/north (x east, y north, from the phones' headings)"
+            + ("; turned here by the landmark fit" if in_site else ": north-up"), kind="text"))
+    legend += _component_entries(scene, others, len(ids))
     legend += _unaligned_entries(scene.unaligned)
     panel.scale_bar()
+    if others:
+        _component_strip(pic, scene, others, (62, bottom + 42, right, h - 12))
     return pic
+
+
+def _north_arrow(panel: Any, north: NDArray) -> None:
+    """An arrow pointing north (unit vector ``north`` in the panel's metres), top right, with an N."""
+    from graphslam.viz.canvas import font
+
+    w, _ = panel.image.size
+    c = np.array([w - 34.0, 52.0])  # pixel centre (y down)
+    d = np.array([north[0], -north[1]]) / max(float(np.hypot(*north)), 1e-9)
+    tip, tail = c + 22 * d, c - 22 * d
+    n = np.array([-d[1], d[0]])
+    panel.draw.ellipse([c[0] - 30, c[1] - 30, c[0] + 30, c[1] + 30], fill=(255, 255, 255), outline=GREY)
+    panel.draw.line([tuple(tail), tuple(tip)], fill=BLACK, width=3)
+    panel.draw.polygon([tuple(tip), tuple(tip - 10 * d + 6 * n), tuple(tip - 10 * d - 6 * n)], fill=BLACK)
+    f = font(13)
+    label = c - 13 * d  # the N beside the shaft, on the tail's half
+    panel.draw.text((label[0] + 8 * n[0] - 4, label[1] + 8 * n[1] - 8), "N", fill=BLACK, font=f)
+
+
+def _component_strip(pic: Picture, scene: SurveyScene, others: list[tuple[int, tuple[str, ...], str]],
+                     box: tuple[int, int, int, int]) -> None:
+    """The largest other components, a small panel each (own frame, own scale), side by side in ``box``."""
+    from graphslam.viz.canvas import font
+
+    x0, y0, x1, y1 = box
+    shown = sorted(others, key=lambda c: (-len(c[1]), -sum(len(scene.tracks[s]) for s in c[1]), c[0]))[:MAX_INSETS]
+    n_rest = len(others) - len(shown)
+    head = ("other components, each in a frame of its own (placement relative to the main map unknown; "
+            "not in the radio map)" + (f"; the {len(shown)} largest drawn" if n_rest else ""))
+    pic.caption((x0, y0 - 20), head, size=12)
+    gap = 12
+    width = min(330, (x1 - x0 - gap * (len(shown) - 1)) // max(len(shown), 1))
+    f = font(12)
+    for n, (k, walks, _) in enumerate(shown):
+        left = x0 + n * (width + gap)
+        lines = [scene.tracks[s] for s in walks]
+        inset = pic.panel((left, y0, left + width, y1), bounds_of(*lines), tick_labels=False)
+        inset.polylines(lines, [scene.colours[s] for s in walks], width=2)
+        label = f"component {k}: {len(walks)} walk{'s' if len(walks) != 1 else ''} (own frame)"
+        while f.getlength(label) > width - 10 and " " in label:
+            label = label.rsplit(" ", 1)[0]  # a narrow panel: "component k: n walks"
+        inset.draw.rectangle([2, 2, 8 + f.getlength(label), 20], fill=(255, 255, 255))
+        inset.draw.text((5, 4), label, fill=BLACK, font=f)
+        inset.scale_bar()
+
+
+def _component_entries(
+    scene: SurveyScene, others: list[tuple[int, tuple[str, ...], str]], n_main: int
+) -> list[LegendEntry]:
+    """Which walks stand apart from the main map and why: one entry per reason (components, walks)."""
+    if not others:
+        return []
+    n_other = sum(len(w) for _, w, _ in others)
+    out = [LegendEntry(f"main map (component 0, the radio map's walks): {n_main} walks; {n_other} walks in "
+                       f"{len(others)} other component{'s' if len(others) != 1 else ''} stand apart, each in its "
+                       "own frame (the strip below):", kind="text")]
+    groups: dict[str, list[tuple[int, tuple[str, ...], str]]] = {}
+    for c in others:
+        groups.setdefault(c[2] or "not linked to the main map", []).append(c)
+    drawn = {c[0] for c in sorted(others, key=lambda c: (-len(c[1]), -sum(len(scene.tracks[s]) for s in c[1]),
+                                                         c[0]))[:MAX_INSETS]}
+    for j, (why, cs) in enumerate(sorted(groups.items(), key=lambda kv: -sum(len(c[1]) for c in kv[1]))):
+        if j == MAX_REASONS:
+            out.append(LegendEntry(f"... {len(groups) - j} more reasons (report.json: components)", kind="text"))
+            break
+        walks = sum(len(c[1]) for c in cs)
+        singles = sum(len(c[1]) == 1 for c in cs)
+        listed = ", ".join(str(c[0]) for c in cs[:5]) + (f" +{len(cs) - 5} more" if len(cs) > 5 else "")
+        out.append(LegendEntry(
+            f"{len(cs)} component{'s' if len(cs) != 1 else ''}, {walks} walk{'s' if walks != 1 else ''}"
+            + (f" ({singles} of one walk)" if singles and len(cs) > 1 else "")
+            + f": {why} (component{'s' if len(cs) != 1 else ''} {listed})",
+            GREY, "line", width=2))
+    rest = [c for c in others if c[0] not in drawn]
+    if rest:
+        out.append(LegendEntry(
+            f"{len(rest)} smaller components ({sum(len(c[1]) for c in rest)} walks) not drawn "
+            "(report.json: components, trajectories.csv)", kind="text"))
+    return out
 
 
 def _faint(c: tuple[int, int, int], a: float = 0.55) -> tuple[int, int, int]:
@@ -258,8 +403,11 @@ def _faint(c: tuple[int, int, int], a: float = 0.55) -> tuple[int, int, int]:
 
 def _title(scene: SurveyScene, plan: FloorPlan | None, in_site: bool) -> list[str]:
     n_al = len(scene.tracks)
-    head = (f"{n_al}/{scene.n_sessions} walks aligned, {scene.n_poses:,} poses, "
-            f"{sum(scene.edge_counts):,} WiFi edges between them"
+    others = scene.other_components()
+    split = (f" ({len(scene.main_ids())} in the main map, {sum(len(w) for _, w, _ in others)} in "
+             f"{len(others)} other component{'s' if len(others) != 1 else ''})" if others else "")
+    head = (f"{n_al}/{scene.n_sessions} walks aligned{split}, {scene.n_poses:,} poses, "
+            f"{sum(scene.edge_counts):,} WiFi edges" + (" in the main map" if others else " between them")
             + (f"; {scene.landmark_text}" if scene.landmark_text else ""))
     if in_site and scene.site_from_output is not None:
         x, y, th = (float(v) for v in scene.site_from_output)
@@ -267,6 +415,10 @@ def _title(scene: SurveyScene, plan: FloorPlan | None, in_site: bool) -> list[st
                  f"{np.degrees(th):.1f} deg; display only)")
     else:
         frame = "output frame (trajectories.csv, metres): origin = first pose of the reference walk"
+        if scene.frame == "earth":
+            frame += "; north-up (x east, y north, from the phones' headings)"
+        elif scene.frame == "site":
+            frame = "site frame (trajectories.csv, metres): placed by the control points or UWB anchors"
         if plan is not None:
             frame += "; the floor plan is NOT registered to it (no landmark fit)"
     return [line for s in [head, frame, *scene.notes] for line in textwrap.wrap(s, 150)]
