@@ -164,6 +164,10 @@ def survey(
         "solution and only the new walks' neighbourhood is re-solved (a full re-solve, said in report.json, if "
         "the configuration or a walk changed). OUT may be the same folder.",
     ),
+    control_points: Optional[Path] = typer.Option(
+        None, "--control-points", help="CSV landmark_id,x,y (site metres): the landmarks of these ids, where a walk "
+        "marks them on /landmarks, tie the map to the site frame.",
+    ),
 ) -> None:
     """Align every walk into one frame; write trajectories.csv, aligned.mcap, radio_map.parquet,
     wifi_edges.parquet, report.json, survey_state.npz, the effective config.yaml and survey.png into OUT.
@@ -177,7 +181,7 @@ def survey(
         show_progress("off")
     result = run_survey(
         paths, out, cfg, rerun_path=rerun, floor_plan=floor_plan, floor_size=floor_size, surveyed=surveyed,
-        picture=picture, update=update,
+        picture=picture, update=update, control_points=control_points,
     )
     r = result.report
     typer.echo(
@@ -230,8 +234,9 @@ def survey_batch(
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Progress bar over floors."),
 ) -> None:
     """Survey every floor under SITES_ROOT as one task each on Dask; OUT_ROOT/summary.json lists them.
-    A floor whose main map holds under half of its walks is "partial". Exit code 0: no floor failed
-    (ok or partial); 1: some failed (their error in summary.json); 2: bad arguments."""
+    A floor folder holding control_points.csv is surveyed with it (survey --control-points). A floor
+    whose main map holds under half of its walks is "partial". Exit code 0: no floor failed (ok or
+    partial); 1: some failed (their error in summary.json); 2: bad arguments."""
     from tqdm import tqdm
 
     from graphslam.app.batch import run_batch

@@ -254,16 +254,27 @@ def test_survey_floor_marks_a_floor_partial(floor: Path, tmp_path: Path, monkeyp
     assert row["warning"].startswith("b7_f2 (sim-corridor/F1): the main map holds 2 of 6 walks")
 
 
-def test_batch_counts_partial_floors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """A real local Dask cluster: an ok floor and a partial floor (exit code 0)."""
+def test_batch_counts_partial_floors_and_takes_each_floors_control_points(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A real local Dask cluster: an ok floor (with a control_points.csv it uses), a partial floor,
+    and a floor whose control_points.csv is broken (failed, the file named)."""
     sites = tmp_path / "sites"
-    _floor_without_wifi(sites, "good", keep=6)
+    good = _floor_without_wifi(sites, "good", keep=6)
+    (good / "control_points.csv").write_text("landmark_id,x,y\nL1,1.0,2.0\n")
     _floor_without_wifi(sites, "sparse", keep=2)
+    broken = _floor_without_wifi(sites, "broken", keep=6)
+    (broken / "control_points.csv").write_text("landmark_id,x,y\nL1,1.0,north\n")
     out = tmp_path / "out"
-    assert run_cli(["survey-batch", str(sites), "--out", str(out), "--workers", "2", "--no-progress"]) == 0
+    assert run_cli(["survey-batch", str(sites), "--out", str(out), "--workers", "2", "--no-progress"]) == 1
     rows = {r["floor"]: r for r in json.loads((out / "summary.json").read_text())}
-    assert {k: r["status"] for k, r in rows.items()} == {"good": "ok", "sparse": "partial"}
+    assert {k: r["status"] for k, r in rows.items()} == {"good": "ok", "sparse": "partial", "broken": "failed"}
     assert rows["sparse"]["main"] == 2 and "the main map holds 2 of 6 walks" in rows["sparse"]["warning"]
+    assert str(broken / "control_points.csv") in rows["broken"]["error"] and "[field y]" in rows["broken"]["error"]
     stdout = capsys.readouterr().out
-    assert "2 floors: 1 ok, 1 partial, 0 failed" in stdout
+    assert "3 floors: 1 ok, 1 partial, 1 failed" in stdout
     assert "partial: sparse: sparse (sim-corridor/F1): the main map holds 2 of 6 walks" in stdout
+    # partial floors alone: exit code 0
+    (broken / "control_points.csv").unlink()
+    assert run_cli(["survey-batch", str(sites), "--out", str(out), "--workers", "2", "--no-progress"]) == 0
+    assert "3 floors: 2 ok, 1 partial, 0 failed" in capsys.readouterr().out

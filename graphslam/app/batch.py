@@ -9,7 +9,9 @@ OUT_ROOT at the same paths (a shared file system) and have graphslam installed.
 
 A floor surveyed whose main map (component 0) holds under half of its walks is ``partial``
 (``graphslam.app.survey.main_map_warning``, the rule ``graphslam survey`` warns by; the text is
-the row's ``warning``): its outputs are written, the batch still succeeds.
+the row's ``warning``): its outputs are written, the batch still succeeds. A floor folder
+holding ``control_points.csv`` is surveyed with those control points (``survey
+--control-points``).
 
 Failures stay per floor: bad input or a solver error is the floor's ``error`` (the message
 names the file); a worker that dies while surveying a floor (OOM killer, a lost machine)
@@ -43,6 +45,7 @@ from graphslam.io.atomic import atomic_write_json
 log = logging.getLogger(__name__)
 
 SUMMARY_FILE = "summary.json"
+CONTROL_POINTS_FILE = "control_points.csv"  # in a floor folder: that floor's --control-points
 STATUSES = ("ok", "partial", "failed")
 # One thread per floor process: a survey is single-threaded in GTSAM; BLAS threads on top of
 # two workers on two cores would only compete.
@@ -102,7 +105,8 @@ def survey_floor(floor_dir: str, out_dir: str, config_json: str, floor: str, upd
 
         cfg = config_from_dict(json.loads(config_json), "survey-batch configuration")
         previous = out_dir if update and (Path(out_dir) / STATE_FILE).is_file() else None
-        result = run_survey([floor_dir], out_dir, cfg, update=previous)
+        cp = Path(floor_dir) / CONTROL_POINTS_FILE
+        result = run_survey([floor_dir], out_dir, cfg, update=previous, control_points=cp if cp.is_file() else None)
         walks, aligned = result.report["sessions"], result.report["aligned_sessions"]
         main = result.report["radio_map"]["walks"]
         warning = main_map_warning(result.report)

@@ -226,16 +226,20 @@ def run_survey(
     surveyed: bool = False,
     picture: bool = True,
     update: str | Path | None = None,
+    control_points: str | Path | Mapping[str, tuple[float, float]] | None = None,
 ) -> SurveyResult:
     """Read ``paths``, align every walk, write the outputs into ``out_dir`` (None: no files);
     ``picture``: also survey.png there (over ``floor_plan`` when given).
 
     ``update``: a previous output folder of this floor; walks solved there start from their
-    solution and only the new walks' neighbourhood is re-solved (``graphslam.app.update``)."""
+    solution and only the new walks' neighbourhood is re-solved (``graphslam.app.update``).
+    ``control_points``: a ``landmark_id,x,y`` CSV file (``graphslam.io.control_points``) or its
+    content, landmark id -> site (x, y); at least one id must be marked by a walk."""
     cfg = config or GraphSlamConfig()
     with _openblas_threads(cfg.optimizer.blas_threads):
         return _run_survey(paths, out_dir, cfg, progress=progress, rerun_path=rerun_path, floor_plan=floor_plan,
-                           floor_size=floor_size, surveyed=surveyed, picture=picture, update=update)
+                           floor_size=floor_size, surveyed=surveyed, picture=picture, update=update,
+                           control_points=control_points)
 
 
 @contextlib.contextmanager
@@ -263,24 +267,29 @@ def _run_survey(
     surveyed: bool,
     picture: bool,
     update: str | Path | None,
+    control_points: str | Path | Mapping[str, tuple[float, float]] | None,
 ) -> SurveyResult:
     _check_outputs(paths, out_dir, rerun_path, floor_plan)
     plan = _picture_plan(floor_plan, floor_size) if picture and out_dir is not None else None
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
+    cp_source, cp = _read_control_points(control_points)  # a bad file fails before the work
     previous = None
     if update is not None:  # read first: a bad previous output fails before the work
         from graphslam.app.update import align_update, load_previous
 
         previous = load_previous(update)
     survey = read_survey(paths)
+    if cp is not None:
+        check_control_points_marked(cp, survey, cp_source)
     timings["read"] = time.perf_counter() - t0
 
     update_info = None
     if previous is not None:
-        alignment, cfg, update_info = align_update(survey, cfg, previous, previous_dir=update, progress=progress)
+        alignment, cfg, update_info = align_update(survey, cfg, previous, previous_dir=update, progress=progress,
+                                                   control_points=cp)
     else:
-        alignment = align(survey, cfg, progress=progress)
+        alignment = align(survey, cfg, progress=progress, control_points=cp)
     timings.update({f"align.{k}": v for k, v in alignment.timings_s.items()})
 
     t = time.perf_counter()
@@ -323,6 +332,36 @@ def _run_survey(
     if warning is not None:
         log.warning("%s", warning)
     return SurveyResult(survey, alignment, evaluation, report, Path(out_dir) if out_dir else None, files)
+
+
+def _read_control_points(
+    source: str | Path | Mapping[str, tuple[float, float]] | None,
+) -> tuple[str, dict[str, tuple[float, float]] | None]:
+    """(what to name in a message, landmark id -> site (x, y)) of ``run_survey``'s ``control_points``."""
+    if source is None:
+        return "", None
+    if isinstance(source, (str, Path)):
+        from graphslam.io.control_points import read_control_points
+
+        return str(source), read_control_points(source)
+    return "control points", {str(k): (float(v[0]), float(v[1])) for k, v in source.items()}
+
+
+def check_control_points_marked(cp: Mapping[str, Any], survey: Survey, source: str | Path = "control points") -> None:
+    """An ``InputError`` when no walk of ``survey`` marks any of the control points' ids on
+    /landmarks (a file of another floor, or ids spelt otherwise than the walks mark them)."""
+    marked = {m.landmark_id for s in survey for m in s.landmarks}
+    if marked & set(cp):
+        return
+    ids = list(cp)
+    seen = sorted(marked)
+    raise InputError(
+        source,
+        f"none of the {len(ids)} ids ({', '.join(map(repr, ids[:3]))}{', ...' if len(ids) > 3 else ''}) is marked "
+        "by any walk's /landmarks" + (f" (the walks mark e.g. {', '.join(map(repr, seen[:3]))})" if seen
+                                      else " (no walk has /landmarks)"),
+        field="landmark_id",
+    )
 
 
 def _picture_plan(floor_plan: str | Path | None, floor_size: tuple[float, float] | None) -> Any:

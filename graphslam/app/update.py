@@ -13,7 +13,7 @@ import json
 import logging
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -86,8 +86,10 @@ def align_update(
     *,
     previous_dir: str | Path,
     progress: ProgressCallback | None = None,
+    control_points: Mapping[str, tuple[float, float]] | None = None,
 ) -> tuple[Alignment, GraphSlamConfig, dict[str, Any]]:
-    """(alignment, effective config, the report's ``update`` section)."""
+    """(alignment, effective config, the report's ``update`` section); ``control_points`` (landmark
+    id -> site x, y) are passed on to the solver either way."""
     prev_ids = set(previous.session_ids)
     prev_aligned = {sid for sid, ok in zip(previous.session_ids, previous.aligned.tolist()) if ok}
     info: dict[str, Any] = {
@@ -98,7 +100,7 @@ def align_update(
     reason = mismatch(previous, survey, cfg)
     if reason is not None:
         log.warning("--update: full re-solve: %s", reason)
-        al = align(survey, cfg, progress=progress)
+        al = align(survey, cfg, progress=progress, control_points=control_points)
         info.update(mode="full", reason=reason, resolved={"nodes": al.n_nodes, "of_nodes": al.n_nodes})
         return al, cfg, info
     # the previous reference walk stays the reference: the solution keeps its frame
@@ -107,7 +109,7 @@ def align_update(
     )
     t0 = time.perf_counter()
     warm = warm_start(previous, survey, cfg.update.hops)
-    problem = build_problem(survey, eff, warm)
+    problem = build_problem(survey, eff, warm, control_points=control_points)
     al = solve(problem, eff, progress, t0=t0)
     free = problem.free if problem.free is not None else np.zeros(al.n_nodes, bool)
     walk_of = np.repeat(np.arange(len(survey)), np.diff(problem.fingerprints.offsets))
