@@ -96,11 +96,13 @@ class OptimizerConfig(_Strict):
     """Levenberg-Marquardt, reference pose, initial placement of walks with unknown start."""
 
     reference_session: str | None = Field(None, description="session whose first pose is fixed (default: first)")
-    initialization: Literal["origin", "registration", "growth"] = Field(
-        "registration",
+    initialization: Literal["auto", "origin", "registration", "growth", "heading"] = Field(
+        "auto",
         description="origin: every walk starts at (0,0,0) as in the paper; registration: rigid WiFi-match fit "
         "(pairwise RANSAC + spanning tree); growth: map growth by Hough registration onto the placed walks "
-        "(see the placement section)",
+        "(see the placement section); heading: each walk rotated by its phone heading, then map growth into "
+        "components (north-up; walks nothing links stand apart); auto: heading when every walk has "
+        "/phone/heading (and heading.enabled), else registration",
     )
     unreliable_registration: Literal["unalign", "keep"] = Field(
         "unalign",
@@ -173,6 +175,39 @@ class PlacementConfig(_Strict):
     consistent_m: float = Field(6.0, gt=0, description="a match is consistent when its partners end this close")
 
 
+class HeadingConfig(_Strict):
+    """The phone's heading (/phone/heading): each walk's rotation into east/north, and its prior in the optimiser."""
+
+    enabled: bool = Field(True, description="use /phone/heading when every walk has it (false: as without headings)")
+    sigma_floor_deg: float = Field(
+        6.0, gt=0, le=90, description="least uncertainty of a walk's rotation from its heading (the phone's pointing "
+        "relative to the walk, which one walk cannot reveal)",
+    )
+    cauchy_scale_deg: float = Field(10.0, gt=0, description="yaw - dead-reckoned heading residuals beyond this are down-weighted (disturbed stretches)")
+    correlation_steps: int = Field(20, ge=1, description="steps over which the indoor distortion counts as one draw")
+    rotation_window_deg: float = Field(
+        12.0, gt=0, le=180, description="the placement searches rotations this far either side of the heading"
+    )
+    min_margin: float = Field(
+        1.0, ge=0, description="with headings, the placement's min_margin: a walk joins a component only when its "
+        "best placement beats the runner-up by this vote weight (else it stands apart)",
+    )
+    wifi_gate_m: float = Field(
+        3.0, ge=0, description="with headings, a WiFi edge enters the optimiser only when the placement puts its two "
+        "fingerprints this close (WiFi matches between walks are metres apart; far ones pull walks together wrongly); 0: none",
+    )
+    prior: Literal["walk", "step", "none"] = Field(
+        "walk", description="in the optimiser: walk: one rotation prior per walk (spread over its poses); step: a "
+        "heading factor at every solved pose (yaw - the walk's offset, Huber); none: placement only",
+    )
+
+
+class ControlPointConfig(_Strict):
+    """Control points (survey --control-points): walks whose /landmarks mark a listed id are tied there."""
+
+    sigma_m: float = Field(0.5, gt=0, description="position sigma of a walk at a control point it marks (the button press)")
+
+
 class UpdateConfig(_Strict):
     """graphslam survey --update: how much of a solved floor is re-solved around new walks."""
 
@@ -221,7 +256,9 @@ class GraphSlamConfig(_Strict):
     wifi: WifiFactorConfig = WifiFactorConfig()
     optimizer: OptimizerConfig = OptimizerConfig()
     placement: PlacementConfig = PlacementConfig()
-    update: UpdateConfig = UpdateConfig()  # issue 18: not part of a solution's identity (app/update.py)
+    heading: HeadingConfig = HeadingConfig()
+    control_points: ControlPointConfig = ControlPointConfig()
+    update: UpdateConfig = UpdateConfig()  # not part of a solution's identity (app/update.py)
     uwb: UwbConfig = UwbConfig()
 
     def to_yaml(self) -> str:

@@ -28,6 +28,7 @@ from graphslam.core.survey import solver as S
 from graphslam.core.survey import incremental
 from graphslam.core.survey.association import FingerprintNodes, associate
 from graphslam.core.survey.chains import CompressedChains, compress, expand
+from graphslam.core.survey.control import ControlTies, control_ties, tie_walks
 from graphslam.core.survey.edges import WifiEdges, propose_edges, window_thresholds
 from graphslam.core.survey.initialise import Placement, connected_to, register_walks, se2_apply
 from graphslam.core.types import PoseTrack, Survey, wrap_angle
@@ -151,7 +152,20 @@ def _transform_poses(xyh: NDArray, T: NDArray) -> NDArray:
     return np.column_stack([se2_apply(T, xyh[:, :2]), wrap_angle(xyh[:, 2] + T[2])])
 
 
-def _saturation_radii(cfg: GraphSlamConfig) -> list[float]:
+def initialization(cfg: GraphSlamConfig, survey: Survey | None = None) -> str:
+    """``optimizer.initialization`` resolved: auto takes ``heading`` when every walk has the phone's
+    heading (and ``heading.enabled``), else ``registration``; --update (a warm start) keeps its own."""
+    method = cfg.optimizer.initialization
+    if method != "auto":
+        return method
+    if survey is not None and cfg.heading.enabled and len(survey) and all(
+        s.heading is not None and len(s.heading) >= 3 for s in survey
+    ):
+        return "heading"
+    return "registration"
+
+
+def _saturation_radii(cfg: GraphSlamConfig, method: str = "registration") -> list[float]:
     """Graduated saturation: start wide (far-off starts still attract), end at d_max (the paper).
 
     From the origin start the first stage has no saturation at all; from a registration
@@ -161,7 +175,7 @@ def _saturation_radii(cfg: GraphSlamConfig) -> list[float]:
     d_max = cfg.wifi.d_max_m
     if n == 1:
         return [d_max]
-    if cfg.optimizer.initialization == "origin":
+    if method == "origin":
         return [float("inf")] + [float(r) for r in np.geomspace(4.0 * d_max, d_max, n - 1)]
     return [float(r) for r in np.geomspace(2.0 * d_max, d_max, n)]
 
@@ -188,11 +202,77 @@ class Problem:
     # --update (issue 18): nodes re-solved; the others keep init_xyh (their previous solution).
     # None: every node of an included walk is a variable (a full solve).
     free: NDArray[np.bool_] | None = None
-    uwb: UwbTerms | None = None  # UWB range factors and placement (issue 15)
+    uwb: UwbTerms | None = None  # UWB range factors and placement
+    method: str = "registration"  # the initialization used (``initialization``)
+    component: NDArray[np.int64] | None = None  # (S,) component of each included walk (None: all in 0)
+    components: tuple[Component, ...] = ()
+    fixed_nodes: NDArray[np.int64] | None = None  # nodes held (one per component); None: the reference node
+    heading: HeadingTerms | None = None
+    ties: ControlTies | None = None  # control points: position priors (component 0 in the site frame)
+    frame_name: str = "aligned"
 
     @property
     def reference_node(self) -> int:
         return int(self.fingerprints.offsets[self.reference])
+
+    @property
+    def held_nodes(self) -> NDArray[np.int64]:
+        """Nodes held at their initial pose: one per component (the reference node by default)."""
+        if self.fixed_nodes is not None:
+            return self.fixed_nodes
+        return np.array([self.reference_node], np.int64)
+
+
+@dataclass(frozen=True, eq=False)
+class HeadingTerms:
+    """Heading priors per node: target heading (rad, in the node's component frame) and sigma.
+
+    ``walk``: the target is the dead-reckoned heading turned by the walk's rotation from its heading
+    (one prior of the walk's sigma, spread over its nodes); ``step``: the target is the phone's yaw at
+    that step turned by the walk's offset as placed (the yaw's shape corrects the dead reckoning's
+    heading drift; the walk's rotation stays the placement's), sigma = the yaw's spread along the
+    walk, counted once per ``correlation_steps``."""
+
+    target: NDArray[np.float64]  # (N,) NaN: no prior
+    walk_sigma: NDArray[np.float64]  # (S,) the walk's rotation sigma (rad)
+    spread: NDArray[np.float64]  # (S,) robust spread of yaw - dead-reckoned heading along the walk
+    mode: str  # "walk" | "step" | "none"
+    correlation_steps: int = 20
+    step_floor_rad: float = float(np.radians(2.0))
+
+    def node_sigma(self, nodes: NDArray[np.int64], node_session: NDArray[np.int64]) -> NDArray[np.float64]:
+        """Sigma of each prior on ``nodes`` (those carrying one)."""
+        s = node_session[nodes]
+        n = np.bincount(s, minlength=len(self.walk_sigma)).astype(float)
+        if self.mode == "step":
+            steps = np.bincount(node_session, minlength=len(self.walk_sigma)).astype(float)
+            per_draw = np.maximum(1.0, self.correlation_steps * n[s] / np.maximum(steps[s], 1.0))
+            return np.hypot(self.spread[s], self.step_floor_rad) * np.sqrt(per_draw)
+        return self.walk_sigma[s] * np.sqrt(n[s])
+
+
+def _step_targets(survey: Survey, offsets: NDArray, init_xyh: NDArray, phi: float) -> NDArray[np.float64]:
+    """Per node: the phone's yaw at that step (+ the site offset), turned by the walk's mean offset
+    between the placed heading and the yaw (NaN where the walk has no heading)."""
+    from graphslam.core.survey.heading import heading_residuals
+
+    out = np.full(len(init_xyh), np.nan)
+    for s, sess in enumerate(survey):
+        k, _ = heading_residuals(sess)
+        if len(k) == 0:
+            continue
+        a = int(offsets[s])
+        n = len(sess.steps)
+        yaw = np.full(n, np.nan)
+        kk = np.clip(np.searchsorted(sess.steps.t_ns, sess.heading.t_ns), 0, n - 1)
+        yaw[kk] = sess.heading.yaw + phi
+        idx = np.arange(n)
+        have = np.isfinite(yaw)
+        near = idx[have][np.clip(np.searchsorted(idx[have], idx), 0, have.sum() - 1)]
+        yaw = yaw[near]  # steps without a message take the next one's (the first step)
+        off = np.angle(np.exp(1j * (init_xyh[a:a + n, 2] - yaw)).mean())
+        out[a:a + n] = np.asarray(wrap_angle(yaw + off), float)
+    return out
 
 
 def edge_candidates(cfg: GraphSlamConfig, n_fingerprints: int) -> str:
@@ -262,6 +342,13 @@ def build_problem(
     ea, eb = fp.node[edges.i], fp.node[edges.j]
     placement = None
     unaligned: dict[str, str] = {}
+    method = "registration" if warm is not None else initialization(cfg, survey)
+    if control_points and method != "heading" and warm is None:
+        raise SolverError(
+            "control points need the phones' headings (/phone/heading on every walk, optimizer.initialization "
+            f"auto or heading); this survey resolves to {method!r}"
+        )
+    split: ComponentSplit | None = None
     if warm is not None:  # --update: solved walks keep their solution, the others are registered to them
         placement = incremental.place_new_walks(warm, n_s, node_sess, dr_xyh[:, :2], ea, eb)
         included = placement.placed.copy()
@@ -275,7 +362,12 @@ def build_problem(
                     "between the walks placed anew are consistent"
                 )
                 included[s] = False
-    elif cfg.optimizer.initialization == "registration":
+    elif method == "heading":
+        split = _split(survey, fp, dr_xyh, node_sess, cfg, control_points)
+        placement, transforms = split.placement, split.placement.transforms
+        included = np.ones(n_s, bool)
+        ref = split.reference
+    elif method == "registration":
         placement = register_walks(n_s, ref, node_sess, dr_xyh[:, :2], ea, eb)
         included = placement.placed.copy()
         transforms = placement.transforms
@@ -297,7 +389,7 @@ def build_problem(
                 "registration unreliable: %d walks reported unaligned (optimizer.unreliable_registration=keep "
                 "would output them anyway)", int(placement.placed.sum()) - 1,
             )
-    elif cfg.optimizer.initialization == "growth":
+    elif method == "growth":
         placement = _grow(survey, fp, dr_xyh, cfg)
         if cfg.optimizer.reference_session is None:
             ref = int(np.flatnonzero(placement.parent == -2)[0])  # the seed walk defines the frame
@@ -328,7 +420,12 @@ def build_problem(
         placed = np.isfinite(uwb.init_xyh[:, 0])
         init_xyh[placed] = uwb.init_xyh[placed]
     use = included[node_sess[ea]] & included[node_sess[eb]]
+    if split is not None:  # no WiFi edge between components: nothing the placement trusted links them
+        use &= split.component[node_sess[ea]] == split.component[node_sess[eb]]
     wifi_pairs = np.column_stack([ea[use], eb[use]]).astype(np.int64)
+    if split is not None:  # ... and within one, only edges the placement agrees with
+        gap = np.linalg.norm(init_xyh[wifi_pairs[:, 0], :2] - init_xyh[wifi_pairs[:, 1], :2], axis=1)
+        wifi_pairs = wifi_pairs[gap <= cfg.heading.wifi_gate_m]
     free = None
     if warm is not None:  # --update: solved walks start from their solution; only their neighbourhood moves
         init_xyh = np.where(warm.solved[:, None], warm.xyh, init_xyh)
@@ -354,7 +451,105 @@ def build_problem(
         timings_s=timings,
         free=free,
         uwb=uwb,
+        method=method,
+        component=None if split is None else split.component,
+        components=() if split is None else split.components,
+        fixed_nodes=None if split is None else split.fixed_nodes,
+        heading=None if split is None else split.heading,
+        ties=None if split is None else split.ties,
+        frame_name="aligned" if split is None else split.frame_name,
     )
+
+
+@dataclass(frozen=True, eq=False)
+class ComponentSplit:
+    """The heading placement's outcome: components, their held nodes, heading priors, control ties."""
+
+    placement: Placement
+    component: NDArray[np.int64]
+    components: tuple[Component, ...]
+    reference: int  # session index of component 0's seed (its first pose: the frame's origin without ties)
+    fixed_nodes: NDArray[np.int64]
+    heading: HeadingTerms
+    ties: ControlTies | None
+    frame_name: str
+
+
+def _split(
+    survey: Survey, fp: FingerprintNodes, dr_xyh: NDArray, node_sess: NDArray, cfg: GraphSlamConfig,
+    control_points: Mapping[str, tuple[float, float]] | None,
+) -> ComponentSplit:
+    """Heading placement: every walk rotated by its heading (east/north), map growth into components
+    (``graphslam.core.survey.components``); with control points component 0 grows from the walks
+    they tie, in the site frame."""
+    from graphslam.core.radiomap.similarity import PowerCosine
+    from graphslam.core.survey.components import place_components
+    from graphslam.core.survey.heading import walk_headings
+    from graphslam.core.survey.placement import GrowthParams
+
+    hc, pc = cfg.heading, cfg.placement
+    wh = walk_headings(
+        survey, sigma_floor_rad=np.radians(hc.sigma_floor_deg), cauchy_scale_rad=np.radians(hc.cauchy_scale_deg),
+        correlation_steps=hc.correlation_steps,
+    )
+    if not wh.complete:
+        missing = [survey.sessions[s].session_id for s in np.flatnonzero(~wh.available)]
+        raise SolverError(
+            f"optimizer.initialization heading needs /phone/heading on every walk; {len(missing)} have none "
+            f"(e.g. {missing[0]!r}): use auto or registration"
+        )
+    ties = tied = None
+    phi = 0.0
+    if control_points:
+        ties = control_ties(survey, control_points, fp.offsets)
+        tp = tie_walks(ties, dr_xyh, node_sess, wh.rotation)
+        tied, phi = tp.transforms, tp.site_from_earth
+        if not tied:
+            raise SolverError("no walk can be tied to the control points (none marks one and has a heading)")
+    sim = PowerCosine.of(fp.fingerprints, pc.similarity_scale_db)
+    matches = sim.top_matches(fp.session, pc.matches_per_fingerprint)
+    params = GrowthParams(
+        weight_power=pc.weight_power, rotation_step_deg=pc.rotation_step_deg, blur_m=pc.blur_m,
+        distinct_m=pc.distinct_m, min_margin=hc.min_margin, refine_scale_m=pc.refine_scale_m,
+        consistent_m=pc.consistent_m, rotation_window_deg=hc.rotation_window_deg,
+    )
+    seed = _reference_index(survey, cfg) if cfg.optimizer.reference_session is not None else None
+    # with ties, every walk's rotation is site-from-dead-reckoning: heading + the site frame's offset
+    rotation = wh.rotation + phi
+    cp = place_components(
+        len(survey), fp.session, dr_xyh[fp.node, :2], matches, params,
+        rotation=rotation, rotation_sigma=wh.sigma, tied=tied, seed=seed,
+    )
+    ids = [s.session_id for s in survey]
+    comps = tuple(
+        Component(k, tuple(ids[s] for s in cp.walks_of(k)), cp.reasons.get(k, "")) for k in range(cp.n_components)
+    )
+    offsets = fp.offsets
+    # held nodes: the first pose of each component's seed walk (component 0 with ties: none, the ties hold it)
+    fixed = np.array([int(offsets[sd]) for sd in cp.seeds if sd >= 0], np.int64)
+    reference = cp.seeds[0] if cp.seeds and cp.seeds[0] >= 0 else int(ties.walks[0]) if ties is not None else 0
+    # heading prior of every node: its dead-reckoned heading turned by its walk's placed rotation
+    # would only restate the placement; the prior is the heading's: rotation from the heading (+ the
+    # site offset in component 0 with ties) applied to the dead-reckoned heading
+    # (with ties every component was placed turned by the site offset: all frames are site-aligned)
+    walk_rot = wh.rotation + phi
+    target = np.asarray(wrap_angle(dr_xyh[:, 2] + walk_rot[node_sess]), float)
+    target[~np.isfinite(target)] = np.nan
+    if hc.prior == "step":
+        init = np.full_like(dr_xyh, np.nan)
+        for w in range(len(survey)):
+            a, b = int(offsets[w]), int(offsets[w + 1])
+            init[a:b] = _transform_poses(dr_xyh[a:b], cp.transforms[w])
+        target = _step_targets(survey, offsets, init, phi)
+    heading = HeadingTerms(target, wh.sigma, wh.spread, hc.prior, hc.correlation_steps)
+    pl = Placement(
+        cp.transforms, np.ones(len(survey), bool), np.full(len(survey), -1, np.int64), np.full(len(survey), -1, np.int64),
+        method="heading", support=cp.support, margin=cp.margin, consistency=cp.consistency,
+    )
+    frame = "site" if ties is not None else "earth"
+    main = int((cp.component == 0).sum())
+    log.info("heading placement: %d components, the main map holds %d of %d walks", cp.n_components, main, len(survey))
+    return ComponentSplit(pl, cp.component, comps, reference, fixed, heading, ties, frame)
 
 
 def _grow(survey: Survey, fp: FingerprintNodes, dr_xyh: NDArray, cfg: GraphSlamConfig) -> Placement:
@@ -408,11 +603,7 @@ def native_graph(
     chains = None
     free = problem.free
     if cfg.optimizer.compress_chains:
-        keep = np.zeros(len(problem.init_xyh), bool)
-        keep[problem.wifi_pairs.ravel()] = True
-        keep[problem.reference_node] = True
-        if problem.uwb is not None:  # UWB hook: poses with a range stay variables
-            keep[problem.uwb.nodes] = True
+        keep = _kept_nodes(problem)
         step_cov = np.diag([cfg.imu.sigma_xy_m**2, cfg.imu.sigma_xy_m**2, cfg.imu.sigma_heading_rad**2])
         # measured from the dead reckoning (rigid-invariant): init_xyh is not one with a warm start
         chains = compress(_dr_nodes(problem.survey)[0], problem.fingerprints.offsets, keep, problem.included, step_cov)
@@ -431,11 +622,17 @@ def native_graph(
         nodes = np.unique(np.concatenate([pairs[use].ravel(), wifi_pairs.ravel()]))
         for n in nodes[~free[nodes]].tolist():  # the neighbourhood's border keeps its previous solution
             imu_graph.add(gtsam.PriorFactorPose2(X(n), gtsam.Pose2(*problem.init_xyh[n]), F.reference_prior_noise()))
-    r0 = problem.reference_node
     uwb = problem.uwb
     # with UWB anchors they fix the frame instead; --update: only when the reference is re-solved
-    if (uwb is None or not uwb.site_frame) and (free is None or free[r0]):
-        imu_graph.add(gtsam.PriorFactorPose2(X(r0), gtsam.Pose2(*problem.init_xyh[r0]), F.reference_prior_noise()))
+    for r0 in problem.held_nodes.tolist():
+        if (uwb is None or not uwb.site_frame) and (free is None or free[r0]):
+            imu_graph.add(gtsam.PriorFactorPose2(X(r0), gtsam.Pose2(*problem.init_xyh[r0]), F.reference_prior_noise()))
+    hn, ht, hs = heading_priors(problem, nodes)
+    for n, th, sg in zip(hn.tolist(), ht.tolist(), hs.tolist()):
+        imu_graph.add(gtsam.PoseRotationPrior2D(X(n), gtsam.Rot2(th), gtsam.noiseModel.Isotropic.Sigma(1, sg)))
+    pn, pxy, ps = point_priors(problem, cfg)
+    for n, (px, py), sg in zip(pn.tolist(), pxy.tolist(), ps.tolist()):
+        imu_graph.add(gtsam.PoseTranslationPrior2D(X(n), gtsam.Pose2(px, py, 0.0), gtsam.noiseModel.Isotropic.Sigma(2, sg)))
     values = gtsam.Values()
     for n in nodes.tolist():
         values.insert(X(n), gtsam.Pose2(*problem.init_xyh[n]))
@@ -451,12 +648,10 @@ def native_graph(
 def pose_graph(problem: Problem, cfg: GraphSlamConfig) -> tuple[S.PoseGraph, CompressedChains | None]:
     """The same graph as ``native_graph``, as arrays for ``solver.levenberg_marquardt`` (vectorised)."""
     step_cov = np.diag([cfg.imu.sigma_xy_m**2, cfg.imu.sigma_xy_m**2, cfg.imu.sigma_heading_rad**2])
-    r0 = problem.reference_node
+    held = problem.held_nodes
     chains = None
     if cfg.optimizer.compress_chains:
-        keep = np.zeros(len(problem.init_xyh), bool)
-        keep[problem.wifi_pairs.ravel()] = True
-        keep[r0] = True
+        keep = _kept_nodes(problem)
         chains = compress(_dr_nodes(problem.survey)[0], problem.fingerprints.offsets, keep, problem.included, step_cov)
         nodes, pairs, measured = chains.kept, chains.pairs, chains.measured
         sqrt_info = S.sqrt_information(chains.covariance)
@@ -464,18 +659,58 @@ def pose_graph(problem: Problem, cfg: GraphSlamConfig) -> tuple[S.PoseGraph, Com
         nodes = np.flatnonzero(np.isfinite(problem.init_xyh[:, 0]))
         pairs, measured = problem.imu_pairs, problem.imu_u
         sqrt_info = np.broadcast_to(S.sqrt_information(step_cov[None])[0], (len(pairs), 3, 3))
+    hn, ht, hs = heading_priors(problem, nodes)
+    pn, pxy, ps = point_priors(problem, cfg)
     graph = S.PoseGraph(
         n_nodes=len(problem.init_xyh),
-        variables=nodes[nodes != r0].astype(np.int64),
-        reference=r0,
+        variables=nodes[~np.isin(nodes, held)].astype(np.int64),
+        reference=int(held[0]) if len(held) else -1,
         between_pairs=pairs,
         between_measured=measured,
         between_sqrt_info=sqrt_info,
         range_pairs=problem.wifi_pairs,
         range_sigma=F.wifi_sigma(cfg.wifi),
         range_dead_zone_m=cfg.wifi.d_min_m,
+        heading_nodes=hn,
+        heading_target=ht,
+        heading_sigma=hs,
+        point_nodes=pn,
+        point_xy=pxy,
+        point_sigma=ps,
     )
     return graph, chains
+
+
+def _kept_nodes(problem: Problem) -> NDArray[np.bool_]:
+    """Nodes chain compression keeps as variables: WiFi edge ends, held nodes, control-point ties, UWB ranges."""
+    keep = np.zeros(len(problem.init_xyh), bool)
+    keep[problem.wifi_pairs.ravel()] = True
+    keep[problem.held_nodes] = True
+    if problem.ties is not None:
+        keep[problem.ties.node] = True
+    if problem.uwb is not None:  # UWB hook: poses with a range stay variables
+        keep[problem.uwb.nodes] = True
+    if problem.heading is not None:  # every walk keeps one pose at least, for its heading prior
+        keep[problem.fingerprints.offsets[:-1][problem.included]] = True
+    return keep
+
+
+def heading_priors(problem: Problem, nodes: NDArray[np.int64]) -> tuple[NDArray, NDArray, NDArray]:
+    """(nodes, target heading, sigma) of the heading priors on ``nodes`` (the solved poses)."""
+    h = problem.heading
+    if h is None or h.mode == "none":
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+    nodes = nodes[np.isfinite(h.target[nodes])]
+    sess = _dr_nodes(problem.survey)[1]
+    return nodes.astype(np.int64), h.target[nodes], h.node_sigma(nodes, sess)
+
+
+def point_priors(problem: Problem, cfg: GraphSlamConfig) -> tuple[NDArray, NDArray, NDArray]:
+    """(nodes, site xy, sigma) of the control-point ties."""
+    t = problem.ties
+    if t is None or len(t) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0)
+    return t.node, t.xy, np.full(len(t), cfg.control_points.sigma_m)
 
 
 def use_pardiso(cfg: GraphSlamConfig, problem: Problem | None = None) -> bool:
@@ -566,7 +801,7 @@ def solve(
 
     def objective(xyh: NDArray) -> float:
         d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
-        imu = S.between_error(pg, xyh) if pardiso else imu_graph.error(values)
+        imu = S.between_error(pg, xyh) + S.unary_error(pg, xyh) if pardiso else imu_graph.error(values)
         return float(imu + F.fuzzy_cost(d, cfg.wifi).sum())
 
     init_xyh = problem.init_xyh
@@ -575,7 +810,7 @@ def solve(
     initial_error = objective(xyh)
     converged = False
     prev_active: NDArray | None = None
-    for stage, radius in enumerate(_saturation_radii(cfg)):
+    for stage, radius in enumerate(_saturation_radii(cfg, problem.method)):
         d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
         active = d <= radius
         if prev_active is not None and np.array_equal(active, prev_active) and converged:
@@ -638,6 +873,8 @@ def solve(
         },
         snapshots=tuple(snapshots),
         uwb=problem.uwb.summary() if problem.uwb is not None else None,
+        component_list=problem.components,
+        frame_name=problem.frame_name,
     )
 
 

@@ -65,6 +65,13 @@ class GrowthParams:
     refine_max_evaluations: int = 10  # Gauss-Newton iterations per refinement (each start is already close)
     consistent_m: float = 6.0
     max_grid_cells: int = 1_000_000  # rotations x cells of one vote grid (bounds memory and blur time)
+    # walks already rotated into a common frame (the phones' headings): rotations searched only
+    # within +-rotation_window_deg of it, and the refinement holds each walk's rotation near 0
+    # with its own sigma (``grow_placement(rotation_sigma=...)``); None: every rotation
+    rotation_window_deg: float | None = None
+    # margin per fingerprint of the joining walk (a long walk collects more votes, right or wrong:
+    # its margin is compared per fingerprint, so one threshold fits short and long walks)
+    margin_per_fingerprint: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -96,7 +103,11 @@ def hough_se2(
     is the best placement per rotation whose mean displacement of the matched source points
     exceeds ``distinct_m``.
     """
-    thetas = np.radians(np.arange(0.0, 360.0, params.rotation_step_deg))
+    if params.rotation_window_deg is None:
+        thetas = np.radians(np.arange(0.0, 360.0, params.rotation_step_deg))
+    else:
+        k = int(np.floor(params.rotation_window_deg / params.rotation_step_deg))
+        thetas = np.radians(np.arange(-k, k + 1) * params.rotation_step_deg)
     rot = _rotate(src_xy, thetas)  # (R, M, 2)
     t = dst_xy[None] - rot  # translation that brings each pair together, per rotation
     lo = t.reshape(-1, 2).min(0) - 3.0 * params.blur_m
@@ -137,8 +148,8 @@ def hough_se2(
 
 
 def refine_rigid(
-    transforms: NDArray, walks: NDArray, fixed: int, scan_session: NDArray, scan_xy: NDArray,
-    i: NDArray, j: NDArray, w: NDArray, params: GrowthParams,
+    transforms: NDArray, walks: NDArray, fixed: int | NDArray, scan_session: NDArray, scan_xy: NDArray,
+    i: NDArray, j: NDArray, w: NDArray, params: GrowthParams, rotation_sigma: NDArray | None = None,
 ) -> NDArray:
     """Jointly refine the transforms of ``walks`` (``fixed`` held) so matched fingerprints coincide.
 
@@ -146,8 +157,11 @@ def refine_rigid(
     ``refine_scale_m``): residual r_m = p_i(T_a) - p_j(T_b), Jacobian d r / d(x, y, theta) of each
     walk analytic; the normal equations are 3W x 3W (W walks, small), so they are assembled
     from sparse per-match blocks and solved densely (Levenberg damping on failure).
+    ``fixed``: the walk (or walks) held; ``rotation_sigma`` (S,): a Gaussian prior holding each
+    walk's rotation near 0 (walks pre-rotated by their headings).
     """
-    free = np.array([s for s in walks if s != fixed], dtype=np.int64)
+    held = set(np.atleast_1d(fixed).tolist())
+    free = np.array([s for s in walks if s not in held], dtype=np.int64)
     if len(free) == 0 or len(i) == 0:
         return transforms
     n = 3 * len(free)
@@ -164,12 +178,19 @@ def refine_rigid(
         d_theta = np.column_stack([-sn * p[:, 0] - c * p[:, 1], c * p[:, 0] - sn * p[:, 1]])
         return xy, d_theta
 
+    # in the matches' units (w e^2, m^2, for gaps well inside the Cauchy scale): a walk's rotation
+    # prior weighs as much as one full-weight match whose gap is c * theta / sigma
+    prior_w = None if rotation_sigma is None else c2 / rotation_sigma[free] ** 2
+
     def cost(T: NDArray) -> tuple[float, NDArray, NDArray, NDArray]:
         qa, da = place(T, sa, pa)
         qb, db = place(T, sb, pb)
         r = qa - qb
         e2 = (r * r).sum(1)
-        return float((w * c2 * np.log1p(e2 / c2)).sum()), r, da, db
+        f = float((w * c2 * np.log1p(e2 / c2)).sum())
+        if prior_w is not None:
+            f += float((prior_w * T[free, 2] ** 2).sum())
+        return f, r, da, db
 
     T = transforms.copy()
     f, r, da, db = cost(T)
@@ -190,6 +211,9 @@ def refine_rigid(
         Wd = np.repeat(irls, 2)
         H = (J.T @ J.multiply(Wd[:, None])).toarray()
         g = J.T @ (Wd * r.ravel())
+        if prior_w is not None:  # the rotation prior (H, g in the same half-gradient units as the matches')
+            H[3 * np.arange(len(free)) + 2, 3 * np.arange(len(free)) + 2] += prior_w
+            g[3 * np.arange(len(free)) + 2] += prior_w * T[free, 2]
         while True:
             step = np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-9), -g)
             T_new = T.copy()
@@ -215,26 +239,44 @@ def grow_placement(
     matches: Matches,
     params: GrowthParams = GrowthParams(),
     seed: int | None = None,
+    *,
+    initial: dict[int, NDArray] | None = None,
+    candidates: NDArray[np.bool_] | None = None,
+    rotation_sigma: NDArray | None = None,
 ) -> GrowthResult:
     """Place walks by map growth (module docstring). ``scan_xy``: fingerprint positions in
-    their walk's dead-reckoning frame; ``matches`` index fingerprints."""
-    mi, mj = matches.i, matches.j
-    mw = np.power(np.clip(matches.similarity, 0.0, 1.0), params.weight_power)
+    their walk's dead-reckoning frame; ``matches`` index fingerprints.
+
+    ``initial``: walks already placed (walk -> transform), held fixed — e.g. tied to control
+    points; the map grows from them instead of from one seed. ``candidates``: only these
+    walks take part (the others' matches are ignored). ``rotation_sigma``: see ``refine_rigid``."""
+    use = np.ones(n_sessions, bool) if candidates is None else np.asarray(candidates, bool).copy()
+    if initial:
+        use[list(initial)] = True
+    keep = use[scan_session[matches.i]] & use[scan_session[matches.j]]
+    mi, mj = matches.i[keep], matches.j[keep]
+    mw = np.power(np.clip(matches.similarity[keep], 0.0, 1.0), params.weight_power)
     si, sj = scan_session[mi], scan_session[mj]
     mass = np.bincount(si, weights=mw, minlength=n_sessions) + np.bincount(sj, weights=mw, minlength=n_sessions)
-    if seed is None:
-        seed = int(mass.argmax())
+    if initial:
+        seed = int(next(iter(initial)))
+    elif seed is None:
+        seed = int(np.where(use, mass, -1.0).argmax())
+    held = np.array(sorted(initial), np.int64) if initial else np.array([seed], np.int64)
     n_scans = np.bincount(scan_session, minlength=n_sessions).astype(float)
     T = np.zeros((n_sessions, 3))
     placed = np.zeros(n_sessions, bool)
-    placed[seed] = True
+    placed[held] = True
+    for k, Tk in (initial or {}).items():
+        T[k] = Tk
     support = np.full(n_sessions, np.nan)
     margin = np.full(n_sessions, np.nan)
-    margin[seed] = np.inf
-    order = [seed]
+    margin[held] = np.inf
+    order = held.tolist()
     world = np.full_like(scan_xy, np.nan)  # fingerprint positions of placed walks, seed frame
     by_walk = [np.flatnonzero(scan_session == s) for s in range(n_sessions)]
-    world[by_walk[seed]] = scan_xy[by_walk[seed]]
+    for k in held.tolist():
+        world[by_walk[k]] = se2_apply(T[k], scan_xy[by_walk[k]])
     # both directions of every match: (fingerprint of walk b, partner elsewhere, weight)
     ab_src = np.concatenate([mi, mj])
     ab_dst = np.concatenate([mj, mi])
@@ -244,8 +286,8 @@ def grow_placement(
     order_src = np.argsort(ab_walk, kind="stable")
     bounds = np.searchsorted(ab_walk[order_src], np.arange(n_sessions + 1))
     cache: dict[int, tuple[float, float, NDArray, float]] = {}  # walk -> (margin, support, T, n votes)
-    stale = set(range(n_sessions))
-    with Task("place walks", total=n_sessions - 1, unit="walks") as task:
+    stale = set(np.flatnonzero(use).tolist())
+    with Task("place walks", total=int(use.sum()) - len(held), unit="walks") as task:
         while True:
             for b in list(stale):
                 stale.discard(b)
@@ -257,7 +299,8 @@ def grow_placement(
                     cache.pop(b, None)
                     continue
                 Tb, best, second = hough_se2(scan_xy[ab_src[sel]], world[ab_dst[sel]], ab_w[sel], params)
-                cache[b] = (best - second, best, Tb, float(len(sel)))
+                mg = (best - second) / max(n_scans[b], 1.0) if params.margin_per_fingerprint else best - second
+                cache[b] = (mg, best, Tb, float(len(sel)))
             if not cache:
                 break
             b = max(cache, key=lambda s: cache[s][0])
@@ -272,7 +315,8 @@ def grow_placement(
             walks = np.flatnonzero(placed)
             inside = placed[si] & placed[sj]
             with threadpool_limits(1):  # 3W x 3W systems: threads only add overhead (9 ms vs 0.3 ms a solve under load)
-                T = refine_rigid(T, walks, seed, scan_session, scan_xy, mi[inside], mj[inside], mw[inside], params)
+                T = refine_rigid(T, walks, held, scan_session, scan_xy, mi[inside], mj[inside], mw[inside], params,
+                                 rotation_sigma)
             for s in walks:
                 world[by_walk[s]] = se2_apply(T[s], scan_xy[by_walk[s]])
             # walks matched to the new one see a changed map; others keep their (slightly stale) vote
@@ -287,7 +331,7 @@ def grow_placement(
         has = w_all > 0
         consistency[has] = w_ok[has] / w_all[has]
     reasons = {}
-    for s in np.flatnonzero(~placed):
+    for s in np.flatnonzero(~placed & use):
         if s in cache:
             reasons[int(s)] = (
                 f"WiFi registration ambiguous: best placement beats the runner-up by {cache[s][0]:.2f} "

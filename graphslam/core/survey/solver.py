@@ -28,7 +28,7 @@ Everything here is pure maths on arrays; nothing reads files.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Literal
 
@@ -50,13 +50,21 @@ class PoseGraph:
 
     n_nodes: int
     variables: NDArray[np.int64]  # (K,) node ids optimised, ascending (reference excluded)
-    reference: int  # node id held fixed
+    reference: int  # node id held fixed (-1: none; nodes not in ``variables`` are all held at their given pose)
     between_pairs: NDArray[np.int64]  # (M, 2) node ids (a, b)
     between_measured: NDArray[np.float64]  # (M, 3) U = a^-1 b as (x, y, theta)
     between_sqrt_info: NDArray[np.float64]  # (M, 3, 3) W, upper triangular, W^T W = Sigma^-1
     range_pairs: NDArray[np.int64]  # (E, 2) node ids of WiFi edges
     range_sigma: float
     range_dead_zone_m: float
+    # unary factors: a heading prior r = wrap(theta - target) / sigma (the phones' headings) and a
+    # position prior r = (p - xy) / sigma (control points), each on one node
+    heading_nodes: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    heading_target: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    heading_sigma: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    point_nodes: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    point_xy: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
+    point_sigma: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
 
 
 @dataclass(frozen=True)
@@ -158,6 +166,23 @@ def range_residuals(
     Jb = np.zeros((len(xa), 3))
     Jb[:, :2] = unit
     return r, -Jb, Jb
+
+
+def heading_residuals(x: NDArray, target: NDArray, sigma: NDArray) -> NDArray:
+    """r = wrap(theta - target) / sigma (H,); its Jacobian w.r.t. (x, y, theta) is (0, 0, 1 / sigma)."""
+    return np.asarray(wrap_angle(x[:, 2] - target)) / sigma
+
+
+def point_residuals(x: NDArray, xy: NDArray, sigma: NDArray) -> NDArray:
+    """r = (p - xy) / sigma (P, 2); its Jacobian w.r.t. (x, y, theta) is [I 0] / sigma."""
+    return (x[:, :2] - xy) / sigma[:, None]
+
+
+def unary_error(graph: PoseGraph, xyh: NDArray) -> float:
+    """0.5 sum r^2 of the heading and position priors at poses ``xyh`` (n_nodes, 3)."""
+    rh = heading_residuals(xyh[graph.heading_nodes], graph.heading_target, graph.heading_sigma)
+    rp = point_residuals(xyh[graph.point_nodes], graph.point_xy, graph.point_sigma)
+    return 0.5 * float(np.sum(rh * rh) + np.sum(rp * rp))
 
 
 def between_error(graph: PoseGraph, xyh: NDArray) -> float:
@@ -438,18 +463,28 @@ class _Objective:
         self.g = g
         var_of = np.full(g.n_nodes, -1, np.int64)
         var_of[g.variables] = np.arange(len(g.variables))
-        self.ref = xyh[g.reference].copy()
+        self.held = xyh.copy()  # poses of the nodes that are not variables (the reference among them)
         self.bp = g.between_pairs
         self.rp = g.range_pairs[active]
-        va = np.concatenate([var_of[self.bp[:, 0]], var_of[self.rp[:, 0]]])
-        vb = np.concatenate([var_of[self.bp[:, 1]], var_of[self.rp[:, 1]]])
+        # unary factors enter as factors whose second end is held (no off-diagonal block)
+        hv, pv = var_of[g.heading_nodes], var_of[g.point_nodes]
+        self.hk, self.pk = hv >= 0, pv >= 0  # priors on held nodes are constants
+        va = np.concatenate([var_of[self.bp[:, 0]], var_of[self.rp[:, 0]], hv[self.hk], pv[self.pk]])
+        vb = np.concatenate([var_of[self.bp[:, 1]], var_of[self.rp[:, 1]],
+                             np.full(int(self.hk.sum() + self.pk.sum()), -1, np.int64)])
         self.var_of = var_of
         self.normal = _NormalEquations(len(g.variables), va, vb)
 
     def poses(self, v: NDArray, nodes: NDArray) -> NDArray:
         x = v.reshape(-1, 3)
         k = self.var_of[nodes]
-        return np.where((k >= 0)[:, None], x[np.maximum(k, 0)], self.ref)
+        return np.where((k >= 0)[:, None], x[np.maximum(k, 0)], self.held[nodes])
+
+    def _unary(self, v: NDArray) -> tuple[NDArray, NDArray]:
+        g = self.g
+        rh = heading_residuals(self.poses(v, g.heading_nodes), g.heading_target, g.heading_sigma)
+        rp = point_residuals(self.poses(v, g.point_nodes), g.point_xy, g.point_sigma)
+        return rh, rp
 
     def error(self, v: NDArray) -> float:
         g = self.g
@@ -461,7 +496,8 @@ class _Objective:
             self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1]), g.range_sigma, g.range_dead_zone_m,
             jacobians=False,
         )
-        return 0.5 * float(np.sum(rb * rb) + np.sum(rr * rr))
+        rh, rp = self._unary(v)
+        return 0.5 * float(np.sum(rb * rb) + np.sum(rr * rr) + np.sum(rh * rh) + np.sum(rp * rp))
 
     def linearise(self, v: NDArray) -> tuple[NDArray, NDArray, float]:
         g = self.g
@@ -473,14 +509,26 @@ class _Objective:
         )
         JbaT, JbbT = np.transpose(Jba, (0, 2, 1)), np.transpose(Jbb, (0, 2, 1))
         Hr = range_hessian(self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1]), rr, Jrb, g.range_sigma)
+        rh, rp = self._unary(v)
+        sh, sp = g.heading_sigma[self.hk], g.point_sigma[self.pk]
+        Hh = np.zeros((len(sh), 3, 3))
+        Hh[:, 2, 2] = 1.0 / sh**2
+        gh = np.zeros((len(sh), 3))
+        gh[:, 2] = rh[self.hk] / sh
+        Hp = np.zeros((len(sp), 3, 3))
+        Hp[:, 0, 0] = Hp[:, 1, 1] = 1.0 / sp**2
+        gp = np.zeros((len(sp), 3))
+        gp[:, :2] = rp[self.pk] / sp[:, None]
+        n_u = len(sh) + len(sp)
         H, grad = self.normal.assemble(
-            np.concatenate([JbaT @ Jba, Hr]),
-            np.concatenate([JbbT @ Jbb, Hr]),
-            np.concatenate([JbaT @ Jbb, -Hr]),
-            np.concatenate([(JbaT @ rb[:, :, None])[:, :, 0], Jra * rr[:, None]]),
-            np.concatenate([(JbbT @ rb[:, :, None])[:, :, 0], Jrb * rr[:, None]]),
+            np.concatenate([JbaT @ Jba, Hr, Hh, Hp]),
+            np.concatenate([JbbT @ Jbb, Hr, np.zeros((n_u, 3, 3))]),
+            np.concatenate([JbaT @ Jbb, -Hr, np.zeros((n_u, 3, 3))]),
+            np.concatenate([(JbaT @ rb[:, :, None])[:, :, 0], Jra * rr[:, None], gh, gp]),
+            np.concatenate([(JbbT @ rb[:, :, None])[:, :, 0], Jrb * rr[:, None], np.zeros((n_u, 3))]),
         )
-        return H, grad, 0.5 * float(np.sum(rb * rb) + np.sum(rr * rr))
+        err = np.sum(rb * rb) + np.sum(rr * rr) + np.sum(rh * rh) + np.sum(rp * rp)
+        return H, grad, 0.5 * float(err)
 
 
 def levenberg_marquardt(
