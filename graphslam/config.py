@@ -193,12 +193,13 @@ class HeadingConfig(_Strict):
         "best placement beats the runner-up by this vote weight (else it stands apart)",
     )
     wifi_gate_m: float = Field(
-        3.0, ge=0, description="with headings, a WiFi edge enters the optimiser only when the placement puts its two "
-        "fingerprints this close (WiFi matches between walks are metres apart; far ones pull walks together wrongly); 0: none",
+        30.0, ge=0, description="with headings, a WiFi edge enters the optimiser only when the placement puts its two "
+        "fingerprints this close (at wifi.d_max_m or more: every edge within a component; 0: none)",
     )
     prior: Literal["walk", "step", "none"] = Field(
-        "walk", description="in the optimiser: walk: one rotation prior per walk (spread over its poses); step: a "
-        "heading factor at every solved pose (yaw - the walk's offset, Huber); none: placement only",
+        "walk", description="in the optimiser: walk: one rotation prior per walk (on its first solved pose); step: a "
+        "heading factor at every solved pose (the phone's yaw turned by the walk's offset as placed); none: the "
+        "heading places the walks only",
     )
 
 

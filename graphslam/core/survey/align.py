@@ -227,8 +227,9 @@ class Problem:
 class HeadingTerms:
     """Heading priors per node: target heading (rad, in the node's component frame) and sigma.
 
-    ``walk``: the target is the dead-reckoned heading turned by the walk's rotation from its heading
-    (one prior of the walk's sigma, spread over its nodes); ``step``: the target is the phone's yaw at
+    ``walk``: one prior per walk, on its first solved pose: its dead-reckoned heading turned by the
+    walk's rotation from the phone's heading, sigma the walk's (the dead reckoning's own drift along
+    the walk stays free for the WiFi edges to correct); ``step``: the target is the phone's yaw at
     that step turned by the walk's offset as placed (the yaw's shape corrects the dead reckoning's
     heading drift; the walk's rotation stays the placement's), sigma = the yaw's spread along the
     walk, counted once per ``correlation_steps``."""
@@ -241,14 +242,12 @@ class HeadingTerms:
     step_floor_rad: float = float(np.radians(2.0))
 
     def node_sigma(self, nodes: NDArray[np.int64], node_session: NDArray[np.int64]) -> NDArray[np.float64]:
-        """Sigma of each prior on ``nodes`` (those carrying one)."""
+        """Sigma of each ``step`` prior on ``nodes``: the yaw's spread, counted once per ``correlation_steps``."""
         s = node_session[nodes]
         n = np.bincount(s, minlength=len(self.walk_sigma)).astype(float)
-        if self.mode == "step":
-            steps = np.bincount(node_session, minlength=len(self.walk_sigma)).astype(float)
-            per_draw = np.maximum(1.0, self.correlation_steps * n[s] / np.maximum(steps[s], 1.0))
-            return np.hypot(self.spread[s], self.step_floor_rad) * np.sqrt(per_draw)
-        return self.walk_sigma[s] * np.sqrt(n[s])
+        steps = np.bincount(node_session, minlength=len(self.walk_sigma)).astype(float)
+        per_draw = np.maximum(1.0, self.correlation_steps * n[s] / np.maximum(steps[s], 1.0))
+        return np.hypot(self.spread[s], self.step_floor_rad) * np.sqrt(per_draw)
 
 
 def _step_targets(survey: Survey, offsets: NDArray, init_xyh: NDArray, phi: float) -> NDArray[np.float64]:
@@ -702,6 +701,10 @@ def heading_priors(problem: Problem, nodes: NDArray[np.int64]) -> tuple[NDArray,
         return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
     nodes = nodes[np.isfinite(h.target[nodes])]
     sess = _dr_nodes(problem.survey)[1]
+    if h.mode == "walk":  # one rotation prior per walk, on its first solved pose
+        _, first = np.unique(sess[nodes], return_index=True)
+        nodes = nodes[first]
+        return nodes.astype(np.int64), h.target[nodes], h.walk_sigma[sess[nodes]]
     return nodes.astype(np.int64), h.target[nodes], h.node_sigma(nodes, sess)
 
 

@@ -304,9 +304,10 @@ def grow_placement(
             if not cache:
                 break
             b = max(cache, key=lambda s: cache[s][0])
-            mg, best, Tb, _ = cache.pop(b)
+            mg, best, Tb, _ = cache[b]
             if mg < params.min_margin:
-                break
+                break  # b stays in the cache: its reason is the ambiguity
+            del cache[b]
             placed[b] = True
             T[b] = Tb
             support[b] = best / max(n_scans[b], 1.0)
