@@ -319,19 +319,25 @@ def simulate(
     seed: int = typer.Option(0, "--seed", min=0, help="Random seed; same seed, same recordings."),
     size: float = typer.Option(1.0, "--size", help="Multiplies the number of walks (paper --size 12: ~100k steps)."),
     test_walks: int = typer.Option(0, "--test-walks", min=0, help="Extra held-out walks, written to OUT/test/."),
+    no_heading: bool = typer.Option(
+        False, "--no-heading",
+        help="Record no /phone/heading (the phone's azimuth per step); every other value stays the same.",
+    ),
 ) -> None:
     """Simulate a survey and write it as MCAP recordings (one per walk) plus OUT/building.json.
 
-    Walks carry ground truth and landmark marks (evaluation only).
+    Walks carry the phone's azimuth on /phone/heading (unless --no-heading), ground truth and
+    landmark marks (evaluation only).
     Reading OUT as a folder also finds OUT/test/: pass OUT/*.mcap to keep test walks held out.
     """
     import time
 
-    from graphslam.sim import SurveyStats
+    from graphslam.sim import HeadingModel, SurveyStats, with_overrides
     from graphslam.sim import simulate as run_simulation
 
     t0 = time.perf_counter()
-    sim = run_simulation(scenario, seed=seed, size=size, test_walks=test_walks)
+    chosen = with_overrides(scenario, heading=HeadingModel(enabled=False)) if no_heading else scenario
+    sim = run_simulation(chosen, seed=seed, size=size, test_walks=test_walks)
     t_sim = time.perf_counter() - t0
     sim.write(out)
     st = SurveyStats.of(sim.survey)

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from graphslam.cli import main
 from graphslam.core.types import wrap_angle
@@ -115,6 +116,40 @@ def test_within_route_overlap_full_between_routes_small(museum: SimulatedSurvey)
     assert np.median(per_route_max) <= 0.5  # real 0.36
 
 
+def _dense(xy: np.ndarray, step_m: float = 0.25) -> np.ndarray:
+    """A polyline's points every ``step_m``."""
+    out = [xy[:1]]
+    for a, b in zip(xy[:-1], xy[1:]):
+        n = max(1, int(np.hypot(*(b - a)) / step_m))
+        out.append(a + (b - a) * np.arange(1, n + 1)[:, None] / n)
+    return np.vstack(out)
+
+
+def test_one_route_stands_apart_the_others_form_a_chain(museum: SimulatedSurvey) -> None:
+    """As on floor -2, where trial 21 comes within 4 m of no other route: route1's true positions are all > 4 m
+    from every other route's; routes 2-7 form a chain whose neighbours share some points within 4 m (floor -2,
+    on its landmark polylines: 21, 56, 10, 27 and 19 % of a pair's points)."""
+    pts = {
+        r: np.vstack([s.ground_truth.xy for s in museum.survey if route_of(s.session_id) == r])  # type: ignore[union-attr]
+        for r in ROUTES
+    }
+    for other in ROUTES[1:]:
+        assert cKDTree(pts[other]).query(pts["route1"])[0].min() > 4.0, other
+    for a, b in zip(ROUTES[1:-1], ROUTES[2:]):
+        da, db = cKDTree(pts[b]).query(pts[a])[0], cKDTree(pts[a]).query(pts[b])[0]
+        share = ((da < 4.0).sum() + (db < 4.0).sum()) / (len(da) + len(db))
+        assert 0.05 <= share <= 0.7, (a, b, share)
+    # apart, yet within the floor's radio: every scan of the lone route hears access points
+    for s in museum.survey:
+        if route_of(s.session_id) == "route1":
+            n = [len(x) for x in s.scans]
+            assert min(n) >= 3 and np.median(n) >= 8, s.session_id
+    # the same on other seeds' floors, on the designed routes (walks add sideways offsets of < 1 m)
+    for seed in (1, 2, 3):
+        routes = {r.name: _dense(r.xy) for r in build_building("museum", seed=seed).routes if r.kind == "route"}
+        assert min(cKDTree(routes[o]).query(routes["route1"])[0].min() for o in ROUTES[1:]) > 6.0, seed
+
+
 def test_scan_interval_and_rss_offset_by_phone(
     museum: SimulatedSurvey, shapes: dict[str, WalkShape], stats: dict
 ) -> None:
@@ -149,10 +184,11 @@ def test_phone_pdr_rigid_fit_error_in_measured_range(museum: SimulatedSurvey, st
     total, shared, own = st["leg heading error deg (std: total, shared by a route's walks, own)"]  # real 10.1, 9.0, 4.5
     assert 6.0 <= total <= 15.0 and shared > own  # repeated walks share their heading distortion
     assert 0.5 <= st["PDR step length m (median of walks)"] <= 0.68  # real 0.58
-    # the PDR frame starts on the walking direction, within a few degrees
+    # the PDR frame starts on the walking direction, within a few degrees (the worst of a
+    # seed's 40 walks is 19-37 deg off over seeds 0-19: the start heading, field and noise)
     for s in museum.survey:
         d = s.steps.xy[3] - s.steps.xy[0]
-        assert abs(float(wrap_angle(math.atan2(d[1], d[0])))) < math.radians(35)
+        assert abs(float(wrap_angle(math.atan2(d[1], d[0])))) < math.radians(40)
 
 
 def test_fingerprints_are_as_coarse_as_the_real_ones(stats: dict) -> None:

@@ -9,12 +9,14 @@ Typical use::
     sim.test_sessions          # held-out walks, same building
     sim.building.mean_rss(xy)  # (N, A) noiseless mean RSS, columns = sim.building.aps.bssids
     sim.write("out/")          # OUT/*.mcap, OUT/test/*.mcap, OUT/building.json
+    sim.survey.sessions[0].heading  # the phone's azimuth per step (Earth frame; HeadingModel: scenario.heading)
 
 See docs/simulator.md for the models and their parameters.
 """
 
 from graphslam.sim.cart import CartNoise, CartPath, CartRun, simulate_cart
 from graphslam.sim.floorplan import FloorPlan, Landmark, corridor_plan, office_plan
+from graphslam.sim.heading import HeadingModel, distortion_field, phone_heading, walk_offset, wrap_yaw
 from graphslam.sim.museum import (
     LayoutParams,
     MuseumParams,
@@ -55,6 +57,7 @@ __all__ = [
     "AccessPoints",
     "Building",
     "FloorPlan",
+    "HeadingModel",
     "ImuErrorParams",
     "Landmark",
     "LayoutParams",
@@ -76,11 +79,13 @@ __all__ = [
     "align_by_start",
     "build_building",
     "corridor_plan",
+    "distortion_field",
     "dead_reckon",
     "get_scenario",
     "make_radio",
     "museum_layout",
     "office_plan",
+    "phone_heading",
     "raw_drift",
     "route_of",
     "shape_walks",
@@ -88,6 +93,8 @@ __all__ = [
     "simulate_museum_walk",
     "simulate_walk",
     "survey_shape",
+    "walk_offset",
     "wall_crossings",
     "with_overrides",
+    "wrap_yaw",
 ]

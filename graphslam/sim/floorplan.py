@@ -1,8 +1,10 @@
 """Floor plans for the simulator: walls (line segments) and a walkable graph.
 
-Frame and units: the *site* frame of the building, metres, x to the east, y to the
-north, origin at the south-west corner of the outer wall; the building spans
-x in [0, width_m], y in [0, height_m]. Landmarks and ground truth use this frame.
+Frame and units: the *site* frame of the building, metres, x along the building's axis,
+y 90 deg counter-clockwise from it, origin at the corner of the outer wall with the least
+x and y; the building spans x in [0, width_m], y in [0, height_m]. Landmarks and ground
+truth use this frame. It is not east/north: the Earth frame of the phone's azimuth is
+this frame rotated by ``HeadingModel.earth_from_site_deg`` (``graphslam.sim.heading``).
 
 A plan is a set of corridors (straight, ``2 * half_width`` wide, walls on both
 sides with openings at junctions and doors) and rows of rooms along them (one

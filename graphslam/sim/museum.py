@@ -7,11 +7,14 @@ alignment fails; ``scripts/sim_vs_real_shape.py`` prints the shape statistics of
 
 Layout (``museum_layout``): the routes of that floor, as a template measured from its
 landmarks (building axes, metres): a ~105 m spine corridor with branches, seven routes
-that each cover their own part of the tree and share only a junction stretch with
-their neighbours, and three short stair/lift walks at junctions. Per seed the template
-is warped by a random monotone piecewise-linear map of x and of y (lengths change by
-up to ~25 %, axis-parallel corridors stay axis-parallel, nothing crosses that did not
-cross) and maybe mirrored, so every seed is a different floor of the same kind. Walls:
+that each cover their own part of the tree, and three short stair/lift walks at
+junctions. Six routes form a chain, each sharing a junction stretch with its neighbours;
+the seventh (route1, trial 21) lies in a wing of its own at the spine's end, more than
+4 m from every other route (``LayoutParams.lone_wing_gap_m``), as on the real floor.
+Per seed the template is warped by a random monotone piecewise-linear map of x and of y
+(lengths change by up to ~25 %, axis-parallel corridors stay axis-parallel, nothing
+crosses that did not cross) and maybe mirrored, so every seed is a different floor of
+the same kind. Walls:
 the spine corridor's two sides plus hall partitions between the branches, with a door
 wherever a route crosses a wall.
 
@@ -35,7 +38,9 @@ m = a smooth heading-disturbance field fixed for the building (magnetic disturba
 the rotation-vector heading: every walk sees the same distortion at the same place),
 o_leg = a constant offset for the way back (the phone is held differently after the
 turn), w = a slow random walk per step, n = white noise per step. The track is
-re-expressed to start at (0, 0, 0): its frame is the phone's initial heading.
+re-expressed to start at (0, 0, 0): its frame is the phone's initial heading. (The
+phone's absolute azimuth on ``/phone/heading`` is ``graphslam.sim.heading``'s, with a
+distortion field of its own.)
 
 Scans (``PhoneModel``, ``sweep_scans``): every 2 s or 4 s by phone model, small jitter,
 an occasional skipped scan; each AP read at a random moment of the scan's 2 s sweep.
@@ -97,6 +102,9 @@ _TEMPLATE: tuple[tuple[str, tuple[tuple[float, float], ...], tuple[int, ...]], .
     ("stairs2", ((-52.7, -6.8), (-47.5, 1.4)), ()),
     ("stairs3", ((-14.4, 4.2), (-10.5, 1.5)), ()),
 )
+# The lone route's wing (trial 21 and the stairs at its start): on floor -2 no other route
+# comes within 4 m of it; moved ``LayoutParams.lone_wing_gap_m`` further out along the spine.
+_LONE_WING = ("route1", "stairs1")
 # Template vertices within this band around the spine's y lie on the spine corridor.
 _SPINE_Y, _SPINE_BAND = 1.45, 1.5
 # Template points closer than this are the same landmark (a revisited point keeps its id).
@@ -118,11 +126,17 @@ class LayoutParams:
     corridor_margin_m: float = 1.5  # spine corridor walls this far beyond the spine vertices' y range
     door_m: float = 2.4  # opening cut in a wall where a route crosses it
     hall_max_m: float = 14.0  # hall partitions at most this far apart along the spine
+    # The lone route's wing moved this much further out along the spine (after the warp): the
+    # template's 4.2 m gap, warped and walked with sideways offsets, shrinks to 2.6-4.4 m; with
+    # 3 m more no other route's walk comes within 5.5 m of it (seeds 0-29).
+    lone_wing_gap_m: float = 3.0
 
     def __post_init__(self) -> None:
         lo, hi = self.warp_slope
         if not 0 < lo <= hi:
             raise ConfigError(f"LayoutParams.warp_slope: need 0 < low <= high, got {self.warp_slope}")
+        if not self.lone_wing_gap_m >= 0:
+            raise ConfigError(f"LayoutParams.lone_wing_gap_m must be >= 0, got {self.lone_wing_gap_m}")
         for name in ("warp_knot_x_m", "warp_knot_y_m", "margin_m", "corridor_margin_m", "door_m", "hall_max_m"):
             if getattr(self, name) <= 0:
                 raise ConfigError(f"LayoutParams.{name} must be > 0")
@@ -354,6 +368,10 @@ def museum_layout(lp: LayoutParams, rng: np.random.Generator) -> MuseumLayout:
     on_spine = np.abs(pts[:, 1] - _SPINE_Y) < _SPINE_BAND
     x = _monotone_warp(pts[:, 0], lp.warp_knot_x_m, lp.warp_slope, rng)
     y = _monotone_warp(pts[:, 1], lp.warp_knot_y_m, lp.warp_slope, rng)
+    # After the warp, so that the draws (and the rest of the floor) do not change with the gap;
+    # the wing is the template's east end, so a shift east keeps the order along the spine.
+    lone = np.concatenate([np.full(len(v), name in _LONE_WING) for name, v, _ in _TEMPLATE])
+    x = x + np.where(lone, lp.lone_wing_gap_m, 0.0)
     if lp.mirror:
         x = -x if rng.random() < 0.5 else x
         y = -y if rng.random() < 0.5 else y

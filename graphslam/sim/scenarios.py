@@ -4,8 +4,11 @@ Determinism: everything is drawn from ``numpy`` Generators seeded by
 ``SeedSequence(seed, spawn_key=(stream, i))``: stream 0 = building (APs,
 shadowing), stream 1 = survey walk i, stream 2 = test walk i. So walk i is the
 same whatever ``size`` or ``test_walks`` are, and test walks never perturb the
-survey. The ``museum`` scenario draws its layout from stream 3 (heading field:
-(3, 1)) and walk k of route r from ``spawn_key=(1, r, k)``.
+survey. The ``museum`` scenario draws its layout from stream 3 (PDR heading field:
+(3, 1)) and walk k of route r from ``spawn_key=(1, r, k)``. The phone's azimuth
+(``/phone/heading``, ``graphslam.sim.heading``) has stream 4 of its own: the site's
+magnetic distortion ``(4, 0)``, survey walk i ``(4, 1, i)`` (museum: ``(4, 1, r, k)``),
+test walk i ``(4, 2, i)``; so headings on or off, every other value is the same.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from graphslam.errors import ConfigError, SimulationError
 from graphslam.io.atomic import atomic_write_text
 from graphslam.io.mcap_writer import write_session
 from graphslam.sim.floorplan import FloorPlan, Landmark, corridor_plan, office_plan
+from graphslam.sim.heading import HeadingModel, distortion_field, phone_heading
 from graphslam.sim.museum import MuseumParams, Route, heading_field, museum_layout, simulate_museum_walk
 from graphslam.sim.radio import AccessPoints, RadioEnvironment, RadioParams, ShadowingField, make_radio
 from graphslam.sim.walker import ImuErrorParams, WalkerParams, WalkSpec, simulate_walk
@@ -38,11 +42,16 @@ EPOCH_2026_NS = 1_767_225_600 * 1_000_000_000
 _DAY_NS = 86_400 * 1_000_000_000
 _HOUR_NS = 3_600 * 1_000_000_000
 
-_STREAM_BUILDING, _STREAM_WALK, _STREAM_TEST, _STREAM_LAYOUT = 0, 1, 2, 3
+_STREAM_BUILDING, _STREAM_WALK, _STREAM_TEST, _STREAM_LAYOUT, _STREAM_HEADING = 0, 1, 2, 3, 4
 
 
 def _rng(seed: int, stream: int, i: int = 0) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(stream, i)))
+
+
+def _heading_rng(seed: int, *key: int) -> np.random.Generator:
+    """The phone heading's generator for ``key`` (``(stream, i)`` or ``(stream, r, k)``), apart from the walks'."""
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(_STREAM_HEADING, *key)))
 
 
 @dataclass(frozen=True)
@@ -70,6 +79,7 @@ class Scenario:
     walker: WalkerParams = field(default_factory=WalkerParams)
     imu: ImuErrorParams = field(default_factory=ImuErrorParams)
     museum: MuseumParams = field(default_factory=MuseumParams)
+    heading: HeadingModel = field(default_factory=HeadingModel)  # /phone/heading; enabled=False: none
 
     def __post_init__(self) -> None:
         if self.n_walks < 1 or self.n_aps < 1:
@@ -174,7 +184,11 @@ class Building:
     site: str
     floor: str
     routes: tuple[Route, ...] = ()  # designed routes (museum), site frame
-    heading_field: ShadowingField | None = None  # phone heading disturbance, rad (museum)
+    heading_field: ShadowingField | None = None  # phone PDR heading disturbance, rad (museum)
+    # The phone azimuth's magnetic distortion (rad, site-frame grid) and the Earth azimuth of
+    # site +x (deg); None: no /phone/heading simulated.
+    magnetic_field: ShadowingField | None = None
+    earth_from_site_deg: float | None = None
 
     @property
     def walls(self) -> NDArray[np.float64]:
@@ -198,7 +212,11 @@ class Building:
         return {
             "site": self.site,
             "floor": self.floor,
-            "frame": "site: metres, x east, y north, origin at the south-west outer corner",
+            "frame": (
+                "site: metres, x along the building's axis, y 90 deg counter-clockwise from it, origin at the "
+                "outer walls' corner of least x and y; Earth (east, north) = site rotated by earth_from_site_deg"
+            ),
+            "earth_from_site_deg": self.earth_from_site_deg,
             "width_m": self.plan.width_m,
             "height_m": self.plan.height_m,
             "walls": np.round(self.plan.walls, 6).tolist(),
@@ -224,11 +242,33 @@ def build_building(scenario: str | Scenario, seed: int = 0) -> Building:
     if sc.plan != "museum":
         plan = sc.floor_plan()
         radio = make_radio(plan, sc.n_aps, sc.radio, _rng(seed, _STREAM_BUILDING))
-        return Building(plan, radio, site=f"sim-{sc.name}", floor="F1")
+        return Building(plan, radio, site=f"sim-{sc.name}", floor="F1", **_magnetic(sc, seed, plan))
     layout = museum_layout(sc.museum.layout, _rng(seed, _STREAM_LAYOUT))
     radio = make_radio(layout.plan, sc.n_aps, sc.radio, _rng(seed, _STREAM_BUILDING))
     hfield = heading_field(layout.plan, sc.museum.pdr, _rng(seed, _STREAM_LAYOUT, 1))
-    return Building(layout.plan, radio, site=f"sim-{sc.name}", floor="F1", routes=layout.routes, heading_field=hfield)
+    return Building(
+        layout.plan, radio, site=f"sim-{sc.name}", floor="F1", routes=layout.routes, heading_field=hfield,
+        **_magnetic(sc, seed, layout.plan),
+    )
+
+
+def _magnetic(sc: Scenario, seed: int, plan: FloorPlan) -> dict:
+    """The ``Building`` fields of the phone azimuth: its distortion field and the site's rotation."""
+    if not sc.heading.enabled:
+        return {}
+    return {
+        "magnetic_field": distortion_field(plan, sc.heading, _heading_rng(seed, 0)),
+        "earth_from_site_deg": sc.heading.earth_from_site_deg,
+    }
+
+
+def _with_heading(session: Session, sc: Scenario, b: Building, rng: np.random.Generator) -> Session:
+    """``session`` with its ``/phone/heading`` (from ``rng`` alone), or as it is when headings are off."""
+    if not sc.heading.enabled:
+        return session
+    if b.magnetic_field is None or session.ground_truth is None:
+        raise SimulationError(f"{session.session_id}: no magnetic field or ground truth to simulate a heading from")
+    return replace(session, heading=phone_heading(session.ground_truth, sc.heading, b.magnetic_field, rng))
 
 
 @dataclass(frozen=True, eq=False)
@@ -315,11 +355,16 @@ def _museum_sessions(
         jobs.append((f"{sc.name}-s{seed}-t{i:0{width}d}", start, route, mp.phones[i % len(mp.phones)], rng))
     if b.heading_field is None:
         raise SimulationError(f"scenario {sc.name!r}: the building has no heading-disturbance field")
+    hkeys = [(_STREAM_WALK, r, k) for r in range(len(b.routes)) for k in range(reps)]
+    hkeys += [(_STREAM_TEST, i) for i in range(test_walks)]
     sessions = [
-        simulate_museum_walk(
-            sid, start, route, b.plan, b.radio, b.heading_field, mp, phone, rng, site=b.site, floor=b.floor
+        _with_heading(
+            simulate_museum_walk(
+                sid, start, route, b.plan, b.radio, b.heading_field, mp, phone, rng, site=b.site, floor=b.floor
+            ),
+            sc, b, _heading_rng(seed, *hkey),
         )
-        for sid, start, route, phone, rng in progress_over(jobs, "simulate", unit="walks")
+        for (sid, start, route, phone, rng), hkey in progress_over(list(zip(jobs, hkeys)), "simulate", unit="walks")
     ]
     return sessions[:n_survey], sessions[n_survey:]
 
@@ -349,19 +394,23 @@ def simulate(
     building = build_building(sc, seed)
     n = max(1, int(round(sc.n_walks * size)))
 
-    def run(specs: list[tuple[WalkSpec, np.random.Generator]]) -> list[Session]:
+    def run(specs: list[tuple[WalkSpec, np.random.Generator]], stream: int) -> list[Session]:
         return [
-            simulate_walk(
-                spec, building.plan, building.radio, sc.walker, sc.imu, rng, site=building.site, floor=building.floor
+            _with_heading(
+                simulate_walk(
+                    spec, building.plan, building.radio, sc.walker, sc.imu, rng, site=building.site,
+                    floor=building.floor,
+                ),
+                sc, building, _heading_rng(int(seed), stream, i),
             )
-            for spec, rng in progress_over(specs, "simulate", unit="walks")
+            for i, (spec, rng) in enumerate(progress_over(specs, "simulate", unit="walks"))
         ]
 
     if sc.route == "out_and_back":
         sessions, tests = _museum_sessions(sc, int(seed), size, test_walks, building)
     else:
-        sessions = run(_walk_specs(sc, int(seed), n, test=False))
-        tests = run(_walk_specs(sc, int(seed), test_walks, test=True)) if test_walks else []
+        sessions = run(_walk_specs(sc, int(seed), n, test=False), _STREAM_WALK)
+        tests = run(_walk_specs(sc, int(seed), test_walks, test=True), _STREAM_TEST) if test_walks else []
     log.info(
         "simulated %s seed=%d size=%g: %d walks, %d test walks in %.1f s",
         sc.name,
