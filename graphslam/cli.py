@@ -690,13 +690,30 @@ def bench_real(
     floors: Optional[str] = typer.Option(None, help="Comma-separated floor sub-folders of a site (default: all)."),
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
     set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value."),
+    control_points: str = typer.Option(
+        "auto", "--control-points",
+        help="auto: also the control_points variant on floors whose folder holds control_points.csv; none: never.",
+    ),
+    variants: str = typer.Option(
+        "headings,no_headings,control_points", "--variants", help="Comma-separated variants to run."
+    ),
 ) -> None:
-    """Align each floor of real recordings; one JSON line per floor: walks aligned, landmark errors
-    (SE(2) fit), time, and how well the per-walk placement figures separate right from wrong walks."""
-    from graphslam.app.bench import real_floors
+    """Survey each floor of real recordings per variant (headings: the config as given; no_headings:
+    heading.enabled=false; control_points: the floor's control_points.csv, site frame); one JSON line
+    per floor and variant (walks in the main map and in components of 5 or more, landmark errors
+    after each component's own SE(2) fit, walks over 10 / 15 m, frame, time), then one summary line
+    per variant."""
+    from graphslam.app.bench import real_floor_rows, real_summary
 
-    for row in real_floors(folders, _config(config, set_), floors.split(",") if floors else None):
+    rows = []
+    for row in real_floor_rows(
+        folders, _config(config, set_), floors.split(",") if floors else None,
+        variants=[v.strip() for v in variants.split(",") if v.strip()], control_points=control_points,
+    ):
+        rows.append(row)
         typer.echo(json.dumps(row))
+    for line in real_summary(rows):
+        typer.echo(json.dumps(line))
 
 
 @bench_app.command("ilc")

@@ -116,7 +116,14 @@ def build_report(
     if al.placement is not None:
         report.update(_placement_report(al))
     if ev is not None:
-        report["evaluation"] = {**ev.as_dict(), "component": 0}
+        from graphslam.core.survey.evaluate import component_errors
+
+        # the figures above are component 0's; "components": each component after its own SE(2)
+        # fit, and component 0 in the site frame with no fit (site_mean_m) when it is in it
+        report["evaluation"] = {
+            **ev.as_dict(), "component": 0,
+            "components": [c.as_dict() for c in component_errors(al, survey, site_frame=al.frame == "site")],
+        }
     if al.uwb is not None:  # UWB ranges (issue 15); in the site frame the error needs no fit
         report["uwb"] = al.uwb.as_dict()
         if ev is not None and al.frame == "site":

@@ -4,19 +4,24 @@ Landmark error: each landmark mark (time t, surveyed x, y) is compared with the
 walk's pose at t (linear interpolation between steps) after one SE(2) fit of all
 estimated mark positions onto the surveyed ones: the aligned frame is the
 reference walk's, so only its relation to the site frame is fitted, once for all
-walks.
+walks. A survey split into components (``Alignment.components``, each in a frame of its
+own) is scored per component by ``component_errors``: one fit per component, and for a
+component 0 in the site frame (control points) also the error with no fit.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
-from typing import Mapping
+from dataclasses import asdict, dataclass, replace
+from typing import TYPE_CHECKING, Mapping
 
 import numpy as np
 from numpy.typing import NDArray
 
 from graphslam.core.survey.initialise import fit_se2, se2_apply
 from graphslam.core.types import PoseTrack, Survey, wrap_angle
+
+if TYPE_CHECKING:
+    from graphslam.core.survey.align import Alignment
 
 HIST_BIN_M = 0.5
 
@@ -193,3 +198,89 @@ def evaluate(tracks: Mapping[str, PoseTrack], survey: Survey) -> Evaluation:
     )
 
 
+
+
+WALK_OVER_M = 10.0  # ``walks_over_10m``: a walk whose mean landmark error exceeds this is counted
+
+
+@dataclass(frozen=True)
+class ComponentErrors:
+    """Landmark errors of one component of an alignment (``component_errors``).
+
+    ``landmarks``: after one SE(2) fit of the component's walks onto the surveyed landmark
+    positions (n = 0 and no fit when the component's walks mark fewer than 2 landmarks);
+    ``per_walk_mean_m`` and ``walks_over_10m`` (walks whose mean error exceeds ``WALK_OVER_M``)
+    after that fit. ``site`` / ``site_per_walk_mean_m`` / ``site_walks_over_10m``: component 0 in
+    the site frame, no fit (None otherwise)."""
+
+    index: int
+    walks: tuple[str, ...]
+    landmarks: ErrorStats
+    per_walk_mean_m: dict[str, float]
+    walks_over_10m: int
+    site_from_component: tuple[float, float, float] | None  # the fit; None: no fit
+    site: ErrorStats | None = None
+    site_per_walk_mean_m: dict[str, float] | None = None
+    site_walks_over_10m: int | None = None
+
+    def as_dict(self) -> dict:
+        """report.json's ``evaluation.components[i]`` (NaN and no fit: null)."""
+        lm = self.landmarks
+        fitted = lm.n > 0
+
+        def num(v: float) -> float | None:
+            return float(v) if fitted and np.isfinite(v) else None
+
+        d: dict = {
+            "index": self.index,
+            "walks": len(self.walks),
+            "n": lm.n,
+            "mean_m": num(lm.mean_m),
+            "p90_m": num(lm.p90_m),
+            "max_m": num(lm.max_m),
+            "walks_over_10m": self.walks_over_10m,
+            "per_walk_mean_m": self.per_walk_mean_m,
+            "site_from_component": None if self.site_from_component is None else list(self.site_from_component),
+        }
+        if self.site is not None:
+            s = self.site
+            d.update({
+                "site_n": s.n,
+                "site_mean_m": float(s.mean_m) if s.n else None,
+                "site_p90_m": float(s.p90_m) if s.n else None,
+                "site_max_m": float(s.max_m) if s.n else None,
+                "site_walks_over_10m": self.site_walks_over_10m,
+                "site_per_walk_mean_m": self.site_per_walk_mean_m,
+            })
+        return d
+
+
+def component_errors(alignment: "Alignment", survey: Survey, site_frame: bool) -> list[ComponentErrors]:
+    """Per component of ``alignment`` (a ``graphslam.core.survey.align.Alignment``; component 0
+    first): landmark errors after one SE(2) fit of that component's walks (each component stands
+    in a frame of its own), per-walk means and the walks over ``WALK_OVER_M``; with ``site_frame``
+    (component 0 is in the site frame, the landmarks' frame: control points, UWB anchors) also
+    component 0's errors with no fit. Evaluation only: the solver never calls it."""
+    out = []
+    for c in alignment.components:
+        tracks = {sid: alignment.tracks[sid] for sid in c.walks if sid in alignment.tracks}
+        lm, T, per = landmark_errors(tracks, survey)
+        row = ComponentErrors(
+            index=c.index,
+            walks=tuple(c.walks),
+            landmarks=lm,
+            per_walk_mean_m=per,
+            walks_over_10m=_over(per),
+            site_from_component=(float(T[0]), float(T[1]), float(T[2])) if lm.n else None,
+        )
+        if site_frame and c.index == 0:
+            est, true, owner = _marks(tracks, survey)
+            e = np.linalg.norm(est - true, axis=1)
+            site_per = {sid: float(e[owner == sid].mean()) for sid in dict.fromkeys(owner)}
+            row = replace(row, site=ErrorStats.of(e), site_per_walk_mean_m=site_per, site_walks_over_10m=_over(site_per))
+        out.append(row)
+    return out
+
+
+def _over(per_walk: Mapping[str, float]) -> int:
+    return int(sum(v > WALK_OVER_M for v in per_walk.values()))
