@@ -66,13 +66,16 @@ def test_survey_writes_survey_png_with_one_colour_per_aligned_walk(corridor_run:
     _, out, result = corridor_run
     al = result.alignment
     lonely = al.session_ids[NO_WIFI]
-    assert lonely in al.unaligned and len(al.tracks) == len(al.session_ids) - 1
+    # without WiFi the walk is not in the main map: unaligned, or a component of its own
+    assert lonely not in al.main_tracks() and len(al.main_tracks()) == len(al.session_ids) - 1
+    assert lonely in al.unaligned or al.component_of()[lonely] != 0
     png = out / "survey.png"
     assert result.files["picture"] == png
     with Image.open(png) as im:
         assert im.size == survey_picture.SIZE_PX
     present = _colours_present(_rgb(png), session_colours(al.session_ids))
-    assert present == set(al.tracks)  # every aligned walk in its own colour, the unaligned one not drawn
+    # every aligned walk in its own colour (another component's in the strip below), an unaligned one not drawn
+    assert present == set(al.tracks)
     assert not list(out.glob(".*"))  # written atomically: no temporary file left over
     assert result.report["timings_s"]["picture"] > 0
 
@@ -83,9 +86,15 @@ def test_legend_lists_unaligned_walks_with_reason_and_the_reference(corridor_run
     scene = survey_picture.scene_of_alignment(result.survey, al, GraphSlamConfig(), result.evaluation)
     texts = [e.text for e in survey_picture.survey_picture(scene).legend]
     lonely = al.session_ids[NO_WIFI]
-    reason = al.unaligned[lonely]
-    hit = [t for t in texts if lonely in t]
-    assert len(hit) == 1 and reason in hit[0]
+    if lonely in al.unaligned:  # listed under its reason
+        reason = al.unaligned[lonely]
+        hit = [t for t in texts if lonely in t]
+        assert len(hit) == 1 and reason in hit[0]
+    else:  # a component of its own: listed with its component, the component's reason in the legend
+        k = al.component_of()[lonely]
+        reason = next(c.reason for c in al.components if c.index == k)
+        assert f"{lonely} (component {k})" in texts and reason
+        assert any(reason in t and f"component {k})" in t for t in texts)
     assert any(t.startswith(f"reference {al.reference}") for t in texts)
     assert scene.marks is not None and scene.marks.stats.n >= 2  # landmark truth / estimate / error drawn
     # every edge between aligned walks is counted, by state, as in report.json

@@ -115,7 +115,9 @@ def test_wifi_edges_by_state(corridor: tuple, logged: tuple) -> None:
     fp = al.fingerprints
     a, b = al.node_xyh[fp.node[al.edges.i], :2], al.node_xyh[fp.node[al.edges.j], :2]
     d = np.linalg.norm(a - b, axis=1)
-    d = d[np.isfinite(d)]
+    of = al.component_of()  # edges within one component: across two, they would join unrelated frames
+    comp = np.array([of.get(s, -1) for s in al.session_ids])[fp.session]
+    d = d[np.isfinite(d) & (comp[al.edges.i] == comp[al.edges.j])]
     assert len(d) <= rl.MAX_EDGES  # small survey: nothing subsampled
     expected = np.bincount(edge_state(d, cfg.wifi), minlength=3)
     for k, name in enumerate(rl.EDGE_STATES):

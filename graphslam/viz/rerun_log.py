@@ -458,11 +458,16 @@ def _reference_layer(lg: _Log, xyh: NDArray, session_id: str) -> None:
 
 
 def _edge_layers(lg: _Log, al: Alignment, cfg: GraphSlamConfig, max_edges: int) -> None:
-    """WiFi-vicinity edges between aligned walks, one entity per final state (toggle each in the viewer)."""
+    """WiFi-vicinity edges between aligned walks of one component, one entity per final state (toggle
+    each in the viewer); an edge between two components would join two unrelated frames."""
     fp = al.fingerprints
     a = al.node_xyh[fp.node[al.edges.i], :2]
     b = al.node_xyh[fp.node[al.edges.j], :2]
     ok = np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
+    if len(al.components) > 1:
+        of = al.component_of()
+        comp = np.array([of.get(sid, -1) for sid in al.session_ids], np.int64)[fp.session]
+        ok &= comp[al.edges.i] == comp[al.edges.j]
     idx = np.flatnonzero(ok)
     n_ok = len(idx)
     if n_ok > max_edges:
@@ -476,7 +481,7 @@ def _edge_layers(lg: _Log, al: Alignment, cfg: GraphSlamConfig, max_edges: int) 
         lg.static(f"{EDGES}/{name}", int(m.sum()), _segments(seg[m], EDGE_COLOURS[k], 0.5, _Z_EDGES))
     shown = f"all {n_ok:,}" if n_ok == len(idx) else f"{len(idx):,} of {n_ok:,} (uniform random subsample, seed 0)"
     lg.notes.append(
-        f"- WiFi edges: {len(al.edges):,} proposed, {n_ok:,} between aligned walks; shown {shown}. "
+        f"- WiFi edges: {len(al.edges):,} proposed, {n_ok:,} between aligned walks of one component; shown {shown}. "
         f"Colour = state at the final poses (d_min {cfg.wifi.d_min_m:g} m, d_max {cfg.wifi.d_max_m:g} m): "
         "green inactive (d < d_min), orange fuzzy ramp, red saturated (d > d_max)."
     )
