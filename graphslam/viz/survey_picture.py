@@ -293,7 +293,7 @@ def survey_picture(scene: SurveyScene, *, floor_plan: FloorPlan | None = None, s
         ref = lines[ids.index(scene.reference)]
         panel.polylines([ref], [BLACK], width=1)  # thin, on top: marks the walk without hiding others
         panel.points(ref[:1], BLACK, radius=11, kind="star")
-        where = "" if in_site else ", starts at the origin"
+        where = "" if in_site or scene.frame == "site" else ", starts at the origin"
         legend.append(LegendEntry(f"reference {scene.reference} (thin black line{where})", BLACK, "star"))
 
     if scene.marks is not None and est is not None and truth is not None:
@@ -372,8 +372,8 @@ def _component_entries(
                        f"{len(others)} other component{'s' if len(others) != 1 else ''} stand apart, each in its "
                        "own frame (the strip below):", kind="text")]
     groups: dict[str, list[tuple[int, tuple[str, ...], str]]] = {}
-    for c in others:
-        groups.setdefault(c[2] or "not linked to the main map", []).append(c)
+    for c in others:  # by the reason's words: its figures in brackets differ per component (report.json)
+        groups.setdefault(c[2].split(" (")[0].strip() or "not linked to the main map", []).append(c)
     drawn = {c[0] for c in sorted(others, key=lambda c: (-len(c[1]), -sum(len(scene.tracks[s]) for s in c[1]),
                                                          c[0]))[:MAX_INSETS]}
     for j, (why, cs) in enumerate(sorted(groups.items(), key=lambda kv: -sum(len(c[1]) for c in kv[1]))):
@@ -386,7 +386,8 @@ def _component_entries(
         out.append(LegendEntry(
             f"{len(cs)} component{'s' if len(cs) != 1 else ''}, {walks} walk{'s' if walks != 1 else ''}"
             + (f" ({singles} of one walk)" if singles and len(cs) > 1 else "")
-            + f": {why} (component{'s' if len(cs) != 1 else ''} {listed})",
+            + f": {why} (component{'s' if len(cs) != 1 else ''} {listed}"
+            + ("; details in report.json)" if any(c[2] != cs[0][2] or " (" in c[2] for c in cs) else ")"),
             GREY, "line", width=2))
     rest = [c for c in others if c[0] not in drawn]
     if rest:
