@@ -279,3 +279,16 @@ def test_batch_counts_partial_floors_and_takes_each_floors_control_points(
     (broken / "control_points.csv").unlink()
     assert run_cli(["survey-batch", str(sites), "--out", str(out), "--workers", "2", "--no-progress"]) == 0
     assert "3 floors: 2 ok, 1 partial, 0 failed" in capsys.readouterr().out
+
+
+def test_evaluate_fits_one_component(split_run: tuple, floor: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out, report = split_run
+    traj = str(out / "trajectories.csv")
+    capsys.readouterr()
+    for k, comp in enumerate(report["components"]):
+        assert run_cli(["evaluate", traj, str(floor), "--component", str(k)]) == 0
+        row = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        assert row["component"] == k and row["walks"] == comp["n_walks"]
+    assert run_cli(["evaluate", traj, str(floor), "--component", "7"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and traj in err[0] and "no walk in component 7" in err[0]
