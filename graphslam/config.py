@@ -196,6 +196,10 @@ class HeadingConfig(_Strict):
         30.0, ge=0, description="with headings, a WiFi edge enters the optimiser only when the placement puts its two "
         "fingerprints this close (at wifi.d_max_m or more: every edge within a component; 0: none)",
     )
+    cauchy_sigmas: float = Field(
+        1.0, ge=0, description="Cauchy kernel of the heading priors, in sigmas: a walk its WiFi turns far from its "
+        "heading (a turned phone, a bent field) is let go; 0: Gaussian",
+    )
     prior: Literal["walk", "step", "none"] = Field(
         "walk", description="in the optimiser: walk: one rotation prior per walk (on its first solved pose); step: a "
         "heading factor at every solved pose (the phone's yaw turned by the walk's offset as placed); none: the "

@@ -154,13 +154,16 @@ def _transform_poses(xyh: NDArray, T: NDArray) -> NDArray:
 
 def initialization(cfg: GraphSlamConfig, survey: Survey | None = None) -> str:
     """``optimizer.initialization`` resolved: auto takes ``heading`` when every walk has the phone's
-    heading (and ``heading.enabled``), else ``registration``; --update (a warm start) keeps its own."""
+    heading (and ``heading.enabled``) and none ranges by UWB, else ``registration``; --update (a warm
+    start) keeps its own."""
     method = cfg.optimizer.initialization
     if method != "auto":
         return method
-    if survey is not None and cfg.heading.enabled and len(survey) and all(
-        s.heading is not None and len(s.heading) >= 3 for s in survey
-    ):
+    if survey is None or not cfg.heading.enabled or not len(survey):
+        return "registration"
+    if cfg.uwb.enabled and any(s.uwb_ranges is not None and len(s.uwb_ranges) for s in survey):
+        return "registration"  # UWB ranges place and link the walks themselves (graphslam.core.uwb.survey)
+    if all(s.heading is not None and len(s.heading) >= 3 for s in survey):
         return "heading"
     return "registration"
 
@@ -628,7 +631,10 @@ def native_graph(
             imu_graph.add(gtsam.PriorFactorPose2(X(r0), gtsam.Pose2(*problem.init_xyh[r0]), F.reference_prior_noise()))
     hn, ht, hs = heading_priors(problem, nodes)
     for n, th, sg in zip(hn.tolist(), ht.tolist(), hs.tolist()):
-        imu_graph.add(gtsam.PoseRotationPrior2D(X(n), gtsam.Rot2(th), gtsam.noiseModel.Isotropic.Sigma(1, sg)))
+        nm = gtsam.noiseModel.Isotropic.Sigma(1, sg)
+        if cfg.heading.cauchy_sigmas > 0:
+            nm = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.heading.cauchy_sigmas), nm)
+        imu_graph.add(gtsam.PoseRotationPrior2D(X(n), gtsam.Rot2(th), nm))
     pn, pxy, ps = point_priors(problem, cfg)
     for n, (px, py), sg in zip(pn.tolist(), pxy.tolist(), ps.tolist()):
         imu_graph.add(gtsam.PoseTranslationPrior2D(X(n), gtsam.Pose2(px, py, 0.0), gtsam.noiseModel.Isotropic.Sigma(2, sg)))
@@ -676,6 +682,7 @@ def pose_graph(problem: Problem, cfg: GraphSlamConfig) -> tuple[S.PoseGraph, Com
         point_nodes=pn,
         point_xy=pxy,
         point_sigma=ps,
+        heading_cauchy=cfg.heading.cauchy_sigmas,
     )
     return graph, chains
 

@@ -65,6 +65,9 @@ class PoseGraph:
     point_nodes: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     point_xy: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
     point_sigma: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    # Cauchy kernel of the heading priors, in sigmas (0: Gaussian): a walk whose WiFi disagrees with
+    # its phone's heading by far (a turned phone, a bent field) is not held at the heading
+    heading_cauchy: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -178,11 +181,19 @@ def point_residuals(x: NDArray, xy: NDArray, sigma: NDArray) -> NDArray:
     return (x[:, :2] - xy) / sigma[:, None]
 
 
+def cauchy(r: NDArray, c: float) -> tuple[NDArray, NDArray]:
+    """(2 rho(r), IRLS weight) of the Cauchy kernel rho = c^2 / 2 log(1 + r^2 / c^2) (GTSAM's); c = 0: Gaussian."""
+    if c <= 0:
+        return r * r, np.ones_like(r)
+    q = 1.0 + (r / c) ** 2
+    return c * c * np.log(q), 1.0 / q
+
+
 def unary_error(graph: PoseGraph, xyh: NDArray) -> float:
-    """0.5 sum r^2 of the heading and position priors at poses ``xyh`` (n_nodes, 3)."""
+    """Error of the heading (robust) and position priors at poses ``xyh`` (n_nodes, 3)."""
     rh = heading_residuals(xyh[graph.heading_nodes], graph.heading_target, graph.heading_sigma)
     rp = point_residuals(xyh[graph.point_nodes], graph.point_xy, graph.point_sigma)
-    return 0.5 * float(np.sum(rh * rh) + np.sum(rp * rp))
+    return 0.5 * float(np.sum(cauchy(rh, graph.heading_cauchy)[0]) + np.sum(rp * rp))
 
 
 def between_error(graph: PoseGraph, xyh: NDArray) -> float:
@@ -497,7 +508,8 @@ class _Objective:
             jacobians=False,
         )
         rh, rp = self._unary(v)
-        return 0.5 * float(np.sum(rb * rb) + np.sum(rr * rr) + np.sum(rh * rh) + np.sum(rp * rp))
+        rho = cauchy(rh, g.heading_cauchy)[0]
+        return 0.5 * float(np.sum(rb * rb) + np.sum(rr * rr) + np.sum(rho) + np.sum(rp * rp))
 
     def linearise(self, v: NDArray) -> tuple[NDArray, NDArray, float]:
         g = self.g
@@ -510,11 +522,12 @@ class _Objective:
         JbaT, JbbT = np.transpose(Jba, (0, 2, 1)), np.transpose(Jbb, (0, 2, 1))
         Hr = range_hessian(self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1]), rr, Jrb, g.range_sigma)
         rh, rp = self._unary(v)
+        rho, wgt = cauchy(rh, g.heading_cauchy)  # IRLS: the kernel's weight on a Gauss-Newton block
         sh, sp = g.heading_sigma[self.hk], g.point_sigma[self.pk]
         Hh = np.zeros((len(sh), 3, 3))
-        Hh[:, 2, 2] = 1.0 / sh**2
+        Hh[:, 2, 2] = wgt[self.hk] / sh**2
         gh = np.zeros((len(sh), 3))
-        gh[:, 2] = rh[self.hk] / sh
+        gh[:, 2] = wgt[self.hk] * rh[self.hk] / sh
         Hp = np.zeros((len(sp), 3, 3))
         Hp[:, 0, 0] = Hp[:, 1, 1] = 1.0 / sp**2
         gp = np.zeros((len(sp), 3))
@@ -527,7 +540,7 @@ class _Objective:
             np.concatenate([(JbaT @ rb[:, :, None])[:, :, 0], Jra * rr[:, None], gh, gp]),
             np.concatenate([(JbbT @ rb[:, :, None])[:, :, 0], Jrb * rr[:, None], np.zeros((n_u, 3))]),
         )
-        err = np.sum(rb * rb) + np.sum(rr * rr) + np.sum(rh * rh) + np.sum(rp * rp)
+        err = np.sum(rb * rb) + np.sum(rr * rr) + np.sum(rho) + np.sum(rp * rp)
         return H, grad, 0.5 * float(err)
 
 
