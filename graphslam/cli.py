@@ -368,7 +368,7 @@ def bench_accuracy(
     rows = accuracy(scenario, _seeds(seeds), _config(config, set_), size=size)
     for r in rows:
         typer.echo(json.dumps(r))
-    keys = ("landmark_mean_m", "landmark_max_m", "heading_mean_deg", "steps_mean_m", "align_s")
+    keys = ("main", "landmark_mean_m", "landmark_max_m", "heading_mean_deg", "steps_mean_m", "align_s")
     typer.echo(json.dumps({"mean_over_seeds": {k: round(sum(r[k] for r in rows) / len(rows), 3) for k in keys}}))
 
 

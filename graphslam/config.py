@@ -180,7 +180,7 @@ class HeadingConfig(_Strict):
 
     enabled: bool = Field(True, description="use /phone/heading when every walk has it (false: as without headings)")
     sigma_floor_deg: float = Field(
-        6.0, gt=0, le=90, description="least uncertainty of a walk's rotation from its heading (the phone's pointing "
+        25.0, gt=0, le=90, description="least uncertainty of a walk's rotation from its heading (the phone's pointing "
         "relative to the walk, which one walk cannot reveal)",
     )
     cauchy_scale_deg: float = Field(10.0, gt=0, description="yaw - dead-reckoned heading residuals beyond this are down-weighted (disturbed stretches)")
@@ -211,6 +211,10 @@ class ControlPointConfig(_Strict):
     """Control points (survey --control-points): walks whose /landmarks mark a listed id are tied there."""
 
     sigma_m: float = Field(0.5, gt=0, description="position sigma of a walk at a control point it marks (the button press)")
+    wifi_gate_m: float = Field(
+        6.0, ge=0, description="in the component the control points tie, a WiFi edge enters the optimiser only when "
+        "the placement puts its fingerprints this close (the surveyed points place the walks; WiFi refines them)",
+    )
 
 
 class UpdateConfig(_Strict):

@@ -39,13 +39,15 @@ def accuracy(scenario: str, seeds: Sequence[int], cfg: GraphSlamConfig, *, size:
         t = time.perf_counter()
         al = align(survey, cfg)
         dt = time.perf_counter() - t
-        ev = evaluate(al.tracks, survey)
+        ev = evaluate(al.main_tracks(), survey)  # the main map: other components stand in frames of their own
         rows.append(
             {
                 "scenario": scenario,
                 "seed": seed,
                 "walks": len(survey),
                 "aligned": len(al.tracks),
+                "main": len(al.main_tracks()),
+                "frame": al.frame,
                 "steps": survey.n_steps,
                 "wifi_edges": len(al.edges),
                 "landmark_n": ev.landmarks.n,

@@ -427,7 +427,11 @@ def build_problem(
     wifi_pairs = np.column_stack([ea[use], eb[use]]).astype(np.int64)
     if split is not None:  # ... and within one, only edges the placement agrees with
         gap = np.linalg.norm(init_xyh[wifi_pairs[:, 0], :2] - init_xyh[wifi_pairs[:, 1], :2], axis=1)
-        wifi_pairs = wifi_pairs[gap <= cfg.heading.wifi_gate_m]
+        gate = np.full(len(gap), cfg.heading.wifi_gate_m)
+        if split.ties is not None:  # the control points' component: tighter (the points place its walks)
+            tied = split.component[node_sess[wifi_pairs[:, 0]]] == 0
+            gate[tied] = min(cfg.heading.wifi_gate_m, cfg.control_points.wifi_gate_m)
+        wifi_pairs = wifi_pairs[gap <= gate]
     free = None
     if warm is not None:  # --update: solved walks start from their solution; only their neighbourhood moves
         init_xyh = np.where(warm.solved[:, None], warm.xyh, init_xyh)
