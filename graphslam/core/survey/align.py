@@ -39,6 +39,8 @@ from graphslam.errors import SolverError
 if TYPE_CHECKING:
     import gtsam
 
+    from graphslam.core.survey.placement import GrowthParams
+
 log = logging.getLogger(__name__)
 
 
@@ -491,7 +493,6 @@ def _split(
     from graphslam.core.radiomap.similarity import PowerCosine
     from graphslam.core.survey.components import place_components
     from graphslam.core.survey.heading import walk_headings
-    from graphslam.core.survey.placement import GrowthParams
 
     hc, pc = cfg.heading, cfg.placement
     wh = walk_headings(
@@ -514,11 +515,7 @@ def _split(
             raise SolverError("no walk can be tied to the control points (none marks one and has a heading)")
     sim = PowerCosine.of(fp.fingerprints, pc.similarity_scale_db)
     matches = sim.top_matches(fp.session, pc.matches_per_fingerprint)
-    params = GrowthParams(
-        weight_power=pc.weight_power, rotation_step_deg=pc.rotation_step_deg, blur_m=pc.blur_m,
-        distinct_m=pc.distinct_m, min_margin=hc.min_margin, refine_scale_m=pc.refine_scale_m,
-        consistent_m=pc.consistent_m, rotation_window_deg=hc.rotation_window_deg,
-    )
+    params = growth_params(cfg, min_margin=hc.min_margin, rotation_window_deg=hc.rotation_window_deg)
     seed = _reference_index(survey, cfg) if cfg.optimizer.reference_session is not None else None
     # with ties, every walk's rotation is site-from-dead-reckoning: heading + the site frame's offset
     rotation = wh.rotation + phi
@@ -563,16 +560,12 @@ def _grow(survey: Survey, fp: FingerprintNodes, dr_xyh: NDArray, cfg: GraphSlamC
     (the configured reference, else the one with the most match weight) has ``parent == -2``."""
     # imported here: scipy.ndimage etc. only for surveys that use this placement
     from graphslam.core.radiomap.similarity import PowerCosine
-    from graphslam.core.survey.placement import GrowthParams, grow_placement
+    from graphslam.core.survey.placement import grow_placement
 
     pc = cfg.placement
     sim = PowerCosine.of(fp.fingerprints, pc.similarity_scale_db)
     matches = sim.top_matches(fp.session, pc.matches_per_fingerprint)
-    params = GrowthParams(
-        weight_power=pc.weight_power, rotation_step_deg=pc.rotation_step_deg, blur_m=pc.blur_m,
-        distinct_m=pc.distinct_m, min_margin=pc.min_margin, refine_scale_m=pc.refine_scale_m,
-        consistent_m=pc.consistent_m,
-    )
+    params = growth_params(cfg)
     seed = _reference_index(survey, cfg) if cfg.optimizer.reference_session is not None else None
     res = grow_placement(len(survey), fp.session, dr_xyh[fp.node, :2], matches, params, seed=seed)
     parent = np.full(len(survey), -1, np.int64)
@@ -582,6 +575,19 @@ def _grow(survey: Survey, fp: FingerprintNodes, dr_xyh: NDArray, cfg: GraphSlamC
         method="growth", support=res.support, margin=res.margin, consistency=res.consistency,
         unplaced_reasons=res.reasons,
     )
+
+
+def growth_params(cfg: GraphSlamConfig, **override: object) -> GrowthParams:
+    """The map growth's settings from the ``placement`` section (``override``: the heading placement's)."""
+    from graphslam.core.survey.placement import GrowthParams
+
+    pc = cfg.placement
+    base = dict(
+        weight_power=pc.weight_power, rotation_step_deg=pc.rotation_step_deg, blur_m=pc.blur_m,
+        distinct_m=pc.distinct_m, min_margin=pc.min_margin, refine_scale_m=pc.refine_scale_m,
+        consistent_m=pc.consistent_m,
+    )
+    return GrowthParams(**{**base, **override})  # type: ignore[arg-type]
 
 
 def placement_reasons(placement: Placement, survey: Survey) -> dict[str, str]:
