@@ -28,18 +28,18 @@ from graphslam.core.survey import solver as S
 from graphslam.core.survey import incremental
 from graphslam.core.survey.association import FingerprintNodes, associate
 from graphslam.core.survey.chains import CompressedChains, compress, expand
-from graphslam.core.survey.control import ControlTies, control_ties, tie_walks
+from graphslam.core.survey.components import Component
+from graphslam.core.survey.control import ControlTies
+from graphslam.core.survey.heading_split import ComponentSplit, HeadingTerms, split_by_heading
 from graphslam.core.survey.edges import WifiEdges, propose_edges, window_thresholds
-from graphslam.core.survey.initialise import Placement, connected_to, register_walks, se2_apply
-from graphslam.core.types import PoseTrack, Survey, wrap_angle
+from graphslam.core.survey.initialise import Placement, connected_to, register_walks, se2_apply_poses
+from graphslam.core.types import PoseTrack, Survey
 from graphslam.core.uwb import factors as uwb_factors
 from graphslam.core.uwb.survey import UwbSummary, UwbTerms, uwb_terms
 from graphslam.errors import SolverError
 
 if TYPE_CHECKING:
     import gtsam
-
-    from graphslam.core.survey.placement import GrowthParams
 
 log = logging.getLogger(__name__)
 
@@ -61,17 +61,6 @@ class IterationRecord:
 
 
 ProgressCallback = Callable[[IterationRecord], None]
-
-
-@dataclass(frozen=True)
-class Component:
-    """Walks the data links into one frame. Component 0 is the main map (the radio map's frame);
-    every other component stands in a frame of its own, its placement relative to component 0
-    unknown (``reason`` says which links are missing)."""
-
-    index: int
-    walks: tuple[str, ...]  # session ids
-    reason: str = ""  # why it stands apart from component 0 ("" for component 0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -151,7 +140,7 @@ def _reference_index(survey: Survey, cfg: GraphSlamConfig) -> int:
 
 
 def _transform_poses(xyh: NDArray, T: NDArray) -> NDArray:
-    return np.column_stack([se2_apply(T, xyh[:, :2]), wrap_angle(xyh[:, 2] + T[2])])
+    return se2_apply_poses(T, xyh)
 
 
 def initialization(cfg: GraphSlamConfig, survey: Survey | None = None) -> str:
@@ -228,57 +217,6 @@ class Problem:
         return np.array([self.reference_node], np.int64)
 
 
-@dataclass(frozen=True, eq=False)
-class HeadingTerms:
-    """Heading priors per node: target heading (rad, in the node's component frame) and sigma.
-
-    ``walk``: one prior per walk, on its first solved pose: its dead-reckoned heading turned by the
-    walk's rotation from the phone's heading, sigma the walk's (the dead reckoning's own drift along
-    the walk stays free for the WiFi edges to correct); ``step``: the target is the phone's yaw at
-    that step turned by the walk's offset as placed (the yaw's shape corrects the dead reckoning's
-    heading drift; the walk's rotation stays the placement's), sigma = the yaw's spread along the
-    walk, counted once per ``correlation_steps``."""
-
-    target: NDArray[np.float64]  # (N,) NaN: no prior
-    walk_sigma: NDArray[np.float64]  # (S,) the walk's rotation sigma (rad)
-    spread: NDArray[np.float64]  # (S,) robust spread of yaw - dead-reckoned heading along the walk
-    mode: str  # "walk" | "step" | "none"
-    correlation_steps: int = 20
-    step_floor_rad: float = float(np.radians(2.0))
-
-    def node_sigma(self, nodes: NDArray[np.int64], node_session: NDArray[np.int64]) -> NDArray[np.float64]:
-        """Sigma of each ``step`` prior on ``nodes``: the yaw's spread, counted once per ``correlation_steps``."""
-        s = node_session[nodes]
-        n = np.bincount(s, minlength=len(self.walk_sigma)).astype(float)
-        steps = np.bincount(node_session, minlength=len(self.walk_sigma)).astype(float)
-        per_draw = np.maximum(1.0, self.correlation_steps * n[s] / np.maximum(steps[s], 1.0))
-        return np.hypot(self.spread[s], self.step_floor_rad) * np.sqrt(per_draw)
-
-
-def _step_targets(survey: Survey, offsets: NDArray, init_xyh: NDArray, phi: float) -> NDArray[np.float64]:
-    """Per node: the phone's yaw at that step (+ the site offset), turned by the walk's mean offset
-    between the placed heading and the yaw (NaN where the walk has no heading)."""
-    from graphslam.core.survey.heading import heading_residuals
-
-    out = np.full(len(init_xyh), np.nan)
-    for s, sess in enumerate(survey):
-        k, _ = heading_residuals(sess)
-        if len(k) == 0:
-            continue
-        a = int(offsets[s])
-        n = len(sess.steps)
-        yaw = np.full(n, np.nan)
-        kk = np.clip(np.searchsorted(sess.steps.t_ns, sess.heading.t_ns), 0, n - 1)
-        yaw[kk] = sess.heading.yaw + phi
-        idx = np.arange(n)
-        have = np.isfinite(yaw)
-        near = idx[have][np.clip(np.searchsorted(idx[have], idx), 0, have.sum() - 1)]
-        yaw = yaw[near]  # steps without a message take the next one's (the first step)
-        off = np.angle(np.exp(1j * (init_xyh[a:a + n, 2] - yaw)).mean())
-        out[a:a + n] = np.asarray(wrap_angle(yaw + off), float)
-    return out
-
-
 def edge_candidates(cfg: GraphSlamConfig, n_fingerprints: int) -> str:
     """``edges.candidates`` resolved: auto takes the IVF index above ``edges.ivf_above_fingerprints``."""
     c = cfg.edges.candidates
@@ -297,7 +235,8 @@ def build_problem(
     """Steps 1-3 of the method: fingerprints on nodes, WiFi edges, initial placement.
 
     ``control_points``: landmark id -> site (x, y) of the landmarks a user names as control
-    points (``graphslam survey --control-points``); not used yet.
+    points (``graphslam survey --control-points``): the walks that mark them are tied there and
+    component 0 is in the site frame (``graphslam.core.survey.control``; needs the headings).
 
     ``warm`` (``graphslam survey --update``, see ``graphslam.core.survey.incremental``): walks
     solved before start from their previous solution, only the new walks' fingerprints are
@@ -367,7 +306,8 @@ def build_problem(
                 )
                 included[s] = False
     elif method == "heading":
-        split = _split(survey, fp, dr_xyh, node_sess, cfg, control_points)
+        seed = _reference_index(survey, cfg) if cfg.optimizer.reference_session is not None else None
+        split = split_by_heading(survey, fp, dr_xyh, node_sess, cfg, control_points, seed=seed)
         placement, transforms = split.placement, split.placement.transforms
         included = np.ones(n_s, bool)
         ref = split.reference
@@ -469,103 +409,17 @@ def build_problem(
     )
 
 
-@dataclass(frozen=True, eq=False)
-class ComponentSplit:
-    """The heading placement's outcome: components, their held nodes, heading priors, control ties."""
-
-    placement: Placement
-    component: NDArray[np.int64]
-    components: tuple[Component, ...]
-    reference: int  # session index of component 0's seed (its first pose: the frame's origin without ties)
-    fixed_nodes: NDArray[np.int64]
-    heading: HeadingTerms
-    ties: ControlTies | None
-    frame_name: str
-
-
-def _split(
-    survey: Survey, fp: FingerprintNodes, dr_xyh: NDArray, node_sess: NDArray, cfg: GraphSlamConfig,
-    control_points: Mapping[str, tuple[float, float]] | None,
-) -> ComponentSplit:
-    """Heading placement: every walk rotated by its heading (east/north), map growth into components
-    (``graphslam.core.survey.components``); with control points component 0 grows from the walks
-    they tie, in the site frame."""
-    from graphslam.core.radiomap.similarity import PowerCosine
-    from graphslam.core.survey.components import place_components
-    from graphslam.core.survey.heading import walk_headings
-
-    hc, pc = cfg.heading, cfg.placement
-    wh = walk_headings(
-        survey, sigma_floor_rad=np.radians(hc.sigma_floor_deg), cauchy_scale_rad=np.radians(hc.cauchy_scale_deg),
-        correlation_steps=hc.correlation_steps,
-    )
-    if not wh.complete:
-        missing = [survey.sessions[s].session_id for s in np.flatnonzero(~wh.available)]
-        raise SolverError(
-            f"optimizer.initialization heading needs /phone/heading on every walk; {len(missing)} have none "
-            f"(e.g. {missing[0]!r}): use auto or registration"
-        )
-    ties = tied = None
-    phi = 0.0
-    if control_points:
-        ties = control_ties(survey, control_points, fp.offsets)
-        tp = tie_walks(ties, dr_xyh, node_sess, wh.rotation)
-        tied, phi = tp.transforms, tp.site_from_earth
-        if not tied:
-            raise SolverError("no walk can be tied to the control points (none marks one and has a heading)")
-    sim = PowerCosine.of(fp.fingerprints, pc.similarity_scale_db)
-    matches = sim.top_matches(fp.session, pc.matches_per_fingerprint)
-    params = growth_params(cfg, min_margin=hc.min_margin, rotation_window_deg=hc.rotation_window_deg)
-    seed = _reference_index(survey, cfg) if cfg.optimizer.reference_session is not None else None
-    # with ties, every walk's rotation is site-from-dead-reckoning: heading + the site frame's offset
-    rotation = wh.rotation + phi
-    cp = place_components(
-        len(survey), fp.session, dr_xyh[fp.node, :2], matches, params,
-        rotation=rotation, rotation_sigma=wh.sigma, tied=tied, seed=seed,
-    )
-    ids = [s.session_id for s in survey]
-    comps = tuple(
-        Component(k, tuple(ids[s] for s in cp.walks_of(k)), cp.reasons.get(k, "")) for k in range(cp.n_components)
-    )
-    offsets = fp.offsets
-    # held nodes: the first pose of each component's seed walk (component 0 with ties: none, the ties hold it)
-    fixed = np.array([int(offsets[sd]) for sd in cp.seeds if sd >= 0], np.int64)
-    reference = cp.seeds[0] if cp.seeds and cp.seeds[0] >= 0 else int(ties.walks[0]) if ties is not None else 0
-    # heading prior of every node: its dead-reckoned heading turned by its walk's placed rotation
-    # would only restate the placement; the prior is the heading's: rotation from the heading (+ the
-    # site offset in component 0 with ties) applied to the dead-reckoned heading
-    # (with ties every component was placed turned by the site offset: all frames are site-aligned)
-    walk_rot = wh.rotation + phi
-    target = np.asarray(wrap_angle(dr_xyh[:, 2] + walk_rot[node_sess]), float)
-    target[~np.isfinite(target)] = np.nan
-    if hc.prior == "step":
-        init = np.full_like(dr_xyh, np.nan)
-        for w in range(len(survey)):
-            a, b = int(offsets[w]), int(offsets[w + 1])
-            init[a:b] = _transform_poses(dr_xyh[a:b], cp.transforms[w])
-        target = _step_targets(survey, offsets, init, phi)
-    heading = HeadingTerms(target, wh.sigma, wh.spread, hc.prior, hc.correlation_steps)
-    pl = Placement(
-        cp.transforms, np.ones(len(survey), bool), np.full(len(survey), -1, np.int64), np.full(len(survey), -1, np.int64),
-        method="heading", support=cp.support, margin=cp.margin, consistency=cp.consistency,
-    )
-    frame = "site" if ties is not None else "earth"
-    main = int((cp.component == 0).sum())
-    log.info("heading placement: %d components, the main map holds %d of %d walks", cp.n_components, main, len(survey))
-    return ComponentSplit(pl, cp.component, comps, reference, fixed, heading, ties, frame)
-
-
 def _grow(survey: Survey, fp: FingerprintNodes, dr_xyh: NDArray, cfg: GraphSlamConfig) -> Placement:
     """Map-growth placement (graphslam.core.survey.placement) as a ``Placement``; the seed walk
     (the configured reference, else the one with the most match weight) has ``parent == -2``."""
     # imported here: scipy.ndimage etc. only for surveys that use this placement
     from graphslam.core.radiomap.similarity import PowerCosine
-    from graphslam.core.survey.placement import grow_placement
+    from graphslam.core.survey.placement import GrowthParams, grow_placement
 
     pc = cfg.placement
     sim = PowerCosine.of(fp.fingerprints, pc.similarity_scale_db)
     matches = sim.top_matches(fp.session, pc.matches_per_fingerprint)
-    params = growth_params(cfg)
+    params = GrowthParams.from_config(cfg)
     seed = _reference_index(survey, cfg) if cfg.optimizer.reference_session is not None else None
     res = grow_placement(len(survey), fp.session, dr_xyh[fp.node, :2], matches, params, seed=seed)
     parent = np.full(len(survey), -1, np.int64)
@@ -575,19 +429,6 @@ def _grow(survey: Survey, fp: FingerprintNodes, dr_xyh: NDArray, cfg: GraphSlamC
         method="growth", support=res.support, margin=res.margin, consistency=res.consistency,
         unplaced_reasons=res.reasons,
     )
-
-
-def growth_params(cfg: GraphSlamConfig, **override: object) -> GrowthParams:
-    """The map growth's settings from the ``placement`` section (``override``: the heading placement's)."""
-    from graphslam.core.survey.placement import GrowthParams
-
-    pc = cfg.placement
-    base = dict(
-        weight_power=pc.weight_power, rotation_step_deg=pc.rotation_step_deg, blur_m=pc.blur_m,
-        distinct_m=pc.distinct_m, min_margin=pc.min_margin, refine_scale_m=pc.refine_scale_m,
-        consistent_m=pc.consistent_m,
-    )
-    return GrowthParams(**{**base, **override})  # type: ignore[arg-type]
 
 
 def placement_reasons(placement: Placement, survey: Survey) -> dict[str, str]:

@@ -31,6 +31,17 @@ from graphslam.core.survey.placement import GrowthParams, GrowthResult, grow_pla
 log = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True)
+class Component:
+    """Walks the data links into one frame. Component 0 is the main map (the radio map's frame);
+    every other component stands in a frame of its own, its placement relative to component 0
+    unknown (``reason`` says which links are missing)."""
+
+    index: int
+    walks: tuple[str, ...]  # session ids
+    reason: str = ""  # why it stands apart from component 0 ("" for component 0)
+
+
 @dataclass(frozen=True, eq=False)
 class ComponentPlacement:
     """Per walk: its component and the transform from its dead reckoning into that component's frame."""
@@ -151,4 +162,4 @@ def se2_apply_rows(T: NDArray, xy: NDArray) -> NDArray:
     return np.column_stack([c * xy[:, 0] - s * xy[:, 1] + T[:, 0], s * xy[:, 0] + c * xy[:, 1] + T[:, 1]])
 
 
-__all__ = ["ComponentPlacement", "place_components", "se2_apply"]
+__all__ = ["Component", "ComponentPlacement", "place_components", "se2_apply"]

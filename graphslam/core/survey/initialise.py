@@ -70,6 +70,12 @@ def se2_apply(T: NDArray, xy: NDArray) -> NDArray:
     return np.column_stack([c * xy[:, 0] - s * xy[:, 1] + T[0], s * xy[:, 0] + c * xy[:, 1] + T[1]])
 
 
+def se2_apply_poses(T: NDArray, xyh: NDArray) -> NDArray:
+    """Poses (x, y, heading) moved by the rigid transform ``T``."""
+    h = xyh[:, 2] + T[2]
+    return np.column_stack([se2_apply(T, xyh[:, :2]), np.pi - np.mod(np.pi - h, 2.0 * np.pi)])
+
+
 def se2_compose(a: NDArray, b: NDArray) -> NDArray:
     c, s = np.cos(a[2]), np.sin(a[2])
     return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], np.arctan2(np.sin(a[2] + b[2]), np.cos(a[2] + b[2]))])

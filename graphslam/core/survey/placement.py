@@ -44,6 +44,7 @@ from scipy.ndimage import gaussian_filter
 from scipy.sparse import coo_matrix
 from threadpoolctl import threadpool_limits
 
+from graphslam.config import GraphSlamConfig
 from graphslam.core.progress import Task
 from graphslam.core.radiomap.similarity import Matches
 from graphslam.core.survey.initialise import se2_apply
@@ -72,6 +73,17 @@ class GrowthParams:
     # margin per fingerprint of the joining walk (a long walk collects more votes, right or wrong:
     # its margin is compared per fingerprint, so one threshold fits short and long walks)
     margin_per_fingerprint: bool = False
+
+    @classmethod
+    def from_config(cls, cfg: "GraphSlamConfig", **override: object) -> "GrowthParams":
+        """From the ``placement`` section (``override``: e.g. the heading placement's margin and window)."""
+        pc = cfg.placement
+        base = dict(
+            weight_power=pc.weight_power, rotation_step_deg=pc.rotation_step_deg, blur_m=pc.blur_m,
+            distinct_m=pc.distinct_m, min_margin=pc.min_margin, refine_scale_m=pc.refine_scale_m,
+            consistent_m=pc.consistent_m,
+        )
+        return cls(**{**base, **override})  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True, eq=False)
