@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,9 @@ def floor(tmp_path_factory: pytest.TempPathFactory) -> dict:
     """Recordings of 12 walks (old/ holds the first 11), and the 11-walk survey's output."""
     root = tmp_path_factory.mktemp("update")
     sim = simulate("crowd", seed=0, size=0.25)
+    # the incremental path is for walks without headings (with headings an update re-forms the
+    # components in full: test_an_update_with_headings_forms_the_components_again)
+    sim = replace(sim, survey=Survey(tuple(replace(s, heading=None) for s in sim.survey)))
     (root / "old").mkdir()
     (root / "all").mkdir()
     for k, s in enumerate(sim.survey):
@@ -167,3 +171,23 @@ def test_update_from_a_bad_previous_output_is_one_line_exit_2(
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and str(broken / STATE_FILE) in err and "unreadable" in err
     assert not (tmp_path / "o1").exists() and not (tmp_path / "o2").exists()
+
+
+def test_an_update_with_headings_forms_the_components_again(tmp_path: Path) -> None:
+    sim = simulate("museum", seed=0, size=0.5)
+    (tmp_path / "old").mkdir()
+    (tmp_path / "all").mkdir()
+    for k, s in enumerate(sim.survey):
+        write_session(s, tmp_path / "all" / f"{s.session_id}.mcap")
+        if k < len(sim.survey) - 2:
+            shutil.copy(tmp_path / "all" / f"{s.session_id}.mcap", tmp_path / "old")
+    assert _run(["survey", str(tmp_path / "old"), "--out", str(tmp_path / "prev"), "--no-progress"]) == 0
+    assert _run(["survey", str(tmp_path / "all"), "--out", str(tmp_path / "new"), "--update", str(tmp_path / "prev"),
+                 "--no-progress"]) == 0
+    assert _run(["survey", str(tmp_path / "all"), "--out", str(tmp_path / "fresh"), "--no-progress"]) == 0
+    upd = json.loads((tmp_path / "new" / "report.json").read_text())
+    fresh = json.loads((tmp_path / "fresh" / "report.json").read_text())
+    assert upd["update"]["mode"] == "full" and "headings" in upd["update"]["reason"]
+    assert upd["frame"] == "earth"
+    # the same components as a survey from scratch (the incremental path would put every walk in one)
+    assert [c["walks"] for c in upd["components"]] == [c["walks"] for c in fresh["components"]]

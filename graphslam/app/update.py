@@ -18,7 +18,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from graphslam.config import GraphSlamConfig
-from graphslam.core.survey.align import Alignment, ProgressCallback, align, build_problem, solve
+from graphslam.core.survey.align import Alignment, ProgressCallback, align, build_problem, initialization, solve
 from graphslam.core.survey.incremental import (
     PreviousSolution,
     changed_edges,
@@ -59,6 +59,10 @@ def mismatch(previous: PreviousSolution, survey: Survey, cfg: GraphSlamConfig) -
             return f"walk {sid!r} changed since the previous survey (its steps or scans differ)"
     if previous.registration_reliable is False and cfg.optimizer.unreliable_registration == "unalign":
         return "the previous survey's registration was unreliable: which walks it aligns depends on all of them"
+    if initialization(cfg, survey) == "heading":
+        # the incremental path registers new walks onto one solved frame; the heading placement's
+        # components (each in a frame of its own) are formed again from all walks
+        return "the walks carry headings: their components are formed again from every walk"
     return None
 
 
