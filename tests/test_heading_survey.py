@@ -185,3 +185,14 @@ def test_control_points_need_headings() -> None:
     lm = plain.sessions[0].landmarks[0]
     with pytest.raises(SolverError, match="control points need the phones' headings"):
         align(plain, CFG, control_points={lm.landmark_id: (lm.x, lm.y)})
+
+
+def test_the_report_says_how_the_heading_placement_placed_each_walk() -> None:
+    from graphslam.app.survey import build_report
+
+    sv = survey_with_headings(3)
+    al = align(sv, CFG)
+    rep = build_report(sv, al, None, CFG, {})
+    assert rep["registration"]["method"] == "heading"
+    assert all({"support", "margin", "consistency", "component"} <= set(w) for w in rep["walks"])
+    assert sum(w["margin"] is None for w in rep["walks"]) == 1  # the seed: no runner-up
