@@ -149,3 +149,49 @@ def test_growth_places_repeated_walks_and_leaves_an_unmatched_one_out(lonely: bo
     assert res.order[0] == 0 and res.seed == 0
     if lonely:
         assert not res.placed[3] and "no WiFi matches" in res.reasons[3]
+
+
+def test_normal_equations_equal_an_explicit_jacobian() -> None:
+    # J^T W J and J^T W r accumulated per walk pair must equal the dense products of the stacked
+    # Jacobian: gap r = p_a - p_b, d r / d(x, y, theta) = +[I | d_a] (walk a), -[I | d_b] (walk b)
+    from graphslam.core.survey.placement import _normal_equations
+
+    rng = np.random.default_rng(3)
+    F, m = 4, 60
+    ka, kb = rng.integers(-1, F, m), rng.integers(-1, F, m)
+    da, db, r = rng.normal(size=(m, 2)), rng.normal(size=(m, 2)), rng.normal(size=(m, 2))
+    w = rng.uniform(0.1, 2.0, m)
+    J = np.zeros((2 * m, 3 * F))
+    for k in range(m):
+        for walk, d, sign in ((ka[k], da[k], 1.0), (kb[k], db[k], -1.0)):
+            if walk < 0:
+                continue
+            J[2 * k: 2 * k + 2, 3 * walk: 3 * walk + 2] += sign * np.eye(2)
+            J[2 * k: 2 * k + 2, 3 * walk + 2] += sign * d
+    W = np.repeat(w, 2)
+    H, g = _normal_equations(F, ka, kb, da, db, r, w)
+    np.testing.assert_allclose(H, J.T @ (W[:, None] * J), atol=1e-12)
+    np.testing.assert_allclose(g, J.T @ (W * r.ravel()), atol=1e-12)
+
+
+def test_top_matches_dense_and_sparse_products_agree(monkeypatch: pytest.MonkeyPatch) -> None:
+    # the dense float32 path (many fingerprints over few APs) must pick the sparse path's partners
+    import graphslam.core.radiomap.similarity as sim
+
+    rng = np.random.default_rng(5)
+    n, a = 300, 12
+    rssi = np.where(rng.random((n, a)) < 0.6, rng.uniform(-95, -40, (n, a)), np.nan)
+    fm = FingerprintMatrix.from_dense(rssi, tuple(f"ap{i}" for i in range(a)))
+    group = np.repeat(np.arange(10), 30)
+    pc = PowerCosine.of(fm, 10.0)
+    dense = pc.top_matches(group, 4, block_rows=64)
+    monkeypatch.setattr(sim, "DENSE_MAX_CELLS", 0)
+    sparse_ = pc.top_matches(group, 4, block_rows=64)
+    assert set(zip(dense.i.tolist(), dense.j.tolist())) == set(zip(sparse_.i.tolist(), sparse_.j.tolist()))
+    assert not (group[dense.i] == group[dense.j]).any()
+    np.testing.assert_allclose(np.sort(dense.similarity), np.sort(sparse_.similarity), atol=1e-12)
+    # interleaved labels (not contiguous runs) take the boolean mask: no own-walk partner either
+    mixed = np.arange(n) % 10
+    monkeypatch.setattr(sim, "DENSE_MAX_CELLS", 10**9)
+    m = pc.top_matches(mixed, 4, block_rows=64)
+    assert len(m) == 4 * n and not (mixed[m.i] == mixed[m.j]).any()

@@ -15,7 +15,11 @@ alike (eq. 9: 0.92 / 0.90), and the distribution of the similarity against dista
 within a walk (PDR distance) matches the one across walks up to ~20 m. ``scale_db``
 10-15 dB gave the same figures; 10 dB is the default (~amplitude: exp(r / 8.7 dB)).
 
-Memory: similarities are computed in row blocks (``block_rows`` x N), never N x N.
+Memory: similarities are computed in row blocks (``block_rows`` x N), never N x N. Where the
+fingerprints fit a dense matrix of ``DENSE_MAX_CELLS`` (N x A) and fill ``DENSE_MIN_FILL`` of it (many
+fingerprints over few access points, as in a large simulated survey), each block is one float32 BLAS product: a sparse x sparse
+product of a nearly dense result costs ~20x more. The chosen partners' similarities are recomputed
+in float64 from the sparse rows, so both paths report the same values.
 """
 
 from __future__ import annotations
@@ -27,6 +31,9 @@ from numpy.typing import NDArray
 from scipy import sparse
 
 from graphslam.core.radiomap.fingerprints import MAX_BLOCK_CELLS, FingerprintMatrix
+
+DENSE_MAX_CELLS = 20_000_000  # N x A of the dense float32 path (80 MB)
+DENSE_MIN_FILL = 0.05  # below this share of heard readings the sparse product is cheaper
 
 
 @dataclass(frozen=True, eq=False)
@@ -80,16 +87,50 @@ class PowerCosine:
             z = np.zeros(0, np.int64)
             return Matches(z, z, np.zeros(0))
         rows = max(1, min(block_rows, MAX_BLOCK_CELLS // max(n, 1)))
-        ut = self.unit.T.tocsc()
-        out_i, out_j, out_s = [], [], []
+        cells = n * self.unit.shape[1]
+        dense = cells <= DENSE_MAX_CELLS and self.unit.nnz >= DENSE_MIN_FILL * cells
+        if dense:
+            u = self.unit.toarray().astype(np.float32)
+            ut = np.ascontiguousarray(u.T)
+        else:
+            ut = self.unit.T.tocsc()
+        # groups (walks) are usually contiguous runs: mask each row's own run by slices
+        runs = _runs(group)
+        out_i, out_j = [], []
         for a in range(0, n, rows):
             b = min(n, a + rows)
-            block = (self.unit[a:b] @ ut).toarray()
-            block[group[a:b, None] == group[None, :]] = -1.0
+            block = u[a:b] @ ut if dense else (self.unit[a:b] @ ut).toarray()
+            if runs is not None:
+                for g0, g1, r0, r1 in _overlaps(runs, a, b):
+                    block[r0 - a:r1 - a, g0:g1] = -1.0
+            else:
+                block[group[a:b, None] == group[None, :]] = -1.0
             top = np.argpartition(-block, k - 1, axis=1)[:, :k]
             s = np.take_along_axis(block, top, axis=1)
             ok = s > 0  # a partner that shares no access point is no match
             out_i.append(np.repeat(np.arange(a, b), k)[ok.ravel()])
             out_j.append(top.ravel()[ok.ravel()])
-            out_s.append(s.ravel()[ok.ravel()])
-        return Matches(np.concatenate(out_i), np.concatenate(out_j), np.concatenate(out_s))
+        i, j = np.concatenate(out_i), np.concatenate(out_j)
+        return Matches(i, j, self.pairs(i, j))
+
+
+def _runs(group: NDArray[np.int64]) -> NDArray[np.int64] | None:
+    """(R, 3) start, end, label of the runs of equal labels when every label forms one run, else None."""
+    if len(group) == 0:
+        return None
+    cut = np.flatnonzero(np.diff(group) != 0) + 1
+    starts = np.concatenate([[0], cut])
+    ends = np.concatenate([cut, [len(group)]])
+    labels = group[starts]
+    if len(np.unique(labels)) != len(labels):
+        return None
+    return np.column_stack([starts, ends, labels])
+
+
+def _overlaps(runs: NDArray[np.int64], a: int, b: int):
+    """Per run meeting rows [a, b): (run start, run end, first row, end row) of its own block."""
+    k0 = int(np.searchsorted(runs[:, 1], a, side="right"))
+    for g0, g1, _ in runs[k0:]:
+        if g0 >= b:
+            break
+        yield int(g0), int(g1), max(a, int(g0)), min(b, int(g1))

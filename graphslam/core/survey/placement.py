@@ -41,7 +41,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter
-from scipy.sparse import coo_matrix
 from threadpoolctl import threadpool_limits
 
 from graphslam.config import GraphSlamConfig
@@ -66,6 +65,10 @@ class GrowthParams:
     refine_max_evaluations: int = 10  # Gauss-Newton iterations per refinement (each start is already close)
     consistent_m: float = 6.0
     max_grid_cells: int = 1_000_000  # rotations x cells of one vote grid (bounds memory and blur time)
+    # beyond this many placed walks a join refines the new walk alone (the rest held), and every placed
+    # walk together only when the map has grown by half since the last such refinement and at the
+    # end: the joint refinement costs O(matches of the map) per join
+    full_refine_walks: int = 24
     # walks already rotated into a common frame (the phones' headings): rotations searched only
     # within +-rotation_window_deg of it, and the refinement holds each walk's rotation near 0
     # with its own sigma (``grow_placement(rotation_sigma=...)``); None: every rotation
@@ -207,22 +210,10 @@ def refine_rigid(
     T = transforms.copy()
     f, r, da, db = cost(T)
     lam = 1e-6
-    rows = np.arange(m)
+    ka, kb = col[sa], col[sb]  # column block of each match's walks (-1: held)
     for _ in range(params.refine_max_evaluations):
         irls = w / (1.0 + (r * r).sum(1) / c2)  # Cauchy weight of each match
-        # J (2m x n): rows 2k, 2k+1 of match k; +I, +d_theta for walk a, -I, -d_theta for walk b
-        rr, cc, vv = [], [], []
-        for sign, s, d in ((1.0, sa, da), (-1.0, sb, db)):
-            k = col[s]
-            ok = k >= 0
-            for axis in (0, 1):
-                rr += [2 * rows[ok] + axis] * 2
-                cc += [3 * k[ok] + axis, 3 * k[ok] + 2]
-                vv += [np.full(ok.sum(), sign), sign * d[ok, axis]]
-        J = coo_matrix((np.concatenate(vv), (np.concatenate(rr), np.concatenate(cc))), shape=(2 * m, n)).tocsr()
-        Wd = np.repeat(irls, 2)
-        H = (J.T @ J.multiply(Wd[:, None])).toarray()
-        g = J.T @ (Wd * r.ravel())
+        H, g = _normal_equations(len(free), ka, kb, da, db, r, irls)
         if prior_w is not None:  # the rotation prior (H, g in the same half-gradient units as the matches')
             H[3 * np.arange(len(free)) + 2, 3 * np.arange(len(free)) + 2] += prior_w
             g[3 * np.arange(len(free)) + 2] += prior_w * T[free, 2]
@@ -242,6 +233,47 @@ def refine_rigid(
         if converged:
             break
     return T
+
+
+def _normal_equations(
+    n_free: int, ka: NDArray, kb: NDArray, da: NDArray, db: NDArray, r: NDArray, wt: NDArray
+) -> tuple[NDArray, NDArray]:
+    """J^T W J (3F x 3F) and J^T W r of the matches' 2-D gaps, summed per pair of walks.
+
+    Match m's gap r = p_a - p_b has d r / d(x, y, theta) = s [I | d] with s = +1, d = d_a for walk a
+    and s = -1, d = d_b for walk b (``d``: d p / d theta); a held walk (column -1) has no block.
+    J_1^T J_2 = s_1 s_2 [[1, 0, d_2x], [0, 1, d_2y], [d_1x, d_1y, d_1 . d_2]]: six sums per pair of
+    walks, one ``bincount`` each over the matches (O(matches), no sparse matrix)."""
+    n = 3 * n_free
+    F2 = n_free * n_free
+    H = np.zeros((n_free, n_free, 3, 3))
+    g = np.zeros((n_free, 3))
+    sides = ((ka, da, 1.0), (kb, db, -1.0))
+    for k1, d1, s1 in sides:
+        ok1 = k1 >= 0
+        k, d, w, rr = k1[ok1], d1[ok1], s1 * wt[ok1], r[ok1]
+        g[:, 0] += np.bincount(k, weights=w * rr[:, 0], minlength=n_free)
+        g[:, 1] += np.bincount(k, weights=w * rr[:, 1], minlength=n_free)
+        g[:, 2] += np.bincount(k, weights=w * (d[:, 0] * rr[:, 0] + d[:, 1] * rr[:, 1]), minlength=n_free)
+        for k2, d2, s2 in sides:
+            ok = ok1 & (k2 >= 0)
+            if not ok.any():
+                continue
+            pair = k1[ok] * n_free + k2[ok]
+            ww, e1, e2 = s1 * s2 * wt[ok], d1[ok], d2[ok]
+
+            def acc(v: NDArray) -> NDArray:
+                return np.bincount(pair, weights=v, minlength=F2).reshape(n_free, n_free)
+
+            one = acc(ww)
+            H[:, :, 0, 0] += one
+            H[:, :, 1, 1] += one
+            H[:, :, 0, 2] += acc(ww * e2[:, 0])
+            H[:, :, 1, 2] += acc(ww * e2[:, 1])
+            H[:, :, 2, 0] += acc(ww * e1[:, 0])
+            H[:, :, 2, 1] += acc(ww * e1[:, 1])
+            H[:, :, 2, 2] += acc(ww * (e1[:, 0] * e2[:, 0] + e1[:, 1] * e2[:, 1]))
+    return H.transpose(0, 2, 1, 3).reshape(n, n), g.reshape(n)
 
 
 def grow_placement(
@@ -299,6 +331,7 @@ def grow_placement(
     bounds = np.searchsorted(ab_walk[order_src], np.arange(n_sessions + 1))
     cache: dict[int, tuple[float, float, NDArray, float]] = {}  # walk -> (margin, support, T, n votes)
     stale = set(np.flatnonzero(use).tolist())
+    last_full = len(held)  # placed walks at the last joint refinement
     with Task("place walks", total=int(use.sum()) - len(held), unit="walks") as task:
         while True:
             for b in list(stale):
@@ -327,14 +360,27 @@ def grow_placement(
             order.append(b)
             walks = np.flatnonzero(placed)
             inside = placed[si] & placed[sj]
+            if len(walks) <= params.full_refine_walks or len(walks) >= 1.5 * last_full:
+                moved, last_full = walks, len(walks)
+            else:  # the new walk alone on the map (its matches; the others held)
+                moved = np.array([b])
+                inside &= (si == b) | (sj == b)
             with threadpool_limits(1):  # 3W x 3W systems: threads only add overhead (9 ms vs 0.3 ms a solve under load)
-                T = refine_rigid(T, walks, held, scan_session, scan_xy, mi[inside], mj[inside], mw[inside], params,
+                T = refine_rigid(T, moved, held, scan_session, scan_xy, mi[inside], mj[inside], mw[inside], params,
                                  rotation_sigma)
-            for s in walks:
+            for s in moved:
                 world[by_walk[s]] = se2_apply(T[s], scan_xy[by_walk[s]])
             # walks matched to the new one see a changed map; others keep their (slightly stale) vote
             stale |= set(np.unique(ab_walk[ab_other == b]).tolist())
             task.advance()
+    if placed.sum() > last_full:  # local refinements since the last joint one
+        walks = np.flatnonzero(placed)
+        inside = placed[si] & placed[sj]
+        with threadpool_limits(1):
+            T = refine_rigid(T, walks, held, scan_session, scan_xy, mi[inside], mj[inside], mw[inside], params,
+                             rotation_sigma)
+        for s in walks:
+            world[by_walk[s]] = se2_apply(T[s], scan_xy[by_walk[s]])
     consistency = np.full(n_sessions, np.nan)
     both = placed[ab_walk] & placed[ab_other]
     if both.any():
