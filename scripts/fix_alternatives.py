@@ -34,8 +34,7 @@ import numpy as np
 from graphslam.app.tracking_bench import _folds, _marks, oracle_radio_map
 from graphslam.core.radiomap.knn import WEIGHT_EPS_DB, KnnConfig, KnnLocator
 from graphslam.core.radiomap.radiomap import RadioMap
-from graphslam.core.survey.evaluate import fit_se2, interpolate_xy
-from graphslam.core.survey.initialise import se2_apply
+from graphslam.core.common.geometry import fit_se2, interpolate_xy, se2_apply
 from graphslam.core.types import PoseTrack
 from graphslam.io.mcap_reader import read_survey
 

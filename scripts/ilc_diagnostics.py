@@ -47,9 +47,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graphslam.core.survey.association import associate
-from graphslam.core.survey.evaluate import interpolate_xy
+from graphslam.core.common.geometry import fit_se2, interpolate_xy, ransac_se2, se2_apply, se2_compose
 from graphslam.core.radiomap.fingerprints import DistanceEngine
-from graphslam.core.survey.initialise import fit_se2, ransac_se2, se2_apply, se2_compose
 from graphslam.errors import GraphSlamError
 from graphslam.io.mcap_reader import floor_folders, read_survey
 

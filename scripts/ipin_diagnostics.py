@@ -79,8 +79,7 @@ from scipy.fft import irfft2, next_fast_len, rfft2
 
 from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix
 from graphslam.core.survey.association import associate
-from graphslam.core.survey.evaluate import interpolate_xy
-from graphslam.core.survey.initialise import fit_se2, se2_apply
+from graphslam.core.common.geometry import fit_se2, interpolate_xy, se2_apply
 from graphslam.core.tracking.apmodel import ApModel, fit_ap
 from graphslam.core.types import Survey, wrap_angle
 from graphslam.errors import GraphSlamError, InputError

@@ -23,9 +23,8 @@ import numpy as np
 
 from graphslam.app.tracking_bench import _folds, _marks, oracle_radio_map
 from graphslam.core.radiomap.knn import WEIGHT_EPS_DB, KnnConfig, KnnLocator
-from graphslam.core.survey.evaluate import interpolate_xy
+from graphslam.core.common.geometry import fit_se2, interpolate_xy, se2_apply
 from graphslam.core.tracking.calibration import leave_one_session_out_error_vectors
-from graphslam.core.survey.initialise import fit_se2, se2_apply
 from graphslam.io.mcap_reader import read_survey
 
 

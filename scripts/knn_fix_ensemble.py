@@ -18,7 +18,7 @@ import numpy as np
 
 from graphslam.app.tracking_bench import _folds, _marks, oracle_radio_map
 from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
-from graphslam.core.survey.evaluate import interpolate_xy
+from graphslam.core.common.geometry import interpolate_xy
 from graphslam.core.types import PoseTrack
 from graphslam.io.mcap_reader import read_survey
 

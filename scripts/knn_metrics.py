@@ -20,8 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from graphslam.app.tracking_bench import _folds, _marks
-from graphslam.core.survey.evaluate import interpolate_xy
-from graphslam.core.survey.initialise import fit_se2, se2_apply
+from graphslam.core.common.geometry import fit_se2, interpolate_xy, se2_apply
 from graphslam.io.mcap_reader import read_survey
 
 MIN_DBM = -100.0  # readings below are dropped (the radio map's min_rssi_dbm)

@@ -20,8 +20,7 @@ import sys
 import numpy as np
 
 from graphslam.app.tracking_bench import _folds, _marks, oracle_radio_map
-from graphslam.core.survey.evaluate import fit_se2, interpolate_xy
-from graphslam.core.survey.initialise import se2_apply
+from graphslam.core.common.geometry import fit_se2, interpolate_xy, se2_apply
 from graphslam.core.tracking.apmodel import ApModels, residual_field
 from graphslam.io.mcap_reader import read_survey
 

@@ -27,7 +27,7 @@ from graphslam.app.track import TrackConfig, Tracker
 from graphslam.app.tracking_bench import _folds, _marks, floor_plan_area, interpolate_cov, oracle_radio_map
 from graphslam.core.radiomap.ivf import limit_blas_threads
 from graphslam.core.radiomap.knn import WEIGHT_EPS_DB, KnnConfig, KnnLocator
-from graphslam.core.survey.evaluate import fit_se2, interpolate_xy
+from graphslam.core.common.geometry import fit_se2, interpolate_xy
 from graphslam.core.tracking.apmodel import ApModels
 from graphslam.core.types import PoseTrack
 from graphslam.io.mcap_reader import read_survey

@@ -37,8 +37,7 @@ from graphslam.app.progress import show_progress
 from graphslam.app.track import TrackConfig
 from graphslam.app.tracking_bench import Variant, _folds, _marks, oracle_radio_map, score_walks
 from graphslam.core.radiomap.ivf import limit_blas_threads
-from graphslam.core.survey.evaluate import interpolate_xy
-from graphslam.core.survey.initialise import fit_se2, se2_apply
+from graphslam.core.common.geometry import fit_se2, interpolate_xy, se2_apply
 from graphslam.core.tracking.apmodel import ApModels
 from graphslam.io.mcap_reader import read_survey
 

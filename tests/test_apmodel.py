@@ -77,7 +77,7 @@ def test_radio_map_fit_and_json_round_trip(tmp_path):
 def tiny_case(tmp_path_factory):
     """A surveyed radio map of the simulator's paper building (2 walks at their true positions) and
     the first 80 steps of one held-out walk, as files."""
-    from graphslam.core.survey.evaluate import interpolate_xy
+    from graphslam.core.common.geometry import interpolate_xy
     from graphslam.core.types import PoseTrack, Session
     from graphslam.io.mcap_writer import write_session
     from graphslam.io.radiomap_io import write_radio_map
@@ -107,7 +107,7 @@ def tiny_case(tmp_path_factory):
 
 def test_fit_aps_and_track_cli_end_to_end(tiny_case):
     from graphslam.cli import main
-    from graphslam.core.survey.evaluate import interpolate_xy
+    from graphslam.core.common.geometry import interpolate_xy
 
     d, session = tiny_case
     main(["fit-aps", "--radio-map", str(d / "radio_map.parquet")])
@@ -143,7 +143,7 @@ def test_track_cli_rejects_unknown_filter_or_smoother(tiny_case, capsys, option,
 def _track_cli(d, session, name: str, *args: str) -> tuple[list[dict], np.ndarray]:
     """``graphslam track`` on the tiny case's walk: the CSV rows and each step's error (m)."""
     from graphslam.cli import main
-    from graphslam.core.survey.evaluate import interpolate_xy
+    from graphslam.core.common.geometry import interpolate_xy
 
     out = d / f"positions_{name}.csv"
     main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--out", str(out), *args])
@@ -255,7 +255,7 @@ def test_track_cli_refuses_a_floor_plan_for_a_map_in_another_frame(tiny_case, tm
 def test_track_skips_an_odometry_jump_instead_of_flying_off(tiny_case):
     # ILC's converter puts the origin pose 1 ms before the first step (0.7 m in 1 ms = 700 m/s).
     # As a velocity reading that throws the estimate hundreds of metres; it must be skipped.
-    from graphslam.core.survey.evaluate import interpolate_xy
+    from graphslam.core.common.geometry import interpolate_xy
     from graphslam.core.types import PoseTrack, Session
     from graphslam.io.apmodel_io import read_ap_models
     from graphslam.io.radiomap_io import read_radio_map
@@ -281,7 +281,7 @@ def _track_rows_and_errors(tiny_case, name: str, *args: str) -> tuple[list[dict]
     """``graphslam track`` on the tiny case's walk with ``args``: the CSV's rows (one per step, in
     step order: asserted) and each step's error against the walk's ground truth (scoring only)."""
     from graphslam.cli import main
-    from graphslam.core.survey.evaluate import interpolate_xy
+    from graphslam.core.common.geometry import interpolate_xy
 
     d, session = tiny_case
     out = d / name

@@ -130,7 +130,7 @@ def test_radio_map_and_wifi_edges_hold_component_0_only(split_run: tuple, floor:
     # the same survey in one component: the map holds more, and component 0's rows are the same
     full = run_survey([floor], None, GraphSlamConfig(), picture=False)
     assert full.report["radio_map"]["fingerprints"] > len(rm)
-    from graphslam.core.radiomap.survey_maps import crowdsourced_radio_map
+    from graphslam.core.survey.radio_maps import crowdsourced_radio_map
 
     all_rows = crowdsourced_radio_map(full.survey, full.alignment, GraphSlamConfig())
     assert sum(s in main for s in all_rows.session_ids) == len(rm)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from conftest import REPO
 
-from graphslam.core.survey.initialise import se2_apply
+from graphslam.core.common.geometry import se2_apply
 
 
 @pytest.fixture(scope="module")

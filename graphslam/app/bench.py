@@ -131,9 +131,9 @@ def fig8(
     """
     import numpy as np
 
-    from graphslam.core.survey.evaluate import interpolate_xy
+    from graphslam.core.common.geometry import interpolate_xy
     from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
-    from graphslam.core.radiomap.survey_maps import crowdsourced_radio_map, surveyed_radio_map
+    from graphslam.core.survey.radio_maps import crowdsourced_radio_map, surveyed_radio_map
     from graphslam.sim import simulate
 
     errs: dict[str, list] = {"crowdsourced": [], "surveyed": []}
@@ -522,9 +522,9 @@ def tracking_paper(
     import numpy as np
 
     from graphslam.core.tracking.apmodel import ApModels, ap_position_errors
-    from graphslam.core.survey.evaluate import interpolate_xy
+    from graphslam.core.common.geometry import interpolate_xy
     from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
-    from graphslam.core.radiomap.survey_maps import crowdsourced_radio_map
+    from graphslam.core.survey.radio_maps import crowdsourced_radio_map
     from graphslam.core.types import PoseTrack
     from graphslam.sim import simulate
     from graphslam.app.track import TrackConfig, track_sessions

@@ -441,7 +441,7 @@ def write_outputs(
         _write_radio_map(survey, main, cfg, stage.path / names["radio_map"])
         _write_wifi_edges(main, cfg, stage.path / names["wifi_edges"])
         if surveyed:  # evaluation: the same fingerprints at their ground-truth positions
-            from graphslam.core.radiomap.survey_maps import surveyed_radio_map
+            from graphslam.core.survey.radio_maps import surveyed_radio_map
             from graphslam.io.radiomap_io import write_radio_map
 
             write_radio_map(surveyed_radio_map(_without_other_components(survey, al), al, cfg),
@@ -475,14 +475,14 @@ def _without_other_components(survey: Survey, al: Alignment) -> Survey:
 
 
 def _write_wifi_edges(al: Alignment, cfg: GraphSlamConfig, path: Path) -> None:
-    from graphslam.core.radiomap.survey_maps import crowdsourced_edges
+    from graphslam.core.survey.radio_maps import crowdsourced_edges
     from graphslam.io.edges_io import write_wifi_edges
 
     write_wifi_edges(crowdsourced_edges(al, cfg), path)
 
 
 def _write_radio_map(survey: Survey, al: Alignment, cfg: GraphSlamConfig, path: Path) -> None:
-    from graphslam.core.radiomap.survey_maps import crowdsourced_radio_map
+    from graphslam.core.survey.radio_maps import crowdsourced_radio_map
     from graphslam.io.radiomap_io import write_radio_map
 
     write_radio_map(crowdsourced_radio_map(survey, al, cfg), path)

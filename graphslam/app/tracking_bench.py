@@ -38,8 +38,7 @@ from graphslam.app.track import TrackConfig, Tracker
 from graphslam.config import GraphSlamConfig
 from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
 from graphslam.core.radiomap.radiomap import RadioMap
-from graphslam.core.survey.evaluate import interpolate_xy
-from graphslam.core.survey.initialise import fit_se2, se2_apply
+from graphslam.core.common.geometry import fit_se2, interpolate_xy, se2_apply
 from graphslam.core.tracking.apmodel import ApModels
 from graphslam.core.tracking.calibration import ellipse_coverage, mahalanobis_sq
 from graphslam.core.tracking.walkable import WalkableArea
@@ -121,7 +120,7 @@ def oracle_radio_map(walks: Sequence[Session]) -> RadioMap:
 def crowdsourced_map(walks: Sequence[Session], cfg: GraphSlamConfig) -> tuple[RadioMap, dict[str, Any]]:
     """The survey pipeline on the walks' files; the map in the landmark frame by one SE(2) fit."""
     from graphslam.app.survey import run_survey
-    from graphslam.core.radiomap.survey_maps import crowdsourced_radio_map
+    from graphslam.core.survey.radio_maps import crowdsourced_radio_map
 
     res = run_survey([w.source for w in walks], None, cfg)
     ev = res.evaluation

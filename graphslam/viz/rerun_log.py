@@ -50,7 +50,7 @@ from graphslam.config import GraphSlamConfig
 from graphslam.core.survey.align import Alignment, IterationRecord
 from graphslam.core.survey.factors import edge_state
 from graphslam.core.radiomap.fingerprints import FingerprintMatrix
-from graphslam.core.survey.initialise import se2_apply
+from graphslam.core.common.geometry import se2_apply
 from graphslam.core.types import PoseTrack, Survey
 from graphslam.errors import ConfigError, GraphSlamError, InputError, VisualizationError
 from graphslam.viz.common import (

@@ -45,7 +45,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graphslam.config import GraphSlamConfig, UwbConfig
-from graphslam.core.survey.factors import imu_factor, imu_noise, reference_prior_noise, relative_steps
+from graphslam.core.common.factors import imu_factor, imu_noise, reference_prior_noise, relative_steps
 from graphslam.core.types import Survey
 from graphslam.core.uwb.factors import X, SurveyRanges, anchor_values, range_factors, range_residuals
 

@@ -9,9 +9,8 @@ from numpy.typing import NDArray
 
 from graphslam.config import GraphSlamConfig
 from graphslam.core.survey.align import Alignment
-from graphslam.core.survey.evaluate import interpolate_xy
+from graphslam.core.common.geometry import interpolate_xy, se2_apply
 from graphslam.core.survey.factors import edge_state
-from graphslam.core.survey.initialise import se2_apply
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.types import Survey
 from graphslam.errors import SolverError
