@@ -25,7 +25,7 @@ app = typer.Typer(
     add_completion=False,
     help="Factor-graph SLAM for crowdsourced indoor WiFi site survey (foot-mounted IMU + WiFi).",
 )
-bench_app = typer.Typer(help="Benchmarks on simulated and real data.")
+bench_app = typer.Typer(help="Evaluate on your own recordings with ground truth (the simulator benchmarks: python -m lab.bench).")
 app.add_typer(bench_app, name="bench")
 
 EXIT_ERROR = 2
@@ -100,47 +100,11 @@ def inspect(
     )
 
 
-def _seeds(text: str) -> list[int]:
-    """'0,1,2' or ranges '0-19' (mixed: '0-3,7')."""
-    out: list[int] = []
-    try:
-        for part in (p.strip() for p in text.split(",")):
-            if "-" in part[1:]:
-                lo, hi = (int(v) for v in part.split("-", 1))
-                out += list(range(lo, hi + 1))
-            elif part:
-                out.append(int(part))
-    except ValueError:
-        from graphslam.errors import ConfigError
-
-        raise ConfigError(f"--seeds {text!r}: expected comma-separated integers or ranges, e.g. 0,1,2 or 0-19") from None
-    return out
-
-
 def _config(config: Optional[Path], set_: Optional[List[str]]) -> "GraphSlamConfig":
     """Config file (partial files merge over the defaults) plus ``--set a.b=value`` overrides."""
-    import yaml
+    from graphslam.config import load_config, parse_overrides
 
-    from graphslam.config import load_config
-    from graphslam.errors import ConfigError
-
-    overrides: dict = {}
-    for item in set_ or []:
-        key, sep, raw = item.partition("=")
-        if not sep or not key:
-            raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. wifi.d_min_m=3")
-        try:
-            value = yaml.safe_load(raw)
-        except yaml.YAMLError:
-            raise ConfigError(f"--set {item!r}: the value is not valid YAML") from None
-        node = overrides
-        *parents, leaf = key.split(".")
-        for part in parents:
-            node = node.setdefault(part, {})
-            if not isinstance(node, dict):
-                raise ConfigError(f"--set {item!r}: {part} is set to a value, not a section, by another --set")
-        node[leaf] = value
-    return load_config(config, overrides)
+    return load_config(config, parse_overrides(set_))
 
 
 @app.command()
@@ -354,101 +318,6 @@ def simulate(
     typer.echo(f"wrote {out} (simulated in {t_sim:.1f} s, total {time.perf_counter() - t0:.1f} s)")
 
 
-@bench_app.command("accuracy")
-def bench_accuracy(
-    scenario: str = typer.Argument(..., help="Simulator scenario: paper, corridor, crowd."),
-    seeds: str = typer.Option("0,1,2", help="Comma-separated seeds."),
-    size: float = typer.Option(1.0, help="Simulator size multiplier."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c"),
-    set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value."),
-) -> None:
-    """Align simulated surveys; print one JSON line of errors per seed, then the mean over seeds."""
-    from graphslam.app.bench import accuracy
-
-    rows = accuracy(scenario, _seeds(seeds), _config(config, set_), size=size)
-    for r in rows:
-        typer.echo(json.dumps(r))
-    keys = ("main", "landmark_mean_m", "landmark_max_m", "heading_mean_deg", "steps_mean_m", "align_s")
-    typer.echo(json.dumps({"mean_over_seeds": {k: round(sum(r[k] for r in rows) / len(rows), 3) for k in keys}}))
-
-
-@bench_app.command("survey")
-def bench_survey(
-    scenario: str = typer.Argument("paper"),
-    seed: int = typer.Option(0),
-    runs: int = typer.Option(5, help="End-to-end runs (median reported)."),
-    size: float = typer.Option(1.0, help="Simulator size multiplier (scale tests)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c"),
-) -> None:
-    """Time `graphslam survey` end to end on a simulated survey (fresh process per run); peak memory."""
-    from graphslam.app.bench import survey_speed
-
-    typer.echo(json.dumps(survey_speed(scenario, seed, runs=runs, size=size, config=config)))
-
-
-@bench_app.command("scale")
-def bench_scale(
-    scenario: str = typer.Argument("paper"),
-    seed: int = typer.Option(0),
-    sizes: str = typer.Option("1", help="Comma-separated simulator sizes, e.g. 1,2,4,8,12."),
-    runs: str = typer.Option("5", help="Rounds per size: one number, or one per size (e.g. 7,5,3,1,1)."),
-    baseline: Optional[Path] = typer.Option(
-        None, "--baseline", help="A graphslam checkout (e.g. a git worktree of the previous main) run alternately."
-    ),
-    baseline_max_size: float = typer.Option(1e9, help="Run the baseline only up to this size (it may be slow)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c"),
-) -> None:
-    """`graphslam survey` per size, alternating with --baseline in fresh processes: stage medians, peak RSS,
-    growth exponent; JSON on stdout, then the markdown stage table."""
-    from graphslam.app.bench_scale import markdown_table, scale
-    from graphslam.errors import ConfigError
-
-    try:
-        size_list = [float(v) for v in sizes.split(",") if v.strip()]
-        run_list = [int(v) for v in runs.split(",") if v.strip()]
-    except ValueError:
-        raise ConfigError(f"--sizes / --runs: numbers separated by commas, got {sizes!r} / {runs!r}") from None
-    if len(run_list) == 1:
-        run_list *= len(size_list)
-    if not size_list or len(run_list) != len(size_list) or min(run_list) < 1 or min(size_list) <= 0:
-        raise ConfigError("--runs: one count >= 1, or one per size; --sizes: positive numbers")
-    result = scale(
-        scenario, seed, size_list, run_list, baseline=baseline, baseline_max_size=baseline_max_size, config=config,
-        progress=lambda msg: typer.echo(msg, err=True),
-    )
-    typer.echo(json.dumps(result))
-    typer.echo(markdown_table(result))
-
-
-@bench_app.command("update")
-def bench_update(
-    scenario: str = typer.Argument("paper"),
-    seed: int = typer.Option(0),
-    size: float = typer.Option(4.0, help="Walks surveyed first, as the simulator's size multiplier."),
-    new_fraction: float = typer.Option(0.05, "--new-fraction", help="Then this many more walks arrive (>= 1)."),
-    hops: str = typer.Option("0,1,2", help="update.hops values to measure (comma-separated)."),
-    runs: int = typer.Option(3, min=1, help="Runs of each variant, alternated (medians reported)."),
-) -> None:
-    """`survey --update` vs a full re-solve of every walk, end to end in fresh processes (issue 18)."""
-    from graphslam.app.bench_update import update_speed
-
-    typer.echo(json.dumps(update_speed(scenario, seed, size=size, new_fraction=new_fraction, hops=_seeds(hops), runs=runs)))
-
-
-@bench_app.command("batch")
-def bench_batch(
-    scenario: str = typer.Argument("crowd"),
-    floors: int = typer.Option(16, min=1, help="Simulated floors (seeds 0..N-1)."),
-    size: float = typer.Option(0.5, help="Simulator size multiplier of each floor."),
-    workers: int = typer.Option(2, min=1, help="survey-batch --workers."),
-    runs: int = typer.Option(1, min=1, help="Runs of each variant (medians reported)."),
-) -> None:
-    """`survey-batch` on a local Dask cluster vs the same floors one after another (issue 18)."""
-    from graphslam.app.bench_update import batch_speed
-
-    typer.echo(json.dumps(batch_speed(scenario, floors=floors, size=size, workers=workers, runs=runs)))
-
-
 INDEX_HELP = "kNN search: exact, ivf (approximate inverted file) or auto."
 IVF_CLUSTERS_HELP = "IVF: k-means clusters (default ~2 sqrt(N))."
 IVF_PROBES_HELP = "IVF: clusters searched per query (default 8)."
@@ -456,37 +325,6 @@ METRIC_HELP = (
     "Fingerprint distance: eq9 (the paper's RMS dB difference) or sorensen (Sørensen on powed RSS, "
     "Torres-Sospedra 2015; exact search only)."
 )
-
-
-@bench_app.command("ujiindoorloc")
-def bench_ujiindoorloc(
-    data_dir: Path = typer.Argument(..., help="Folder with trainingData.csv[.gz] and validationData.csv[.gz]."),
-    k: int = typer.Option(7, "--k", min=1, help="Neighbours."),
-    weighted: bool = typer.Option(True, "--weighted/--no-weighted", help="Inverse-distance weights, else uniform."),
-    min_rssi: float = typer.Option(-95.0, "--min-rssi", help="Drop readings below this (dBm)."),
-    missing_dbm: float = typer.Option(-100.0, "--missing-dbm", help="RSS of an AP not heard, in eq. 9 (dBm)."),
-    min_common: int = typer.Option(1, "--min-common", min=1, help="Neighbours must share this many APs."),
-    repeats: int = typer.Option(5, "--repeats", min=1, help="Timed runs (the median is reported)."),
-    index: str = typer.Option("exact", "--index", help=INDEX_HELP + " Default: exact."),
-    ivf_clusters: Optional[int] = typer.Option(None, "--ivf-clusters", min=1, help=IVF_CLUSTERS_HELP),
-    ivf_probes: Optional[int] = typer.Option(None, "--ivf-probes", min=1, help=IVF_PROBES_HELP),
-    metric: str = typer.Option("eq9", "--metric", help=METRIC_HELP),
-) -> None:
-    """kNN on UJIIndoorLoc (train: trainingData, test: validationData); prints one JSON line."""
-    metric = _metric(metric)
-    from graphslam.app.uji_bench import run_ujiindoorloc_benchmark
-
-    if index != "exact":
-        from graphslam.core.radiomap.ivf import limit_blas_threads
-
-        limit_blas_threads(1)  # the IVF search's small GEMMs (see limit_blas_threads)
-
-    r = run_ujiindoorloc_benchmark(
-        data_dir, k=k, weighted=weighted, min_rssi_dbm=min_rssi, missing_dbm=missing_dbm,
-        min_common=min_common, repeats=repeats, index=index, ivf_clusters=ivf_clusters, ivf_probes=ivf_probes,
-        metric=metric,
-    )
-    typer.echo(json.dumps(r.as_dict()))
 
 
 @app.command()
@@ -509,7 +347,7 @@ def locate(
     picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: answers (and truth)."),
 ) -> None:
     """Locate every /wifi/scan of the query sessions by kNN against a radio map."""
-    metric = _metric(metric)
+    metric = parse_metric(metric)
     from graphslam.app.locate import locate_files
 
     run = locate_files(
@@ -570,7 +408,7 @@ def serve(
     metric: str = typer.Option("eq9", "--metric", help=METRIC_HELP),
 ) -> None:
     """Serve kNN positioning over HTTP (POST /v1/locate, GET /v1/radio-map, GET /healthz, /openapi.json, /docs)."""
-    metric = _metric(metric)
+    metric = parse_metric(metric)
     from graphslam.service.server import serve as serve_map
 
     serve_map(
@@ -645,21 +483,6 @@ def plot(
     typer.echo(json.dumps({k: str(v) for k, v in files.items()}))
 
 
-@bench_app.command("fig8")
-def bench_fig8(
-    scenario: str = typer.Argument("paper"),
-    seeds: str = typer.Option("0,1,2", help="Comma-separated seeds."),
-    test_walks: int = typer.Option(5, help="Held-out test walks per seed."),
-    k: int = typer.Option(3, help="kNN neighbours."),
-    plot: Optional[Path] = typer.Option(None, help="Write the CDF plot (PNG) here."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c"),
-) -> None:
-    """The paper's fig. 8: kNN error CDF of held-out walks, crowdsourced vs surveyed radio map."""
-    from graphslam.app.bench import fig8
-
-    typer.echo(json.dumps(fig8(scenario, _seeds(seeds), _config(config, None), test_walks=test_walks, k=k, plot=plot)))
-
-
 @app.command()
 def demo(
     out: Path = typer.Option(Path("graphslam-demo"), "--out", "-o", help="Working folder (created)."),
@@ -703,7 +526,7 @@ def bench_real(
     per floor and variant (walks in the main map and in components of 5 or more, landmark errors
     after each component's own SE(2) fit, walks over 10 / 15 m, frame, time), then one summary line
     per variant."""
-    from graphslam.app.bench import real_floor_rows, real_summary
+    from graphslam.app.bench_real import real_floor_rows, real_summary
 
     rows = []
     for row in real_floor_rows(
@@ -714,20 +537,6 @@ def bench_real(
         typer.echo(json.dumps(row))
     for line in real_summary(rows):
         typer.echo(json.dumps(line))
-
-
-@bench_app.command("ilc")
-def bench_ilc(
-    site_dir: Path = typer.Argument(..., help="An ILC 2.0 site folder with one sub-folder per floor."),
-    floors: Optional[str] = typer.Option(None, help="Comma-separated floors (default: all)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c"),
-    set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value."),
-) -> None:
-    """Align each real ILC floor; one JSON line per floor with waypoint errors (SE(2) fit) and time."""
-    from graphslam.app.bench import ilc_floors
-
-    for row in ilc_floors(site_dir, _config(config, set_), floors.split(",") if floors else None):
-        typer.echo(json.dumps(row))
 
 
 @app.command("fit-aps")
@@ -821,7 +630,7 @@ def track(
     from graphslam.core.radiomap.ivf import limit_blas_threads
 
     limit_blas_threads(1)  # thousands of tiny solves: OpenBLAS threads only slow them down
-    knn_metric = _metric(knn_metric, "--knn-metric")
+    knn_metric = parse_metric(knn_metric, "--knn-metric")
     cfg = TrackConfig(
         filter=filter_, lag_s=lag, smoother=smooth, knn_fixes=knn_fixes, adaptive_rssi=adaptive_rssi,
         self_calibrate=self_calibrate, bank_report=bank_report, bank_temper=bank_temper, knn_metric=knn_metric, walk_axes=walk_axes,
@@ -836,55 +645,6 @@ def track(
         label = (f"fixed-lag {lag:g} s" if filter_ == "fixed-lag" else filter_) if smooth == "none" else f"{filter_} + {smooth} smoother"
         shown["picture"] = str(write_track_picture(run, radio_map, sessions, out.with_suffix(".png"), label))
     typer.echo(json.dumps(run.as_dict() | shown))
-
-
-@bench_app.command("filters")
-def bench_filters(
-    seeds: str = typer.Option(",".join(map(str, range(20))), help="Comma-separated seeds."),
-    shadowing_db: Optional[float] = typer.Option(None, help="Override the 4 dB shadowing std (sensitivity)."),
-    plot_dir: Optional[Path] = typer.Option(None, help="Write tracking_cart_{ekf,ukf}.png here (first seed)."),
-    smoothers: str = typer.Option("rts,map", help="Offline smoothers also reported (comma-separated; '' for none)."),
-    lags: str = typer.Option("2", help="Fixed-lag smoother latencies also reported (s, comma-separated; '' for none)."),
-    window: float = typer.Option(480.0, min=0.0, help="Fixed-lag window (s): older epochs are marginalised."),
-    restart_every: int = typer.Option(10, min=0, help="Fixed-lag: also solve from dead-reckoning starts every N epochs (0: never)."),
-    shadowing: str = typer.Option(
-        "0.5,3", help="Fixed-lag also with this share of the RSSI variance as shadowing correlated over this "
-        "distance (SHARE,CORR_M; '' for none).",
-    ),
-) -> None:
-    """The filter papers' experiment simulated: RMS error in x and y of EKF and UKF (and smoothed) over seeds."""
-    from graphslam.app.bench import filters_cart
-    from graphslam.core.radiomap.ivf import limit_blas_threads
-
-    limit_blas_threads(1)
-
-    res = filters_cart(
-        _seeds(seeds), shadowing_db=shadowing_db, plot_dir=plot_dir, smoothers=_smoothers(smoothers),
-        lags=_lags(lags), window_s=window, restart_every=restart_every, shadowing=_shadowing(shadowing),
-    )
-    typer.echo(json.dumps(res))
-
-
-@bench_app.command("tracking")
-def bench_tracking(
-    scenario: str = typer.Argument("paper"),
-    seeds: str = typer.Option("0,1,2", help="Comma-separated seeds."),
-    test_walks: int = typer.Option(3, help="Held-out test walks per seed."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c"),
-    smoothers: str = typer.Option("", help="Offline smoothers also reported, e.g. 'rts,map' (default none)."),
-    knn_fixes: bool = typer.Option(False, "--knn-fixes", help="Also report every variant with kNN fixes fused."),
-    lags: str = typer.Option("", help="Also report the fixed-lag tracker at these latencies (s, comma-separated)."),
-) -> None:
-    """Held-out walks: EKF/UKF tracking vs kNN (mean error); AP position error vs the simulator."""
-    from graphslam.app.bench import tracking_paper
-    from graphslam.core.radiomap.ivf import limit_blas_threads
-
-    limit_blas_threads(1)
-    res = tracking_paper(
-        scenario, _seeds(seeds), _config(config, None), test_walks=test_walks, smoothers=_smoothers(smoothers),
-        knn_fixes=knn_fixes, lags=_lags(lags),
-    )
-    typer.echo(json.dumps(res))
 
 
 @bench_app.command("tracking-real")
@@ -909,7 +669,7 @@ def bench_tracking_real(
 
     limit_blas_threads(1)
     variants = standard_variants(
-        _lags(lags), [f for f in filters.split(",") if f.strip()], _smoothers(smoothers)
+        parse_lags(lags), [f for f in filters.split(",") if f.strip()], parse_smoothers(smoothers)
     )
     area = floor_plan_area(folder, floor_plan)
     res = tracking_real(
@@ -920,34 +680,6 @@ def bench_tracking_real(
 
 
 # --- UWB (Paper 003, issue 15): the seven-tag experiment, the survey with ranges, tracking ---
-
-
-@bench_app.command("uwb")
-def bench_uwb(
-    seeds: str = typer.Option("0-99", help="Seeds of the seven-tag runs (e.g. 0-99)."),
-    plot_dir: Optional[Path] = typer.Option(None, help="Write uwb_fig8.png and uwb_zones.png (first seed) here."),
-    per_seed: bool = typer.Option(False, "--per-seed", help="Also print one JSON line per seed."),
-) -> None:
-    """Paper 003's experiment simulated: collisions, slots per tag per cycle, clock offsets, EKF error per zone/type."""
-    from graphslam.app.uwb_bench import zones_benchmark
-
-    rows, agg = zones_benchmark(_seeds(seeds), plot_dir=plot_dir)
-    _echo_rows(rows if per_seed else [], agg)
-
-
-@bench_app.command("uwb-survey")
-def bench_uwb_survey(
-    seeds: str = typer.Option("0-4", help="Seeds of the simulated crowd (12 walkers, 5-8 min, all at once)."),
-    anchors: str = typer.Option("2,3,4", help="Anchor counts to run (0: peer ranges only, reference-walk frame)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c"),
-    set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value."),
-    per_seed: bool = typer.Option(False, "--per-seed", help="Also print one JSON line per (anchors, seed)."),
-) -> None:
-    """A crowd surveying together with UWB: site-frame error, vs WiFi only, with NLOS ranges."""
-    from graphslam.app.uwb_bench import survey_benchmark
-
-    rows, agg = survey_benchmark(_seeds(seeds), _seeds(anchors), _config(config, set_))
-    _echo_rows(rows if per_seed else [], agg)
 
 
 @app.command("simulate-uwb")
@@ -991,14 +723,7 @@ def track_uwb(
     typer.echo(json.dumps(run.as_dict()))
 
 
-def _echo_rows(rows: list[dict], last: dict) -> None:
-    """One JSON line per row, then the aggregate."""
-    for r in rows:
-        typer.echo(json.dumps(r))
-    typer.echo(json.dumps(last))
-
-
-def _lags(text: str) -> list[float]:
+def parse_lags(text: str) -> list[float]:
     """'0,1,2': fixed-lag latencies in s (finite, >= 0)."""
     try:
         lags = [float(v) for v in text.split(",") if v.strip()]
@@ -1011,7 +736,7 @@ def _lags(text: str) -> list[float]:
     return lags
 
 
-def _metric(text: str, option: str = "--metric") -> str:
+def parse_metric(text: str, option: str = "--metric") -> str:
     """A kNN fingerprint distance (``KnnConfig.metric``), checked before any file is read."""
     from graphslam.core.radiomap.knn import METRICS
     from graphslam.errors import ConfigError
@@ -1021,22 +746,7 @@ def _metric(text: str, option: str = "--metric") -> str:
     return text
 
 
-def _shadowing(text: str) -> tuple[float, float] | None:
-    """'0.5,3': share of the RSSI variance in (0, 1) and correlation distance > 0 (m); '' for none."""
-    if not text.strip():
-        return None
-    try:
-        share, corr = (float(v) for v in text.split(","))
-    except ValueError:
-        share = corr = math.nan
-    if not (0.0 < share < 1.0 and math.isfinite(corr) and corr > 0):
-        from graphslam.errors import ConfigError
-
-        raise ConfigError(f"--shadowing: {text!r} is not SHARE,CORR_M with 0 < SHARE < 1 and CORR_M > 0, e.g. 0.5,3")
-    return share, corr
-
-
-def _smoothers(text: str) -> list[str]:
+def parse_smoothers(text: str) -> list[str]:
     from graphslam.core.tracking.smoother import SMOOTH_METHODS
 
     names = [v.strip() for v in text.split(",") if v.strip()]
@@ -1080,8 +790,14 @@ _CLICK_EXCEPTION: type[Exception] = next(c for c in typer.BadParameter.__mro__ i
 def main(argv: Optional[list[str]] = None) -> None:
     """Console entry point: run the app; a ``GraphSlamError`` or a usage error (unknown command or
     option, missing or malformed argument, no arguments) becomes one line on stderr and exit 2."""
+    run_app(app, sys.argv[1:] if argv is None else argv, "graphslam")
+
+
+def run_app(typer_app: typer.Typer, argv: list[str], prog_name: str) -> None:
+    """Run ``typer_app`` on ``argv`` as the ``graphslam`` command runs (``--quiet`` hoisted, one-line
+    errors, exit code 2): also the lab's commands (``python -m lab.bench``)."""
     try:
-        code = app(args=_hoist_quiet(sys.argv[1:] if argv is None else argv), prog_name="graphslam", standalone_mode=False)
+        code = typer_app(args=_hoist_quiet(argv), prog_name=prog_name, standalone_mode=False)
     except GraphSlamError as e:
         _fail(str(e))
     except _CLICK_EXCEPTION as e:

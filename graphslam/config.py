@@ -284,6 +284,28 @@ def config_from_dict(data: dict[str, Any] | None, source: str = "<dict>") -> Gra
         raise ConfigError(f"{source}: invalid configuration: {problems}") from None
 
 
+def parse_overrides(items: list[str] | tuple[str, ...] | None, example: str = "wifi.d_min_m=3") -> dict[str, Any]:
+    """``--set section.key=value`` options as a nested dict (each value parsed as YAML), to be
+    merged over a configuration file (``load_config``'s ``overrides``)."""
+    overrides: dict[str, Any] = {}
+    for item in items or []:
+        key, sep, raw = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. {example}")
+        try:
+            value = yaml.safe_load(raw)
+        except yaml.YAMLError:
+            raise ConfigError(f"--set {item!r}: the value is not valid YAML") from None
+        node = overrides
+        *parents, leaf = key.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"--set {item!r}: {part} is set to a value, not a section, by another --set")
+        node[leaf] = value
+    return overrides
+
+
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> GraphSlamConfig:
     """Load a YAML config (a partial file is merged over the defaults)."""
     data: dict[str, Any] = {}

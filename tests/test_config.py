@@ -43,24 +43,6 @@ def test_bad_values_rejected(tmp_path: Path) -> None:
         load_config(p)
 
 
-def test_cli_seed_lists_take_ranges_and_reject_garbage(capsys) -> None:
-    from graphslam.cli import _seeds, main
-
-    assert _seeds("0-3,7") == [0, 1, 2, 3, 7]
-    assert _seeds("5") == [5]
-    with pytest.raises(SystemExit) as e:
-        main(["bench", "filters", "--seeds", "0-x"])
-    assert e.value.code == 2 and "--seeds '0-x'" in capsys.readouterr().err
-    with pytest.raises(SystemExit) as e:
-        main(["bench", "filters", "--seeds", "0", "--smoothers", "ks"])
-    assert e.value.code == 2 and "unknown smoother 'ks'" in capsys.readouterr().err
-    for bad in ("1.5,3", "0.5", "0.5,-1", "a,b"):
-        with pytest.raises(SystemExit) as e:
-            main(["bench", "filters", "--seeds", "0", "--shadowing", bad])
-        err = capsys.readouterr().err
-        assert e.value.code == 2 and f"--shadowing: {bad!r}" in err and len(err.strip().splitlines()) == 1
-
-
 def test_cli_metric_options_reject_unknown_metrics_before_reading_files(capsys, tmp_path: Path) -> None:
     from graphslam.cli import main
 
@@ -69,7 +51,6 @@ def test_cli_metric_options_reject_unknown_metrics_before_reading_files(capsys, 
         (["locate", str(tmp_path), "--radio-map", missing, "--out", str(tmp_path / "o.csv"), "--metric", "cosine"], "--metric"),
         (["serve", "--radio-map", missing, "--metric", "cosine"], "--metric"),
         (["track", str(tmp_path), "--radio-map", missing, "--out", str(tmp_path / "o.csv"), "--knn-metric", "cosine"], "--knn-metric"),
-        (["bench", "ujiindoorloc", str(tmp_path), "--metric", "cosine"], "--metric"),
     ):
         with pytest.raises(SystemExit) as e:
             main(argv)

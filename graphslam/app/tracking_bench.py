@@ -98,7 +98,7 @@ def route_of(session: Session) -> str:
     return m.group(1) if m else ""
 
 
-def _marks(w: Session) -> tuple[NDArray, NDArray]:
+def walk_landmarks(w: Session) -> tuple[NDArray, NDArray]:
     return np.array([m.t_ns for m in w.landmarks], float), np.array([[m.x, m.y] for m in w.landmarks])
 
 
@@ -107,7 +107,7 @@ def oracle_radio_map(walks: Sequence[Session]) -> RadioMap:
     (site frame). Ground truth builds this map; evaluation only."""
     scans, xy, sid, ts = [], [], [], []
     for w in walks:
-        t, marks = _marks(w)
+        t, marks = walk_landmarks(w)
         T = fit_se2(interpolate_xy(w.steps, t), marks)
         st = np.array([sc.t_ns for sc in w.scans], float)
         xy.append(se2_apply(T, interpolate_xy(w.steps, st)))
@@ -144,7 +144,7 @@ def score_walks(
     trackers = {v.name: Tracker.on_map(rm, models, v.cfg, area=area if v.floor_plan else None)
                 for v in variants}  # self-calibration once per map
     for w in walks:
-        t, marks = _marks(w)
+        t, marks = walk_landmarks(w)
         for name, locator in locators.items():
             t0 = time.perf_counter()
             fix = locator.locate([sc.readings for sc in w.scans])
@@ -186,7 +186,7 @@ def floor_plan_area(folder: Path | str, spec: str = "auto", sigma_m: float = Tra
     return read_walkable_area(load_floor_plan(path, None), sigma_m)
 
 
-def _folds(walks: Sequence[Session], folds: int | None, seed: int) -> list[tuple[str, list[int]]]:
+def held_out_folds(walks: Sequence[Session], folds: int | None, seed: int) -> list[tuple[str, list[int]]]:
     """Leave one route out when every walk names its route, else ``folds`` seeded random folds."""
     routes = [route_of(w) for w in walks]
     if folds is None and all(routes):
@@ -218,7 +218,7 @@ def tracking_real(
     walks = [w for w in survey if len(w.landmarks) >= 2 and len(w.scans) and len(w.steps) >= 2]
     if len(walks) < 2:
         raise InputError(str(folder), f"need at least 2 walks with >= 2 landmarks, scans and steps; found {len(walks)}")
-    split = _folds(walks, folds, seed)
+    split = held_out_folds(walks, folds, seed)
     t_start = time.perf_counter()
     result: dict[str, Any] = {
         "folder": str(folder), "walks": len(walks), "walks_skipped": len(survey) - len(walks),
