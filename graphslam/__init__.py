@@ -48,7 +48,8 @@ _EXPORTS: dict[str, str] = {
         "PathLossModel", "FusionModel", "Shadowing", "GaussianState", "Epochs", "FilterRun", "make_filter", "run_epochs",
     )},
     **{n: "graphslam.core.tracking.smoother" for n in ("SmoothedRun", "smooth", "rts_smooth", "map_smooth", "MapProblem")},
-    **{n: "graphslam.app.track" for n in ("TrackConfig", "SessionTrack", "track_sessions")},
+    **{n: "graphslam.tracking_config" for n in ("TrackConfig", "load_track_config")},
+    **{n: "graphslam.core.tracking.tracker" for n in ("Tracker", "SessionTrack", "track_sessions")},
     # UWB (Paper 003): the collaborative EKF
     **{n: "graphslam.core.uwb.ekf" for n in ("UwbEkfConfig", "UwbEpoch", "TagTrack", "track_tags")},
     "track_uwb_sessions": "graphslam.app.uwb_track",
@@ -65,8 +66,7 @@ _EXPORTS: dict[str, str] = {
     "run_batch": "graphslam.app.batch",
     **{n: "graphslam.app.bench_real" for n in ("real_floors", "real_floor_rows")},
     "show_progress": "graphslam.app.progress",
-    "Tracker": "graphslam.app.track",
-    "tracking_pipeline": "graphslam.app.track:",
+    "tracking_pipeline": "graphslam.core.tracking.tracker:",
     **{n: "graphslam.app.tracking_bench" for n in ("Variant", "floor_plan_area", "held_out_folds", "interpolate_cov", "oracle_radio_map", "score_walks", "standard_variants", "tracking_real", "walk_landmarks")},
     "load_previous": "graphslam.app.update",
     **{n: "graphslam.cli.options" for n in ("parse_lags", "parse_metric", "parse_smoothers")},
@@ -102,6 +102,7 @@ _EXPORTS: dict[str, str] = {
     "read_trajectories": "graphslam.io.csv_io",
     "floor_folders": "graphslam.io.mcap_reader",
     **{n: "graphslam.service.server" for n in ("reloading_app", "serve", "start_background_server")},
+    "ServeConfig": "graphslam.service.config",
     **{n: "graphslam.sim" for n in ("shape_walks", "simulate", "survey_shape")},
     **{n: "graphslam.sim.cart" for n in ("CartNoise", "PAPER_P0", "PAPER_RMS_TARGETS_M", "PAPER_X0", "simulate_cart")},
     "get_scenario": "graphslam.sim.scenarios",
@@ -153,5 +154,6 @@ if TYPE_CHECKING:  # static analysers see the real objects
     from graphslam.io.mcap_writer import write_session
     from graphslam.io.radiomap_io import read_radio_map, write_radio_map
     from graphslam.app.survey import SurveyResult, run_survey, write_outputs
-    from graphslam.app.track import SessionTrack, TrackConfig, track_sessions
+    from graphslam.core.tracking.tracker import SessionTrack, Tracker, track_sessions
+    from graphslam.tracking_config import TrackConfig, load_track_config
     from graphslam.app.uwb_track import track_uwb_sessions

@@ -8,6 +8,7 @@ check the outputs around the solver, whatever the solver forms."""
 
 from __future__ import annotations
 
+import importlib.util
 import dataclasses
 import json
 import subprocess
@@ -255,6 +256,7 @@ def test_survey_floor_marks_a_floor_partial(floor: Path, tmp_path: Path, monkeyp
     assert row["warning"].startswith("b7_f2 (sim-corridor/F1): the main map holds 2 of 6 walks")
 
 
+@pytest.mark.skipif(importlib.util.find_spec("distributed") is None, reason="the batch extra (Dask) is not installed")
 def test_batch_counts_partial_floors_and_takes_each_floors_control_points(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

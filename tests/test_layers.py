@@ -12,7 +12,7 @@ from pathlib import Path
 import graphslam
 
 PKG = Path(graphslam.__file__).parent
-LAYER = {"errors": 0, "config": 1, "core": 2, "io": 3, "sim": 4, "service": 4, "viz": 4, "app": 5, "cli": 6}
+LAYER = {"errors": 0, "config": 1, "tracking_config": 1, "core": 2, "io": 3, "sim": 4, "service": 4, "viz": 4, "app": 5, "cli": 6}
 # sim/service/viz are side by side: none may import another of the three
 PEERS = {"sim", "service", "viz"}
 # the core sub-packages (and core's own modules, which count as common)

@@ -46,11 +46,11 @@ def folder(tmp_path_factory):
 def test_tracking_real_scores_knn_and_the_tracker_on_the_same_landmarks(folder):
     # What `graphslam bench tracking-real` runs, with a light tracker (2 heading hypotheses, no
     # self-calibration) to keep the test short.
-    from graphslam.app.track import TrackConfig
+    from graphslam.tracking_config import TrackConfig
     from graphslam.app.tracking_bench import Variant, tracking_real
     from graphslam.config import GraphSlamConfig
 
-    light = Variant("fixed-lag:1", TrackConfig(lag_s=1.0, n_theta_hypotheses=2, self_calibrate=False))
+    light = Variant("fixed-lag:1", TrackConfig(fixed_lag={"lag_s": 1.0}, motion={"n_theta_hypotheses": 2}, calibration={"enabled": False}))
     res = tracking_real(folder, GraphSlamConfig(), [light], maps=["oracle"], folds=2)
     assert res["walks"] == 4 and res["folds"] == ["fold 0", "fold 1"]
     s = res["oracle"]["summary"]
@@ -84,9 +84,9 @@ def test_bad_lags_are_one_line_usage_errors(lags, capsys):
 
 
 def test_variant_descriptions_name_every_setting_that_differs_from_the_default():
-    from graphslam.app.track import TrackConfig
+    from graphslam.tracking_config import TrackConfig
     from graphslam.app.tracking_bench import _describe
 
-    a, b = _describe(TrackConfig()), _describe(TrackConfig(bank_report="best", replay_route_radius_m=2.0))
+    a, b = _describe(TrackConfig()), _describe(TrackConfig(fixed_lag={"bank_report": "best"}, calibration={"replay_route_radius_m": 2.0}))
     assert "bank_report=mixture" in a and "replay_route_radius_m" not in a
     assert "bank_report=best" in b and "replay_route_radius_m=2.0" in b

@@ -124,7 +124,7 @@ def build_report(
             **ev.as_dict(), "component": 0,
             "components": [c.as_dict() for c in component_errors(al, survey, site_frame=al.frame == "site")],
         }
-    if al.uwb is not None:  # UWB ranges (issue 15); in the site frame the error needs no fit
+    if al.uwb is not None:  # UWB ranges; in the site frame the error needs no fit
         report["uwb"] = al.uwb.as_dict()
         if ev is not None and al.frame == "site":
             from graphslam.core.survey.evaluate import trajectory_errors
@@ -383,7 +383,7 @@ def _write_picture(
     files: dict[str, Path], timings: dict[str, float],
 ) -> None:
     """survey.png beside the outputs, once they are in place; a picture that fails is a warning,
-    not a failed survey (``graphslam.viz.survey_picture``: Pillow, ~0.05 s for the paper survey)."""
+    not a failed survey (``graphslam.viz.survey_picture``: Pillow, a small share of the survey)."""
     from graphslam.errors import GraphSlamError
     from graphslam.viz.survey_picture import PICTURE, draw_survey, scene_of_alignment
 

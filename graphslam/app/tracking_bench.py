@@ -12,8 +12,8 @@ Per fold, the radio map is built from the training walks only, in one of two way
   (for scoring only: a rigid motion of the map changes neither kNN nor the tracker).
 
 AP models are fitted from that map (``ApModels.fit``, as ``graphslam fit-aps``). Each held-out
-walk is then located scan by scan (``knn``: the fixes interpolated in time, as everywhere in
-docs/benchmarks.md) and tracked by each variant (``graphslam.app.track``, positions interpolated
+walk is then located scan by scan (``knn``: the fixes interpolated in time, as in every tracking
+benchmark) and tracked by each variant (``graphslam.app.track``, positions interpolated
 in time). Errors at the walk's landmark times against the landmarks (m): mean, median, p75 (the
 IPIN competition's metric), p90. Calibration: the share of landmarks inside the tracker's
 reported 95 % position ellipse (squared Mahalanobis distance <= 5.991, chi-square with 2 dof).
@@ -23,7 +23,6 @@ the trackers on the oracle maps get its walkable area (``track --floor-plan``); 
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import re
 import time
@@ -34,7 +33,9 @@ from typing import Any, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.app.track import TrackConfig, Tracker
+from graphslam.core.tracking.tracker import Tracker
+
+from graphslam.tracking_config import DEFAULTS, TrackConfig
 from graphslam.config import GraphSlamConfig
 from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
 from graphslam.core.radiomap.radiomap import RadioMap
@@ -67,9 +68,9 @@ class Variant:
 def standard_variants(lags: Sequence[float], filters: Sequence[str] = ("ekf",), smoothers: Sequence[str] = ()) -> list[Variant]:
     """``fixed-lag:LAG`` per lag (``graphslam track --lag LAG``'s defaults), each causal filter
     (``track --filter F``, defaults otherwise) and each filter + offline smoother."""
-    out = [Variant(f"fixed-lag:{lag:g}", TrackConfig(filter="fixed-lag", lag_s=float(lag))) for lag in lags]
-    out += [Variant(f, TrackConfig(filter=f)) for f in filters]
-    out += [Variant(f"{f}+{sm}", TrackConfig(filter=f, smoother=sm)) for f in filters for sm in smoothers]
+    out = [Variant(f"fixed-lag:{lag:g}", TrackConfig(fixed_lag={"lag_s": float(lag)})) for lag in lags]
+    out += [Variant(f, TrackConfig(filter={"kind": f})) for f in filters]
+    out += [Variant(f"{f}+{sm}", TrackConfig(filter={"kind": f, "smoother": sm})) for f in filters for sm in smoothers]
     return out
 
 
@@ -173,7 +174,7 @@ def score_walks(
     return out
 
 
-def floor_plan_area(folder: Path | str, spec: str = "auto", sigma_m: float = TrackConfig().walkable_sigma_m) -> WalkableArea | None:
+def floor_plan_area(folder: Path | str, spec: str = "auto", sigma_m: float = DEFAULTS.floor_plan.sigma_m) -> WalkableArea | None:
     """The walkable area for ``tracking_real``: ``auto``: from ``floor_image.png`` beside the walks
     (with its ``floor_info.json``, as the ILC floors) when there is one; ``none``; or a plan image."""
     from graphslam.io.floor_plan import load_floor_plan, read_walkable_area
@@ -270,11 +271,11 @@ def tracking_real(
 
 
 def _describe(cfg: TrackConfig) -> str:
-    """The variant's kind, and every other setting that is not ``TrackConfig``'s default."""
-    d = {"filter": cfg.filter, "smoother": cfg.smoother, "knn_fixes": cfg.knn_fixes}
-    if cfg.filter == "fixed-lag" and cfg.smoother == "none":
-        d.update(lag_s=cfg.lag_s, window_s=cfg.window_s, bank_report=cfg.bank_report)
-    default = TrackConfig()
-    d.update({f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)
-              if f.name not in d and getattr(cfg, f.name) != getattr(default, f.name)})
-    return ", ".join(f"{k}={v}" for k, v in d.items())
+    """The variant's kind, and every other setting (``section.key``) that is not the default."""
+    flat = cfg.flat()
+    keys = ["filter.kind", "filter.smoother", "knn_fixes.enabled"]
+    if cfg.filter.kind == "fixed-lag" and cfg.filter.smoother == "none":
+        keys += ["fixed_lag.lag_s", "fixed_lag.window_s", "fixed_lag.bank_report"]
+    default = DEFAULTS.flat()
+    keys += [k for k, v in flat.items() if k not in keys and v != default[k]]
+    return ", ".join(f"{k}={flat[k]}" for k in keys)

@@ -66,3 +66,19 @@ def parse_smoothers(text: str) -> list[str]:
 
         raise ConfigError(f"--smoothers: unknown smoother {bad[0]!r}; use {', '.join(SMOOTH_METHODS)}")
     return names
+
+
+def require_rerun(wanted: object = True) -> None:
+    """``--rerun`` / ``graphslam view`` without rerun-sdk: one line naming the extra, before any work."""
+    if wanted:
+        from graphslam.errors import require_extra
+
+        require_extra("rerun", "Rerun recordings (--rerun, graphslam view)")
+
+
+def require_plots(wanted: object = True) -> None:
+    """A plot asked for without matplotlib: one line naming the extra, before any work."""
+    if wanted:
+        from graphslam.errors import require_extra
+
+        require_extra("matplotlib", "plots")

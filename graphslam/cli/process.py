@@ -13,8 +13,8 @@ _DEFERRED_NUMPY_MODULES = ("numpy.f2py", "numpy.ctypeslib", "numpy.polynomial", 
 def _defer_numpy_extras() -> None:
     """scipy's array-API layer (``scipy._lib.array_api_compat.numpy``, imported with scipy.sparse)
     does ``from numpy import *``, which imports every submodule numpy keeps lazy — f2py (and,
-    through it, charset_normalizer), ctypeslib, polynomial, testing: ~0.1 s, a fifth of a
-    survey's start-up (docs/benchmarks.md, issue 16). Registered first as lazy modules (the
+    through it, charset_normalizer), ctypeslib, polynomial, testing: a fifth of a survey's
+    start-up. Registered first as lazy modules (the
     standard library's ``importlib.util.LazyLoader``) they are executed on first attribute access
     instead, which no survey makes. Console process only (library users and tests are untouched),
     and only for modules not yet imported."""
@@ -38,8 +38,8 @@ def _defer_numpy_extras() -> None:
 def _exit_now(code: object) -> None:
     """Exit as the interpreter would — non-daemon threads joined, exit handlers run (logging,
     multiprocessing, temporary folders, Rerun), stdout and stderr flushed — but without tearing
-    down every module (numpy, scipy, GTSAM, pyarrow, ...): that took ~0.2 s of a 1.7-s survey
-    (docs/benchmarks.md, issue 16). Under a profiler or tracer (cProfile, coverage) the normal exit,
+    down every module (numpy, scipy, GTSAM, pyarrow, ...), a tenth of a small survey's time.
+    Under a profiler or tracer (cProfile, coverage) the normal exit,
     so that they write their results."""
     status = 0 if code is None else code if isinstance(code, int) else 1
     if not isinstance(code, (int, type(None))):

@@ -9,7 +9,7 @@ from typing import List, Optional
 import typer
 
 from graphslam.cli.base import app
-from graphslam.cli.options import INDEX_HELP, IVF_CLUSTERS_HELP, IVF_PROBES_HELP, METRIC_HELP, parse_metric
+from graphslam.cli.options import INDEX_HELP, IVF_CLUSTERS_HELP, IVF_PROBES_HELP, METRIC_HELP, parse_metric, require_rerun
 
 
 @app.command()
@@ -34,6 +34,8 @@ def locate(
     """Locate every /wifi/scan of the query sessions by kNN against a radio map."""
     metric = parse_metric(metric)
     from graphslam.app.locate import locate_files
+
+    require_rerun(rerun)
 
     run = locate_files(
         radio_map, query_paths, out=out, k=k, weighted=weighted, min_common=min_common, index=index, metric=metric
@@ -61,24 +63,24 @@ def locate(
 @app.command()
 def serve(
     radio_map: Path = typer.Option(..., "--radio-map", help="Radio map (.parquet)."),
-    host: str = typer.Option("127.0.0.1", "--host", help="Bind address (loopback by default)."),
-    port: int = typer.Option(8077, "--port", min=0, max=65535, help="TCP port."),
-    k: int = typer.Option(3, "--k", min=1, help="Neighbours."),
-    weighted: bool = typer.Option(True, "--weighted/--no-weighted", help="Inverse-distance weights, else uniform."),
-    min_common: int = typer.Option(1, "--min-common", min=1, help="Neighbours must share this many APs."),
-    max_batch: int = typer.Option(10_000, "--max-batch", min=1, help="Most fingerprints per request."),
-    max_body_bytes: int = typer.Option(32 * 1024 * 1024, "--max-body-bytes", min=1024, help="Largest request body."),
-    index: str = typer.Option("auto", "--index", help=INDEX_HELP + " Default: auto (IVF from 5,000 references)."),
+    host: Optional[str] = typer.Option(None, "--host", help="Bind address (default: loopback, 127.0.0.1)."),
+    port: Optional[int] = typer.Option(None, "--port", min=0, max=65535, help="TCP port (default 8077)."),
+    k: Optional[int] = typer.Option(None, "--k", min=1, help="Neighbours (default 3)."),
+    weighted: Optional[bool] = typer.Option(None, "--weighted/--no-weighted", help="Inverse-distance weights (default), else uniform."),
+    min_common: Optional[int] = typer.Option(None, "--min-common", min=1, help="Neighbours must share this many APs (default 1)."),
+    max_batch: Optional[int] = typer.Option(None, "--max-batch", min=1, help="Most fingerprints per request (default 10,000)."),
+    max_body_bytes: Optional[int] = typer.Option(None, "--max-body-bytes", min=1024, help="Largest request body (default 32 MiB)."),
+    index: Optional[str] = typer.Option(None, "--index", help=INDEX_HELP + " Default: auto (IVF from 5,000 references)."),
     ivf_clusters: Optional[int] = typer.Option(None, "--ivf-clusters", min=1, help=IVF_CLUSTERS_HELP),
     ivf_probes: Optional[int] = typer.Option(None, "--ivf-probes", min=1, help=IVF_PROBES_HELP),
-    workers: int = typer.Option(1, "--workers", min=1, help="Server processes (each loads the map; ~1 core each)."),
+    workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Server processes (each loads the map; ~1 core each; default 1)."),
     search_processes: Optional[int] = typer.Option(
         None, "--search-processes", min=0,
         help="Forked search workers sharing the map; batches of 64+ fingerprints are split over them. "
         "0 = search in the server process. Default: min(2, cores), 0 with --workers > 1.",
     ),
-    log_level: str = typer.Option(
-        "info", "--log-level", help="critical, error, warning, info (one access line per request), debug, trace."
+    log_level: Optional[str] = typer.Option(
+        None, "--log-level", help="critical, error, warning, info (default: one access line per request), debug, trace."
     ),
     token: Optional[str] = typer.Option(
         None, "--token", envvar="GRAPHSLAM_SERVE_TOKEN", show_envvar=True,
@@ -89,20 +91,22 @@ def serve(
         False, "--watch", help="Reload the radio map when its file changes (SIGHUP always reloads); a map that "
         "does not load is refused and the old one kept. No request fails during a swap.",
     ),
-    watch_interval: float = typer.Option(1.0, "--watch-interval", min=0.05, help="--watch: seconds between checks."),
-    metric: str = typer.Option("eq9", "--metric", help=METRIC_HELP),
+    watch_interval: Optional[float] = typer.Option(None, "--watch-interval", min=0.05, help="--watch: seconds between checks (default 1)."),
+    metric: Optional[str] = typer.Option(None, "--metric", help=METRIC_HELP + " Default: eq9."),
 ) -> None:
     """Serve kNN positioning over HTTP (POST /v1/locate, GET /v1/radio-map, GET /healthz, /openapi.json, /docs)."""
-    metric = parse_metric(metric)
+    if metric is not None:
+        parse_metric(metric)
+    from graphslam.service.config import DEFAULT_WATCH_S, ServeConfig
     from graphslam.service.server import serve as serve_map
 
-    serve_map(
-        radio_map, host=host, port=port, k=k, weighted=weighted, min_common=min_common,
-        max_batch=max_batch, max_body_bytes=max_body_bytes, index=index, ivf_clusters=ivf_clusters,
-        ivf_probes=ivf_probes, workers=workers, search_processes=search_processes, log_level=log_level.lower(),
-        token=token, metric=metric,
-        watch=watch_interval if watch else None,
+    given = dict(
+        host=host, port=port, k=k, weighted=weighted, min_common=min_common, max_batch=max_batch,
+        max_body_bytes=max_body_bytes, index=index, ivf_clusters=ivf_clusters, ivf_probes=ivf_probes, workers=workers,
+        search_processes=search_processes, log_level=log_level.lower() if log_level else None, token=token, metric=metric,
+        watch_s=(watch_interval or DEFAULT_WATCH_S) if watch else None,
     )
+    serve_map(radio_map, ServeConfig(**{k_: v for k_, v in given.items() if v is not None}))
 
 
 @app.command("fit-aps")

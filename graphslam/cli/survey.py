@@ -10,7 +10,7 @@ from typing import List, Optional
 import typer
 
 from graphslam.cli.base import app
-from graphslam.cli.options import config_from_options
+from graphslam.cli.options import config_from_options, require_plots, require_rerun
 
 
 @app.command()
@@ -76,6 +76,7 @@ def survey(
     Walks the data does not link to the main map form components of their own (report.json)."""
     from graphslam.app.survey import run_survey
 
+    require_rerun(rerun)
     cfg = config_from_options(config, set_)
     if not progress:
         from graphslam.app.progress import show_progress
@@ -105,7 +106,7 @@ def survey(
 
 
 def _echo_update(u: Optional[dict]) -> None:
-    """One line on what `survey --update` did (issue 18)."""
+    """One line on what `survey --update` did."""
     if not u:
         return
     res = u["resolved"]
@@ -142,6 +143,9 @@ def survey_batch(
     from tqdm import tqdm
 
     from graphslam.app.batch import run_batch
+    from graphslam.errors import require_extra
+
+    require_extra("distributed", "survey-batch (Dask)")
 
     cfg = config_from_options(config, set_)
     bar = tqdm(desc="floors", unit="floor", disable=not (progress and sys.stderr.isatty()), file=sys.stderr)
@@ -180,6 +184,7 @@ def evaluate(
     ),
 ) -> None:
     """Landmark errors after an SE(2) fit, heading alignment and raw-vs-aligned comparison."""
+    require_plots(plot)
     from graphslam.core.survey.evaluate import evaluate as run_evaluation
     from graphslam.errors import InputError
     from graphslam.io.atomic import atomic_write_json, json_safe
@@ -299,7 +304,9 @@ def view(
     import tempfile
 
     from graphslam.errors import ConfigError
-    from graphslam.viz.rerun_log import require_display, serve_rrd, spawn_viewer, write_survey_view
+    require_rerun()
+    from graphslam.viz.rerun_log import write_survey_view
+    from graphslam.viz.rerun_viewer import require_display, serve_rrd, spawn_viewer
 
     if not (save or serve or spawn):
         raise ConfigError("choose at least one of --save FILE.rrd, --serve, --spawn")
@@ -327,6 +334,8 @@ def demo(
 ) -> None:
     """Simulate the paper's survey, align it, locate held-out walks; print the headline figures."""
     from graphslam.app.demo import run_demo
+
+    require_rerun(rerun)
 
     r = run_demo(out, seed=seed, rerun=rerun)
     f = r.figures

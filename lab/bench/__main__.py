@@ -22,11 +22,12 @@ app = typer.Typer(add_completion=False, help="The lab's benchmarks on simulated 
 
 
 @app.callback()
-def _root(quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars or lines.")) -> None:
+def _root(ctx: typer.Context, quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars or lines.")) -> None:
     import logging
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     gs.show_progress("off" if quiet else "auto")
+    ctx.call_on_close(lambda: gs.show_progress("off"))  # as graphslam's: nothing left behind for the next caller
 
 
 def seeds_of(text: str) -> list[int]:
@@ -126,6 +127,25 @@ def bench_scale(
     )
     typer.echo(json.dumps(result))
     typer.echo(markdown_table(result))
+
+
+@app.command("solvers")
+def bench_solvers(
+    scenario: str = typer.Argument("paper"),
+    seed: int = typer.Option(0),
+    size: float = typer.Option(4.0, help="Simulator size multiplier."),
+    solvers: str = typer.Option("gtsam,cholmod,pardiso", help="optimizer.solver values, taking turns run by run."),
+    runs: int = typer.Option(3, min=1, help="Runs of each (medians reported)."),
+) -> None:
+    """`graphslam survey` per optimizer.solver side by side in fresh processes: stage medians, peak RSS,
+    wall and optimise time over PARDISO's."""
+    from lab.bench.scale import solvers as run_solvers
+
+    names = [s.strip() for s in solvers.split(",") if s.strip()]
+    bad = [s for s in names if s not in ("gtsam", "cholmod", "pardiso", "auto")]
+    if bad or not names:
+        raise gs.ConfigError(f"--solvers {solvers!r}: expected some of gtsam, cholmod, pardiso, auto")
+    typer.echo(json.dumps(run_solvers(scenario, seed, size, names, runs, progress=lambda m: typer.echo(m, err=True))))
 
 
 @app.command("update")

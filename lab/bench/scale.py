@@ -1,4 +1,4 @@
-"""Survey speed side by side with a baseline checkout, over survey sizes: ``graphslam bench scale``.
+"""Survey speed side by side with a baseline checkout, over survey sizes: ``python -m lab.bench scale``.
 
 Why: on a shared machine a single wall time says little. Here every size's survey is
 simulated once, then ``graphslam survey`` runs in fresh processes, alternating between this
@@ -178,3 +178,39 @@ def markdown_table(result: dict[str, Any]) -> str:
             f"(CPU time: {result.get('growth_exponent_new_cpu')})."
         )
     return "\n".join(lines)
+
+
+def solvers(
+    scenario: str, seed: int, size: float, names: Sequence[str], runs: int, *, progress: Any = None
+) -> dict[str, Any]:
+    """``graphslam survey`` of one simulated survey per ``optimizer.solver`` in ``names`` (gtsam,
+    cholmod, pardiso), in fresh processes, the solvers taking turns run by run (in reversed order
+    every other round: a host that drifts slows all alike). Per solver the medians (``_summary``)
+    and, when ``pardiso`` ran, each solver's wall and optimise time over PARDISO's."""
+    from graphslam import simulate
+
+    with tempfile.TemporaryDirectory(prefix="graphslam-solvers-") as tmp:
+        data = Path(tmp) / "data"
+        simulate(scenario, seed=seed, size=size).write(data)
+        configs = {}
+        for name in names:
+            configs[name] = Path(tmp) / f"{name}.yaml"
+            configs[name].write_text(f"optimizer:\n  solver: {name}\n")
+        results: dict[str, list[dict[str, Any]]] = {n: [] for n in names}
+        load = [os.getloadavg()[0]]
+        for r in range(runs):
+            for name in (names if r % 2 == 0 else list(reversed(names))):
+                results[name].append(_run_once(data, Path(tmp) / f"out-{name}-{r}", None, configs[name]))
+                if progress is not None:
+                    progress(f"{name} run {r + 1}/{runs}: {results[name][-1]['wall']:.2f} s")
+            load.append(os.getloadavg()[0])
+    row: dict[str, Any] = {"scenario": scenario, "seed": seed, "size": size, "load_1min": [min(load), max(load)]}
+    for name, res in results.items():
+        row[name] = _summary(res)
+    if "pardiso" in row:
+        row["wall_vs_pardiso"] = {n: round(row[n]["wall_s"] / row["pardiso"]["wall_s"], 2) for n in names}
+        row["optimise_vs_pardiso"] = {
+            n: round(row[n]["stages_s"].get("align.optimise", 0.0) / max(row["pardiso"]["stages_s"].get("align.optimise", 0.0), 1e-9), 2)
+            for n in names
+        }
+    return row

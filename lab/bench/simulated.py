@@ -250,7 +250,7 @@ def filters_cart(
             for lag in lags:
                 flc = FixedLagConfig(
                     lag_s=float(lag), window_s=max(window_s, float(lag)), huber_k=None, prune_cost=None,
-                    restart_every=restart_every,
+                    restart_every=restart_every, adaptive_rssi=False, report="best",  # one hypothesis, the papers' R
                 )
                 for tag, fl_model in fl_models.items():
                     t0 = time.perf_counter()
@@ -300,7 +300,7 @@ def tracking_paper(
     positioning of the same scans on the same map; AP position errors vs the simulator's APs.
     ``smoothers`` adds offline-smoothed variants, ``knn_fixes`` variants that also fuse each
     scan's kNN fix, ``lags`` the fixed-lag tracker at each lag (s; named ``fixed-lag:LAG``, kNN
-    fixes fused, the other settings ``TrackConfig``'s defaults updated by ``track_overrides``).
+    fixes fused, the other settings ``TrackConfig``'s defaults updated by ``track_overrides``, ``{"section.key": value}``).
     Every tracker row also reports ``inside_95``: the share of scan-time errors inside its 95 %
     position ellipse.
 
@@ -319,11 +319,11 @@ def tracking_paper(
 
     over = dict(track_overrides or {})
     configs = {
-        variant_name(f, sm, fx): TrackConfig(**{**over, "filter": f, "smoother": sm, "knn_fixes": fx})
+        variant_name(f, sm, fx): TrackConfig().updated({**over, "filter.kind": f, "filter.smoother": sm, "knn_fixes.enabled": fx})
         for fx in ((False, True) if knn_fixes else (False,)) for f in filters for sm in ("none", *smoothers)
     }
     for lag in lags:
-        configs[f"fixed-lag:{lag:g}"] = TrackConfig(**{**over, "filter": "fixed-lag", "lag_s": float(lag)})
+        configs[f"fixed-lag:{lag:g}"] = TrackConfig().updated({**over, "filter.kind": "fixed-lag", "fixed_lag.lag_s": float(lag)})
     errs: dict[str, list] = {"knn": [], **{name: [] for name in configs}}
     inside: dict[str, list] = {name: [] for name in configs}
     ap_err, per_seed = [], []

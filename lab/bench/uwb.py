@@ -1,4 +1,4 @@
-"""``graphslam bench uwb``: Paper 003's experiment (Fig. 5) in simulation, and the UWB survey.
+"""``python -m lab.bench uwb``: Paper 003's experiment (Fig. 5) in simulation, and the UWB survey.
 
 ``zones``: per seed, the seven-tag run of ``graphslam.sim.uwb.scenarios.simulate_zones`` through
 the network simulation, then the paper's EKF over the ranges each tag completed (in the order

@@ -2,7 +2,7 @@
 """Does pinning each of two plain survey processes to its own core help? (issue 18's control)
 
 16 simulated `crowd --size 2` floors (generated once into OUT/sites); per round, alternating:
-the floors one after another in one process (the sequential baseline of `graphslam bench batch`),
+the floors one after another in one process (the sequential baseline of `python -m lab.bench batch`),
 two plain processes on one thread each (the benchmark's control), and the same two pinned with
 `taskset -c 0|1`. Prints each run and the medians' throughput ratios.
 

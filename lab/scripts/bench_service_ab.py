@@ -59,8 +59,14 @@ def serve_from(args: argparse.Namespace) -> None:
         spec.loader.exec_module(mod)
     from graphslam import serve
 
-    serve(args.serve, host=LOOPBACK, port=args.port, k=args.k, max_batch=args.batch,
-          search_processes=args.search_processes, log_level="warning")
+    options = dict(host=LOOPBACK, port=args.port, k=args.k, max_batch=args.batch, search_processes=args.search_processes,
+                   log_level="warning")
+    try:  # a service that takes one config object (ServeConfig), or an older copy that takes keywords
+        from graphslam import ServeConfig
+    except (ImportError, AttributeError):
+        serve(args.serve, **options)
+    else:
+        serve(args.serve, ServeConfig(**options))
 
 
 def free_port() -> int:

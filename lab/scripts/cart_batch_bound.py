@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """How well could any estimator do on the simulated cart experiment? Filters vs a batch bound.
 
-For each seed of ``graphslam bench filters`` (same simulation, same noise, same models:
+For each seed of ``python -m lab.bench filters`` (same simulation, same noise, same models:
 the papers' x0, P0, Q, R, path loss), RMS error in x and y of:
 
 - ``filter``: the causal EKF (Paper 000's model) or UKF (Paper 002's), as benchmarked;
@@ -11,7 +11,7 @@ the papers' x0, P0, Q, R, path loss), RMS error in x and y of:
   Levenberg-Marquardt from several starts (the filter, the RTS output, the four best
   dead-reckoning paths over a grid of constant biases), keeping the lowest cost. No start
   uses the truth. This is ``graphslam.core.tracking.smoother.smooth(..., "map")``, the product's
-  ``ekf+map`` / ``ukf+map`` rows of ``graphslam bench filters``;
+  ``ekf+map`` / ``ukf+map`` rows of ``python -m lab.bench filters``;
 - ``batch_oracle``: the same started from the truth, to check the starts above find the
   global minimum (the cost, not the error, decides).
 

@@ -4,7 +4,7 @@
 Issue 17 asks the fixed-lag smoother (lag <= 2 s) to meet Paper 000's RMS (x <= 0.86 m) on the
 simulated cart. The cart's epochs are T = 4 s apart, so a 2-s lag holds no later epoch: the
 estimate of epoch k can use the readings of epochs 0..k only. This script computes, for each
-seed of ``graphslam bench filters`` (same simulation, the papers' EKF model, x0, P0, Q, R), at
+seed of ``python -m lab.bench filters`` (same simulation, the papers' EKF model, x0, P0, Q, R), at
 every ``--every``-th epoch k:
 
 - ``online_map``: the maximum a-posteriori trajectory of epochs 0..k (the whole history, nothing

@@ -4,7 +4,7 @@
 The question of issue 17: build the online tracker on ``gtsam.BatchFixedLagSmoother`` /
 ``gtsam.IncrementalFixedLagSmoother`` or on our own sliding-window MAP
 (``graphslam.core.tracking.fixed_lag``)? Both are run here on the cart experiment of
-``graphslam bench filters`` (Paper 000's EKF model: Q, R, x0, P0, path loss; seeds as given),
+``python -m lab.bench filters`` (Paper 000's EKF model: Q, R, x0, P0, path loss; seeds as given),
 reporting each epoch's estimate right after its update (lag 0) with a window of ``--window`` s,
 Gaussian losses on both sides. GTSAM has no native factor for the papers' RSSI (eq. 6) and
 velocity (eq. 4) readings nor for the process x' = F x, so they are ``gtsam.CustomFactor``s:
@@ -108,7 +108,7 @@ def main() -> int:
         epochs = Epochs.fixed_rate(run.y_velocity, run.y_rssi, run.period_s)
         t0 = time.perf_counter()
         ours = fixed_lag_smooth(
-            model, [PAPER_X0], PAPER_P0, epochs, FixedLagConfig(lag_s=0.0, window_s=args.window, huber_k=None, prune_cost=None)
+            model, [PAPER_X0], PAPER_P0, epochs, FixedLagConfig(lag_s=0.0, window_s=args.window, huber_k=None, prune_cost=None, adaptive_rssi=False, report="best")
         ).x
         ests = {"graphslam": (ours, time.perf_counter() - t0)}
         for kind in ("batch", "incremental"):

@@ -6,10 +6,10 @@
 #   lab/scripts/remeasure_speed.sh 4383dd1 1,2,4,8,12 7,5,3,1,1
 #
 # 1. a git worktree of BASE_COMMIT (default 4383dd1, the main before issue 16) in a temp folder;
-# 2. `graphslam bench scale`: every size's survey once, then `graphslam survey` alternating
+# 2. `python -m lab.bench scale`: every size's survey once, then `graphslam survey` alternating
 #    between this checkout and the baseline (baseline only up to size 4: it needs ~1 min there
 #    and ~3 min at size 12), stage medians, peak RSS, growth exponent, the markdown table;
-# 3. `graphslam bench accuracy paper --seeds 0-2` for both (landmark errors: same minimum?);
+# 3. `python -m lab.bench accuracy paper --seeds 0-2` for both (landmark errors: same minimum?);
 # 4. lab/scripts/bench_linear_solvers.py at sizes 1 and 4 (the solver comparison).
 # Bytecode of both trees is compiled before the runs (see below).
 # Long runs are niced. Output: stdout (JSON lines and tables) and OUT_DIR (default a temp folder).
@@ -28,12 +28,12 @@ trap 'git -C "$HERE" worktree remove --force "$WT"' EXIT
 # graphslam module again, ~0.1 s, a cost no installed user pays).
 "$PY" -m compileall -q "$HERE/graphslam" "$WT/graphslam" >/dev/null
 echo "load before: $(cat /proc/loadavg)"
-nice -n 10 "$PY" -m graphslam bench scale paper --sizes "$SIZES" --runs "$RUNS" --baseline "$WT" \
+nice -n 10 "$PY" -m python -m lab.bench scale paper --sizes "$SIZES" --runs "$RUNS" --baseline "$WT" \
     --baseline-max-size 4 | tee "$OUT_DIR/scale.txt"
 echo "accuracy (this checkout):"
-nice -n 10 "$PY" -m graphslam bench accuracy paper --seeds 0-2 | tee "$OUT_DIR/accuracy-new.txt"
+nice -n 10 "$PY" -m python -m lab.bench accuracy paper --seeds 0-2 | tee "$OUT_DIR/accuracy-new.txt"
 echo "accuracy (baseline $BASE):"
-PYTHONPATH="$WT" nice -n 10 "$PY" -P -m graphslam bench accuracy paper --seeds 0-2 | tee "$OUT_DIR/accuracy-base.txt"
+PYTHONPATH="$WT" nice -n 10 "$PY" -P -m python -m lab.bench accuracy paper --seeds 0-2 | tee "$OUT_DIR/accuracy-base.txt"
 nice -n 10 "$PY" "$HERE/scripts/bench_linear_solvers.py" --sizes 1,4 | tee "$OUT_DIR/linear.txt"
 echo "load after: $(cat /proc/loadavg)"
 echo "outputs in $OUT_DIR"

@@ -25,7 +25,6 @@ walk's first step.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import sys
 from pathlib import Path
@@ -61,7 +60,6 @@ def _oracle_fixed_lag(session_id, model, starts, P0, t, y_v, walked, meas, fixes
     return _product_fixed_lag(session_id, model, starts, P0, t, y_v, walked, meas, fixes, cfg, axes)
 
 
-@dataclasses.dataclass(frozen=True)
 class _OracleConfig(TrackConfig):
     oracle: str | None = None
 

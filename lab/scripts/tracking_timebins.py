@@ -6,7 +6,7 @@ per variant the mean landmark error in bins of seconds since the first step, and
 the 95 % ellipse.
 
     python lab/scripts/tracking_timebins.py FOLDER FOLD_IDS NAMES [NAME=EXPR ...]
-    python lab/scripts/tracking_timebins.py ../shared/data/ilc20/site1/B1 0,1 mixture,map 'g=TrackConfig(velocity_sigma_mps=0.3)'
+    python lab/scripts/tracking_timebins.py ../shared/data/ilc20/site1/B1 0,1 mixture,map 'g=TrackConfig(motion={"velocity_sigma_mps": 0.3})'
 
 Built-in names: ``best``, ``mixture`` (default), ``map`` (``--filter ekf --smooth map``, offline),
 ``norssi`` (steps and kNN fixes only).
@@ -33,8 +33,8 @@ def main(argv: list[str]) -> int:
         print(__doc__, file=sys.stderr)
         return 2
     folder, fold_ids = Path(argv[0]), [int(x) for x in argv[1].split(",")]
-    V = {"best": TrackConfig(bank_report="best"), "mixture": TrackConfig(), "map": TrackConfig(filter="ekf", smoother="map"),
-         "norssi": TrackConfig(rssi=False)}
+    V = {"best": TrackConfig(fixed_lag={"bank_report": "best"}), "mixture": TrackConfig(), "map": TrackConfig(filter={"kind": "ekf", "smoother": "map"}),
+         "norssi": TrackConfig(rssi={"enabled": False})}
     for extra in argv[3:]:
         name, expr = extra.split("=", 1)
         V[name] = eval(expr, {"TrackConfig": TrackConfig})  # a benchmark script's own argument

@@ -9,7 +9,7 @@ reported). Folds: ``route`` (leave one route out; IPIN) or a number of seeded ra
     python lab/scripts/tracking_variants.py ../shared/data/ilc20/site1/B1 oracle 5 best,mixture
     python lab/scripts/tracking_variants.py ../shared/data/ipin2023/b100_f-2 oracle,crowdsourced route best,mixture
     python lab/scripts/tracking_variants.py ../shared/data/ipin2023/b100_f-2 oracle route mixroute \\
-        'mixroute=TrackConfig(replay_route_radius_m=2.0)'
+        'mixroute=TrackConfig(calibration={"replay_route_radius_m": 2.0})'
 
 Built-in names: ``best`` (the lowest-cost heading hypothesis), ``mixture`` (the default), ``ekf``,
 ``noplan`` (the default without the floor plan). Every other variant gets the floor's walkable area
@@ -32,9 +32,9 @@ from graphslam import (
 
 
 VARIANTS = {
-    "best": Variant("best", TrackConfig(bank_report="best")),
-    "mixture": Variant("mixture", TrackConfig(bank_report="mixture")),
-    "ekf": Variant("ekf", TrackConfig(filter="ekf")),
+    "best": Variant("best", TrackConfig(fixed_lag={"bank_report": "best"})),
+    "mixture": Variant("mixture", TrackConfig(fixed_lag={"bank_report": "mixture"})),
+    "ekf": Variant("ekf", TrackConfig(filter={"kind": "ekf"})),
     "noplan": Variant("noplan", TrackConfig(), floor_plan=False),
 }
 

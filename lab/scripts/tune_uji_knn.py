@@ -2,7 +2,7 @@
 """The kNN tuning sweep on UJIIndoorLoc, reproducible: every setting tried, one table.
 
 Grid: (missing_dbm, min_rssi_dbm) x k x {inverse-distance, uniform} weights, min_common = 1.
-Train on trainingData, test on validationData, as ``graphslam bench ujiindoorloc``.
+Train on trainingData, test on validationData, as ``python -m lab.bench ujiindoorloc``.
 UJIIndoorLoc has no public test set besides validationData, so the chosen setting is
 tuned on the data it is reported on: read the table for how flat the optimum is.
 

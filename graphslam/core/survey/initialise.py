@@ -13,7 +13,7 @@ Loop check: every pairwise transform the tree did not use closes a loop. Where t
 placement is right, the tree predicts it (mean displacement of the walk's steps below
 ``inlier_m``); the fraction of such consistent loops is a self-check that needs no
 ground truth. Simulated surveys: 0.64-1; real short phone walks (ILC): ~0.3, i.e. the
-pairwise matches are not reliable enough to place walks (docs/benchmarks.md).
+pairwise matches are not reliable enough to place walks (docs/method.md).
 """
 
 from __future__ import annotations
@@ -160,7 +160,7 @@ def spanning_tree(n: int, a: Sequence[int], b: Sequence[int], cost: NDArray[np.f
     """Which edges ``(a[k], b[k])`` of an undirected graph on ``n`` nodes form its minimum spanning
     forest (Kruskal). Ties go to the edge listed first: with the edges in (row, column) order this is
     ``scipy.sparse.csgraph.minimum_spanning_tree``'s rule (a stable sort of its CSR data), so the same
-    tree — without importing csgraph and scipy.linalg beneath it (~0.07 s of a survey's start-up;
+    tree — without importing csgraph and scipy.linalg beneath it (a share of a survey's start-up;
     the graph here has one node per walk)."""
     parent = list(range(n))
 

@@ -327,7 +327,7 @@ def grow_placement(
             order.append(b)
             walks = np.flatnonzero(placed)
             inside = placed[si] & placed[sj]
-            with threadpool_limits(1):  # 3W x 3W systems: threads only add overhead (9 ms vs 0.3 ms a solve under load)
+            with threadpool_limits(1):  # 3W x 3W systems: threads only add overhead
                 T = refine_rigid(T, walks, held, scan_session, scan_xy, mi[inside], mj[inside], mw[inside], params,
                                  rotation_sigma)
             for s in walks:

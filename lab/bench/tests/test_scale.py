@@ -1,4 +1,4 @@
-"""`graphslam bench scale`: growth exponent, the stage table, and its bad-input errors."""
+"""`python -m lab.bench scale`: growth exponent, the stage table, and its bad-input errors."""
 
 from __future__ import annotations
 
@@ -101,3 +101,35 @@ def test_rounds_go_round_robin_over_the_sizes(tmp_path: Path, monkeypatch) -> No
     assert [c[1] is None for c in calls[:2]] == [True, False] and [c[1] is None for c in calls[3:5]] == [False, True]
     assert res["rows"][0]["new"]["runs"] == 2 and res["rows"][1]["new"]["runs"] == 3
     assert res["growth_exponent_new"] == 1.0  # walls 1 and 4 at sizes 1 and 4
+
+
+def test_solvers_take_turns_and_are_compared_with_pardiso(tmp_path: Path, monkeypatch) -> None:
+    import graphslam as gs
+    from lab.bench import scale as bench_scale
+
+    class _Fake:
+        def write(self, path: Path) -> None:
+            path.mkdir(parents=True)
+
+    calls: list[str] = []
+
+    def fake_run(data: Path, out: Path, base: str | None, config: Path | None) -> dict:
+        name = config.read_text().split("solver: ")[1].strip()
+        calls.append(name)
+        wall = {"gtsam": 9.0, "cholmod": 3.0, "pardiso": 2.0}[name]
+        return {"wall": wall, "cpu": wall, "stages": {"total": wall, "align.optimise": wall / 2}, "rss_mb": 1.0,
+                "final_error": 1.0, "iterations": 3, "edges": 0, "landmark_mean_m": 0.5}
+
+    monkeypatch.setattr(gs, "simulate", lambda *a, **k: _Fake())
+    monkeypatch.setattr(bench_scale, "_run_once", fake_run)
+    row = bench_scale.solvers("paper", 0, 4.0, ["gtsam", "cholmod", "pardiso"], 2)
+    assert calls == ["gtsam", "cholmod", "pardiso", "pardiso", "cholmod", "gtsam"]
+    assert row["wall_vs_pardiso"] == {"gtsam": 4.5, "cholmod": 1.5, "pardiso": 1.0}
+    assert row["optimise_vs_pardiso"]["cholmod"] == 1.5 and row["cholmod"]["runs"] == 2
+
+
+def test_unknown_solvers_are_one_line_errors(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as e:
+        main(["solvers", "--solvers", "gtsam,superlu"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "--solvers" in err and len(err.strip().splitlines()) == 1
