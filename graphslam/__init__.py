@@ -48,7 +48,8 @@ _EXPORTS: dict[str, str] = {
         "PathLossModel", "FusionModel", "Shadowing", "GaussianState", "Epochs", "FilterRun", "make_filter", "run_epochs",
     )},
     **{n: "graphslam.core.tracking.smoother" for n in ("SmoothedRun", "smooth", "rts_smooth", "map_smooth", "MapProblem")},
-    **{n: "graphslam.app.track" for n in ("TrackConfig", "SessionTrack", "track_sessions")},
+    **{n: "graphslam.tracking_config" for n in ("TrackConfig", "load_track_config")},
+    **{n: "graphslam.core.tracking.tracker" for n in ("Tracker", "SessionTrack", "track_sessions")},
     # UWB (Paper 003): the collaborative EKF
     **{n: "graphslam.core.uwb.ekf" for n in ("UwbEkfConfig", "UwbEpoch", "TagTrack", "track_tags")},
     "track_uwb_sessions": "graphslam.app.uwb_track",
@@ -57,16 +58,72 @@ _EXPORTS: dict[str, str] = {
     "write_session": "graphslam.io.mcap_writer",
     **{n: "graphslam.io.radiomap_io" for n in ("read_radio_map", "write_radio_map")},
     **{n: "graphslam.io.apmodel_io" for n in ("read_ap_models", "write_ap_models")},
+    # --- for experiments (lab/: studies, diagnostics, the simulator benchmarks). The lab imports
+    # nothing but this module (lab/tests/test_imports.py); these are what it builds on: the survey's
+    # stages and solver, the tracking bench's pieces, the simulators, plots, the command-line
+    # plumbing. Stable enough for studies, not promised to applications. "module:attr" exports
+    # attr under another name (a private or ambiguous one); "module:" exports the module itself.
+    "run_batch": "graphslam.app.batch",
+    **{n: "graphslam.app.bench_real" for n in ("real_floors", "real_floor_rows")},
+    "show_progress": "graphslam.app.progress",
+    "tracking_pipeline": "graphslam.core.tracking.tracker:",
+    **{n: "graphslam.app.tracking_bench" for n in ("Variant", "floor_plan_area", "held_out_folds", "interpolate_cov", "oracle_radio_map", "score_walks", "standard_variants", "tracking_real", "walk_landmarks")},
+    "load_previous": "graphslam.app.update",
+    **{n: "graphslam.cli.options" for n in ("parse_lags", "parse_metric", "parse_smoothers")},
+    "run_app": "graphslam.cli",
+    "cli_main": "graphslam.cli:main",
+    "parse_overrides": "graphslam.config",
+    **{n: "graphslam.core.common.geometry" for n in ("fit_se2", "interpolate_xy", "ransac_se2", "se2_apply", "se2_compose")},
+    "progress_over": "graphslam.core.progress",
+    **{n: "graphslam.core.radiomap.fingerprints" for n in ("DEFAULT_MIN_RSSI_DBM", "DEFAULT_MISSING_DBM", "DistanceEngine", "FingerprintMatrix")},
+    "limit_blas_threads": "graphslam.core.radiomap.ivf",
+    "WEIGHT_EPS_DB": "graphslam.core.radiomap.knn",
+    **{n: "graphslam.core.survey.align" for n in ("Problem", "build_problem", "lm_params", "native_graph", "pose_graph")},
+    "dead_reckoned_nodes": "graphslam.core.survey.align:_dr_nodes",
+    "solve_problem": "graphslam.core.survey.align:solve",
+    "survey_align": "graphslam.core.survey.align:",
+    "values_to_xyh": "graphslam.core.survey.align:_values_to_xyh",
+    "associate": "graphslam.core.survey.association",
+    "expand_chains": "graphslam.core.survey.chains:expand",
+    **{n: "graphslam.core.survey.edges" for n in ("propose_edges", "window_thresholds")},
+    "trajectory_errors": "graphslam.core.survey.evaluate",
+    "survey_factors": "graphslam.core.survey.factors:",
+    "warm_start": "graphslam.core.survey.incremental",
+    **{n: "graphslam.core.survey.radio_maps" for n in ("crowdsourced_radio_map", "surveyed_radio_map")},
+    "survey_solver": "graphslam.core.survey.solver:",
+    **{n: "graphslam.core.tracking.apmodel" for n in ("ap_position_errors", "fit_ap", "residual_field")},
+    **{n: "graphslam.core.tracking.calibration" for n in ("ellipse_coverage", "leave_one_session_out_error_vectors")},
+    "velocity_matrix": "graphslam.core.tracking.filters",
+    **{n: "graphslam.core.tracking.fixed_lag" for n in ("FixedLagConfig", "fixed_lag_smooth")},
+    "dead_reckoning_starts": "graphslam.core.tracking.smoother",
+    "map_levenberg_marquardt": "graphslam.core.tracking.smoother:levenberg_marquardt",
+    "wrap_angle": "graphslam.core.types",
+    "MEASUREMENT_TYPES": "graphslam.core.uwb.ekf",
+    "read_trajectories": "graphslam.io.csv_io",
+    "floor_folders": "graphslam.io.mcap_reader",
+    **{n: "graphslam.service.server" for n in ("reloading_app", "serve", "start_background_server")},
+    "ServeConfig": "graphslam.service.config",
+    **{n: "graphslam.sim" for n in ("shape_walks", "simulate", "survey_shape")},
+    **{n: "graphslam.sim.cart" for n in ("CartNoise", "PAPER_P0", "PAPER_RMS_TARGETS_M", "PAPER_X0", "simulate_cart")},
+    "get_scenario": "graphslam.sim.scenarios",
+    **{n: "graphslam.sim.uwb.scenarios" for n in ("CrowdUwb", "nlos_fraction", "simulate_crowd", "simulate_zones")},
+    "error_cdf": "graphslam.viz.plots",
+    **{n: "graphslam.viz.survey_picture" for n in ("draw_survey", "scene_of_alignment")},
+    "cart_figure": "graphslam.viz.tracking_plots",
+    **{n: "graphslam.viz.uwb_plots" for n in ("error_over_time", "zones_map")},
 }
 
 __all__ = sorted(_EXPORTS) + ["__version__"]
 
 
 def __getattr__(name: str) -> Any:
-    module = _EXPORTS.get(name)
-    if module is None:
+    target = _EXPORTS.get(name)
+    if target is None:
         raise AttributeError(f"module 'graphslam' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
+    module, sep, attr = target.partition(":")
+    value = importlib.import_module(module)
+    if not sep or attr:
+        value = getattr(value, attr or name)
     globals()[name] = value  # later lookups skip this function
     return value
 
@@ -97,5 +154,6 @@ if TYPE_CHECKING:  # static analysers see the real objects
     from graphslam.io.mcap_writer import write_session
     from graphslam.io.radiomap_io import read_radio_map, write_radio_map
     from graphslam.app.survey import SurveyResult, run_survey, write_outputs
-    from graphslam.app.track import SessionTrack, TrackConfig, track_sessions
+    from graphslam.core.tracking.tracker import SessionTrack, Tracker, track_sessions
+    from graphslam.tracking_config import TrackConfig, load_track_config
     from graphslam.app.uwb_track import track_uwb_sessions

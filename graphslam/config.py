@@ -7,12 +7,15 @@ with every run's outputs (``config.yaml``).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from graphslam.errors import ConfigError
+
+
+M = TypeVar("M", bound=BaseModel)
 
 
 class _Strict(BaseModel):
@@ -64,7 +67,7 @@ class EdgeConfig(_Strict):
         "ivf_above_fingerprints",
     )
     ivf_above_fingerprints: int = Field(
-        5000, ge=0, description="auto takes ivf above this many fingerprints (exact: ~1 s at 5k, growing as F^2)"
+        5000, ge=0, description="auto takes ivf above this many fingerprints (the exact comparison grows as F^2)"
     )
     ivf_neighbours: int = Field(32, ge=1, description="ivf: candidates per fingerprint (the cap keeps 3 of them)")
     ivf_probes: int = Field(8, ge=1, description="ivf: clusters searched per fingerprint (4: recall 98 %, 8: 99.7-99.9 %)")
@@ -113,29 +116,27 @@ class OptimizerConfig(_Strict):
     relative_error_tol: float = Field(1e-4, gt=0)
     absolute_error_tol: float = Field(1e-5, ge=0)
     shape_tol_m: float = Field(
-        0.005, ge=0, description="solver=pardiso: converged once an LM step moves the poses by less than this "
-        "(rms, metres) beyond one rigid motion of the whole map (which no output but the frame depends on) and lowers the error by less than 10x relative_error_tol; 0: off. "
-        "Measured (docs/benchmarks.md issue 16): paper size 8 15 -> 10 iterations at the same landmark error; "
-        "real floors and simulator seeds unchanged",
+        0.005, ge=0, description="the vectorised LM (solver pardiso / cholmod): converged once an LM step moves the poses "
+        "by less than this (rms, metres) beyond one rigid motion of the whole map (which no output but the frame "
+        "depends on) and lowers the error by less than 10x relative_error_tol; 0: off",
     )
     outer_iterations: int = Field(6, ge=1, description="re-evaluations of the saturated (d > d_max) edge set")
-    solver: Literal["auto", "pardiso", "gtsam"] = Field(
+    solver: Literal["auto", "pardiso", "cholmod", "gtsam"] = Field(
         "auto",
-        description="pardiso: own LM, vectorised factors, MKL PARDISO with the analysis reused (LM 6-7x faster on "
-        "paper sizes 1-4, same or lower minimum, docs/benchmarks.md issue 16); gtsam: GTSAM's LevenbergMarquardtOptimizer; auto: pardiso if MKL loads",
+        description="the vectorised LM (own factors, the sparse Cholesky's analysis reused) with pardiso: MKL PARDISO "
+        "(the fast extra, x86-64) or cholmod: SuiteSparse CHOLMOD (cvxopt); gtsam: GTSAM's LevenbergMarquardtOptimizer; "
+        "auto: pardiso where MKL loads, else cholmod",
     )
     threads: int = Field(
-        0, ge=0, description="solver=pardiso: MKL threads of the factorisation; 0 = MKL's default: every core, or "
-        "MKL_NUM_THREADS (survey-batch workers: 1). Measured (docs/benchmarks.md issue 16): 2 threads 1.7x faster than 1 "
-        "on an idle 2-core machine, equal with one other job, slower with six",
+        0, ge=0, description="threads of the sparse Cholesky (PARDISO's MKL, CHOLMOD's BLAS); 0 = the library's default: "
+        "every core, or MKL_NUM_THREADS / OPENBLAS_NUM_THREADS (survey-batch workers: 1)",
     )
     factor_precision: Literal["auto", "single", "double"] = Field(
         "auto",
         description="solver=pardiso: precision of the factorisation; single: float32 Cholesky, each step refined in "
         "double (PCG) to a 1e-10 relative residual, i.e. the double step (double on a matrix float32 cannot resolve); "
-        "auto: single above single_above_variables unknowns. Measured (docs/benchmarks.md issue 16): factorisations "
-        "23-37 % cheaper, paper size 8 optimise 8.7 -> 7.4 s, size 12 22.0 -> 17.0 s, size 4 slower (the refinement's "
-        "solves), the same minimum",
+        "auto: single above single_above_variables unknowns, where the cheaper factorisation outweighs the refinement's "
+        "solves (docs/method.md); CHOLMOD factorises in double",
     )
     single_above_variables: int = Field(
         40_000, ge=0, description="factor_precision=auto: single precision above this many unknowns (3 per solved pose; "
@@ -143,8 +144,8 @@ class OptimizerConfig(_Strict):
     )
     blas_threads: int = Field(
         1, ge=0, description="OpenBLAS threads (numpy's and scipy's) during a survey; 0 = OpenBLAS's default: every "
-        "core, or OPENBLAS_NUM_THREADS. 1 measured faster (docs/benchmarks.md issue 16): the survey's many small "
-        "products do not pay for waking the other threads. MKL's factorisation keeps `threads`",
+        "core, or OPENBLAS_NUM_THREADS. 1: the survey's many small products do not pay for waking the other "
+        "threads. The sparse Cholesky keeps `threads`",
     )
     linear_solver: Literal["auto", "cholesky", "pcg"] = Field(
         "auto",
@@ -275,17 +276,53 @@ class GraphSlamConfig(_Strict):
 
 
 def config_from_dict(data: dict[str, Any] | None, source: str = "<dict>") -> GraphSlamConfig:
+    return validated(GraphSlamConfig, data, source)
+
+
+def validated(model: type[M], data: dict[str, Any] | None, source: str) -> M:
+    """``model`` from ``data``; ``ConfigError`` naming ``source`` and every invalid key."""
     try:
-        return GraphSlamConfig.model_validate(data or {})
+        return model.model_validate(data or {})
     except ValidationError as e:
-        problems = "; ".join(
-            f"{'.'.join(str(p) for p in err['loc']) or '<root>'}: {err['msg']}" for err in e.errors()
-        )
-        raise ConfigError(f"{source}: invalid configuration: {problems}") from None
+        raise ConfigError(f"{source}: invalid configuration: {problems(e)}") from None
+    except ConfigError as e:  # a model that converts its own errors (graphslam.tracking_config)
+        raise ConfigError(f"{source}: {e}") from None
+
+
+def problems(e: ValidationError) -> str:
+    """A pydantic error as one line: ``section.key: message; ...``."""
+    return "; ".join(f"{'.'.join(str(p) for p in err['loc']) or '<root>'}: {err['msg']}" for err in e.errors())
+
+
+def parse_overrides(items: list[str] | tuple[str, ...] | None, example: str = "wifi.d_min_m=3") -> dict[str, Any]:
+    """``--set section.key=value`` options as a nested dict (each value parsed as YAML), to be
+    merged over a configuration file (``load_config``'s ``overrides``)."""
+    overrides: dict[str, Any] = {}
+    for item in items or []:
+        key, sep, raw = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. {example}")
+        try:
+            value = yaml.safe_load(raw)
+        except yaml.YAMLError:
+            raise ConfigError(f"--set {item!r}: the value is not valid YAML") from None
+        node = overrides
+        *parents, leaf = key.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"--set {item!r}: {part} is set to a value, not a section, by another --set")
+        node[leaf] = value
+    return overrides
 
 
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> GraphSlamConfig:
     """Load a YAML config (a partial file is merged over the defaults)."""
+    return load_model(GraphSlamConfig, path, overrides)
+
+
+def load_model(model: type[M], path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> M:
+    """``model`` from a YAML file (a partial file is merged over the defaults) and ``--set`` overrides."""
     data: dict[str, Any] = {}
     source = "--set" if overrides else "<defaults>"
     if path is not None:
@@ -305,7 +342,7 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
             source += " with --set"
     if overrides:
         data = _merge(data, overrides)
-    return config_from_dict(data, source)
+    return validated(model, data, source)
 
 
 def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
@@ -315,10 +352,11 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def commented_yaml(cfg: GraphSlamConfig | None = None) -> str:
-    """The configuration as YAML with each field's description as a comment (configs/default.yaml)."""
+def commented_yaml(cfg: BaseModel | None = None, header: str = "graphslam configuration (mirrors graphslam/config.py; unknown keys are errors).") -> str:
+    """The configuration as YAML with each field's description as a comment (configs/default.yaml,
+    configs/track.yaml)."""
     cfg = cfg or GraphSlamConfig()
-    lines = ["# graphslam configuration (mirrors graphslam/config.py; unknown keys are errors)."]
+    lines = [f"# {header}"]
     for section, model in cfg:
         lines.append(f"{section}:")
         doc = (type(model).__doc__ or "").strip().splitlines()

@@ -6,7 +6,9 @@ one line and exits non-zero.
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
+from types import ModuleType
 
 
 class GraphSlamError(Exception):
@@ -69,3 +71,22 @@ class EstimationError(GraphSlamError):
 
 class OutputError(GraphSlamError):
     """An output file or folder cannot be written (permissions, not a folder, disk full)."""
+
+
+class MissingExtraError(GraphSlamError):
+    """A feature needs an optional dependency that is not installed (``pip install "graphslam[EXTRA]"``)."""
+
+
+# the optional dependencies by extra (pyproject.toml's [project.optional-dependencies])
+EXTRAS = {"rerun": "rerun", "distributed": "batch", "dask": "batch", "matplotlib": "plots"}
+
+
+def require_extra(module: str, purpose: str) -> ModuleType:
+    """``module`` imported, or ``MissingExtraError`` naming the extra to install: one line, exit 2."""
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        top = module.split(".")[0]
+        raise MissingExtraError(
+            f"{purpose} needs {top}, an optional dependency: pip install \"graphslam[{EXTRAS[top]}]\""
+        ) from None

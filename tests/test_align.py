@@ -15,7 +15,7 @@ from mcap.reader import make_reader
 from graphslam.cli import main
 from graphslam.config import load_config
 from graphslam.core.survey.align import align
-from graphslam.core.survey.initialise import fit_se2, se2_apply
+from graphslam.core.common.geometry import fit_se2, se2_apply
 from graphslam.core.types import LandmarkMark, PoseTrack, Scan, Session, Survey
 from graphslam.io.mcap_writer import write_session
 

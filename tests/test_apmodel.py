@@ -77,7 +77,7 @@ def test_radio_map_fit_and_json_round_trip(tmp_path):
 def tiny_case(tmp_path_factory):
     """A surveyed radio map of the simulator's paper building (2 walks at their true positions) and
     the first 80 steps of one held-out walk, as files."""
-    from graphslam.core.survey.evaluate import interpolate_xy
+    from graphslam.core.common.geometry import interpolate_xy
     from graphslam.core.types import PoseTrack, Session
     from graphslam.io.mcap_writer import write_session
     from graphslam.io.radiomap_io import write_radio_map
@@ -107,7 +107,7 @@ def tiny_case(tmp_path_factory):
 
 def test_fit_aps_and_track_cli_end_to_end(tiny_case):
     from graphslam.cli import main
-    from graphslam.core.survey.evaluate import interpolate_xy
+    from graphslam.core.common.geometry import interpolate_xy
 
     d, session = tiny_case
     main(["fit-aps", "--radio-map", str(d / "radio_map.parquet")])
@@ -126,8 +126,11 @@ def test_fit_aps_and_track_cli_end_to_end(tiny_case):
 
 @pytest.mark.parametrize(
     ("option", "value", "message"),
-    [("--filter", "pf", "fixed-lag, ekf, ukf"), ("--smooth", "ks", "unknown smoother"), ("--bank-report", "mean", "mixture, best"),
-     ("--bank-temper", "0.5", "bank_temper must be >= 1"), ("--rssi-field", "0.5", "rssi_field_m must be 0 (off) or >= 1")],
+    [("--filter", "pf", "--filter 'pf': track: invalid tracking configuration: filter.kind"),
+     ("--smooth", "ks", "--smooth 'ks': track: invalid tracking configuration: filter.smoother"),
+     ("--bank-report", "mean", "--bank-report 'mean': track: invalid tracking configuration: fixed_lag.bank_report"),
+     ("--bank-temper", "0.5", "fixed_lag.bank_temper: Input should be greater than or equal to 1"),
+     ("--rssi-field", "0.5", "field_m must be 0 (off) or >= 1")],
 )
 def test_track_cli_rejects_unknown_filter_or_smoother(tiny_case, capsys, option, value, message):
     from graphslam.cli import main
@@ -143,7 +146,7 @@ def test_track_cli_rejects_unknown_filter_or_smoother(tiny_case, capsys, option,
 def _track_cli(d, session, name: str, *args: str) -> tuple[list[dict], np.ndarray]:
     """``graphslam track`` on the tiny case's walk: the CSV rows and each step's error (m)."""
     from graphslam.cli import main
-    from graphslam.core.survey.evaluate import interpolate_xy
+    from graphslam.core.common.geometry import interpolate_xy
 
     out = d / f"positions_{name}.csv"
     main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--out", str(out), *args])
@@ -221,8 +224,8 @@ def test_track_cli_floor_plan_keeps_the_track_on_the_walkable_area(tiny_case, ca
         (["--floor-plan", str(d / "not_a_plan.png"), "--floor-size", "10", "10"], "not_a_plan.png"),
         (["--floor-plan", str(d / "missing.png"), "--floor-size", "10", "10"], "missing.png"),
         (["--floor-size", "10", "10"], "--floor-size given without --floor-plan"),
-        (["--floor-plan", str(plan), "--floor-size", f"{w}", f"{h}", "--walkable-sigma", "0"], "walkable_sigma_m"),
-        (["--floor-plan", str(plan), "--floor-size", f"{w}", f"{h}", "--floor-plan-use", "teleport"], "walkable_mode"),
+        (["--floor-plan", str(plan), "--floor-size", f"{w}", f"{h}", "--walkable-sigma", "0"], "floor_plan.sigma_m"),
+        (["--floor-plan", str(plan), "--floor-size", f"{w}", f"{h}", "--floor-plan-use", "teleport"], "floor_plan.mode"),
     ):
         with pytest.raises(SystemExit) as e:
             main(["-q", "track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--out", str(out), *args])
@@ -255,11 +258,12 @@ def test_track_cli_refuses_a_floor_plan_for_a_map_in_another_frame(tiny_case, tm
 def test_track_skips_an_odometry_jump_instead_of_flying_off(tiny_case):
     # ILC's converter puts the origin pose 1 ms before the first step (0.7 m in 1 ms = 700 m/s).
     # As a velocity reading that throws the estimate hundreds of metres; it must be skipped.
-    from graphslam.core.survey.evaluate import interpolate_xy
+    from graphslam.core.common.geometry import interpolate_xy
     from graphslam.core.types import PoseTrack, Session
     from graphslam.io.apmodel_io import read_ap_models
     from graphslam.io.radiomap_io import read_radio_map
-    from graphslam.app.track import TrackConfig, track_sessions
+    from graphslam.core.tracking.tracker import track_sessions
+    from graphslam.tracking_config import TrackConfig
 
     d, s = tiny_case
     rm = read_radio_map(d / "radio_map.parquet")
@@ -271,7 +275,7 @@ def test_track_skips_an_odometry_jump_instead_of_flying_off(tiny_case):
     truth = interpolate_xy(s.ground_truth, st.t_ns.astype(float))
     err = {}
     for limit in (3.0, 1e9):
-        (tr,) = track_sessions([jumped], rm, models, TrackConfig(max_step_speed_mps=limit))
+        (tr,) = track_sessions([jumped], rm, models, TrackConfig(motion={"max_step_speed_mps": limit}))
         err[limit] = np.linalg.norm(tr.xy[1:] - truth, axis=1)[len(truth) // 2 :].mean()
     assert err[3.0] < 4.0, err
     assert err[1e9] > 3 * err[3.0], err  # the guard is what keeps it on the map
@@ -281,7 +285,7 @@ def _track_rows_and_errors(tiny_case, name: str, *args: str) -> tuple[list[dict]
     """``graphslam track`` on the tiny case's walk with ``args``: the CSV's rows (one per step, in
     step order: asserted) and each step's error against the walk's ground truth (scoring only)."""
     from graphslam.cli import main
-    from graphslam.core.survey.evaluate import interpolate_xy
+    from graphslam.core.common.geometry import interpolate_xy
 
     d, session = tiny_case
     out = d / name
@@ -305,11 +309,11 @@ def test_track_cli_default_is_the_fixed_lag_tracker_and_rejects_a_negative_lag(t
     with pytest.raises(SystemExit) as e:
         main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--lag", "nan", "--out", str(bad)])
     assert e.value.code == 2 and "--lag" in capsys.readouterr().err and not bad.exists()
-    from graphslam.app.track import TrackConfig
-    from graphslam.errors import EstimationError
+    from graphslam.errors import ConfigError
+    from graphslam.tracking_config import TrackConfig
 
-    with pytest.raises(EstimationError, match="lag_s"):  # library callers get the same check
-        TrackConfig(lag_s=float("nan"))
+    with pytest.raises(ConfigError, match="fixed_lag.lag_s"):  # library callers get the same check
+        TrackConfig(fixed_lag={"lag_s": float("nan")})
 
 
 def test_track_keeps_its_self_calibration_beside_the_map(tiny_case, tmp_path, monkeypatch, caplog):
@@ -330,14 +334,14 @@ def test_track_keeps_its_self_calibration_beside_the_map(tiny_case, tmp_path, mo
     measured = []
     real = T.SelfCalibration.measure.__func__
     monkeypatch.setattr(T.SelfCalibration, "measure", classmethod(lambda cls, *a: measured.append(1) or real(cls, *a)))
-    cfg = T.TrackConfig(filter="ekf")
+    cfg = T.TrackConfig(filter={"kind": "ekf"})
     first = T.track_files(rm_path, walk, cfg=cfg)
     assert len(measured) == 1 and json.loads(cache.read_text())["covariance_scale"] >= 1
     again = T.track_files(rm_path, walk, cfg=cfg)
     assert len(measured) == 1  # reused
     np.testing.assert_array_equal(again.tracks[0].x, first.tracks[0].x)
     np.testing.assert_array_equal(again.tracks[0].P, first.tracks[0].P)
-    T.track_files(rm_path, walk, cfg=dataclasses.replace(cfg, knn_k=5))
+    T.track_files(rm_path, walk, cfg=cfg.updated({"knn_fixes.k": 5}))
     assert len(measured) == 2  # another configuration: another calibration
     caplog.set_level(logging.INFO, logger="graphslam.app.track")
     cache.write_text("{not json")

@@ -13,6 +13,8 @@ from pathlib import Path
 import pytest
 from conftest import run_cli as _run
 
+pytest.importorskip("distributed", reason="the batch extra (Dask) is not installed")
+
 from graphslam.io.mcap_writer import write_session
 from graphslam.sim import simulate
 

@@ -16,7 +16,7 @@ from conftest import run_cli
 from graphslam.app.survey import run_survey
 from graphslam.core.survey.align import Alignment, Component
 from graphslam.core.survey.evaluate import component_errors
-from graphslam.core.survey.initialise import se2_apply
+from graphslam.core.common.geometry import se2_apply
 from graphslam.core.types import LandmarkMark, PoseTrack, Session, Survey
 from graphslam.io.mcap_writer import write_session
 from graphslam.sim import simulate

@@ -8,6 +8,7 @@ check the outputs around the solver, whatever the solver forms."""
 
 from __future__ import annotations
 
+import importlib.util
 import dataclasses
 import json
 import subprocess
@@ -130,7 +131,7 @@ def test_radio_map_and_wifi_edges_hold_component_0_only(split_run: tuple, floor:
     # the same survey in one component: the map holds more, and component 0's rows are the same
     full = run_survey([floor], None, GraphSlamConfig(), picture=False)
     assert full.report["radio_map"]["fingerprints"] > len(rm)
-    from graphslam.core.radiomap.survey_maps import crowdsourced_radio_map
+    from graphslam.core.survey.radio_maps import crowdsourced_radio_map
 
     all_rows = crowdsourced_radio_map(full.survey, full.alignment, GraphSlamConfig())
     assert sum(s in main for s in all_rows.session_ids) == len(rm)
@@ -255,6 +256,7 @@ def test_survey_floor_marks_a_floor_partial(floor: Path, tmp_path: Path, monkeyp
     assert row["warning"].startswith("b7_f2 (sim-corridor/F1): the main map holds 2 of 6 walks")
 
 
+@pytest.mark.skipif(importlib.util.find_spec("distributed") is None, reason="the batch extra (Dask) is not installed")
 def test_batch_counts_partial_floors_and_takes_each_floors_control_points(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

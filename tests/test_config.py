@@ -43,24 +43,6 @@ def test_bad_values_rejected(tmp_path: Path) -> None:
         load_config(p)
 
 
-def test_cli_seed_lists_take_ranges_and_reject_garbage(capsys) -> None:
-    from graphslam.cli import _seeds, main
-
-    assert _seeds("0-3,7") == [0, 1, 2, 3, 7]
-    assert _seeds("5") == [5]
-    with pytest.raises(SystemExit) as e:
-        main(["bench", "filters", "--seeds", "0-x"])
-    assert e.value.code == 2 and "--seeds '0-x'" in capsys.readouterr().err
-    with pytest.raises(SystemExit) as e:
-        main(["bench", "filters", "--seeds", "0", "--smoothers", "ks"])
-    assert e.value.code == 2 and "unknown smoother 'ks'" in capsys.readouterr().err
-    for bad in ("1.5,3", "0.5", "0.5,-1", "a,b"):
-        with pytest.raises(SystemExit) as e:
-            main(["bench", "filters", "--seeds", "0", "--shadowing", bad])
-        err = capsys.readouterr().err
-        assert e.value.code == 2 and f"--shadowing: {bad!r}" in err and len(err.strip().splitlines()) == 1
-
-
 def test_cli_metric_options_reject_unknown_metrics_before_reading_files(capsys, tmp_path: Path) -> None:
     from graphslam.cli import main
 
@@ -69,7 +51,6 @@ def test_cli_metric_options_reject_unknown_metrics_before_reading_files(capsys, 
         (["locate", str(tmp_path), "--radio-map", missing, "--out", str(tmp_path / "o.csv"), "--metric", "cosine"], "--metric"),
         (["serve", "--radio-map", missing, "--metric", "cosine"], "--metric"),
         (["track", str(tmp_path), "--radio-map", missing, "--out", str(tmp_path / "o.csv"), "--knn-metric", "cosine"], "--knn-metric"),
-        (["bench", "ujiindoorloc", str(tmp_path), "--metric", "cosine"], "--metric"),
     ):
         with pytest.raises(SystemExit) as e:
             main(argv)
@@ -80,22 +61,22 @@ def test_cli_metric_options_reject_unknown_metrics_before_reading_files(capsys, 
 
 
 def test_track_config_knn_metric() -> None:
-    from graphslam.app.track import TrackConfig
-    from graphslam.errors import EstimationError
+    from graphslam.core.tracking.tracker import knn_config, particle_config
+    from graphslam.tracking_config import TrackConfig
 
-    assert TrackConfig(knn_metric="sorensen").knn_config().metric == "sorensen"
+    assert knn_config(TrackConfig(knn_fixes={"metric": "sorensen"})).metric == "sorensen"
     # the particle filter matches on the same distance, its temperature in that distance's units
-    from graphslam.app.track import PARTICLE_TEMPERATURE
+    from graphslam.core.tracking.particle import PARTICLE_TEMPERATURE
 
-    pf = TrackConfig(filter="particle")
-    assert pf.knn_config().metric == "sorensen" and pf.particle_config().temperature == PARTICLE_TEMPERATURE["sorensen"]
+    pf = TrackConfig(filter={"kind": "particle"})
+    assert knn_config(pf).metric == "sorensen" and particle_config(pf).temperature == PARTICLE_TEMPERATURE["sorensen"]
     assert PARTICLE_TEMPERATURE["sorensen"] < 1.0 < PARTICLE_TEMPERATURE["eq9"]  # unitless in [0, 1] / dB
-    eq9 = TrackConfig(filter="particle", knn_metric="eq9")
-    assert eq9.knn_config().metric == "eq9" and eq9.particle_config().temperature == PARTICLE_TEMPERATURE["eq9"]
-    assert TrackConfig(filter="particle", particle_temperature=0.1).particle_config().temperature == 0.1
-    with pytest.raises(EstimationError, match="temperature"):
-        TrackConfig(filter="particle", particle_temperature=0.0)
-    with pytest.raises(EstimationError, match="unknown kNN metric 'cosine'"):
-        TrackConfig(knn_metric="cosine")
-    with pytest.raises(EstimationError, match="bank_temper"):
-        TrackConfig(bank_temper=0.5)  # below 1 would sharpen the bank's odds beyond its own likelihood
+    eq9 = TrackConfig(filter={"kind": "particle"}, knn_fixes={"metric": "eq9"})
+    assert knn_config(eq9).metric == "eq9" and particle_config(eq9).temperature == PARTICLE_TEMPERATURE["eq9"]
+    assert particle_config(TrackConfig(filter={"kind": "particle"}, particle={"temperature": 0.1})).temperature == 0.1
+    with pytest.raises(ConfigError, match="particle.temperature"):
+        TrackConfig(filter={"kind": "particle"}, particle={"temperature": 0.0})
+    with pytest.raises(ConfigError, match="knn_fixes.metric: Input should be 'eq9' or 'sorensen'"):
+        TrackConfig(knn_fixes={"metric": "cosine"})
+    with pytest.raises(ConfigError, match="fixed_lag.bank_temper"):
+        TrackConfig(fixed_lag={"bank_temper": 0.5})  # below 1 would sharpen the bank's odds beyond its own likelihood

@@ -17,7 +17,7 @@ from graphslam.errors import EstimationError
 
 X0 = np.array([1.0, 2.0, 0.1, -0.2, 0.0, 0.0])
 P0 = np.diag([0.5, 0.5, 0.2, 0.2, 0.01, 0.01])
-TIGHT = dict(huber_k=None, rel_tol=1e-12, max_iter=30, prune_cost=None)  # exact solves, Gaussian loss
+TIGHT = dict(huber_k=None, rel_tol=1e-12, max_iter=30, prune_cost=None, adaptive_rssi=False, report="best")  # exact solves, Gaussian loss
 
 
 def _model() -> FusionModel:
@@ -105,7 +105,7 @@ def test_the_bank_reports_the_start_that_explains_the_fixes():
     m, e = _model(), _epochs()
     far = X0 + np.r_[20.0, 0, 0, 0, 0, 0]
     tight = np.diag([0.01, 0.01, 0.2, 0.2, 0.01, 0.01])
-    fl = fixed_lag_smooth(m, [far, X0], tight, e, FixedLagConfig(lag_s=0.0, window_s=5.0, huber_k=None, prune_cost=30.0))
+    fl = fixed_lag_smooth(m, [far, X0], tight, e, FixedLagConfig(lag_s=0.0, window_s=5.0, huber_k=None, prune_cost=30.0, adaptive_rssi=False, report="best"))
     assert np.isinf(fl.cost[0]) and np.isfinite(fl.cost[1])
     assert (fl.hypothesis[e.fix_k[2]:] == 1).all()
 
@@ -142,16 +142,16 @@ def test_mixture_moments_match_the_raw_moment_formula_and_wrap_the_angle():
 def test_the_mixture_report_spreads_over_undecided_starts_and_follows_a_decided_bank():
     m, e = _model(), _epochs()
     tight = np.diag([0.01, 0.01, 0.2, 0.2, 0.01, 0.01])
-    cfg = dict(lag_s=0.0, window_s=5.0, huber_k=None)
+    cfg = dict(lag_s=0.0, window_s=5.0, huber_k=None, adaptive_rssi=False)
     # two identical starts: the mixture is the single run
-    one = fixed_lag_smooth(m, [X0], tight, e, FixedLagConfig(**cfg))
+    one = fixed_lag_smooth(m, [X0], tight, e, FixedLagConfig(**cfg, report="best"))
     two = fixed_lag_smooth(m, [X0, X0], tight, e, FixedLagConfig(**cfg, report="mixture"))
     np.testing.assert_allclose(two.x, one.x, atol=1e-9)
     np.testing.assert_allclose(two.P, one.P, atol=1e-9)
     # 20 m apart: at the first epoch (no fix yet) the report sits between the two with their
     # spread in its covariance; once the fixes decide, it is the best start's estimate
     far = X0 + np.r_[20.0, 0, 0, 0, 0, 0]
-    best = fixed_lag_smooth(m, [far, X0], tight, e, FixedLagConfig(**cfg, prune_cost=30.0))
+    best = fixed_lag_smooth(m, [far, X0], tight, e, FixedLagConfig(**cfg, prune_cost=30.0, report="best"))
     mix = fixed_lag_smooth(m, [far, X0], tight, e, FixedLagConfig(**cfg, prune_cost=30.0, report="mixture"))
     assert abs(mix.x[0, 0] - (X0[0] + 10.0)) < 1e-6 and mix.P[0, 0, 0] > 99.0
     assert best.P[0, 0, 0] < 0.1
@@ -168,7 +168,7 @@ def test_a_tempered_bank_weighs_its_starts_as_if_the_costs_were_divided():
     m, e = _model(), _epochs()
     tight = np.diag([0.01, 0.01, 0.2, 0.2, 0.01, 0.01])
     far = X0 + np.r_[20.0, 0, 0, 0, 0, 0]
-    cfg = dict(lag_s=0.0, window_s=5.0, huber_k=None, report="mixture")
+    cfg = dict(lag_s=0.0, window_s=5.0, huber_k=None, report="mixture", adaptive_rssi=False)
     plain = fixed_lag_smooth(m, [far, X0], tight, e, FixedLagConfig(**cfg, prune_cost=30.0))
     temp = fixed_lag_smooth(m, [far, X0], tight, e, FixedLagConfig(**cfg, prune_cost=30.0, temper=1e4))
     assert np.isinf(plain.cost[0]) and np.isfinite(temp.cost).all()

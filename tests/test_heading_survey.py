@@ -15,7 +15,7 @@ from graphslam.core.survey.align import align, build_problem, initialization, po
 from graphslam.core.survey.components import place_components
 from graphslam.core.survey.control import control_ties, tie_walks
 from graphslam.core.survey.heading import robust_circular_mean, walk_headings
-from graphslam.core.survey.initialise import se2_apply
+from graphslam.core.common.geometry import se2_apply
 from graphslam.core.survey.placement import GrowthParams
 from graphslam.core.types import HeadingTrack, LandmarkMark, Session, Survey, wrap_angle
 from graphslam.errors import SolverError

@@ -1,6 +1,8 @@
 """The package is layered errors -> config -> core -> io -> sim / service / viz -> app -> cli:
 no module imports (at module level or lazily inside a function) from a layer above its own,
-and core does no file I/O beyond what its own layer allows."""
+and core does no file I/O beyond what its own layer allows. Inside core the sub-packages depend in
+one direction too: common (with types, progress, summary) -> radiomap -> uwb -> survey, and
+tracking beside survey (on radiomap); neither of survey and tracking imports the other."""
 
 from __future__ import annotations
 
@@ -10,9 +12,12 @@ from pathlib import Path
 import graphslam
 
 PKG = Path(graphslam.__file__).parent
-LAYER = {"errors": 0, "config": 1, "core": 2, "io": 3, "sim": 4, "service": 4, "viz": 4, "app": 5, "cli": 6}
+LAYER = {"errors": 0, "config": 1, "tracking_config": 1, "core": 2, "io": 3, "sim": 4, "service": 4, "viz": 4, "app": 5, "cli": 6}
 # sim/service/viz are side by side: none may import another of the three
 PEERS = {"sim", "service", "viz"}
+# the core sub-packages (and core's own modules, which count as common)
+CORE = {"common": 0, "types": 0, "progress": 0, "summary": 0, "radiomap": 1, "uwb": 2, "survey": 3, "tracking": 3}
+CORE_PEERS = {"survey", "tracking"}
 
 
 def _part(module: str) -> str | None:
@@ -35,6 +40,21 @@ def _imports(path: Path) -> list[str]:
     return out
 
 
+def _core_part(module: str) -> str | None:
+    parts = module.split(".")
+    return parts[2] if len(parts) > 2 and parts[:2] == ["graphslam", "core"] else None
+
+
+def _core_violation(rel: Path, mod: str) -> bool:
+    """A core module importing a core sub-package above its own (or its peer)."""
+    if len(rel.parts) < 2 or rel.parts[0] != "core":
+        return False
+    own, other = rel.parts[1].removesuffix(".py"), _core_part(mod)
+    if own == "__init__" or other is None or other == own or other not in CORE or own not in CORE:
+        return False
+    return CORE[other] > CORE[own] or (own in CORE_PEERS and other in CORE_PEERS)
+
+
 def _violations(root: Path = PKG) -> list[str]:
     bad = []
     for path in sorted(root.rglob("*.py")):
@@ -44,11 +64,21 @@ def _violations(root: Path = PKG) -> list[str]:
             continue  # the package facade re-exports lazily from every layer
         for mod in _imports(path):
             other = _part(mod)
-            if other is None or other not in LAYER or other == own:
+            if other is None or other not in LAYER:
+                continue
+            if other == own:
+                if _core_violation(rel, mod):
+                    bad.append(f"{rel} imports {mod}")
                 continue
             if LAYER[other] > LAYER[own] or (own in PEERS and other in PEERS):
                 bad.append(f"{rel} imports {mod}")
     return bad
+
+
+def test_every_core_sub_package_has_a_rank() -> None:
+    # a new core sub-package must be placed in the order (else the check would skip it)
+    names = {p.name.removesuffix(".py") for p in (PKG / "core").iterdir() if p.name != "__pycache__"}
+    assert names - {"__init__"} <= set(CORE)
 
 
 def test_no_module_imports_from_a_higher_layer() -> None:
@@ -62,3 +92,23 @@ def test_the_checker_sees_a_violation(tmp_path: Path) -> None:
     (tmp_path / "core" / "probe.py").write_text("def f():\n    from graphslam.app.survey import run_survey\n")
     (tmp_path / "viz" / "probe.py").write_text("import graphslam.sim.radio\nfrom graphslam.core import types\n")
     assert _violations(tmp_path) == ["core/probe.py imports graphslam.app.survey", "viz/probe.py imports graphslam.sim.radio"]
+
+
+def test_the_checker_sees_a_core_sub_package_violation(tmp_path: Path) -> None:
+    # radiomap importing survey (above it), uwb lazily importing survey, survey and tracking (peers)
+    # importing each other, and common importing a sub-package: all caught; survey -> radiomap is fine
+    for sub in ("radiomap", "uwb", "survey", "tracking", "common"):
+        (tmp_path / "core" / sub).mkdir(parents=True)
+    (tmp_path / "core" / "radiomap" / "probe.py").write_text("from graphslam.core.survey.align import Alignment\n")
+    (tmp_path / "core" / "uwb" / "probe.py").write_text("def f():\n    import graphslam.core.survey.factors\n")
+    (tmp_path / "core" / "survey" / "probe.py").write_text(
+        "from graphslam.core.radiomap import knn\nfrom graphslam.core.tracking.filters import FusionModel\n")
+    (tmp_path / "core" / "tracking" / "probe.py").write_text("from graphslam.core.survey import align\n")
+    (tmp_path / "core" / "common" / "probe.py").write_text("from graphslam.core.types import Survey\nimport graphslam.core.uwb\n")
+    assert _violations(tmp_path) == [
+        "core/common/probe.py imports graphslam.core.uwb",
+        "core/radiomap/probe.py imports graphslam.core.survey.align",
+        "core/survey/probe.py imports graphslam.core.tracking.filters",
+        "core/tracking/probe.py imports graphslam.core.survey",
+        "core/uwb/probe.py imports graphslam.core.survey.factors",
+    ]

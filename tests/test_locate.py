@@ -111,7 +111,7 @@ def test_locate_cli_bad_radio_map_is_one_line_error(tmp_path: Path) -> None:
 def test_locate_rerun_logs_answers_and_truth(tmp_path: Path) -> None:
     from dataclasses import replace
 
-    from rerun.chunk import RrdReader
+    RrdReader = pytest.importorskip("rerun.chunk", reason="the rerun extra is not installed").RrdReader
 
     rm_path = make_map(tmp_path)
     q = query_session("q1", [10.0, 20.0, 30.0])

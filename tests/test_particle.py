@@ -101,11 +101,12 @@ def test_the_start_is_the_earliest_matching_scan_whatever_the_order() -> None:
 
 
 def test_track_config_checks_the_particle_settings_up_front() -> None:
-    from graphslam.app.track import TrackConfig
+    from graphslam.core.tracking.tracker import particle_config
+    from graphslam.errors import ConfigError
+    from graphslam.tracking_config import TrackConfig
 
-    for bad in (dict(particles=1), dict(particle_outlier=1.5), dict(particle_kernel_m=0.0), dict(particle_top_k=0)):
-        with pytest.raises(EstimationError, match="particle filter"):
-            TrackConfig(filter="particle", **bad)
-    TrackConfig(particles=1)  # not the particle filter: not its business
-    cfg = TrackConfig(filter="particle", particle_seed=5).particle_config(area_m2=20.0, seed=3)
+    for bad in (dict(count=1), dict(outlier=1.5), dict(kernel_m=0.0), dict(top_k=0)):
+        with pytest.raises(ConfigError, match="particle."):
+            TrackConfig(filter={"kind": "particle"}, particle=bad)
+    cfg = particle_config(TrackConfig(filter={"kind": "particle"}, particle={"seed": 5}), area_m2=20.0, seed=3)
     assert cfg.seed == 5 ^ 3 and cfg.area_m2 == 20.0 and cfg.kernel_m == 4.0 and cfg.lag_s == 2.0

@@ -8,7 +8,7 @@ import pytest
 from graphslam.core.radiomap.fingerprints import FingerprintMatrix
 from graphslam.core.radiomap.similarity import PowerCosine
 from graphslam.core.survey.association import associate
-from graphslam.core.survey.initialise import se2_apply
+from graphslam.core.common.geometry import se2_apply
 from graphslam.core.survey.placement import GrowthParams, grow_placement, hough_se2, refine_rigid
 from graphslam.core.types import PoseTrack, Scan, Session, Survey
 

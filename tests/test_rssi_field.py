@@ -107,8 +107,10 @@ def test_path_loss_model_refuses_a_field_for_other_aps():
 
 
 def test_trackers_take_the_field_from_their_map_unless_told_not_to():
-    from graphslam.app.track import TrackConfig, Tracker, fusion_model, with_residual_field
+    from graphslam.core.tracking.tracker import Tracker, fusion_model, with_residual_field
     from graphslam.core.tracking.apmodel import ApModels
+    from graphslam.errors import ConfigError
+    from graphslam.tracking_config import TrackConfig
 
     rm = _wall_map(np.random.default_rng(3))
     models = ApModels.fit(rm)
@@ -117,10 +119,10 @@ def test_trackers_take_the_field_from_their_map_unless_told_not_to():
     on = with_residual_field(base, rm, TrackConfig())
     assert on.path_loss.correction is not None and on.path_loss.correction.cells > 0
     np.testing.assert_array_equal(on.r_rssi, base.r_rssi)  # the noise stays the law's
-    assert with_residual_field(base, rm, TrackConfig(rssi_field_m=0.0)) is base
-    with pytest.raises(EstimationError, match="rssi_field_m"):
-        TrackConfig(rssi_field_m=0.5)
-    quick = {"self_calibrate": False}
+    assert with_residual_field(base, rm, TrackConfig(rssi={"field_m": 0.0})) is base
+    with pytest.raises(ConfigError, match="field_m must be 0"):
+        TrackConfig(rssi={"field_m": 0.5})
+    quick = {"calibration": {"enabled": False}}
     assert Tracker.on_map(rm, models, TrackConfig(**quick)).model.path_loss.correction is not None
-    assert Tracker.on_map(rm, models, TrackConfig(rssi=False, **quick)).model.path_loss.correction is None
-    assert Tracker.on_map(rm, models, TrackConfig(rssi_field_m=0.0, **quick)).model.path_loss.correction is None
+    assert Tracker.on_map(rm, models, TrackConfig(rssi={"enabled": False}, **quick)).model.path_loss.correction is None
+    assert Tracker.on_map(rm, models, TrackConfig(rssi={"field_m": 0.0}, **quick)).model.path_loss.correction is None

@@ -99,6 +99,7 @@ def test_non_loopback_without_token_warns(monkeypatch: pytest.MonkeyPatch, caplo
     from graphslam.errors import GraphSlamError
     from graphslam.io.radiomap_io import write_radio_map
     from graphslam.service import server as srv
+    from graphslam.service.config import ServeConfig
 
     assert is_loopback("127.0.0.1") and is_loopback("::1") and is_loopback("localhost")
     assert not is_loopback("0.0.0.0") and not is_loopback("::") and not is_loopback("192.168.1.4")
@@ -106,15 +107,15 @@ def test_non_loopback_without_token_warns(monkeypatch: pytest.MonkeyPatch, caplo
     runs: list[dict] = []
     monkeypatch.setattr(uvicorn, "run", lambda app, **kw: runs.append(kw))  # no socket is bound
     with caplog.at_level(logging.WARNING, logger="graphslam.service.server"):
-        srv.serve(path, host="0.0.0.0", search_processes=0, log_level="warning")
+        srv.serve(path, ServeConfig(host="0.0.0.0", search_processes=0, log_level="warning"))
         assert "without a bearer token" in caplog.text
         caplog.clear()
-        srv.serve(path, host="0.0.0.0", search_processes=0, token=TOKEN)
-        srv.serve(path, host="127.0.0.1", search_processes=0)
+        srv.serve(path, ServeConfig(host="0.0.0.0", search_processes=0, token=TOKEN))
+        srv.serve(path, ServeConfig(host="127.0.0.1", search_processes=0))
         assert "without a bearer token" not in caplog.text
     assert [r["log_level"] for r in runs] == ["warning", "info", "info"]
-    with pytest.raises(GraphSlamError, match="log level 'loud'"):
-        srv.serve(path, log_level="loud", search_processes=0)
+    with pytest.raises(GraphSlamError, match="serve: log_level: Input should be 'critical'"):
+        srv.serve(path, ServeConfig(log_level="loud", search_processes=0))
 
 
 def free_port() -> int:

@@ -130,7 +130,8 @@ def test_fixed_lag_with_shadowing_holds_a_cart_run_the_white_model_loses():
     run = simulate_cart(11, path_loss=white.path_loss, noise=CartNoise())
     k = 188  # two rounds of the rectangle
     e = Epochs.fixed_rate(run.y_velocity[:k], run.y_rssi[:k], run.period_s)
-    cfg = FixedLagConfig(lag_s=2.0, window_s=480.0, huber_k=None, prune_cost=None, restart_every=10)
+    cfg = FixedLagConfig(lag_s=2.0, window_s=480.0, huber_k=None, prune_cost=None, restart_every=10,
+                         adaptive_rssi=False, report="best")
     rms = {}
     with threadpool_limits(limits=1, user_api="blas"):  # thousands of tiny solves, as `bench filters`
         for name, m in (("white", white), ("shadowing", corr)):

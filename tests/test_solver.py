@@ -1,5 +1,5 @@
-"""The PARDISO Levenberg-Marquardt (core/survey/solver.py): factors against GTSAM, normal equations,
-and the same minimum as GTSAM's optimiser."""
+"""The vectorised Levenberg-Marquardt (core/survey/solver.py) on either sparse Cholesky (PARDISO, CHOLMOD):
+factors against GTSAM, normal equations, and the same minimum as GTSAM's optimiser."""
 
 from __future__ import annotations
 
@@ -17,7 +17,11 @@ from graphslam.core.survey.align import build_problem, pose_graph, solve
 from graphslam.errors import SolverError
 
 X = gtsam.symbol_shorthand.X
-pytestmark = pytest.mark.skipif(not S.pardiso_available(), reason="MKL PARDISO not available on this platform")
+from graphslam.core.common import cholesky as C
+
+needs_pardiso = pytest.mark.skipif(not C.pardiso_available(), reason="MKL PARDISO (the fast extra) not available here")
+needs_cholmod = pytest.mark.skipif(not C.cholmod_available(), reason="cvxopt (CHOLMOD) not installed")
+BACKENDS = [pytest.param("pardiso", marks=needs_pardiso), pytest.param("cholmod", marks=needs_cholmod)]
 
 
 def _poses(rng: np.random.Generator, m: int) -> tuple[np.ndarray, np.ndarray]:
@@ -96,9 +100,10 @@ def test_normal_equations_equal_the_dense_products() -> None:
     np.testing.assert_allclose(S._sym_matvec(ne, H, x), J.T @ J @ x, atol=1e-10)
 
 
-def test_reaches_gtsam_minimum_with_one_factorisation_per_iteration() -> None:
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_reaches_gtsam_minimum_with_one_factorisation_per_iteration(backend: str) -> None:
     survey = two_walks()
-    cfg_p = CFG.model_copy(update={"optimizer": CFG.optimizer.model_copy(update={"solver": "pardiso"})})
+    cfg_p = CFG.model_copy(update={"optimizer": CFG.optimizer.model_copy(update={"solver": backend})})
     cfg_g = CFG.model_copy(update={"optimizer": CFG.optimizer.model_copy(update={"solver": "gtsam"})})
     problem = build_problem(survey, cfg_p)
     p, g = solve(problem, cfg_p), solve(problem, cfg_g)
@@ -112,9 +117,34 @@ def test_reaches_gtsam_minimum_with_one_factorisation_per_iteration() -> None:
     # every LM run: one factorisation per iteration when no step is rejected
     graph, _ = pose_graph(problem, cfg_p)
     active = np.ones(len(problem.wifi_pairs), bool)
-    res = S.levenberg_marquardt(graph, problem.init_xyh, active)
+    res = S.levenberg_marquardt(graph, problem.init_xyh, active, S.LMSettings(backend=backend))
     assert res.converged and res.error < res.initial_error
     assert res.factorizations <= res.iterations + 2
+
+
+@needs_pardiso
+@needs_cholmod
+def test_cholmod_and_pardiso_reach_the_same_minimum() -> None:
+    problem = build_problem(two_walks(), CFG)
+    graph, _ = pose_graph(problem, CFG)
+    active = np.ones(len(problem.wifi_pairs), bool)
+    p, c = (S.levenberg_marquardt(graph, problem.init_xyh, active, S.LMSettings(backend=b)) for b in ("pardiso", "cholmod"))
+    assert p.iterations == c.iterations and abs(p.error - c.error) <= 1e-9 * max(1.0, p.error)
+    np.testing.assert_allclose(c.xyh, p.xyh, atol=1e-7)
+
+
+@needs_cholmod
+def test_cholmod_refuses_a_matrix_that_is_not_positive_definite() -> None:
+    rng = np.random.default_rng(5)
+    ne, H = _chain_system(rng, 50, 1.0)
+    f = C.sparse_cholesky("cholmod", ne.indptr, ne.indices)
+    f.factor(H)
+    b = rng.normal(size=ne.n)
+    assert np.linalg.norm(S._sym_matvec(ne, H, f.solve(b)) - b) <= 1e-9 * np.linalg.norm(b)
+    bad = H.copy()
+    bad[ne.diag_pos[:3]] = -1.0
+    with pytest.raises(np.linalg.LinAlgError):
+        f.factor(bad)
 
 
 def test_an_unfinite_start_is_an_error() -> None:
@@ -126,18 +156,20 @@ def test_an_unfinite_start_is_an_error() -> None:
         S.levenberg_marquardt(graph, bad, np.ones(len(problem.wifi_pairs), bool))
 
 
-def test_auto_falls_back_to_gtsam_where_mkl_does_not_load(monkeypatch: pytest.MonkeyPatch) -> None:
+@needs_pardiso
+def test_auto_takes_pardiso_where_mkl_loads_else_cholmod(monkeypatch: pytest.MonkeyPatch) -> None:
     from graphslam.core.survey.align import use_pardiso
 
-    assert use_pardiso(CFG)  # MKL loads here (the module is skipped otherwise)
+    assert use_pardiso(CFG) and C.backend_for("auto") == "pardiso"  # MKL loads here
 
     def no_mkl() -> None:
         raise OSError("MKL runtime (libmkl_rt) not found")
 
-    monkeypatch.setattr(S, "_mkl_runtime", no_mkl)
-    assert not S.pardiso_available() and not use_pardiso(CFG)
+    monkeypatch.setattr(C, "_mkl_runtime", no_mkl)
+    assert not S.pardiso_available() and C.backend_for("auto") == "cholmod"
+    assert use_pardiso(CFG)  # the vectorised LM still, on CHOLMOD
     gtsam_cfg = CFG.model_copy(update={"optimizer": CFG.optimizer.model_copy(update={"solver": "gtsam"})})
-    assert not use_pardiso(gtsam_cfg)
+    assert not use_pardiso(gtsam_cfg) and C.backend_for("cholmod") == "cholmod"
 
 
 def test_a_graph_of_the_reference_pose_alone_is_already_solved() -> None:
@@ -151,6 +183,7 @@ def test_a_graph_of_the_reference_pose_alone_is_already_solved() -> None:
     np.testing.assert_array_equal(res.xyh, problem.init_xyh)
 
 
+@needs_pardiso
 def test_the_factorisation_on_every_core_reaches_the_same_minimum() -> None:
     """optimizer.threads 0 (MKL's default: every core) and 1 give the same solution: a parallel
     factorisation only reorders sums."""
@@ -234,6 +267,7 @@ def _double_and_single(ne: S._NormalEquations, H: np.ndarray) -> Iterator[tuple[
         fast.free()
 
 
+@needs_pardiso
 @pytest.mark.parametrize("scale_range", [1.0, 1e8])
 def test_a_single_precision_factorisation_refined_in_double_gives_the_double_solution(scale_range: float) -> None:
     rng = np.random.default_rng(11)
@@ -243,12 +277,13 @@ def test_a_single_precision_factorisation_refined_in_double_gives_the_double_sol
         want, got = exact.solve(b), fast.solve(b)
         assert fast.fallbacks == 0  # refined, not redone in double
         # the float32 factor alone is far off; the refined solve is the double one
-        raw = fast._pardiso.solve(b)
+        raw = fast._factor.solve(b)
         assert np.linalg.norm(S._sym_matvec(ne, H, raw) - b) > 1e3 * np.linalg.norm(S._sym_matvec(ne, H, got) - b)
         assert np.linalg.norm(S._sym_matvec(ne, H, got) - b) <= 1e-10 * np.linalg.norm(b) * 1.0001
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-6 * np.abs(want).max())
 
 
+@needs_pardiso
 def test_a_matrix_float32_cannot_resolve_is_solved_in_double() -> None:
     rng = np.random.default_rng(12)
     # singular but for a ridge of 1e-12 (the gauge of an unanchored graph): condition ~1e14, beyond float32
@@ -263,6 +298,7 @@ def test_a_matrix_float32_cannot_resolve_is_solved_in_double() -> None:
         assert fast.fallbacks == 1
 
 
+@needs_pardiso
 def test_lm_with_the_single_precision_factorisation_reaches_the_double_minimum() -> None:
     problem = build_problem(two_walks(), CFG)
     graph, _ = pose_graph(problem, CFG)
@@ -274,6 +310,7 @@ def test_lm_with_the_single_precision_factorisation_reaches_the_double_minimum()
     np.testing.assert_allclose(runs[1].xyh, runs[0].xyh, atol=1e-7)
 
 
+@needs_pardiso
 def test_auto_precision_factorises_in_single_only_above_the_variable_count(monkeypatch: pytest.MonkeyPatch) -> None:
     problem = build_problem(two_walks(), CFG)
     graph, _ = pose_graph(problem, CFG)
@@ -281,9 +318,9 @@ def test_auto_precision_factorises_in_single_only_above_the_variable_count(monke
     seen: list[bool] = []
 
     class Spy(S._DampedSystem):
-        def __init__(self, ne: S._NormalEquations, threads: int, single: bool) -> None:
+        def __init__(self, ne: S._NormalEquations, threads: int, single: bool, backend: str = "pardiso") -> None:
             seen.append(single)
-            super().__init__(ne, threads, single)
+            super().__init__(ne, threads, single, backend)
 
     monkeypatch.setattr(S, "_DampedSystem", Spy)
     n = 3 * len(graph.variables)

@@ -128,21 +128,22 @@ def _corridor_map(offset_m: float, seed: int = 3) -> RadioMap:
 
 
 def test_self_calibration_takes_the_fix_noise_from_the_map_and_keeps_the_configured_floor_otherwise():
-    from graphslam.app.track import TrackConfig, Tracker
+    from graphslam.core.tracking.tracker import Tracker
+    from graphslam.tracking_config import TrackConfig
 
     names = [f"ap{j}" for j in range(len(APS))]
-    cfg = TrackConfig(replay_sessions=0)
+    cfg = TrackConfig(calibration={"replay_sessions": 0})
     far = Tracker.on_map(_corridor_map(6.0), _models(names, APS), cfg)
-    assert far.cfg.fix_sigma_floor_m == pytest.approx(6.0 / 1.1774, rel=0.05)  # the maps' sessions disagree by 6 m
+    assert far.cfg.knn_fixes.sigma_floor_m == pytest.approx(6.0 / 1.1774, rel=0.05)  # the maps' sessions disagree by 6 m
     near = Tracker.on_map(_corridor_map(0.5), _models(names, APS), cfg)
-    assert near.cfg.fix_sigma_floor_m == cfg.fix_sigma_floor_m  # never below the configured floor
-    off = Tracker.on_map(_corridor_map(6.0), _models(names, APS), TrackConfig(self_calibrate=False))
-    assert off.cfg.fix_sigma_floor_m == cfg.fix_sigma_floor_m and off.cfg.covariance_scale == 1.0
-    assert off.cfg.bank_temper is None and far.cfg.bank_temper > 1.0  # measured on the map (None: the bank's own costs)
-    assert far.calibration.bank_temper == far.cfg.bank_temper
-    fixed = Tracker.on_map(_corridor_map(6.0), _models(names, APS), dataclasses.replace(cfg, bank_temper=2.5))
-    assert fixed.cfg.bank_temper == 2.5 and fixed.calibration.bank_temper == 1.0  # configured: not measured
-    ekf = Tracker.on_map(_corridor_map(6.0), _models(names, APS), dataclasses.replace(cfg, filter="ekf"))
+    assert near.cfg.knn_fixes.sigma_floor_m == cfg.knn_fixes.sigma_floor_m  # never below the configured floor
+    off = Tracker.on_map(_corridor_map(6.0), _models(names, APS), TrackConfig(calibration={"enabled": False}))
+    assert off.cfg.knn_fixes.sigma_floor_m == cfg.knn_fixes.sigma_floor_m and off.cfg.calibration.covariance_scale == 1.0
+    assert off.cfg.fixed_lag.bank_temper is None and far.cfg.fixed_lag.bank_temper > 1.0  # measured on the map (None: the bank's own costs)
+    assert far.calibration.bank_temper == far.cfg.fixed_lag.bank_temper
+    fixed = Tracker.on_map(_corridor_map(6.0), _models(names, APS), cfg.updated({"fixed_lag.bank_temper": 2.5}))
+    assert fixed.cfg.fixed_lag.bank_temper == 2.5 and fixed.calibration.bank_temper == 1.0  # configured: not measured
+    ekf = Tracker.on_map(_corridor_map(6.0), _models(names, APS), cfg.updated({"filter.kind": "ekf"}))
     assert ekf.calibration.bank_temper == 1.0  # no weighted bank to temper: not measured
     assert (far.model.r_rssi >= off.model.r_rssi - 1e-12).all()  # RSSI variance only ever inflated
 
@@ -151,16 +152,18 @@ def test_replay_scale_grows_when_the_tracker_claims_too_much_and_scales_the_repo
     # Replaying the map's own walks: a tracker told its fixes are good to 5 cm (and its RSSI to
     # 0.1 dB) reports ellipses far too small for where the map says the walk was, so the factor is
     # large; one told 20 m needs none (>= 1 by construction).
-    from graphslam.app.track import TrackConfig, fusion_model, replay_covariance_scale, track_session
+    from graphslam.core.tracking.tracker import fusion_model, replay_covariance_scale, track_session
+    from graphslam.tracking_config import TrackConfig
     from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
 
     names = [f"ap{j}" for j in range(len(APS))]
     rm, models = _corridor_map(1.0), _models(names, APS)
     # leave-one-walk-out replay: the two walks repeat each other 1 m apart, so the default route
     # radius (1 m) would leave nothing to replay on
-    small = dict(replay_sessions=2, replay_max_scans=12, n_theta_hypotheses=2, self_calibrate=False, replay_route_radius_m=0.0)
-    tight = TrackConfig(fix_sigma_floor_m=0.05, rssi_sigma_floor_db=0.1, **small)
-    loose = TrackConfig(fix_sigma_floor_m=20.0, rssi_sigma_floor_db=30.0, **small)
+    small = dict(calibration={"replay_sessions": 2, "replay_max_scans": 12, "enabled": False, "replay_route_radius_m": 0.0},
+                 motion={"n_theta_hypotheses": 2})
+    tight = TrackConfig(knn_fixes={"sigma_floor_m": 0.05}, rssi={"sigma_floor_db": 0.1}, **small)
+    loose = TrackConfig(knn_fixes={"sigma_floor_m": 20.0}, rssi={"sigma_floor_db": 30.0}, **small)
     s_tight = replay_covariance_scale(rm, fusion_model(_models(names, APS), tight), tight)
     s_loose = replay_covariance_scale(rm, fusion_model(models, loose), loose)
     assert s_tight > 5.0 and s_loose == pytest.approx(1.0), (s_tight, s_loose)
@@ -173,13 +176,13 @@ def test_replay_scale_grows_when_the_tracker_claims_too_much_and_scales_the_repo
     walk = Session("w", PoseTrack(rm.t_ns[:12], rm.xy[:12] - rm.xy[0], np.zeros(12)), scans)
     loc = KnnLocator(rm, KnnConfig(k=3))
     a = track_session(walk, fusion_model(models, tight), loc, tight)
-    b = track_session(walk, fusion_model(models, tight), loc, dataclasses.replace(tight, covariance_scale=3.0))
+    b = track_session(walk, fusion_model(models, tight), loc, tight.updated({"calibration.covariance_scale": 3.0}))
     np.testing.assert_allclose(b.x, a.x)
     np.testing.assert_allclose(b.P, 3.0 * a.P)
 
 
 def test_replay_leaves_out_the_walks_that_repeat_the_replayed_path():
-    from graphslam.app.track import _repeats
+    from graphslam.core.tracking.tracker import _repeats
 
     x = np.linspace(0.0, 20.0, 21)
     paths = {
@@ -200,7 +203,8 @@ def test_replay_leaves_out_the_walks_that_repeat_the_replayed_path():
 
 def test_the_tracker_locates_and_self_calibrates_its_fixes_with_the_configured_metric(monkeypatch):
     import graphslam.core.tracking.calibration as calibration
-    from graphslam.app.track import TrackConfig, Tracker
+    from graphslam.core.tracking.tracker import Tracker
+    from graphslam.tracking_config import TrackConfig
 
     seen: list[str] = []
     real = calibration.fix_noise
@@ -212,6 +216,6 @@ def test_the_tracker_locates_and_self_calibrates_its_fixes_with_the_configured_m
     monkeypatch.setattr(calibration, "fix_noise", spy)
     names = [f"ap{j}" for j in range(len(APS))]
     for asked, used in (("sorensen", "sorensen"), ("eq9", "eq9")):
-        tr = Tracker.on_map(_corridor_map(6.0), _models(names, APS), TrackConfig(replay_sessions=0, knn_metric=asked))
+        tr = Tracker.on_map(_corridor_map(6.0), _models(names, APS), TrackConfig(calibration={"replay_sessions": 0}, knn_fixes={"metric": asked}))
         assert tr.locator.config.metric == used and seen[-1] == used
-    assert TrackConfig().knn_metric == "sorensen"  # the default since 2026-12-02 (docs/tracking.md)
+    assert TrackConfig().knn_fixes.metric == "sorensen"  # the default (docs/tracking.md)

@@ -9,8 +9,9 @@ from typing import Any
 
 import numpy as np
 import pytest
+
+RrdReader = pytest.importorskip("rerun.chunk", reason="the rerun extra is not installed").RrdReader
 from conftest import run_cli
-from rerun.chunk import RrdReader
 
 from graphslam.config import GraphSlamConfig
 from graphslam.core.survey.align import Alignment, align
@@ -19,7 +20,7 @@ from graphslam.core.types import Survey
 from graphslam.errors import ConfigError, InputError, VisualizationError
 from graphslam.io.csv_io import read_trajectories
 from graphslam.sim import simulate
-from graphslam.viz import rerun_log as rl
+from graphslam.viz import rerun_log as rl  # noqa: E402
 
 # ---- reading helpers -----------------------------------------------------------------
 

@@ -113,7 +113,7 @@ def test_the_prior_corrects_a_heading_the_fixes_leave_wrong():
         e, p = _l_walk(theta, np.random.default_rng(seed))
         x0 = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, theta + 0.25])
         P0 = np.diag([1.0, 1.0, 1.0, 1.0, 0.0025, 0.0025, 0.3**2])
-        cfg = FixedLagConfig(lag_s=2.0, window_s=20.0, huber_k=3.0)
+        cfg = FixedLagConfig(lag_s=2.0, window_s=20.0, huber_k=3.0, adaptive_rssi=False, report="best")
         for name, axes in (("off", None), ("on", WalkAxes(0.0, sigma_mps=0.25))):
             run = fixed_lag_smooth(m, [x0], P0, e, cfg, axes=axes)
             errs[name].append(abs(math.remainder(run.x[-1, 6] - theta, 2 * math.pi)))
@@ -125,16 +125,18 @@ def test_the_prior_corrects_a_heading_the_fixes_leave_wrong():
 
 
 def test_track_config_measures_the_axes_on_the_map_and_validates_its_settings():
-    from graphslam.app.track import TrackConfig
+    from graphslam.core.tracking.tracker import walk_axes_of
+    from graphslam.errors import ConfigError
+    from graphslam.tracking_config import TrackConfig
     from graphslam.core.radiomap.radiomap import RadioMap
 
     xy, sid, t = _grid_walks(-12.0, np.random.default_rng(9))
     scans = [{"aa:bb:cc:dd:ee:0" + str(i % 3): -60.0 - i % 7} for i in range(len(t))]
     rm = RadioMap.from_scans(scans, xy, session_ids=list(sid), t_ns=list(t), frame="site")
-    ax = TrackConfig(axis_sigma_mps=0.4).walk_axes_of(rm)
+    ax = walk_axes_of(TrackConfig(walk_axes={"sigma_mps": 0.4}), rm)
     assert ax is not None and math.degrees(ax.angle_rad) == pytest.approx(-12.0, abs=2.5) and ax.sigma_mps == 0.4
-    assert TrackConfig(walk_axes=False).walk_axes_of(rm) is None
-    assert TrackConfig(axis_min_concentration=1.0).walk_axes_of(rm) is None  # no real floor is that regular
-    for bad in (dict(axis_sigma_mps=0.0), dict(axis_min_concentration=1.5), dict(axis_min_concentration=-0.1)):
-        with pytest.raises(EstimationError, match="axis_"):
-            TrackConfig(**bad)
+    assert walk_axes_of(TrackConfig(walk_axes={"enabled": False}), rm) is None
+    assert walk_axes_of(TrackConfig(walk_axes={"min_concentration": 1.0}), rm) is None  # no real floor is that regular
+    for bad in (dict(sigma_mps=0.0), dict(min_concentration=1.5), dict(min_concentration=-0.1)):
+        with pytest.raises(ConfigError, match="walk_axes."):
+            TrackConfig(walk_axes=bad)

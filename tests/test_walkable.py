@@ -118,7 +118,7 @@ def test_the_prior_keeps_a_track_in_the_corridor_its_fixes_stray_from():
         e, p = _corridor_walk(theta, np.random.default_rng(seed))
         x0 = np.array([e.fix_xy[0, 0], e.fix_xy[0, 1], 0.0, 0.0, 0.0, 0.0, theta])
         P0 = np.diag([16.0, 16.0, 1.0, 1.0, 0.0025, 0.0025, 0.1**2])
-        cfg = FixedLagConfig(lag_s=2.0, window_s=20.0, huber_k=3.0)
+        cfg = FixedLagConfig(lag_s=2.0, window_s=20.0, huber_k=3.0, adaptive_rssi=False, report="best")
         for name, area in (("off", None), ("on", _corridor())):
             run = fixed_lag_smooth(m, [x0], P0, e, cfg, area=area)
             cross[name].append(float(np.abs(run.x[:, 1] - p[:, 1]).mean()))
@@ -134,17 +134,19 @@ def test_snap_moves_only_positions_off_the_area_to_its_nearest_cell():
 
 
 def test_track_config_applies_its_sigma_and_validates_it():
-    from graphslam.app.track import TrackConfig
+    from graphslam.core.tracking.tracker import walkable_area
+    from graphslam.errors import ConfigError
+    from graphslam.tracking_config import TrackConfig
 
     a = _corridor()
-    b = TrackConfig(walkable_sigma_m=5.0).walkable_area(a)
+    b = walkable_area(TrackConfig(floor_plan={"sigma_m": 5.0}), a)
     assert b.sigma_m == 5.0 and a.sigma_m == 2.0 and b.residual(np.array([[0.5, 3.5]]))[0] == pytest.approx(9.0 / 5.0)
-    assert TrackConfig().walkable_area(None) is None
+    assert walkable_area(TrackConfig(), None) is None
     for bad in (0.0, -1.0, math.inf):
-        with pytest.raises(EstimationError, match="walkable_sigma_m"):
-            TrackConfig(walkable_sigma_m=bad)
-    with pytest.raises(EstimationError, match="walkable_mode"):
-        TrackConfig(walkable_mode="teleport")
+        with pytest.raises(ConfigError, match="floor_plan.sigma_m"):
+            TrackConfig(floor_plan={"sigma_m": bad})
+    with pytest.raises(ConfigError, match="floor_plan.mode"):
+        TrackConfig(floor_plan={"mode": "teleport"})
 
 
 def test_the_benchmark_finds_the_plan_beside_the_walks_unless_told_otherwise(tmp_path):

@@ -19,9 +19,8 @@ makes the scheduler run the floor again on another worker, up to
 ``distributed.scheduler.allowed-failures`` (Dask's default 3) more times, after which the floor
 fails with "worker lost". The other floors go on. ``OUT_ROOT/summary.json`` lists them all.
 
-Why Dask and not Ray (measured here, docs/benchmarks.md "Issue 18"): 44 MB installed vs 259 MB,
-and a 2-worker local cluster up in ~3 s vs ~11 s on this 2-core machine (``survey-batch`` pays
-that on every run). On worker death both do what is needed: a task whose worker is killed
+Why Dask and not Ray: a fifth of the installed size, and a local cluster that starts several
+times faster (``survey-batch`` pays that on every run; lab/journal/benchmarks-history.md). On worker death both do what is needed: a task whose worker is killed
 mid-task is run again, and one that kills every worker ends in a clear error after a few tries
 (Dask ``KilledWorker``, Ray ``WorkerCrashedError``), so that did not decide it.
 """
@@ -39,7 +38,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from graphslam.config import GraphSlamConfig, config_from_dict
-from graphslam.errors import ConfigError, GraphSlamError, InputError
+from graphslam.errors import ConfigError, GraphSlamError, InputError, require_extra
 from graphslam.io.atomic import atomic_write_json
 
 log = logging.getLogger(__name__)
@@ -152,6 +151,7 @@ def run_batch(
 ) -> BatchResult:
     """Survey every floor under ``sites_root`` into ``out_root``; ``summary.json`` lists them.
     ``update``: floors already surveyed into ``out_root`` are updated (``survey --update``)."""
+    require_extra("distributed", "survey-batch (Dask)")
     t0 = time.perf_counter()
     cfg = config or GraphSlamConfig()
     sites, out = Path(sites_root), Path(out_root)
@@ -251,7 +251,7 @@ def _local_workers() -> Iterator[None]:
     cluster's start-up and stopped at the end (no process with the survey code loaded outlives
     the batch, and the workers' CPU time is accounted to this process's children); (b) without
     Dask's statistical profiler, which samples the floor's thread every 10 ms for a dashboard
-    that is not started (~10 % of a floor: docs/benchmarks.md, issue 18)."""
+    that is not started (a noticeable share of a floor's time)."""
     forkserver = "forkserver" in multiprocessing.get_all_start_methods()
     if forkserver:
         # A server already running (started elsewhere in this process) keeps its own preload.

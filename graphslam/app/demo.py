@@ -24,8 +24,8 @@ class DemoResult:
 
 def run_demo(out_dir: str | Path, *, scenario: str = "paper", seed: int = 0, test_walks: int = 3,
              config: GraphSlamConfig | None = None, rerun: bool = False) -> DemoResult:
-    from graphslam.core.survey.evaluate import interpolate_xy
-    from graphslam.core.survey.initialise import se2_apply
+    from graphslam.core.common.geometry import interpolate_xy
+    from graphslam.core.common.geometry import se2_apply
     from graphslam.core.radiomap.knn import KnnLocator, locate_survey
     from graphslam.io.mcap_reader import read_survey
     from graphslam.io.radiomap_io import read_radio_map

@@ -104,7 +104,7 @@ __all__: Sequence[str] = ("LocateRun", "locate_files", "write_positions_csv", "P
 def query_truth(query_paths: Iterable[str | Path], positions: SurveyPositions) -> "NDArray[np.float64] | None":
     """True position (site frame) of every located scan from the queries' ``/ground_truth/pose``,
     interpolated at scan time; None when the queries carry no ground truth. Display/evaluation only."""
-    from graphslam.core.survey.evaluate import interpolate_xy
+    from graphslam.core.common.geometry import interpolate_xy
     from graphslam.io.mcap_reader import read_survey
 
     survey = read_survey(query_paths)

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from graphslam.app.locate import LocateRun
 from graphslam.app.track import TrackRun
 from graphslam.core.progress import Task
-from graphslam.core.survey.evaluate import interpolate_xy
+from graphslam.core.common.geometry import interpolate_xy
 from graphslam.core.tracking.apmodel import ApModels
 from graphslam.core.types import Survey
 from graphslam.errors import InputError

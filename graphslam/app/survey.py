@@ -124,7 +124,7 @@ def build_report(
             **ev.as_dict(), "component": 0,
             "components": [c.as_dict() for c in component_errors(al, survey, site_frame=al.frame == "site")],
         }
-    if al.uwb is not None:  # UWB ranges (issue 15); in the site frame the error needs no fit
+    if al.uwb is not None:  # UWB ranges; in the site frame the error needs no fit
         report["uwb"] = al.uwb.as_dict()
         if ev is not None and al.frame == "site":
             from graphslam.core.survey.evaluate import trajectory_errors
@@ -383,7 +383,7 @@ def _write_picture(
     files: dict[str, Path], timings: dict[str, float],
 ) -> None:
     """survey.png beside the outputs, once they are in place; a picture that fails is a warning,
-    not a failed survey (``graphslam.viz.survey_picture``: Pillow, ~0.05 s for the paper survey)."""
+    not a failed survey (``graphslam.viz.survey_picture``: Pillow, a small share of the survey)."""
     from graphslam.errors import GraphSlamError
     from graphslam.viz.survey_picture import PICTURE, draw_survey, scene_of_alignment
 
@@ -441,7 +441,7 @@ def write_outputs(
         _write_radio_map(survey, main, cfg, stage.path / names["radio_map"])
         _write_wifi_edges(main, cfg, stage.path / names["wifi_edges"])
         if surveyed:  # evaluation: the same fingerprints at their ground-truth positions
-            from graphslam.core.radiomap.survey_maps import surveyed_radio_map
+            from graphslam.core.survey.radio_maps import surveyed_radio_map
             from graphslam.io.radiomap_io import write_radio_map
 
             write_radio_map(surveyed_radio_map(_without_other_components(survey, al), al, cfg),
@@ -475,14 +475,14 @@ def _without_other_components(survey: Survey, al: Alignment) -> Survey:
 
 
 def _write_wifi_edges(al: Alignment, cfg: GraphSlamConfig, path: Path) -> None:
-    from graphslam.core.radiomap.survey_maps import crowdsourced_edges
+    from graphslam.core.survey.radio_maps import crowdsourced_edges
     from graphslam.io.edges_io import write_wifi_edges
 
     write_wifi_edges(crowdsourced_edges(al, cfg), path)
 
 
 def _write_radio_map(survey: Survey, al: Alignment, cfg: GraphSlamConfig, path: Path) -> None:
-    from graphslam.core.radiomap.survey_maps import crowdsourced_radio_map
+    from graphslam.core.survey.radio_maps import crowdsourced_radio_map
     from graphslam.io.radiomap_io import write_radio_map
 
     write_radio_map(crowdsourced_radio_map(survey, al, cfg), path)

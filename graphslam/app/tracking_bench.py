@@ -12,8 +12,8 @@ Per fold, the radio map is built from the training walks only, in one of two way
   (for scoring only: a rigid motion of the map changes neither kNN nor the tracker).
 
 AP models are fitted from that map (``ApModels.fit``, as ``graphslam fit-aps``). Each held-out
-walk is then located scan by scan (``knn``: the fixes interpolated in time, as everywhere in
-docs/benchmarks.md) and tracked by each variant (``graphslam.app.track``, positions interpolated
+walk is then located scan by scan (``knn``: the fixes interpolated in time, as in every tracking
+benchmark) and tracked by each variant (``graphslam.app.track``, positions interpolated
 in time). Errors at the walk's landmark times against the landmarks (m): mean, median, p75 (the
 IPIN competition's metric), p90. Calibration: the share of landmarks inside the tracker's
 reported 95 % position ellipse (squared Mahalanobis distance <= 5.991, chi-square with 2 dof).
@@ -23,7 +23,6 @@ the trackers on the oracle maps get its walkable area (``track --floor-plan``); 
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import re
 import time
@@ -34,12 +33,13 @@ from typing import Any, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.app.track import TrackConfig, Tracker
+from graphslam.core.tracking.tracker import Tracker
+
+from graphslam.tracking_config import DEFAULTS, TrackConfig
 from graphslam.config import GraphSlamConfig
 from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
 from graphslam.core.radiomap.radiomap import RadioMap
-from graphslam.core.survey.evaluate import interpolate_xy
-from graphslam.core.survey.initialise import fit_se2, se2_apply
+from graphslam.core.common.geometry import fit_se2, interpolate_xy, se2_apply
 from graphslam.core.tracking.apmodel import ApModels
 from graphslam.core.tracking.calibration import ellipse_coverage, mahalanobis_sq
 from graphslam.core.tracking.walkable import WalkableArea
@@ -68,9 +68,9 @@ class Variant:
 def standard_variants(lags: Sequence[float], filters: Sequence[str] = ("ekf",), smoothers: Sequence[str] = ()) -> list[Variant]:
     """``fixed-lag:LAG`` per lag (``graphslam track --lag LAG``'s defaults), each causal filter
     (``track --filter F``, defaults otherwise) and each filter + offline smoother."""
-    out = [Variant(f"fixed-lag:{lag:g}", TrackConfig(filter="fixed-lag", lag_s=float(lag))) for lag in lags]
-    out += [Variant(f, TrackConfig(filter=f)) for f in filters]
-    out += [Variant(f"{f}+{sm}", TrackConfig(filter=f, smoother=sm)) for f in filters for sm in smoothers]
+    out = [Variant(f"fixed-lag:{lag:g}", TrackConfig(fixed_lag={"lag_s": float(lag)})) for lag in lags]
+    out += [Variant(f, TrackConfig(filter={"kind": f})) for f in filters]
+    out += [Variant(f"{f}+{sm}", TrackConfig(filter={"kind": f, "smoother": sm})) for f in filters for sm in smoothers]
     return out
 
 
@@ -99,7 +99,7 @@ def route_of(session: Session) -> str:
     return m.group(1) if m else ""
 
 
-def _marks(w: Session) -> tuple[NDArray, NDArray]:
+def walk_landmarks(w: Session) -> tuple[NDArray, NDArray]:
     return np.array([m.t_ns for m in w.landmarks], float), np.array([[m.x, m.y] for m in w.landmarks])
 
 
@@ -108,7 +108,7 @@ def oracle_radio_map(walks: Sequence[Session]) -> RadioMap:
     (site frame). Ground truth builds this map; evaluation only."""
     scans, xy, sid, ts = [], [], [], []
     for w in walks:
-        t, marks = _marks(w)
+        t, marks = walk_landmarks(w)
         T = fit_se2(interpolate_xy(w.steps, t), marks)
         st = np.array([sc.t_ns for sc in w.scans], float)
         xy.append(se2_apply(T, interpolate_xy(w.steps, st)))
@@ -121,7 +121,7 @@ def oracle_radio_map(walks: Sequence[Session]) -> RadioMap:
 def crowdsourced_map(walks: Sequence[Session], cfg: GraphSlamConfig) -> tuple[RadioMap, dict[str, Any]]:
     """The survey pipeline on the walks' files; the map in the landmark frame by one SE(2) fit."""
     from graphslam.app.survey import run_survey
-    from graphslam.core.radiomap.survey_maps import crowdsourced_radio_map
+    from graphslam.core.survey.radio_maps import crowdsourced_radio_map
 
     res = run_survey([w.source for w in walks], None, cfg)
     ev = res.evaluation
@@ -145,7 +145,7 @@ def score_walks(
     trackers = {v.name: Tracker.on_map(rm, models, v.cfg, area=area if v.floor_plan else None)
                 for v in variants}  # self-calibration once per map
     for w in walks:
-        t, marks = _marks(w)
+        t, marks = walk_landmarks(w)
         for name, locator in locators.items():
             t0 = time.perf_counter()
             fix = locator.locate([sc.readings for sc in w.scans])
@@ -174,7 +174,7 @@ def score_walks(
     return out
 
 
-def floor_plan_area(folder: Path | str, spec: str = "auto", sigma_m: float = TrackConfig().walkable_sigma_m) -> WalkableArea | None:
+def floor_plan_area(folder: Path | str, spec: str = "auto", sigma_m: float = DEFAULTS.floor_plan.sigma_m) -> WalkableArea | None:
     """The walkable area for ``tracking_real``: ``auto``: from ``floor_image.png`` beside the walks
     (with its ``floor_info.json``, as the ILC floors) when there is one; ``none``; or a plan image."""
     from graphslam.io.floor_plan import load_floor_plan, read_walkable_area
@@ -187,7 +187,7 @@ def floor_plan_area(folder: Path | str, spec: str = "auto", sigma_m: float = Tra
     return read_walkable_area(load_floor_plan(path, None), sigma_m)
 
 
-def _folds(walks: Sequence[Session], folds: int | None, seed: int) -> list[tuple[str, list[int]]]:
+def held_out_folds(walks: Sequence[Session], folds: int | None, seed: int) -> list[tuple[str, list[int]]]:
     """Leave one route out when every walk names its route, else ``folds`` seeded random folds."""
     routes = [route_of(w) for w in walks]
     if folds is None and all(routes):
@@ -219,7 +219,7 @@ def tracking_real(
     walks = [w for w in survey if len(w.landmarks) >= 2 and len(w.scans) and len(w.steps) >= 2]
     if len(walks) < 2:
         raise InputError(str(folder), f"need at least 2 walks with >= 2 landmarks, scans and steps; found {len(walks)}")
-    split = _folds(walks, folds, seed)
+    split = held_out_folds(walks, folds, seed)
     t_start = time.perf_counter()
     result: dict[str, Any] = {
         "folder": str(folder), "walks": len(walks), "walks_skipped": len(survey) - len(walks),
@@ -271,11 +271,11 @@ def tracking_real(
 
 
 def _describe(cfg: TrackConfig) -> str:
-    """The variant's kind, and every other setting that is not ``TrackConfig``'s default."""
-    d = {"filter": cfg.filter, "smoother": cfg.smoother, "knn_fixes": cfg.knn_fixes}
-    if cfg.filter == "fixed-lag" and cfg.smoother == "none":
-        d.update(lag_s=cfg.lag_s, window_s=cfg.window_s, bank_report=cfg.bank_report)
-    default = TrackConfig()
-    d.update({f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)
-              if f.name not in d and getattr(cfg, f.name) != getattr(default, f.name)})
-    return ", ".join(f"{k}={v}" for k, v in d.items())
+    """The variant's kind, and every other setting (``section.key``) that is not the default."""
+    flat = cfg.flat()
+    keys = ["filter.kind", "filter.smoother", "knn_fixes.enabled"]
+    if cfg.filter.kind == "fixed-lag" and cfg.filter.smoother == "none":
+        keys += ["fixed_lag.lag_s", "fixed_lag.window_s", "fixed_lag.bank_report"]
+    default = DEFAULTS.flat()
+    keys += [k for k, v in flat.items() if k not in keys and v != default[k]]
+    return ", ".join(f"{k}={flat[k]}" for k in keys)

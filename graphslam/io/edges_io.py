@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from graphslam.core.radiomap.survey_maps import WifiEdgeRows
+from graphslam.core.survey.radio_maps import WifiEdgeRows
 from graphslam.errors import InputError
 from graphslam.io.atomic import atomic_open
 

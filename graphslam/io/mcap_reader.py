@@ -103,7 +103,7 @@ def read_survey(paths: Iterable[str | Path]) -> Survey:
                 field="graphslam.session.session_id",
             )
         by_id[s.session_id] = s
-    uwb_io.check_survey(sessions)  # UWB (issue 15): anchors agree between files, uwb_id unique
+    uwb_io.check_survey(sessions)  # UWB: anchors agree between files, uwb_id unique
     return Survey(tuple(sessions))
 
 

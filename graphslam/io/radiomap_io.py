@@ -108,7 +108,7 @@ def radio_map_table(rm: RadioMap) -> Any:
     v.sort_indices()
     offsets = pa.array(v.indptr.astype(np.int32))
     # Each reading's BSSID materialised (parquet dictionary-encodes them back); indexed in numpy, not
-    # with pyarrow's `take`, which imports pyarrow.compute (~25 ms of a small survey)
+    # with pyarrow's `take`, which imports pyarrow.compute (a slow import)
     flat_bssid = pa.array(np.asarray(fm.bssids, dtype=object)[v.indices], type=pa.string())
     # rssi = v + missing: exact inverse of v = rssi - missing for RSS values (see docs/radio_map.md).
     flat_rssi = pa.array(v.data + fm.missing_dbm, type=pa.float64())

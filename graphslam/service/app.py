@@ -38,6 +38,7 @@ from fastapi_offline import FastAPIOffline
 from graphslam.core.radiomap.knn import IndexKind, KnnConfig, KnnLocator, KnnResult, strict_error
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import QueryError
+from graphslam.service.config import DEFAULT_MAX_BATCH, DEFAULT_MAX_BODY_BYTES
 from graphslam.service.models import (  # re-exported: the service's public models
     BSSID_MAX_CHARS,
     MAX_READINGS,
@@ -57,8 +58,6 @@ from graphslam.service.render import position_dicts, response_json
 
 log = logging.getLogger(__name__)
 
-DEFAULT_MAX_BATCH = 10_000
-DEFAULT_MAX_BODY_BYTES = 32 * 1024 * 1024
 INLINE_MAX = 8  # batches up to this size are answered on the event loop (see locate())
 PARSE_INLINE_MAX_BYTES = 64 * 1024  # bigger bodies (~100+ fingerprints) are parsed off the event loop
 # With search processes, bodies from this size (~50+ fingerprints) are parsed and searched on them.

@@ -2,8 +2,8 @@
 
 - ``ScanEncoder.encode(flat, rows)``: ``RadioMap.encode`` of some rows of a parsed body
   (``parsing.FlatScans``), from the flattened readings the validation already built: the
-  same ``FingerprintMatrix`` (same arrays, same floats), ~2.5x cheaper than its per-reading
-  Python loop (~4 ms -> ~1.6 ms per 500 UJIIndoorLoc fingerprints).
+  same ``FingerprintMatrix`` (same arrays, same floats), cheaper than its per-reading
+  Python loop.
 - ``PlaceSplit.split(flat, parts)``: the rows of a batch in ``parts`` groups of nearby
   places, for the search workers. Why: an IVF search costs a loop over the clusters its
   queries probe (~0.04 ms per cluster, ~0.03 ms per query on UJIIndoorLoc); two halves of
@@ -35,8 +35,8 @@ from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import ConfigError, QueryError
 from graphslam.service.parsing import FlatScans
 
-# Cost of probing one more cluster, in query rows (fit on UJIIndoorLoc: 0.042 ms per cluster,
-# 0.033 ms per row, with one BLAS thread).
+# Cost of probing one more cluster, in query rows (the ratio of the two costs fitted on
+# UJIIndoorLoc, with one BLAS thread).
 CLUSTER_COST_ROWS = 1.3
 # Map fingerprints probed to find which clusters are searched together (a strided sample above).
 PLACE_GRAPH_MAX_REFS = 20_000

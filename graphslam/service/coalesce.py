@@ -21,7 +21,7 @@ from graphslam.core.radiomap.knn import KnnResult
 
 Scan = Mapping[str, float]
 # One flush locates at most this many rows (pending requests beyond it go in the next pass):
-# bounds how long the event loop is held (~3 ms at 64 rows on a 2,000-fingerprint map).
+# bounds how long the event loop is held.
 MAX_FLUSH_ROWS = 64
 _ROW_FIELDS = ("xy", "score", "spread", "neighbours", "distances", "n_known_aps", "floor", "building")
 

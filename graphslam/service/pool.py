@@ -9,9 +9,8 @@ built; they inherit it copy-on-write (fork start method: nothing is pickled or r
   are concatenated in order.
 - ``locate_body(body)`` (the service's path for big bodies): every worker gets the raw
   JSON body, parses and validates it (``parsing.flat_scans``), takes its share of the rows,
-  encodes them from the parsed arrays (``batching.ScanEncoder``, ~3x cheaper than
-  ``RadioMap.encode``) and locates them. Why: in the server process, parsing (~6 ms per
-  1,000), encoding or pickling the scans is GIL-bound work in series with everything else;
+  encodes them from the parsed arrays (``batching.ScanEncoder``, cheaper than
+  ``RadioMap.encode``) and locates them. Why: in the server process, parsing, encoding or pickling the scans is GIL-bound work in series with everything else;
   in the workers it runs in parallel, and the server only does HTTP. With an IVF index the
   shares are places, not row ranges (``batching.PlaceSplit``): each worker then probes
   fewer clusters (~18% less search time on UJIIndoorLoc).
@@ -73,10 +72,10 @@ from graphslam.service.render import position_rows
 
 log = logging.getLogger(__name__)
 
-# Batches from this size go to the pool: below it the IPC round trip (~1 ms) outweighs
-# the search saved (~35 us per fingerprint with the IVF index on UJIIndoorLoc).
+# Batches from this size go to the pool: below it the IPC round trip outweighs the search
+# saved (measured with the IVF index on UJIIndoorLoc).
 SEARCH_POOL_MIN_BATCH = 64
-# A chunk of 5,000 fingerprints takes ~0.2 s; a worker silent this long is stuck.
+# A worker silent this long (far beyond any chunk's search) is stuck.
 SEARCH_TIMEOUT_S = 120.0
 # Grace period for workers to exit at shutdown before they are killed.
 SHUTDOWN_TIMEOUT_S = 5.0
@@ -606,7 +605,7 @@ class SearchPool:
         path, with pydantic's messages) or if there is no pool. ``BatchTooLargeError`` above
         ``max_batch`` fingerprints (checked before any search).
 
-        Why: parsing and encoding are ~8 ms per 1,000 fingerprints of GIL-bound work; in the
+        Why: parsing and encoding are GIL-bound work; in the
         workers it runs in parallel with the other share, and the server process (which does
         all the HTTP work) never serialises the scans."""
         got = self._body(body, max_batch, strict, render=False)

@@ -19,14 +19,13 @@ import uvicorn
 from fastapi import FastAPI
 
 from graphslam.errors import GraphSlamError
+from graphslam.service.config import DEFAULT_HOST, ServeConfig
 
 if TYPE_CHECKING:
     from graphslam.service.reload import ReloadingApp
 
 log = logging.getLogger(__name__)
 
-DEFAULT_HOST = "127.0.0.1"  # loopback unless the operator says otherwise
-DEFAULT_PORT = 8077
 # `serve --workers N`: the worker processes rebuild the app from this (JSON) environment variable.
 _WORKER_CONFIG_ENV = "GRAPHSLAM_SERVE_WORKER_CONFIG"
 
@@ -41,8 +40,8 @@ def _build_app(radio_map_path: str | Path, **app_kwargs: object) -> FastAPI:
     limit_blas_threads(1)
     rm = read_radio_map(radio_map_path)
     app = create_app(rm, **app_kwargs)  # type: ignore[arg-type]
-    # The map, index and modules live as long as the process: a full collection walking them takes
-    # ~50 ms (UJIIndoorLoc), a pause any request could hit. Frozen, collections skip them.
+    # The map, index and modules live as long as the process: a full collection walking them is a
+    # long pause any request could hit. Frozen, collections skip them.
     gc.freeze()
     log.info(
         "loaded %s (%d fingerprints, %s search, %d search processes)", radio_map_path, len(rm),
@@ -68,7 +67,6 @@ def worker_app() -> "ReloadingApp":
     return reloading_app(cfg.pop("radio_map_path"), cfg.pop("watch"), **cfg)
 
 
-LOG_LEVELS = ("critical", "error", "warning", "info", "debug", "trace")  # uvicorn's; info logs every request
 
 
 def is_loopback(host: str) -> bool:
@@ -81,28 +79,10 @@ def is_loopback(host: str) -> bool:
         return False
 
 
-def serve(
-    radio_map_path: str | Path,
-    *,
-    host: str = DEFAULT_HOST,
-    port: int = DEFAULT_PORT,
-    k: int = 3,
-    weighted: bool = True,
-    min_common: int = 1,
-    max_batch: int | None = None,
-    max_body_bytes: int | None = None,
-    log_level: str = "info",
-    index: str = "auto",
-    ivf_clusters: int | None = None,
-    ivf_probes: int | None = None,
-    workers: int = 1,
-    search_processes: int | None = None,
-    token: str | None = None,
-    watch: float | None = None,
-    metric: str = "eq9",
-) -> None:
-    """Load the radio map and serve it until interrupted. Why processes: a search holds the GIL
-    most of the time, so one process searches on about one core.
+def serve(radio_map_path: str | Path, cfg: ServeConfig | None = None) -> None:
+    """Load the radio map and serve it until interrupted (``cfg``: ``ServeConfig``, its defaults when
+    None). Why processes: a search holds the GIL most of the time, so one process searches on about
+    one core.
 
     ``search_processes``: forked search workers that share the server's map and index
     (``graphslam.service.pool``); large batches are split over them, whatever the number of
@@ -112,26 +92,20 @@ def serve(
     of the map and index; connections, not requests, are spread over them. ``log_level``: one
     of ``LOG_LEVELS`` (``warning`` drops the access line per request). ``token``: bearer token
     required on ``/v1/`` (a warning when ``host`` is not loopback and there is none).
-    SIGHUP reloads the map (in every worker); ``watch``: also poll the file every so many seconds."""
-    from graphslam.service.app import DEFAULT_MAX_BATCH, DEFAULT_MAX_BODY_BYTES
+    SIGHUP reloads the map (in every worker); ``watch_s``: also poll the file every so many seconds."""
     from graphslam.service.pool import default_search_processes
 
-    if log_level not in LOG_LEVELS:
-        raise GraphSlamError(f"log level {log_level!r}: use one of {', '.join(LOG_LEVELS)}")
-    if not token and not is_loopback(host):
+    cfg = cfg or ServeConfig()
+    host, port, workers, log_level, watch = cfg.host, cfg.port, cfg.workers, cfg.log_level, cfg.watch_s
+    if not cfg.token and not is_loopback(host):
         log.warning(
             "serving on %s without a bearer token: anyone who can reach this address can query the radio map "
             "(set --token or GRAPHSLAM_SERVE_TOKEN)", host,
         )
-
+    search_processes = cfg.search_processes
     if search_processes is None:
         search_processes = default_search_processes() if workers <= 1 else 0
-    kwargs: dict[str, object] = dict(
-        k=k, weighted=weighted, min_common=min_common,
-        max_batch=max_batch or DEFAULT_MAX_BATCH, max_body_bytes=max_body_bytes or DEFAULT_MAX_BODY_BYTES,
-        index=index, ivf_clusters=ivf_clusters, ivf_probes=ivf_probes, search_processes=search_processes,
-        token=token or None, metric=metric,
-    )
+    kwargs: dict[str, object] = {**cfg.app_options(), "search_processes": search_processes}
     log.info(
         "serving %s on http://%s:%d (%d worker process(es), %d search process(es) each)", radio_map_path, host,
         port, workers, search_processes,
@@ -155,7 +129,7 @@ def serve(
     )
     # What uvicorn.run does for workers > 1, but with our own listening socket: uvicorn's
     # bind_socket() omits IPPROTO_TCP, so asyncio skips TCP_NODELAY and every small response
-    # waits ~40 ms for a delayed ACK (measured: single-request p50 44 ms with 2 workers).
+    # waits for a delayed ACK.
     Supervisor(config, sockets=[_tcp_listener(host, port)]).run()
 
 
@@ -187,7 +161,7 @@ class BackgroundServer:
 def _tcp_listener(host: str, port: int) -> socket.socket:
     """A bound listening-ready TCP socket. proto=IPPROTO_TCP matters: asyncio sets TCP_NODELAY on
     accepted sockets only when the listening socket says TCP; with proto 0, Nagle + delayed ACK
-    add ~40 ms per response."""
+    delay every response."""
     sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     sock.bind((host, port))

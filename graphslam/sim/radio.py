@@ -40,7 +40,7 @@ from graphslam.sim.floorplan import FloorPlan
 log = logging.getLogger(__name__)
 
 # Cells (points x APs x walls) per block of the wall-crossing test: small enough to
-# stay in cache (measured: 4x faster than 16M-cell blocks).
+# stay in cache (measured faster than 16M-cell blocks).
 _MAX_CELLS = 2_000_000
 
 
@@ -202,7 +202,7 @@ def wall_crossings(points: NDArray, aps: NDArray, walls: NDArray) -> NDArray[np.
     for s in range(0, n, block):
         pb = p[s : s + block]
         # Explicit products, not matmul: with an inner dimension of 2, BLAS threading
-        # costs more than it saves (measured 2-4x slower on a busy machine).
+        # costs more than it saves (measured slower on a busy machine).
         side_p = (pb[:, :1] * nrm[:, 0] + pb[:, 1:] * nrm[:, 1] + off).astype(np.float32)  # (B, W)
         opposite = (side_p[:, None, :] * side_a[None, :, :]) < 0  # (B, A, W)
         px, py = pb[:, :1].astype(np.float32), pb[:, 1:].astype(np.float32)

@@ -24,8 +24,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix
-from graphslam.core.survey.evaluate import interpolate_xy
-from graphslam.core.survey.initialise import fit_se2, se2_apply
+from graphslam.core.common.geometry import fit_se2, interpolate_xy, se2_apply
 from graphslam.core.types import Session, Survey
 
 STANDSTILL_GAP_S = 3.0  # a gap between steps longer than this is the walker standing

@@ -16,7 +16,7 @@ from typing import Any, Callable
 from graphslam.errors import GraphSlamError, VisualizationError
 
 
-WAIT_TIMEOUT_S = 600.0  # far above any survey's logging time (0.2 s for 100k poses)
+WAIT_TIMEOUT_S = 600.0  # far above any survey's logging time
 
 
 def _child(conn: Connection, fn: Callable[..., Any], args: tuple, kwargs: dict) -> None:

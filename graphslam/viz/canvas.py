@@ -1,9 +1,8 @@
 """A small map renderer on Pillow, for the pictures a command writes as it runs (survey.png,
 radio_map.png, track.png, positions.png).
 
-Why not matplotlib: importing it costs 0.3-0.5 s on an idle core (1.4 s on this shared
-machine under load) and drawing the 5-walk paper survey another 0.3-0.9 s: more than "a
-few percent" of a survey (docs/benchmarks.md, issue 19). Pillow imports in ~0.05 s and
+Why not matplotlib: importing it and drawing the 5-walk paper survey cost more than "a few
+percent" of a survey; Pillow imports several times faster and
 draws a walk as one C call; faint WiFi edges are rasterised with numpy
 (``Panel.faint_segments``: sample points along every segment, count them per pixel,
 blend), and the PNG is written directly (``png_bytes``).
@@ -34,7 +33,7 @@ Colour = tuple[int, int, int]
 BLACK: Colour = (0, 0, 0)
 GREY: Colour = (120, 120, 120)
 GRID: Colour = (232, 232, 232)
-PNG_COMPRESS_LEVEL = 1  # zlib level 1: ~4x faster than 6 on these pictures, files ~25 % bigger
+PNG_COMPRESS_LEVEL = 1  # zlib level 1: much faster than 6 on these pictures, files ~25 % bigger
 
 # colour maps sampled at 0, 1/8, ..., 1 (matplotlib's viridis and magma, reversed for densities)
 VIRIDIS = np.array([[68, 1, 84], [71, 44, 122], [59, 81, 139], [44, 113, 142], [33, 144, 141],
@@ -421,8 +420,8 @@ def bounds_of(*arrays: NDArray | None) -> tuple[float, float, float, float]:
 def png_bytes(rgb: NDArray[np.uint8], level: int = PNG_COMPRESS_LEVEL) -> bytes:
     """An 8-bit RGB PNG of ``rgb`` (H, W, 3), every row with filter type 0 (none).
 
-    Pillow's encoder tries its adaptive row filters and costs ~4x a plain zlib pass on these
-    mostly white pictures for ~the same size (0.11 s vs 0.03 s for 1600 x 1000 px under load):
+    Pillow's encoder tries its adaptive row filters and costs several plain zlib passes on these
+    mostly white pictures for about the same size:
     the format is simple enough to write directly (PNG spec: signature, IHDR, IDAT, IEND).
     """
     import struct

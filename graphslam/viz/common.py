@@ -13,7 +13,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graphslam.core.radiomap.fingerprints import FingerprintMatrix
-from graphslam.core.survey.evaluate import ErrorStats, interpolate_xy, landmark_errors
+from graphslam.core.survey.evaluate import ErrorStats, landmark_errors
+from graphslam.core.common.geometry import interpolate_xy
 from graphslam.core.types import PoseTrack, Survey
 from graphslam.errors import InputError
 from graphslam.io.csv_io import TrajectoryFile

@@ -13,7 +13,9 @@ from graphslam.io.atomic import atomic_open
 
 
 def _figure():  # type: ignore[no-untyped-def]
-    import matplotlib
+    from graphslam.errors import require_extra
+
+    matplotlib = require_extra("matplotlib", "plots")
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

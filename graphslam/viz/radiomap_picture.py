@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graphslam.core.radiomap.radiomap import RadioMap
-from graphslam.core.survey.initialise import se2_apply
+from graphslam.core.common.geometry import se2_apply
 from graphslam.core.tracking.apmodel import ApModels
 from graphslam.errors import ConfigError
 from graphslam.viz.canvas import MAGMA_R, VIRIDIS, Panel, Picture, colour_map

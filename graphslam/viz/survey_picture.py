@@ -33,10 +33,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graphslam.config import GraphSlamConfig
-from graphslam.core.radiomap.survey_maps import WifiEdgeRows, crowdsourced_edges
+from graphslam.core.survey.radio_maps import WifiEdgeRows, crowdsourced_edges
 from graphslam.core.survey.align import Alignment
 from graphslam.core.survey.evaluate import Evaluation
-from graphslam.core.survey.initialise import se2_apply
+from graphslam.core.common.geometry import se2_apply
 from graphslam.core.types import Survey
 from graphslam.errors import InputError
 from graphslam.viz.common import (

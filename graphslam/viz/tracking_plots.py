@@ -14,10 +14,9 @@ def cart_figure(
     t_s: NDArray, truth_xy: NDArray, est_xy: NDArray, trace_p: NDArray, path: str | Path, title: str
 ) -> Path:
     """Three panels as the papers' figs. 9/7 (path), 10/8 (|error| in x and y) and 12/10 (trace P)."""
-    import matplotlib
+    from graphslam.viz.plots import _figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _figure()
 
     fig, ax = plt.subplots(1, 3, figsize=(13, 4), dpi=110)
     ax[0].plot(truth_xy[:, 0], truth_xy[:, 1], "k--", lw=1, label="reference path")

@@ -45,7 +45,7 @@ DEFAULT_BLOCK_CELLS = 1_000_000
 WEIGHT_EPS_DB = 1e-6
 
 # index="auto" switches to the IVF index from this many references: below it exact search is
-# already fast (~5 ms per 1,000 references per 1,000 queries) and the index would not pay off.
+# already fast and the index would not pay off.
 IVF_AUTO_MIN_REFS = 5000
 DEFAULT_IVF_PROBES = 8
 # Query rows per IVF block: the IVF loop is over clusters, so its fixed cost is per block;

@@ -9,7 +9,7 @@ Why not eq. 9 for placement:
 - strong readings dominate (exp), weak and missing ones barely count, so the value
   reflects the access points near the phone rather than which far ones it happened to hear.
 
-Measured on IPIN 2023 floor -2 (docs/benchmarks.md, issue 13): near (< 4 m) vs far
+Measured on IPIN 2023 floor -2 (lab/journal/benchmarks-history.md): near (< 4 m) vs far
 (> 15 m) cross-walk pairs separate with AUC 0.96 for same-phone and different-phone pairs
 alike (eq. 9: 0.92 / 0.90), and the distribution of the similarity against distance
 within a walk (PDR distance) matches the one across walks up to ~20 m. ``scale_db``

@@ -46,7 +46,7 @@ log = logging.getLogger(__name__)
 
 def X(i: int) -> int:
     """GTSAM key of step pose i, numbered globally over all walks (``symbol_shorthand.X``)."""
-    import gtsam  # lazy: ~0.4 s, needed only by the GTSAM back end (optimizer.solver: gtsam)
+    import gtsam  # lazy: a slow import, needed only by the GTSAM back end (optimizer.solver: gtsam)
 
     return gtsam.symbol_shorthand.X(i)
 
@@ -193,7 +193,7 @@ class Problem:
     imu_u: NDArray[np.float64]  # (M, 3) measured body-frame step (eq. 6)
     wifi_pairs: NDArray[np.int64]  # (E, 2) nodes of WiFi edges between included walks
     timings_s: dict[str, float]
-    # --update (issue 18): nodes re-solved; the others keep init_xyh (their previous solution).
+    # --update: nodes re-solved; the others keep init_xyh (their previous solution).
     # None: every node of an included walk is a variable (a full solve).
     free: NDArray[np.bool_] | None = None
     uwb: UwbTerms | None = None  # UWB range factors and placement
@@ -346,7 +346,7 @@ def build_problem(
         included = connected_to(n_s, node_sess[ea], node_sess[eb], ref)
         for s in np.flatnonzero(~included):
             unaligned[survey.sessions[s].session_id] = "no WiFi edge path to the reference walk"
-    # --- UWB hook (issue 15, graphslam.core.uwb.survey): range factors; with anchors the site
+    # --- UWB hook (graphslam.core.uwb.survey): range factors; with anchors the site
     # frame, the inclusion and the placement come from the ranges
     uwb = uwb_terms(survey, cfg, fp.offsets, ea, eb, included, transforms, unaligned)
     if uwb is not None:
@@ -575,14 +575,13 @@ def point_priors(problem: Problem, cfg: GraphSlamConfig) -> tuple[NDArray, NDArr
 
 
 def use_pardiso(cfg: GraphSlamConfig, problem: Problem | None = None) -> bool:
-    """``optimizer.solver``: auto takes the PARDISO LM where MKL loads (an x86-64 wheel), else GTSAM's.
-    A local re-solve (--update: ``problem.free``) and a survey with UWB range factors (issue 15)
-    always take GTSAM's: only ``native_graph`` builds those factors."""
+    """``optimizer.solver``: the vectorised LM (``solver.py``) unless gtsam is asked for; its sparse
+    Cholesky is PARDISO where MKL loads, else CHOLMOD (``core.common.cholesky``). A local re-solve
+    (--update: ``problem.free``) and a survey with UWB range factors always take GTSAM's: only
+    ``native_graph`` builds those factors."""
     if problem is not None and (problem.free is not None or problem.uwb is not None):
         return False
-    if cfg.optimizer.solver == "auto":
-        return S.pardiso_available()
-    return cfg.optimizer.solver == "pardiso"
+    return cfg.optimizer.solver != "gtsam"
 
 
 def _solved_wifi_pairs(problem: Problem) -> NDArray[np.int64]:
@@ -595,7 +594,7 @@ def _solved_wifi_pairs(problem: Problem) -> NDArray[np.int64]:
 def lm_params(cfg: GraphSlamConfig, n_poses: int = 0) -> gtsam.LevenbergMarquardtParams:
     """LM settings. Direct multifrontal Cholesky is fastest on surveys of a few thousand fingerprint
     poses; beyond that the WiFi edges, which tie every revisited place together, make elimination
-    cliques grow large and block-Jacobi PCG wins (docs/benchmarks.md)."""
+    cliques grow large and block-Jacobi PCG wins."""
     import gtsam
 
     params = gtsam.LevenbergMarquardtParams()
@@ -646,6 +645,7 @@ def solve(
                 absolute_error_tol=cfg.optimizer.absolute_error_tol,
                 shape_tol_m=cfg.optimizer.shape_tol_m,
                 threads=cfg.optimizer.threads,
+                backend=cfg.optimizer.solver,
                 precision=cfg.optimizer.factor_precision,
                 single_above_variables=cfg.optimizer.single_above_variables,
             )

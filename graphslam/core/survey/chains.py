@@ -10,7 +10,7 @@ moved to the segment's end by the adjoint map:
     V_k = u_{k+1} ... u_b  (right-perturbation convention, as GTSAM's Pose2).
 
 On the `paper` survey this keeps ~28 % of the poses and halves the cost of an LM
-iteration (docs/benchmarks.md). The dropped steps are restored afterwards by
+iteration. The dropped steps are restored afterwards by
 re-integrating their measured steps from the optimised segment start and spreading
 the segment's end mismatch linearly over it (a few millimetres on ~4-step segments).
 """

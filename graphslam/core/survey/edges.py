@@ -6,7 +6,7 @@ within L/2 steps of k's step. An edge (k, q) is proposed when d(k, q) < d_med(k)
 except between fingerprints of the same session that are near in time or along
 the walked path (they satisfy the vicinity trivially).
 
-Deviation from the paper, measured in docs/benchmarks.md: of the pairs below the
+Deviation from the paper (docs/method.md): of the pairs below the
 threshold, each fingerprint keeps only its ``max_per_fingerprint`` most similar
 partners. The paper keeps all of them; on long surveys that is ~50 edges per
 fingerprint, which ties the graph into dense cliques (slow elimination) and admits
@@ -29,8 +29,8 @@ from graphslam.core.survey.association import FingerprintNodes
 log = logging.getLogger(__name__)
 
 # Lloyd steps of the edge index's k-means: the clusters only choose where to look, and the
-# index is built for one search; 8 steps kept the recall of 25 at ~1/3 of the build time
-# (paper sizes 1 and 4, docs/benchmarks.md issue 16).
+# index is built for one search; 8 steps kept the recall of 25 at a third of the build
+# (paper sizes 1 and 4).
 IVF_KMEANS_ITERATIONS = 8
 
 
@@ -117,7 +117,7 @@ def propose_edges(
      * ``ivf``: each fingerprint's ``ivf_neighbours`` nearest by eq. 9 among the ``ivf_probes``
        nearest clusters of an IVF index (``graphslam.core.radiomap.ivf``; O(N^1.5)). The same
        threshold, exclusions and cap follow, so an edge is missed only when a partner the
-       exact path keeps is not among those neighbours (recall in docs/benchmarks.md, issue 16).
+       exact path keeps is not among those neighbours (its recall: lab/scripts/edge_recall.py).
        ``WifiEdges.candidates`` then counts the pairs below threshold among the neighbours.
     """
     n = len(fp)

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Mapping
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.survey.initialise import fit_se2, se2_apply
+from graphslam.core.common.geometry import fit_se2, interpolate_xy, se2_apply  # noqa: F401 (interpolate_xy re-exported)
 from graphslam.core.types import PoseTrack, Survey, wrap_angle
 
 if TYPE_CHECKING:
@@ -57,11 +57,6 @@ class ErrorStats:
         d = asdict(self)
         d["histogram"] = [list(x) for x in self.histogram]
         return d
-
-
-def interpolate_xy(track: PoseTrack, t_ns: NDArray) -> NDArray:
-    t = track.t_ns.astype(float)
-    return np.column_stack([np.interp(t_ns, t, track.xy[:, 0]), np.interp(t_ns, t, track.xy[:, 1])])
 
 
 def _marks(sessions: Mapping[str, PoseTrack], survey: Survey) -> tuple[NDArray, NDArray, NDArray]:

@@ -365,7 +365,7 @@ def grow_placement(
             else:  # the new walk alone on the map (its matches; the others held)
                 moved = np.array([b])
                 inside &= (si == b) | (sj == b)
-            with threadpool_limits(1):  # 3W x 3W systems: threads only add overhead (9 ms vs 0.3 ms a solve under load)
+            with threadpool_limits(1):  # 3W x 3W systems: threads only add overhead
                 T = refine_rigid(T, moved, held, scan_session, scan_xy, mi[inside], mj[inside], mw[inside], params,
                                  rotation_sigma)
             for s in moved:

@@ -4,8 +4,8 @@ The same objective as the GTSAM graph of ``graphslam.core.survey.factors`` (IMU-
 factors with GTSAM's Pose2 Logmap error, the dead-zone WiFi range factors), solved by an
 LM loop whose every step is a handful of numpy array operations over all factors plus one
 sparse Cholesky factorisation. Why not GTSAM's own LM: on the WiFi graph its multifrontal
-elimination redoes the symbolic work at every try of lambda and is ~8x slower per
-factorisation than MKL PARDISO with the analysis reused (docs/benchmarks.md, issue 16).
+elimination redoes the symbolic work at every try of lambda, where a sparse Cholesky with
+the analysis reused (PARDISO, CHOLMOD: ``graphslam.core.common.cholesky``) refactorises only.
 
  * Variables: (x, y, theta) of every kept node except the reference node, which is held
    fixed (the paper's invariant reference pose; GTSAM's 1e-6 prior, exactly).
@@ -36,6 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 
+from graphslam.core.common.cholesky import backend_for, pardiso_available, sparse_cholesky  # noqa: F401 (re-exported)
 from graphslam.core.types import wrap_angle
 from graphslam.errors import SolverError
 
@@ -81,6 +82,7 @@ class LMSettings:
     # lowers the error by less than 10x relative_error_tol; 0: off
     shape_tol_m: float = 0.0
     threads: int = 0  # MKL threads of the factorisation (0: MKL's default, i.e. MKL_NUM_THREADS or every core)
+    backend: str = "auto"  # sparse Cholesky: pardiso, cholmod, or auto (pardiso where MKL loads)
     # of the factorisation: "single" refines each solve in double (``_DampedSystem``); "auto": single from
     # ``single_above_variables`` unknowns on, where the cheaper factorisation outweighs the refinement's solves
     precision: Literal["auto", "single", "double"] = "auto"
@@ -280,151 +282,48 @@ def _slot(blocks: NDArray, keys: NDArray, ok: NDArray) -> NDArray:
     return np.where(ok, np.searchsorted(blocks, np.where(ok, keys, 0)), -1)
 
 
-_MKL: list = []  # the loaded MKL runtime, once per process
-
-
-def _mkl_runtime():  # -> ctypes.CDLL (imported lazily)
-    """MKL's single dynamic library, as the ``mkl`` wheel installs it (``<prefix>/lib``).
-
-    Looked up by file name first: ``ctypes.util.find_library`` runs ldconfig and a compiler
-    (~0.1 s), and pypardiso's import does that search at import time."""
-    if _MKL:
-        return _MKL[0]
-    import ctypes
-    import ctypes.util
-    import glob
-    import site
-    import sys
-
-    dirs = [Path(sys.prefix) / "lib", Path(site.getuserbase()) / "lib", Path(sys.prefix) / "Library" / "bin"]
-    names = ("libmkl_rt.so*", "libmkl_rt*.dylib", "mkl_rt*.dll")
-    found = sorted(p for d in dirs for n in names for p in glob.glob(str(d / n)))
-    lib_path = found[-1] if found else ctypes.util.find_library("mkl_rt")
-    if lib_path is None:
-        raise OSError("MKL runtime (libmkl_rt) not found: pip install mkl")
-    lib = ctypes.CDLL(lib_path)
-    i32p = ctypes.POINTER(ctypes.c_int32)
-    lib.pardiso.argtypes = [ctypes.POINTER(ctypes.c_int64)] + [i32p] * 5 + [ctypes.c_void_p, i32p, i32p, i32p, i32p,
-                                                                             i32p, i32p, ctypes.c_void_p,
-                                                                             ctypes.c_void_p, i32p]
-    lib.pardiso.restype = None
-    _MKL.append(lib)
-    return lib
-
-
-class _Pardiso:
-    """MKL PARDISO for a symmetric positive-definite matrix (upper triangle, CSR): the ordering
-    (METIS nested dissection) and symbolic factorisation once, then numeric refactorisations."""
-
-    def __init__(
-        self, indptr: NDArray[np.int32], indices: NDArray[np.int32], threads: int = 0, single: bool = False
-    ) -> None:
-        self._lib = _mkl_runtime()
-        self._n = len(indptr) - 1
-        self._ia = (indptr + 1).astype(np.int32)  # PARDISO's default: one-based indices
-        self._ja = (indices + 1).astype(np.int32)
-        self._dtype = np.float32 if single else np.float64
-        self._a = np.zeros(len(indices), self._dtype)
-        self._pt = np.zeros(64, np.int64)  # PARDISO's internal handle
-        # iparm[0] = 1: the entries set here, every other one 0 (MKL's default for a real SPD matrix)
-        self._iparm = np.zeros(64, np.int32)
-        self._iparm[0] = 1
-        self._iparm[1] = 2  # fill-reducing ordering: METIS nested dissection (the default)
-        self._iparm[9] = 8  # pivot perturbation 1e-8 (the default; an SPD matrix is not pivoted)
-        self._iparm[17] = -1  # report the factor's non-zeros (the default)
-        # two-level factorisation: paper size 12, 45 M non-zeros, 1.92 -> 1.60 s on 2 threads, 2.9 -> 2.7 s
-        # on 1 (docs/benchmarks.md, issue 16); same solution to rounding
-        self._iparm[23] = 1
-        self._iparm[27] = int(single)  # matrix, right-hand side and solution in single precision
-        self._threads = threads
-        self._live = False
-        self._call(11, self._none(), self._none())  # analysis
-        self._live = True
-
-    def _call(self, phase: int, b: NDArray, x: NDArray) -> None:
-        import ctypes
-
-        i32 = ctypes.c_int32
-        err = i32(0)
-        lib = self._lib
-        # thread-local MKL thread count when one is set (a busy machine: OpenMP spin-waits cost more than they gain)
-        prev = lib.MKL_Set_Num_Threads_Local(self._threads) if self._threads > 0 else None
-        try:
-            lib.pardiso(
-                self._pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
-                ctypes.byref(i32(1)), ctypes.byref(i32(1)), ctypes.byref(i32(2)),  # maxfct, mnum, mtype: real SPD
-                ctypes.byref(i32(phase)), ctypes.byref(i32(self._n)),
-                self._a.ctypes.data, self._ia.ctypes.data_as(ctypes.POINTER(i32)),
-                self._ja.ctypes.data_as(ctypes.POINTER(i32)), None, ctypes.byref(i32(1)),
-                self._iparm.ctypes.data_as(ctypes.POINTER(i32)), ctypes.byref(i32(0)),
-                b.ctypes.data, x.ctypes.data, ctypes.byref(err),
-            )
-        finally:
-            if prev is not None:
-                lib.MKL_Set_Num_Threads_Local(prev)
-        if err.value != 0:  # e.g. -4: zero pivot, the matrix is not positive definite
-            raise np.linalg.LinAlgError(f"PARDISO phase {phase} failed with error {err.value}")
-
-    def _none(self) -> NDArray:
-        return np.zeros(1, self._dtype)
-
-    def factor(self, data: NDArray) -> None:
-        self._a[:] = data
-        self._call(22, self._none(), self._none())
-
-    def solve(self, b: NDArray) -> NDArray[np.float64]:
-        b = np.ascontiguousarray(b, dtype=self._dtype)
-        x = np.zeros_like(b)
-        self._call(33, b, x)
-        return x.astype(np.float64, copy=False)
-
-    def free(self) -> None:
-        if self._live:
-            self._live = False
-            self._call(-1, self._none(), self._none())
-
-
 class _DampedSystem:
     """Solves the damped normal equations (upper triangle ``data`` on the pattern of ``ne``).
 
     ``single``: PARDISO factorises in single precision and each solve is refined by conjugate
     gradients in float64, preconditioned by that factor, to a relative residual of
     ``REFINE_TOL`` (the double solve's step, to rounding). Why: the factorisation is the large
-    survey's floor (paper size 12: ~2 s of a 2.2 s iteration) and float32 halves its memory
-    traffic; the refinement costs 2-6 triangular solves (docs/benchmarks.md, issue 16). A
+    survey's floor (most of an iteration) and float32 halves its memory traffic; the refinement
+    costs 2-6 triangular solves. A
     matrix whose refinement does not converge (too ill-conditioned for float32), or that
     float32 does not find positive definite, is solved in double from then on in this stage."""
 
     REFINE_TOL = 1e-10  # relative residual |b - A x| / |b| at which a refined solve stops
     MAX_REFINE = 12
 
-    def __init__(self, ne: _NormalEquations, threads: int, single: bool) -> None:
+    def __init__(self, ne: _NormalEquations, threads: int, single: bool, backend: str = "pardiso") -> None:
         self._ne = ne
         self._threads = threads
-        self._single = single
-        self._pardiso = _Pardiso(ne.indptr, ne.indices, threads, single=single)
+        self._backend = backend
+        self._single = single and backend == "pardiso"  # CHOLMOD factorises in double only
+        self._factor = sparse_cholesky(backend, ne.indptr, ne.indices, threads, single=self._single)
         self._data: NDArray = np.zeros(0)
         self.fallbacks = 0  # switches to double precision (diagnostics, tests)
 
     def _to_double(self) -> None:
         log.debug("single-precision factorisation not accurate enough here: double from now on")
-        self._pardiso.free()
-        self._pardiso = _Pardiso(self._ne.indptr, self._ne.indices, self._threads)
+        self._factor.free()
+        self._factor = sparse_cholesky(self._backend, self._ne.indptr, self._ne.indices, self._threads)
         self._single = False
         self.fallbacks += 1
-        self._pardiso.factor(self._data)
+        self._factor.factor(self._data)
 
     def factor(self, data: NDArray[np.float64]) -> None:
         self._data = data
         try:
-            self._pardiso.factor(data)
+            self._factor.factor(data)
         except np.linalg.LinAlgError:
             if not self._single:
                 raise
             self._to_double()  # raises LinAlgError itself when double does not find it positive definite
 
     def solve(self, b: NDArray[np.float64]) -> NDArray[np.float64]:
-        x = self._pardiso.solve(b)
+        x = self._factor.solve(b)
         if not self._single:
             return x
         # conjugate gradients in double, preconditioned by the float32 factorisation: as many
@@ -433,7 +332,7 @@ class _DampedSystem:
         r = b - _sym_matvec(self._ne, self._data, x)
         if float(np.linalg.norm(r)) <= tol:
             return x
-        z = self._pardiso.solve(r)
+        z = self._factor.solve(r)
         p, rz = z, float(r @ z)
         for _ in range(self.MAX_REFINE):
             Ap = _sym_matvec(self._ne, self._data, p)
@@ -445,23 +344,14 @@ class _DampedSystem:
             r = r - alpha * Ap
             if float(np.linalg.norm(r)) <= tol:
                 return x
-            z = self._pardiso.solve(r)
+            z = self._factor.solve(r)
             rz, rz_prev = float(r @ z), rz
             p = z + (rz / rz_prev) * p
         self._to_double()  # float32 cannot resolve this matrix
-        return self._pardiso.solve(b)
+        return self._factor.solve(b)
 
     def free(self) -> None:
-        self._pardiso.free()
-
-
-def pardiso_available() -> bool:
-    """MKL PARDISO loads (the ``mkl`` wheel exists for x86-64 Linux, Windows and macOS only)."""
-    try:
-        _mkl_runtime()
-    except OSError:
-        return False
-    return True
+        self._factor.free()
 
 
 # --- Levenberg-Marquardt ------------------------------------------------------------------
@@ -565,7 +455,7 @@ def levenberg_marquardt(
         return LMResult(xyh.copy(), 0, 0, err, err, True)
     ne = obj.normal
     single = settings.precision == "single" or (settings.precision == "auto" and ne.n > settings.single_above_variables)
-    solver = _DampedSystem(ne, settings.threads, single)
+    solver = _DampedSystem(ne, settings.threads, single, backend_for(settings.backend))
     log.debug("LM over %d unknowns, factorisation in %s precision", ne.n, "single" if single else "double")
     H, grad, err = obj.linearise(v)
     initial = err
@@ -629,7 +519,7 @@ def nonrigid_rms(x0: NDArray, y0: NDArray, x1: NDArray, y1: NDArray) -> float:
 
     Why the solver asks: with one pose held fixed, LM's last iterations on a large survey turn the
     whole map about it by ~0.4 deg an iteration at almost no change of the error (paper size 8:
-    7 of 15 iterations, non-rigid part 2 mm rms; docs/benchmarks.md issue 16). No distance, and no
+    7 of 15 iterations, non-rigid part 2 mm rms). No distance, and no
     output up to the frame, depends on that motion."""
     if len(x0) < 2:
         return 0.0

@@ -6,7 +6,7 @@ it without any ground truth: locate every fingerprint of the map among the finge
 it. On a map whose positions are right this is the kNN error a new walk over the surveyed
 area will see; on a crowdsourced map it is the error in the map's own frame (which is the
 frame the tracker reports in). Why not a constant: kNN errors differ by building (UJIIndoorLoc
-~5 m, ILC mall ~6 m, IPIN museum ~9 m, the simulator ~2 m: docs/benchmarks.md), and a fix
+~5 m, ILC mall ~6 m, IPIN museum ~9 m, the simulator ~2 m: docs/tracking.md), and a fix
 standard deviation chosen on one misweights fixes against steps on the others.
 
 The same errors in time order along each of the map's walks say how correlated consecutive fixes

@@ -52,6 +52,7 @@ from graphslam.core.tracking.filters import Epochs, FusionModel
 from graphslam.core.tracking.smoother import MapProblem, dead_reckoning_starts, levenberg_marquardt
 from graphslam.core.tracking.walkable import WalkableArea
 from graphslam.errors import EstimationError
+from graphslam.tracking_config import DEFAULTS
 
 log = logging.getLogger(__name__)
 
@@ -64,16 +65,16 @@ class FixedLagConfig:
     ``huber_k``: Huber loss (in std) on RSSI and fix rows (None: Gaussian). ``prune_cost``:
     hypotheses this far above the best are dropped (None: keep all)."""
 
-    lag_s: float = 2.0
-    window_s: float = 20.0
-    huber_k: float | None = 3.0
+    lag_s: float = DEFAULTS.fixed_lag.lag_s
+    window_s: float = DEFAULTS.fixed_lag.window_s
+    huber_k: float | None = DEFAULTS.filter.gate_sigma
     max_iter: int = 10
     restart_every: int = 0  # every this many epochs also solve from dead-reckoning starts (0: never)
     rel_tol: float = 1e-6  # LM stops when a step lowers the window cost by less than this share
-    prune_cost: float | None = 50.0
-    adaptive_rssi: bool = False  # scale an epoch's RSSI std by its innovations' NIS per reading (> 1)
+    prune_cost: float | None = DEFAULTS.fixed_lag.prune_cost
+    adaptive_rssi: bool = DEFAULTS.rssi.adaptive  # scale an epoch's RSSI std by its innovations' NIS per reading (> 1)
     prior_count: float = 4.0  # pseudo-fixes of NIS 2 in the variance factor
-    report: str = "best"  # best: the lowest-cost hypothesis | mixture: the bank's posterior mixture
+    report: str = DEFAULTS.fixed_lag.bank_report  # best: the lowest-cost hypothesis | mixture: the bank's posterior mixture
     angle_index: int | None = None  # state entry that is an angle (mixture differences wrapped)
     temper: float = 1.0  # the bank's costs are divided by this in its weights and pruning (correlated readings)
 

@@ -34,25 +34,31 @@ from numpy.typing import NDArray
 
 from graphslam.core.tracking.filters import PathLossModel
 from graphslam.errors import EstimationError
+from graphslam.tracking_config import DEFAULTS
+
+# The match temperature T per fingerprint distance (its units: eq. 9 dB; Sørensen, unitless in [0, 1]): each
+# the maximum of the leave-one-session-out log-likelihood of the ILC B1 training maps' own fingerprint
+# positions under the scan-match mixture (the map only; the surface is flat near it: docs/tracking.md)
+PARTICLE_TEMPERATURE = {"eq9": 2.0, "sorensen": 0.05}
 
 
 @dataclass(frozen=True)
 class ParticleConfig:
-    n_particles: int = 1000
-    top_k: int = 16  # map fingerprints in a scan's likelihood mixture
-    temperature: float = 2.0  # T: match weights exp(-(D_j - D_1) / T), the distances' units (eq. 9: dB)
-    kernel_m: float = 4.0  # h: each match's spatial spread (m)
-    outlier: float = 0.01  # eps: share of a uniform density in a scan's likelihood (no scan kills every particle)
+    n_particles: int = DEFAULTS.particle.count
+    top_k: int = DEFAULTS.particle.top_k  # map fingerprints in a scan's likelihood mixture
+    temperature: float = PARTICLE_TEMPERATURE["eq9"]  # T: match weights exp(-(D_j - D_1) / T), the distances' units
+    kernel_m: float = DEFAULTS.particle.kernel_m  # h: each match's spatial spread (m)
+    outlier: float = DEFAULTS.particle.outlier  # eps: share of a uniform density in a scan's likelihood
     area_m2: float = 10000.0  # the uniform density's area (the map's bounding box)
     step_sigma_m: float = 0.05  # position noise per step, per axis (m)
     step_sigma_rel: float = 0.05  # and per metre walked (fraction)
     scale_sigma: float = 0.05  # the walk's step-length scale: N(1, this) at the start
     heading_sigma_rad: float = 0.01  # random walk of phi per step (rad)
     init_spread_m: float = 3.0  # start positions: the first scan's matches, each spread by this
-    lag_s: float = 2.0
+    lag_s: float = DEFAULTS.fixed_lag.lag_s
     resample_ess: float = 0.5  # systematic resampling once the effective sample size < this x n
-    huber_k: float = 3.0  # RSSI readings (when given): Huber loss beyond this many std
-    seed: int = 0
+    huber_k: float = DEFAULTS.filter.gate_sigma  # RSSI readings (when given): Huber loss beyond this many std
+    seed: int = DEFAULTS.particle.seed
 
     def __post_init__(self) -> None:
         if self.n_particles < 2 or self.top_k < 1:

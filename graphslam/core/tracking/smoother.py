@@ -11,7 +11,7 @@ The causal filters (``graphslam.core.tracking.filters``) estimate each state fro
   the iterated extended Kalman smoother; the LM damping keeps it from diverging where a
   linearisation is poor (e.g. an estimate outside the AP rectangle).
 
-Why it matters (docs/benchmarks.md, cart experiment): the EKF lets its bias state absorb the
+Why it matters (docs/tracking.md, the cart experiment): the EKF lets its bias state absorb the
 first round's spatially correlated shadowing, and the position offset that integrates from it
 never leaves; the whole-run MAP under the same model does not.
 

@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 
 from graphslam.config import UwbConfig
 
-if TYPE_CHECKING:  # gtsam is imported where a factor is built: a WiFi-only survey never loads it (~0.1 s)
+if TYPE_CHECKING:  # gtsam is imported where a factor is built: a WiFi-only survey never loads it
     import gtsam
 
 

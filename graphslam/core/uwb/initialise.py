@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.survey.initialise import ransac_se2
+from graphslam.core.common.geometry import ransac_se2
 
 N_ROTATIONS = 16
 MIN_RANGES_FULL = 8  # a free rigid fit needs this many ranges ...

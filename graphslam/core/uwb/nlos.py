@@ -29,7 +29,7 @@ The survey then uses the kept ranges only, and starts from this solution. All fa
 native GTSAM; the gauge is the anchors' priors (site frame) or a prior on the first pose of a
 walk the WiFi placement fixed (reference frame, peer ranges only).
 
-Measured (docs/benchmarks.md, issue 15, 2026-12-01): with 2 anchors and a third of the ranges
+Measured (lab/journal/benchmarks-history.md): with 2 anchors and a third of the ranges
 NLOS, steps 1-3 alone leave 1.55x the clean error (5 seeds); the true NLOS flags (an oracle)
 give 1.30x. By the truth, steps 1-3 already drop 97-99 % of the biased ranges; what costs is
 the 2-3 % they keep (dropping those too: 1.43x) and the LOS ranges they drop (re-admitting
@@ -45,7 +45,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graphslam.config import GraphSlamConfig, UwbConfig
-from graphslam.core.survey.factors import imu_factor, imu_noise, reference_prior_noise, relative_steps
+from graphslam.core.common.factors import imu_factor, imu_noise, reference_prior_noise, relative_steps
 from graphslam.core.types import Survey
 from graphslam.core.uwb.factors import X, SurveyRanges, anchor_values, range_factors, range_residuals
 

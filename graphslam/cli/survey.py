@@ -1,0 +1,352 @@
+"""Survey commands: inspect, survey, survey-batch, evaluate, simulate, plot, view, demo."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+from graphslam.cli.base import app
+from graphslam.cli.options import config_from_options, require_plots, require_rerun
+
+
+@app.command()
+def inspect(
+    paths: List[Path] = typer.Argument(..., help="Recordings (.mcap) or folders of them."),
+    as_json: bool = typer.Option(False, "--json", help="One JSON object per session, then the totals."),
+) -> None:
+    """Print per-session statistics: steps, scans, distinct APs, duration, walked length, landmarks."""
+    from graphslam.core.summary import SurveySummary
+    from graphslam.io.mcap_reader import read_survey
+
+    summary = SurveySummary.of(read_survey(paths))
+    if as_json:
+        for s in summary.sessions:
+            typer.echo(json.dumps(s.as_dict()))
+        typer.echo(json.dumps({"totals": summary.totals}))
+        return
+    # the id column is as wide as the longest id: truncated ids (IPIN's differ only at the end) are ambiguous
+    w = max([7] + [len(s.session_id) for s in summary.sessions])
+    header = f"{'session':<{w}} {'steps':>6} {'scans':>6} {'APs':>5} {'dur s':>8} {'walk m':>8} {'lmks':>5}"
+    typer.echo(header)
+    for s in summary.sessions:
+        typer.echo(
+            f"{s.session_id:<{w}} {s.steps:>6} {s.scans:>6} {s.access_points:>5} "
+            f"{s.duration_s:>8.1f} {s.walked_m:>8.1f} {s.landmarks:>5}"
+        )
+    t = summary.totals
+    typer.echo(
+        f"{t['sessions']} sessions, {t['steps']:,} steps, {t['scans']:,} scans, "
+        f"{t['access_points']:,} distinct APs, {t['duration_s'] / 60:.1f} min, "
+        f"{t['walked_m'] / 1000:.2f} km walked, {t['landmarks']:,} landmarks"
+    )
+
+
+@app.command()
+def survey(
+    paths: List[Path] = typer.Argument(..., help="Recordings (.mcap) or folders of them."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (created)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config (see configs/default.yaml)."),
+    set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value, e.g. wifi.d_min_m=3."),
+    rerun: Optional[Path] = typer.Option(None, "--rerun", help="Also log the survey to this .rrd file."),
+    floor_plan: Optional[Path] = typer.Option(None, "--floor-plan", help="Image drawn under survey.png and in Rerun."),
+    floor_size: Optional[tuple[float, float]] = typer.Option(
+        None, "--floor-size", help="W H of the floor plan (m); default: floor_info.json beside the image."
+    ),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress (--no-progress: as --quiet)."),
+    surveyed: bool = typer.Option(
+        False, "--surveyed", help="Also write radio_map_surveyed.parquet: fingerprints at ground-truth poses (evaluation)."
+    ),
+    picture: bool = typer.Option(True, "--picture/--no-picture", help="Write OUT/survey.png (over --floor-plan)."),
+    update: Optional[Path] = typer.Option(
+        None, "--update", help="A previous survey's OUT folder of this floor: walks solved there start from their "
+        "solution and only the new walks' neighbourhood is re-solved (a full re-solve, said in report.json, if "
+        "the configuration or a walk changed). OUT may be the same folder.",
+    ),
+    control_points: Optional[Path] = typer.Option(
+        None, "--control-points", help="CSV landmark_id,x,y (site metres): the landmarks of these ids, where a walk "
+        "marks them on /landmarks, tie the map to the site frame.",
+    ),
+) -> None:
+    """Align every walk into one frame; write trajectories.csv, aligned.mcap, radio_map.parquet,
+    wifi_edges.parquet, report.json, survey_state.npz, the effective config.yaml and survey.png into OUT.
+    Walks the data does not link to the main map form components of their own (report.json)."""
+    from graphslam.app.survey import run_survey
+
+    require_rerun(rerun)
+    cfg = config_from_options(config, set_)
+    if not progress:
+        from graphslam.app.progress import show_progress
+
+        show_progress("off")
+    result = run_survey(
+        paths, out, cfg, rerun_path=rerun, floor_plan=floor_plan, floor_size=floor_size, surveyed=surveyed,
+        picture=picture, update=update, control_points=control_points,
+    )
+    r = result.report
+    typer.echo(
+        f"aligned {r['aligned_sessions']}/{r['sessions']} walks, {r['nodes']:,} poses, "
+        f"{r['edges']['wifi']:,} WiFi edges; LM {r['optimizer']['iterations']} iterations "
+        f"(converged: {r['optimizer']['converged']}), error {r['optimizer']['initial_error']:.4g} -> "
+        f"{r['optimizer']['final_error']:.4g}; {r['timings_s']['total']:.2f} s"
+    )
+    ev = r.get("evaluation")
+    if ev and ev["landmarks"]["n"]:
+        lm, raw = ev["landmarks"], ev["landmarks_raw"]
+        typer.echo(
+            f"landmark error (SE(2) fit, n={lm['n']}): mean {lm['mean_m']:.2f} m, median {lm['median_m']:.2f} m, "
+            f"p90 {lm['p90_m']:.2f} m, max {lm['max_m']:.2f} m"
+            + (f"; raw dead reckoning mean {raw['mean_m']:.2f} m" if raw["n"] else "")
+        )
+    _echo_update(r.get("update"))
+    typer.echo(f"outputs in {out}")
+
+
+def _echo_update(u: Optional[dict]) -> None:
+    """One line on what `survey --update` did."""
+    if not u:
+        return
+    res = u["resolved"]
+    if u["mode"] == "full":
+        typer.echo(f"update: full re-solve ({u['reason']})")
+        return
+    typer.echo(
+        f"update: {len(u['new_walks'])} new walks (+{len(u['placed_again'])} placed again); re-solved "
+        f"{res['nodes']:,} of {res['of_nodes']:,} poses in {len(res['walks'])} walks ({res['hops']} hops)"
+    )
+
+
+@app.command("survey-batch")
+def survey_batch(
+    sites_root: Path = typer.Argument(..., help="Folder whose sub-folders of .mcap recordings are floors."),
+    out: Path = typer.Option(..., "--out", "-o", help="OUT_ROOT: each floor's outputs go to its relative path here."),
+    address: Optional[str] = typer.Option(
+        None, "--address", help="Join a running Dask scheduler (e.g. tcp://host:8786) instead of starting a local "
+        "cluster; its workers must see SITES_ROOT and OUT_ROOT at the same paths.",
+    ),
+    workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Local cluster: worker processes (default: cores)."),
+    update: bool = typer.Option(
+        False, "--update", help="Floors with a previous output in OUT_ROOT are updated in place (survey --update); "
+        "the others are surveyed in full.",
+    ),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config for every floor."),
+    set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value, e.g. wifi.d_min_m=3."),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Progress bar over floors."),
+) -> None:
+    """Survey every floor under SITES_ROOT as one task each on Dask; OUT_ROOT/summary.json lists them.
+    A floor folder holding control_points.csv is surveyed with it (survey --control-points). A floor
+    whose main map holds under half of its walks is "partial". Exit code 0: no floor failed (ok or
+    partial); 1: some failed (their error in summary.json); 2: bad arguments."""
+    from tqdm import tqdm
+
+    from graphslam.app.batch import run_batch
+    from graphslam.errors import require_extra
+
+    require_extra("distributed", "survey-batch (Dask)")
+
+    cfg = config_from_options(config, set_)
+    bar = tqdm(desc="floors", unit="floor", disable=not (progress and sys.stderr.isatty()), file=sys.stderr)
+    failed = [0]
+
+    def on_floor(row: object) -> None:
+        failed[0] += getattr(row, "status") == "failed"
+        bar.update(1)
+        bar.set_postfix(failed=failed[0])
+
+    try:
+        res = run_batch(sites_root, out, cfg, address=address, workers=workers, update=update, on_floor=on_floor,
+                        on_start=lambda n: bar.reset(total=n))
+    finally:
+        bar.close()
+    typer.echo(f"{len(res.rows)} floors: {res.ok} ok, {res.partial} partial, {res.failed} failed in "
+               f"{res.seconds:.1f} s; summary in {res.summary}")
+    for row in res.rows:
+        if row.status == "partial":
+            typer.echo(f"partial: {row.floor}: {row.warning}")
+        elif row.status != "ok":
+            typer.echo(f"failed: {row.floor}: {row.error}")
+    if res.failed:
+        sys.exit(1)  # not typer.Exit: main() runs click with standalone_mode=False, which returns its code
+
+
+@app.command()
+def evaluate(
+    trajectories: Path = typer.Argument(..., help="trajectories.csv written by `graphslam survey`."),
+    paths: List[Path] = typer.Argument(..., help="The recordings, with /landmarks or /ground_truth/pose."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Write the evaluation as JSON here."),
+    plot: Optional[Path] = typer.Option(None, "--plot", help="Landmark error histogram (PNG, as the paper's fig. 7)."),
+    component: int = typer.Option(
+        0, "--component", min=0, help="The walks of this component of trajectories.csv (0: the main map); "
+        "each component is in a frame of its own, so one fit covers one component.",
+    ),
+) -> None:
+    """Landmark errors after an SE(2) fit, heading alignment and raw-vs-aligned comparison."""
+    require_plots(plot)
+    from graphslam.core.survey.evaluate import evaluate as run_evaluation
+    from graphslam.errors import InputError
+    from graphslam.io.atomic import atomic_write_json, json_safe
+    from graphslam.io.csv_io import read_trajectory_file
+    from graphslam.io.mcap_reader import read_survey
+
+    traj = read_trajectory_file(trajectories)
+    tracks = traj.of_component(component)
+    if not tracks:
+        found = sorted(set(traj.components.values()))
+        raise InputError(trajectories, f"no walk in component {component} (components in the file: {found})",
+                         field="component")
+    survey_ = read_survey(paths)
+    if not survey_.has_ground_truth:
+        raise InputError(", ".join(map(str, paths)), "no /landmarks or /ground_truth/pose to evaluate against")
+    ev = run_evaluation(tracks, survey_)
+    if out:
+        atomic_write_json(out, ev.as_dict())
+    if plot:
+        from graphslam.viz.plots import landmark_histogram
+
+        landmark_histogram(ev, plot)
+    lm, raw = ev.landmarks, ev.landmarks_raw
+    summary = {
+        "component": component,
+        "walks": len(tracks),
+        "landmarks": {k: getattr(lm, k) for k in ("n", "mean_m", "median_m", "p90_m", "max_m")},
+        "raw_landmarks_mean_m": raw.mean_m,
+        "heading_mean_deg": ev.heading_mean_deg,
+        "steps_mean_m": ev.steps.mean_m,
+    }
+    typer.echo(json.dumps(json_safe(summary)))
+
+
+@app.command()
+def simulate(
+    scenario: str = typer.Argument(..., help="Scenario: paper, corridor, crowd or museum (see docs/simulator.md)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (created); existing files are replaced."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Random seed; same seed, same recordings."),
+    size: float = typer.Option(1.0, "--size", help="Multiplies the number of walks (paper --size 12: ~100k steps)."),
+    test_walks: int = typer.Option(0, "--test-walks", min=0, help="Extra held-out walks, written to OUT/test/."),
+    no_heading: bool = typer.Option(
+        False, "--no-heading",
+        help="Record no /phone/heading (the phone's azimuth per step); every other value stays the same.",
+    ),
+) -> None:
+    """Simulate a survey and write it as MCAP recordings (one per walk) plus OUT/building.json.
+
+    Walks carry the phone's azimuth on /phone/heading (unless --no-heading), ground truth and
+    landmark marks (evaluation only).
+    Reading OUT as a folder also finds OUT/test/: pass OUT/*.mcap to keep test walks held out.
+    """
+    import time
+
+    from graphslam.sim import HeadingModel, SurveyStats, with_overrides
+    from graphslam.sim import simulate as run_simulation
+
+    t0 = time.perf_counter()
+    chosen = with_overrides(scenario, heading=HeadingModel(enabled=False)) if no_heading else scenario
+    sim = run_simulation(chosen, seed=seed, size=size, test_walks=test_walks)
+    t_sim = time.perf_counter() - t0
+    sim.write(out)
+    st = SurveyStats.of(sim.survey)
+    typer.echo(
+        f"{scenario} seed={seed} size={size:g}: {len(st.walks)} sessions, {st.steps:,} steps, "
+        f"{st.scans:,} scans, {len(sim.building.aps)} APs ({st.access_points_heard} heard), "
+        f"{st.length_m / 1000:.2f} km, {st.duration_s / 60:.1f} min, {st.marks} landmark marks"
+    )
+    drifts = ", ".join(f"{w.max_drift_m:.1f}" for w in st.walks[:12]) + (", ..." if len(st.walks) > 12 else "")
+    typer.echo(f"max raw drift {st.max_drift_m:.1f} m (per walk: {drifts})")
+    if sim.test_sessions:
+        tst = SurveyStats.of(sim.test_sessions)
+        typer.echo(f"test: {len(tst.walks)} sessions, {tst.steps:,} steps, {tst.scans:,} scans -> {out / 'test'}")
+    typer.echo(f"wrote {out} (simulated in {t_sim:.1f} s, total {time.perf_counter() - t0:.1f} s)")
+
+
+@app.command()
+def plot(
+    out_dir: Path = typer.Argument(..., help="A finished `graphslam survey --out` folder."),
+    floor_plan: Optional[Path] = typer.Option(None, "--floor-plan", help="Image drawn under everything (site frame)."),
+    floor_size: Optional[tuple[float, float]] = typer.Option(
+        None, "--floor-size", help="W H of the floor plan (m); default: floor_info.json beside the image."
+    ),
+    recordings: Optional[List[Path]] = typer.Option(
+        None, "--recordings", "-r", help="The survey's .mcap files or folders (repeat): adds the landmark marks."
+    ),
+    ap: Optional[List[str]] = typer.Option(None, "--ap", help="BSSID to map in radio_map.png (repeat); default: --top-aps."),
+    top_aps: int = typer.Option(5, "--top-aps", min=0, help="Map the N most-heard access points."),
+    radio_map: bool = typer.Option(True, "--radio-map/--no-radio-map", help="Also draw OUT/radio_map.png."),
+) -> None:
+    """Redraw OUT/survey.png and draw OUT/radio_map.png (coverage, RSS per access point, fitted APs of
+    OUT/ap_models.json when `fit-aps` has run); prints the files written."""
+    from graphslam.app.pictures import plot_survey_folder
+
+    files = plot_survey_folder(
+        out_dir, floor_plan=floor_plan, floor_size=floor_size, recordings=recordings or (), aps=ap or (),
+        top_aps=top_aps, radio_map=radio_map,
+    )
+    typer.echo(json.dumps({k: str(v) for k, v in files.items()}))
+
+
+@app.command()
+def view(
+    out_dir: Path = typer.Argument(..., help="A finished `graphslam survey --out` folder."),
+    recordings: Optional[List[Path]] = typer.Option(
+        None, "--recordings", "-r", help="The survey's .mcap files or folders (repeat): adds raw walks and landmarks."
+    ),
+    save: Optional[Path] = typer.Option(None, "--save", help="Write the Rerun recording to this .rrd file."),
+    serve: bool = typer.Option(False, "--serve", help="Serve it in Rerun's web viewer on 127.0.0.1 (Ctrl-C stops)."),
+    spawn: bool = typer.Option(False, "--spawn", help="Open it in the native Rerun viewer (needs a display)."),
+    floor_plan: Optional[Path] = typer.Option(None, "--floor-plan", help="PNG shown under everything."),
+    floor_size: Optional[tuple[float, float]] = typer.Option(None, "--floor-size", help="W H of the floor plan (m)."),
+    web_port: int = typer.Option(9090, "--web-port", help="HTTP port of the web viewer (--serve)."),
+    grpc_port: int = typer.Option(9876, "--grpc-port", help="gRPC port of the web viewer's data server (--serve)."),
+) -> None:
+    """Show a finished survey in Rerun: save an .rrd, serve it on the web viewer, or open the native viewer."""
+    import tempfile
+
+    from graphslam.errors import ConfigError
+    require_rerun()
+    from graphslam.viz.rerun_log import write_survey_view
+    from graphslam.viz.rerun_viewer import require_display, serve_rrd, spawn_viewer
+
+    if not (save or serve or spawn):
+        raise ConfigError("choose at least one of --save FILE.rrd, --serve, --spawn")
+    if spawn:
+        require_display()
+    target = save or Path(tempfile.mkdtemp(prefix="graphslam-view-")) / "survey.rrd"
+    result = write_survey_view(
+        out_dir, target, recordings=recordings or (), floor_plan=floor_plan, floor_size=floor_size
+    )
+    typer.echo(f"wrote {result.path} ({result.path.stat().st_size / 1e6:.1f} MB, {len(result.counts)} entities)")
+    if spawn:
+        spawn_viewer(result.path)
+        typer.echo("opened the Rerun viewer")
+    if serve:
+        server = serve_rrd(result.path, web_port=web_port, grpc_port=grpc_port)
+        typer.echo(f"serving {result.path} at {server.url} (Ctrl-C stops)")
+        server.wait()
+
+
+@app.command()
+def demo(
+    out: Path = typer.Option(Path("graphslam-demo"), "--out", "-o", help="Working folder (created)."),
+    seed: int = typer.Option(0, help="Simulator seed."),
+    rerun: bool = typer.Option(False, "--rerun", help="Also write OUT/survey.rrd."),
+) -> None:
+    """Simulate the paper's survey, align it, locate held-out walks; print the headline figures."""
+    from graphslam.app.demo import run_demo
+
+    require_rerun(rerun)
+
+    r = run_demo(out, seed=seed, rerun=rerun)
+    f = r.figures
+    typer.echo(f"simulated {f['walks']} walks, {f['steps']:,} steps, {f['km_walked']} km ({f['time_simulate_s']} s)")
+    typer.echo(
+        f"survey: aligned {f['aligned']} walks in {f['time_survey_s']} s; landmark error mean "
+        f"{f['landmark_mean_m']} m, max {f['landmark_max_m']} m (raw dead reckoning: {f['raw_dead_reckoning_landmark_mean_m']} m)"
+    )
+    typer.echo(
+        f"locate: {f['knn_queries']} held-out scans, median error {f['knn_median_m']} m, "
+        f"P(error < 10 m) = {f['knn_p_lt_10m']} ({f['time_locate_s']} s)"
+    )
+    typer.echo(f"outputs in {r.out_dir} (total {f['total_s']} s)")
+    typer.echo(json.dumps(f))

@@ -1,0 +1,6 @@
+"""What the core sub-packages share: SE(2) geometry and the odometry (IMU-between) factors.
+
+The core sub-packages depend in one direction: ``common`` (and ``types``, ``progress``,
+``summary``) <- ``radiomap`` <- ``uwb`` <- ``survey``; ``tracking`` sits beside ``survey`` on
+``radiomap``. Nothing here imports a sub-package (``tests/test_layers.py`` checks it).
+"""
