@@ -158,7 +158,7 @@ def test_an_unfinite_start_is_an_error() -> None:
 
 @needs_pardiso
 def test_auto_takes_pardiso_where_mkl_loads_else_cholmod(monkeypatch: pytest.MonkeyPatch) -> None:
-    from graphslam.core.survey.align import use_pardiso
+    from graphslam.core.survey.graph import use_vectorised_solver as use_pardiso
 
     assert use_pardiso(CFG) and C.backend_for("auto") == "pardiso"  # MKL loads here
 

@@ -3,10 +3,10 @@ python lab/issue37/bench_components.py FOLDER [key=value ...] [cp=FILE] [noLM]""
 import sys, time, csv
 import numpy as np
 import graphslam as gs
-from graphslam.core.survey.evaluate import landmark_errors, _marks
-from graphslam.core.survey.align import build_problem, solve
-from graphslam.core.types import PoseTrack
-from graphslam.core.survey.initialise import se2_apply
+from graphslam import landmark_errors, landmark_marks as _marks
+from graphslam import build_problem, solve_problem as solve
+from graphslam import PoseTrack
+from graphslam import se2_apply
 
 
 def parse(v):
@@ -41,7 +41,7 @@ def run(folder, sets, cp_file=None, lm=True, quiet=False):
             if prob.included[s]:
                 T = prob.placement.transforms[s]
                 tracks[sess.session_id] = PoseTrack(sess.steps.t_ns, se2_apply(T, sess.steps.xy), sess.steps.heading + T[2])
-        from graphslam.core.survey.align import Component
+        from graphslam import Component
         comps = prob.components
     dt = time.time() - t0
     rows = []

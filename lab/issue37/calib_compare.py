@@ -2,7 +2,7 @@ import sys
 sys.path.insert(0, "lab/issue37")
 import numpy as np
 from common import load, true_xy
-from graphslam.core.radiomap.similarity import PowerCosine
+from graphslam import PowerCosine
 fl = load(sys.argv[1]); scale = float(sys.argv[2]) if len(sys.argv) > 2 else 10.0
 pc = PowerCosine.of(fl.fp.fingerprints, scale)
 T = true_xy(fl); t = fl.fp.t_ns / 1e9

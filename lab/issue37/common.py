@@ -6,9 +6,9 @@ from dataclasses import dataclass
 import numpy as np
 
 import graphslam as gs
-from graphslam.core.survey.association import associate
-from graphslam.core.survey.evaluate import interpolate_xy
-from graphslam.core.survey.initialise import se2_apply
+from graphslam import associate
+from graphslam import interpolate_xy
+from graphslam import se2_apply
 
 
 def heading_offset(s) -> float:

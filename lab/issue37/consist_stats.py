@@ -2,14 +2,14 @@ import sys
 sys.path.insert(0, "lab/issue37")
 import numpy as np
 import graphslam as gs
-from graphslam.core.survey.association import associate
-from graphslam.core.survey.heading import walk_headings
-from graphslam.core.survey.components import place_components
-from graphslam.core.survey.placement import GrowthParams
-from graphslam.core.radiomap.similarity import PowerCosine
-from graphslam.core.survey.evaluate import landmark_errors
-from graphslam.core.types import PoseTrack
-from graphslam.core.survey.initialise import se2_apply
+from graphslam import associate
+from graphslam import walk_headings
+from graphslam import place_components
+from graphslam import GrowthParams
+from graphslam import PowerCosine
+from graphslam import landmark_errors
+from graphslam import PoseTrack
+from graphslam import se2_apply
 rows = []
 for folder in sys.argv[2:]:
     sv = gs.read_survey([folder])

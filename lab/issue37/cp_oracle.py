@@ -3,8 +3,8 @@ import sys, csv
 sys.path.insert(0, "lab/issue37")
 import numpy as np
 from common import load
-from graphslam.core.survey.evaluate import interpolate_xy
-from graphslam.core.survey.initialise import se2_apply, fit_se2
+from graphslam import interpolate_xy
+from graphslam import se2_apply, fit_se2
 
 fl = load(sys.argv[1])
 cps = {r["landmark_id"]: (float(r["x"]), float(r["y"])) for r in csv.DictReader(open(sys.argv[2]))}

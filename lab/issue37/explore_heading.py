@@ -2,8 +2,8 @@
 import sys
 import numpy as np
 import graphslam as gs
-from graphslam.core.survey.initialise import fit_se2
-from graphslam.core.survey.evaluate import interpolate_xy
+from graphslam import fit_se2
+from graphslam import interpolate_xy
 
 folder = sys.argv[1]
 sv = gs.read_survey([folder])

@@ -2,7 +2,7 @@ import sys
 import numpy as np
 sys.path.insert(0, "lab/issue37")
 from common import load, true_xy
-from graphslam.core.radiomap.similarity import PowerCosine
+from graphslam import PowerCosine
 
 fl = load(sys.argv[1])
 print("F", len(fl.xy), "S", len(fl.psi), "phi0 deg", np.degrees(fl.phi0))

@@ -3,7 +3,7 @@ sys.path.insert(0, "lab/issue37")
 import numpy as np
 from common import load, true_xy
 from pairlik import calibrate2, calibrate, truth_calibrate, sim_bins, PairGrid
-from graphslam.core.radiomap.similarity import PowerCosine
+from graphslam import PowerCosine
 
 fl = load(sys.argv[1])
 mode = sys.argv[2] if len(sys.argv) > 2 else "self"

@@ -4,7 +4,7 @@ sys.path.insert(0, "lab/issue37")
 import numpy as np
 from common import load, true_xy
 from pairlik import calibrate2, truth_calibrate, sim_bins, PairGrid, truncate, cross_ref
-from graphslam.core.radiomap.similarity import PowerCosine
+from graphslam import PowerCosine
 
 fl = load(sys.argv[1]); mode = sys.argv[2]
 pc = PowerCosine.of(fl.fp.fingerprints, 10.0)

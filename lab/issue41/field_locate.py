@@ -9,10 +9,10 @@ from scipy.ndimage import gaussian_filter
 from scipy.special import log_ndtr
 from scipy.spatial import cKDTree
 import graphslam as gs
-from graphslam.app.tracking_bench import oracle_radio_map
-from graphslam.core.radiomap.radiomap import RadioMap
-from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
-from graphslam.core.tracking.apmodel import fit_ap, ApFitConfig, ApModel
+from graphslam import oracle_radio_map
+from graphslam import RadioMap
+from graphslam import KnnConfig, KnnLocator
+from graphslam import fit_ap, ApFitConfig, ApModel
 
 folder = sys.argv[1]
 kw = dict(a.split("=") for a in sys.argv[2:] if "=" in a)

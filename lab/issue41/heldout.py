@@ -6,8 +6,8 @@ import sys
 import numpy as np
 from scipy.spatial import cKDTree
 import graphslam as gs
-from graphslam.app.tracking_bench import oracle_radio_map
-from graphslam.core.tracking.apmodel import fit_ap, ApFitConfig, ApModel
+from graphslam import oracle_radio_map
+from graphslam import fit_ap, ApFitConfig, ApModel
 
 folder = sys.argv[1]
 kw = dict(a.split("=") for a in sys.argv[2:] if "=" in a)

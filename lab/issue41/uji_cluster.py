@@ -1,6 +1,8 @@
 """UJIIndoorLoc: neighbours' spatial consistency on cached Sørensen distances (/tmp/uji_soren.npy)."""
+import sys
 import numpy as np
-from graphslam.io.ujiindoorloc import read_ujiindoorloc
+sys.path.insert(0, str(__import__('pathlib').Path(__file__).resolve().parents[2]))  # the repository root: lab.bench
+from lab.bench.ujiindoorloc import read_ujiindoorloc
 D = "../shared/data/ujiindoorloc/"
 tr = read_ujiindoorloc(D + "trainingData.csv.gz"); te = read_ujiindoorloc(D + "validationData.csv.gz")
 Dm = np.load("/tmp/uji_soren.npy")

@@ -2,7 +2,8 @@
 its own... this script prints every variant so the choice is visible)."""
 import sys, time
 import numpy as np
-from graphslam.io.ujiindoorloc import read_ujiindoorloc
+sys.path.insert(0, str(__import__('pathlib').Path(__file__).resolve().parents[2]))  # the repository root: lab.bench
+from lab.bench.ujiindoorloc import read_ujiindoorloc
 
 D = "../shared/data/ujiindoorloc/"
 tr = read_ujiindoorloc(D + "trainingData.csv.gz"); te = read_ujiindoorloc(D + "validationData.csv.gz")

@@ -18,7 +18,7 @@ within a walk (PDR distance) matches the one across walks up to ~20 m. ``scale_d
 Memory: similarities are computed in row blocks (``block_rows`` x N), never N x N. Where the
 fingerprints fit a dense matrix of ``DENSE_MAX_CELLS`` (N x A) and fill ``DENSE_MIN_FILL`` of it (many
 fingerprints over few access points, as in a large simulated survey), each block is one float32 BLAS product: a sparse x sparse
-product of a nearly dense result costs ~20x more. The chosen partners' similarities are recomputed
+product of a nearly dense result costs far more. The chosen partners' similarities are recomputed
 in float64 from the sparse rows, so both paths report the same values.
 """
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Callable, Mapping
+from typing import Callable, Mapping
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,28 +27,26 @@ from graphslam.core.survey import factors as F
 from graphslam.core.survey import solver as S
 from graphslam.core.survey import incremental
 from graphslam.core.survey.association import FingerprintNodes, associate
-from graphslam.core.survey.chains import CompressedChains, compress, expand
+from graphslam.core.survey.chains import expand
 from graphslam.core.survey.components import Component
 from graphslam.core.survey.control import ControlTies
 from graphslam.core.survey.heading_split import ComponentSplit, HeadingTerms, split_by_heading
 from graphslam.core.survey.edges import WifiEdges, propose_edges, window_thresholds
+from graphslam.core.survey.graph import (
+    dead_reckoned_nodes,
+    gtsam_lm,
+    native_graph,
+    pose_graph,
+    solved_wifi_pairs,
+    use_vectorised_solver,
+    values_to_xyh,
+)
 from graphslam.core.survey.initialise import Placement, connected_to, register_walks, se2_apply_poses
 from graphslam.core.types import PoseTrack, Survey
-from graphslam.core.uwb import factors as uwb_factors
 from graphslam.core.uwb.survey import UwbSummary, UwbTerms, uwb_terms
 from graphslam.errors import SolverError
 
-if TYPE_CHECKING:
-    import gtsam
-
 log = logging.getLogger(__name__)
-
-
-def X(i: int) -> int:
-    """GTSAM key of step pose i, numbered globally over all walks (``symbol_shorthand.X``)."""
-    import gtsam  # lazy: a slow import, needed only by the GTSAM back end (optimizer.solver: gtsam)
-
-    return gtsam.symbol_shorthand.X(i)
 
 
 @dataclass(frozen=True)
@@ -121,12 +119,6 @@ class Alignment:
     def fingerprint_xy(self) -> NDArray[np.float64]:
         """Optimised position of every fingerprint (NaN where its walk is unaligned)."""
         return self.node_xyh[self.fingerprints.node, :2]
-
-
-def _dr_nodes(survey: Survey) -> tuple[NDArray, NDArray]:
-    xyh = np.concatenate([s.steps.xyh for s in survey]) if len(survey) else np.zeros((0, 3))
-    sess = np.concatenate([np.full(len(s.steps), i) for i, s in enumerate(survey)]).astype(np.int64)
-    return xyh, sess
 
 
 def _reference_index(survey: Survey, cfg: GraphSlamConfig) -> int:
@@ -279,7 +271,7 @@ def build_problem(
 
     t = time.perf_counter()
     task = Task("initialise")
-    dr_xyh, node_sess = _dr_nodes(survey)
+    dr_xyh, node_sess = dead_reckoned_nodes(survey)
     ref = _reference_index(survey, cfg)
     n_s = len(survey)
     ea, eb = fp.node[edges.i], fp.node[edges.j]
@@ -437,180 +429,6 @@ def placement_reasons(placement: Placement, survey: Survey) -> dict[str, str]:
     return {survey.sessions[s].session_id: reasons.get(int(s), "not placed") for s in np.flatnonzero(~placement.placed)}
 
 
-def native_graph(
-    problem: Problem, cfg: GraphSlamConfig
-) -> tuple[gtsam.NonlinearFactorGraph, list[gtsam.NonlinearFactor], gtsam.Values, CompressedChains | None]:
-    """(IMU factors + reference prior, one WiFi factor per edge, initial values, chains): GTSAM C++ factors only.
-
-    With ``optimizer.compress_chains`` the IMU chain between fingerprint poses becomes one
-    between factor per segment (``graphslam.core.survey.chains``); otherwise one per step (eq. 6-8).
-    The default back end solves ``pose_graph`` instead, except for --update and UWB surveys
-    (``use_pardiso``): a factor type added here needs its vectorised counterpart in ``solver.py``,
-    or a case in ``use_pardiso``.
-    With ``problem.free`` (--update) only factors touching a free node are built; the other
-    nodes they touch are held at their previous solution by priors as tight as the reference's.
-    """
-    import gtsam
-
-    imu_graph = gtsam.NonlinearFactorGraph()
-    chains = None
-    free = problem.free
-    if cfg.optimizer.compress_chains:
-        keep = _kept_nodes(problem)
-        step_cov = np.diag([cfg.imu.sigma_xy_m**2, cfg.imu.sigma_xy_m**2, cfg.imu.sigma_heading_rad**2])
-        # measured from the dead reckoning (rigid-invariant): init_xyh is not one with a warm start
-        chains = compress(_dr_nodes(problem.survey)[0], problem.fingerprints.offsets, keep, problem.included, step_cov)
-        pairs, measured, noises = chains.pairs, chains.measured, [gtsam.noiseModel.Gaussian.Covariance(c) for c in chains.covariance]
-    else:
-        pairs, measured = problem.imu_pairs, problem.imu_u
-        noises = [F.imu_noise(cfg.imu)] * len(pairs)
-    use = np.ones(len(pairs), bool) if free is None else free[pairs].any(axis=1)
-    idx = np.flatnonzero(use)
-    for k, (i, j) in zip(idx.tolist(), pairs[idx].tolist()):
-        imu_graph.add(F.imu_factor(X(i), X(j), measured[k], noises[k]))
-    wifi_pairs = _solved_wifi_pairs(problem)
-    if free is None:
-        nodes = chains.kept if chains is not None else np.flatnonzero(np.isfinite(problem.init_xyh[:, 0]))
-    else:
-        nodes = np.unique(np.concatenate([pairs[use].ravel(), wifi_pairs.ravel()]))
-        for n in nodes[~free[nodes]].tolist():  # the neighbourhood's border keeps its previous solution
-            imu_graph.add(gtsam.PriorFactorPose2(X(n), gtsam.Pose2(*problem.init_xyh[n]), F.reference_prior_noise()))
-    uwb = problem.uwb
-    # with UWB anchors they fix the frame instead; --update: only when the reference is re-solved
-    for r0 in problem.held_nodes.tolist():
-        if (uwb is None or not uwb.site_frame) and (free is None or free[r0]):
-            imu_graph.add(gtsam.PriorFactorPose2(X(r0), gtsam.Pose2(*problem.init_xyh[r0]), F.reference_prior_noise()))
-    hn, ht, hs = heading_priors(problem, nodes)
-    for n, th, sg in zip(hn.tolist(), ht.tolist(), hs.tolist()):
-        nm = gtsam.noiseModel.Isotropic.Sigma(1, sg)
-        if cfg.heading.cauchy_sigmas > 0:
-            nm = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.heading.cauchy_sigmas), nm)
-        imu_graph.add(gtsam.PoseRotationPrior2D(X(n), gtsam.Rot2(th), nm))
-    pn, pxy, ps = point_priors(problem, cfg)
-    for n, (px, py), sg in zip(pn.tolist(), pxy.tolist(), ps.tolist()):
-        imu_graph.add(gtsam.PoseTranslationPrior2D(X(n), gtsam.Pose2(px, py, 0.0), gtsam.noiseModel.Isotropic.Sigma(2, sg)))
-    values = gtsam.Values()
-    for n in nodes.tolist():
-        values.insert(X(n), gtsam.Pose2(*problem.init_xyh[n]))
-    if uwb is not None:  # UWB hook: range factors (always active) and the anchors
-        for f in uwb_factors.range_factors(uwb.ranges, cfg.uwb, with_anchors=uwb.site_frame):
-            imu_graph.add(f)
-        values.insert(uwb_factors.anchor_values(uwb.ranges))
-    wifi_nm = F.wifi_noise(cfg.wifi)
-    wifi = [F.wifi_factor(X(i), X(j), wifi_nm) for i, j in wifi_pairs.tolist()]
-    return imu_graph, wifi, values, chains
-
-
-def pose_graph(problem: Problem, cfg: GraphSlamConfig) -> tuple[S.PoseGraph, CompressedChains | None]:
-    """The same graph as ``native_graph``, as arrays for ``solver.levenberg_marquardt`` (vectorised)."""
-    step_cov = np.diag([cfg.imu.sigma_xy_m**2, cfg.imu.sigma_xy_m**2, cfg.imu.sigma_heading_rad**2])
-    held = problem.held_nodes
-    chains = None
-    if cfg.optimizer.compress_chains:
-        keep = _kept_nodes(problem)
-        chains = compress(_dr_nodes(problem.survey)[0], problem.fingerprints.offsets, keep, problem.included, step_cov)
-        nodes, pairs, measured = chains.kept, chains.pairs, chains.measured
-        sqrt_info = S.sqrt_information(chains.covariance)
-    else:
-        nodes = np.flatnonzero(np.isfinite(problem.init_xyh[:, 0]))
-        pairs, measured = problem.imu_pairs, problem.imu_u
-        sqrt_info = np.broadcast_to(S.sqrt_information(step_cov[None])[0], (len(pairs), 3, 3))
-    hn, ht, hs = heading_priors(problem, nodes)
-    pn, pxy, ps = point_priors(problem, cfg)
-    graph = S.PoseGraph(
-        n_nodes=len(problem.init_xyh),
-        variables=nodes[~np.isin(nodes, held)].astype(np.int64),
-        reference=int(held[0]) if len(held) else -1,
-        between_pairs=pairs,
-        between_measured=measured,
-        between_sqrt_info=sqrt_info,
-        range_pairs=problem.wifi_pairs,
-        range_sigma=F.wifi_sigma(cfg.wifi),
-        range_dead_zone_m=cfg.wifi.d_min_m,
-        heading_nodes=hn,
-        heading_target=ht,
-        heading_sigma=hs,
-        point_nodes=pn,
-        point_xy=pxy,
-        point_sigma=ps,
-        heading_cauchy=cfg.heading.cauchy_sigmas,
-    )
-    return graph, chains
-
-
-def _kept_nodes(problem: Problem) -> NDArray[np.bool_]:
-    """Nodes chain compression keeps as variables: WiFi edge ends, held nodes, control-point ties, UWB ranges."""
-    keep = np.zeros(len(problem.init_xyh), bool)
-    keep[problem.wifi_pairs.ravel()] = True
-    keep[problem.held_nodes] = True
-    if problem.ties is not None:
-        keep[problem.ties.node] = True
-    if problem.uwb is not None:  # UWB hook: poses with a range stay variables
-        keep[problem.uwb.nodes] = True
-    if problem.heading is not None:  # every walk keeps one pose at least, for its heading prior
-        keep[problem.fingerprints.offsets[:-1][problem.included]] = True
-    return keep
-
-
-def heading_priors(problem: Problem, nodes: NDArray[np.int64]) -> tuple[NDArray, NDArray, NDArray]:
-    """(nodes, target heading, sigma) of the heading priors on ``nodes`` (the solved poses)."""
-    h = problem.heading
-    if h is None or h.mode == "none":
-        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
-    nodes = nodes[np.isfinite(h.target[nodes])]
-    sess = _dr_nodes(problem.survey)[1]
-    if h.mode == "walk":  # one rotation prior per walk, on its first solved pose
-        _, first = np.unique(sess[nodes], return_index=True)
-        nodes = nodes[first]
-        return nodes.astype(np.int64), h.target[nodes], h.walk_sigma[sess[nodes]]
-    return nodes.astype(np.int64), h.target[nodes], h.node_sigma(nodes, sess)
-
-
-def point_priors(problem: Problem, cfg: GraphSlamConfig) -> tuple[NDArray, NDArray, NDArray]:
-    """(nodes, site xy, sigma) of the control-point ties."""
-    t = problem.ties
-    if t is None or len(t) == 0:
-        return np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0)
-    return t.node, t.xy, np.full(len(t), cfg.control_points.sigma_m)
-
-
-def use_pardiso(cfg: GraphSlamConfig, problem: Problem | None = None) -> bool:
-    """``optimizer.solver``: the vectorised LM (``solver.py``) unless gtsam is asked for; its sparse
-    Cholesky is PARDISO where MKL loads, else CHOLMOD (``core.common.cholesky``). A local re-solve
-    (--update: ``problem.free``) and a survey with UWB range factors always take GTSAM's: only
-    ``native_graph`` builds those factors."""
-    if problem is not None and (problem.free is not None or problem.uwb is not None):
-        return False
-    return cfg.optimizer.solver != "gtsam"
-
-
-def _solved_wifi_pairs(problem: Problem) -> NDArray[np.int64]:
-    """The WiFi edges in the graph ``solve`` optimises: all, or those touching a free node (--update)."""
-    if problem.free is None:
-        return problem.wifi_pairs
-    return problem.wifi_pairs[problem.free[problem.wifi_pairs].any(axis=1)]
-
-
-def lm_params(cfg: GraphSlamConfig, n_poses: int = 0) -> gtsam.LevenbergMarquardtParams:
-    """LM settings. Direct multifrontal Cholesky is fastest on surveys of a few thousand fingerprint
-    poses; beyond that the WiFi edges, which tie every revisited place together, make elimination
-    cliques grow large and block-Jacobi PCG wins."""
-    import gtsam
-
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(cfg.optimizer.max_iterations)
-    params.setRelativeErrorTol(cfg.optimizer.relative_error_tol)
-    params.setAbsoluteErrorTol(cfg.optimizer.absolute_error_tol)
-    params.setOrderingType("METIS")
-    solver = cfg.optimizer.linear_solver
-    if solver == "pcg" or (solver == "auto" and n_poses > cfg.optimizer.pcg_above_poses):
-        params.setLinearSolverType("ITERATIVE")
-        pcg = gtsam.PCGSolverParameters()
-        pcg.preconditioner = gtsam.BlockJacobiPreconditionerParameters()
-        params.setIterativeParams(pcg)
-    return params
-
-
 def align(
     survey: Survey,
     config: GraphSlamConfig | None = None,
@@ -636,7 +454,7 @@ def solve(
     timings = dict(problem.timings_s)
     t = time.perf_counter()
     with Task("build graph"):
-        pardiso = use_pardiso(cfg, problem)
+        pardiso = use_vectorised_solver(cfg, problem)
         if pardiso:
             pg, chains = pose_graph(problem, cfg)
             settings = S.LMSettings(
@@ -651,7 +469,7 @@ def solve(
             )
         else:
             imu_graph, wifi_factors, values, chains = native_graph(problem, cfg)
-    solved_pairs = problem.wifi_pairs if pardiso else _solved_wifi_pairs(problem)
+    solved_pairs = problem.wifi_pairs if pardiso else solved_wifi_pairs(problem)
     ea, eb = solved_pairs[:, 0], solved_pairs[:, 1]
     timings["build_graph"] = time.perf_counter() - t
 
@@ -666,7 +484,7 @@ def solve(
         return float(imu + F.fuzzy_cost(d, cfg.wifi).sum())
 
     init_xyh = problem.init_xyh
-    dr_xyh = _dr_nodes(problem.survey)[0]
+    dr_xyh = dead_reckoned_nodes(problem.survey)[0]
     xyh = init_xyh.copy()
     initial_error = objective(xyh)
     converged = False
@@ -690,8 +508,8 @@ def solve(
             converged = res.converged
             xyh = res.xyh
         else:
-            values, converged = _gtsam_lm(imu_graph, wifi_factors, values, active, cfg, hook)
-            xyh = _values_to_xyh(values, init_xyh)
+            values, converged = gtsam_lm(imu_graph, wifi_factors, values, active, cfg, hook)
+            xyh = values_to_xyh(values, init_xyh)
         if chains is not None:
             xyh = expand(xyh, dr_xyh, chains)
         if problem.free is not None:  # --update: outside the neighbourhood, the previous solution
@@ -737,42 +555,3 @@ def solve(
         component_list=problem.components,
         frame_name=problem.frame_name,
     )
-
-
-def _gtsam_lm(
-    imu_graph: gtsam.NonlinearFactorGraph,
-    wifi_factors: list[gtsam.NonlinearFactor],
-    values: gtsam.Values,
-    active: NDArray[np.bool_],
-    cfg: GraphSlamConfig,
-    hook: Callable[[int, float, float], None],
-) -> tuple[gtsam.Values, bool]:
-    """One stage with GTSAM's own LM (``optimizer.solver: gtsam``)."""
-    import gtsam
-
-    graph = gtsam.NonlinearFactorGraph(imu_graph)
-    for k in np.flatnonzero(active).tolist():
-        graph.add(wifi_factors[k])
-    params = lm_params(cfg, values.size())
-    params.iterationHook = hook
-    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    values = optimizer.optimize()
-    # LM also stops when it can find no step that lowers the error (lambda at its upper
-    # bound): that is a stall, not convergence
-    converged = (
-        optimizer.iterations() < cfg.optimizer.max_iterations
-        and optimizer.lambda_() < params.getlambdaUpperBound()
-    )
-    return values, converged
-
-
-def _values_to_xyh(values: gtsam.Values, template: NDArray) -> NDArray:
-    import gtsam
-
-    out = np.full_like(template, np.nan)
-    # gtsam.utilities.extractPose2 returns the poses in key order (UWB anchors are Point2s)
-    keys = [k for k in values.keys() if gtsam.Symbol(k).chr() == ord("x")]
-    poses = gtsam.utilities.extractPose2(values)
-    idx = np.array([gtsam.Symbol(k).index() for k in keys], dtype=np.int64)
-    out[idx] = poses
-    return out

@@ -6,7 +6,7 @@ import re, sys
 import numpy as np
 sys.path.insert(0, "lab/issue37")
 from common import load, true_xy
-from graphslam.core.tracking.apmodel import fit_ap, ApFitConfig, ApModel
+from graphslam import fit_ap, ApFitConfig, ApModel
 
 folder = sys.argv[1] if len(sys.argv) > 1 else "../shared/data/ipin2023/b100_f-2"
 fl = load(folder)

@@ -3,7 +3,7 @@ python lab/issue37/ap/diag.py FOLDER [key=value ...] [cp=FILE]"""
 import sys, re, csv
 import numpy as np
 import graphslam as gs
-from graphslam.core.survey.evaluate import component_errors
+from graphslam import component_errors
 
 folder = sys.argv[1]
 rest = sys.argv[2:]

@@ -5,14 +5,14 @@ python lab/issue37/ap/pause_growth.py FLOOR [thr=0.95] [w=10] [margin=1.0]"""
 import sys
 import numpy as np
 import graphslam as gs
-from graphslam.core.survey.association import associate
-from graphslam.core.survey.heading import walk_headings
-from graphslam.core.survey.components import place_components
-from graphslam.core.survey.placement import GrowthParams
-from graphslam.core.radiomap.similarity import PowerCosine, Matches
-from graphslam.core.survey.evaluate import landmark_errors
-from graphslam.core.types import PoseTrack
-from graphslam.core.survey.initialise import se2_apply
+from graphslam import associate
+from graphslam import walk_headings
+from graphslam import place_components
+from graphslam import GrowthParams
+from graphslam import PowerCosine, Matches
+from graphslam import landmark_errors
+from graphslam import PoseTrack
+from graphslam import se2_apply
 
 folder = sys.argv[1]
 kw = dict(a.split("=") for a in sys.argv[2:])

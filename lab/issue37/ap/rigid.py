@@ -1,8 +1,8 @@
 """Oracle layout with a free rigid fit per walk (DR -> site by its own landmarks), in the Earth frame
 of common.load (site = R(phi0) earth). Scoring/oracle only."""
 import numpy as np
-from graphslam.core.survey.evaluate import interpolate_xy
-from graphslam.core.survey.initialise import se2_apply, fit_se2
+from graphslam import interpolate_xy
+from graphslam import se2_apply, fit_se2
 
 
 def rigid_xy(fl):

@@ -7,9 +7,9 @@ import sys, time
 import numpy as np
 from scipy.fft import rfft2, irfft2, next_fast_len
 import graphslam as gs
-from graphslam.core.survey.evaluate import component_errors
-from graphslam.core.survey.initialise import se2_apply
-from graphslam.io.floor_plan import load_floor_plan, read_walkable_area
+from graphslam import component_errors
+from graphslam import se2_apply
+from graphslam import load_floor_plan, read_walkable_area
 
 folder = sys.argv[1]
 args = dict(a.split("=") for a in sys.argv[2:] if "=" in a)

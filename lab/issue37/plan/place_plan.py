@@ -8,9 +8,9 @@ from scipy.fft import rfft2, irfft2
 from scipy import ndimage
 sys.path.insert(0, "lab/issue37")
 import graphslam as gs
-from graphslam.core.survey.heading import walk_headings
-from graphslam.core.survey.evaluate import interpolate_xy
-from graphslam.io.floor_plan import load_floor_plan, read_walkable_area
+from graphslam import walk_headings
+from graphslam import interpolate_xy
+from graphslam import load_floor_plan, read_walkable_area
 
 folder = sys.argv[1]
 args = dict(a.split("=") for a in sys.argv[2:] if "=" in a)
@@ -43,7 +43,7 @@ def truth_T(s, rot):
     return (true - q).mean(0), np.linalg.norm(true - q - (true - q).mean(0), axis=1).mean()
 
 # site rotation phi: truth (for the oracle check) = circular mean over walks of the rigid rotation - psi
-from graphslam.core.survey.initialise import fit_se2
+from graphslam import fit_se2
 rots = []
 for k, s in enumerate(sv):
     if len(s.landmarks) >= 3 and np.isfinite(wh.rotation[k]):
