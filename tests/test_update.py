@@ -29,8 +29,8 @@ def floor(tmp_path_factory: pytest.TempPathFactory) -> dict:
     """Recordings of 12 walks (old/ holds the first 11), and the 11-walk survey's output."""
     root = tmp_path_factory.mktemp("update")
     sim = simulate("crowd", seed=0, size=0.25)
-    # the incremental path is for walks without headings (with headings an update re-forms the
-    # components in full: test_an_update_with_headings_forms_the_components_again)
+    # these walks carry no headings: the registration-based update (with headings: the component
+    # update, test_an_update_with_headings_keeps_the_components_apart)
     sim = replace(sim, survey=Survey(tuple(replace(s, heading=None) for s in sim.survey)))
     (root / "old").mkdir()
     (root / "all").mkdir()
@@ -173,7 +173,10 @@ def test_update_from_a_bad_previous_output_is_one_line_exit_2(
     assert not (tmp_path / "o1").exists() and not (tmp_path / "o2").exists()
 
 
-def test_an_update_with_headings_forms_the_components_again(tmp_path: Path) -> None:
+def test_an_update_with_headings_keeps_the_components_apart(tmp_path: Path) -> None:
+    # museum: route 1 lies in a wing no other route reaches, so a survey keeps it apart; an update with
+    # two new walks must place only those, keep every previous component as it was (never merge two of
+    # them into one frame, as registering onto one solved body would) and re-solve locally
     sim = simulate("museum", seed=0, size=0.5)
     (tmp_path / "old").mkdir()
     (tmp_path / "all").mkdir()
@@ -184,10 +187,62 @@ def test_an_update_with_headings_forms_the_components_again(tmp_path: Path) -> N
     assert _run(["survey", str(tmp_path / "old"), "--out", str(tmp_path / "prev"), "--no-progress"]) == 0
     assert _run(["survey", str(tmp_path / "all"), "--out", str(tmp_path / "new"), "--update", str(tmp_path / "prev"),
                  "--no-progress"]) == 0
-    assert _run(["survey", str(tmp_path / "all"), "--out", str(tmp_path / "fresh"), "--no-progress"]) == 0
+    prev = json.loads((tmp_path / "prev" / "report.json").read_text())
     upd = json.loads((tmp_path / "new" / "report.json").read_text())
-    fresh = json.loads((tmp_path / "fresh" / "report.json").read_text())
-    assert upd["update"]["mode"] == "full" and "headings" in upd["update"]["reason"]
-    assert upd["frame"] == "earth"
-    # the same components as a survey from scratch (the incremental path would put every walk in one)
-    assert [c["walks"] for c in upd["components"]] == [c["walks"] for c in fresh["components"]]
+    assert upd["update"]["mode"] == "incremental", upd["update"]
+    assert upd["frame"] == prev["frame"] == "earth"
+    comp_prev = {w: c["index"] for c in prev["components"] for w in c["walks"]}
+    comp_upd = {w: c["index"] for c in upd["components"] for w in c["walks"]}
+    old = sorted(comp_prev)
+    assert len(prev["components"]) > 1
+    # the previous partition of the old walks, exactly (same groups, same indices)
+    assert all(comp_upd[w] == comp_prev[w] for w in old)
+    new = [w for w in comp_upd if w not in comp_prev]
+    assert sorted(new) == sorted(s.session_id for s in list(sim.survey)[-2:])
+    # the lone wing's walks share a component with no other route's
+    wing = {comp_upd[w] for w in comp_upd if "route1-" in w}
+    assert not any(comp_upd[w] in wing for w in comp_upd if "route1-" not in w)
+    # walks whose solution did not move keep it exactly
+    t_prev = {r[0]: r for r in _rows(tmp_path / "prev" / "trajectories.csv")}
+    t_upd = {r[0]: r for r in _rows(tmp_path / "new" / "trajectories.csv")}
+    assert upd["update"]["resolved"]["nodes"] < upd["update"]["resolved"]["of_nodes"]
+    assert sum(t_prev[k] == t_upd[k] for k in t_prev) > 0
+
+
+def _rows(path: Path) -> list[tuple[str, ...]]:
+    """trajectories.csv rows as (session, t, x, y, ...) text tuples, keyed by session and time."""
+    lines = path.read_text().splitlines()[1:]
+    return [tuple([f"{ln.split(',')[0]}/{ln.split(',')[1]}"] + ln.split(",")[2:]) for ln in lines]
+
+
+def test_a_state_without_components_or_with_other_control_points_means_a_full_resolve(tmp_path: Path) -> None:
+    # a survey with headings whose state predates components (format 1) cannot say which component a
+    # walk is in; and control points other than the previous run's place the walks differently
+    from graphslam.app.update import mismatch
+
+    sim = simulate("paper", seed=0, size=0.5)
+    d = tmp_path / "walks"
+    d.mkdir()
+    for s in sim.survey:
+        write_session(s, d / f"{s.session_id}.mcap")
+    assert _run(["survey", str(d), "--out", str(tmp_path / "prev"), "--no-progress"]) == 0
+    state = tmp_path / "prev" / STATE_FILE
+    previous = read_survey_state(state)
+    from graphslam.io.mcap_reader import read_survey
+
+    survey = read_survey([d])
+    cfg = GraphSlamConfig()
+    assert previous.frame == "earth" and previous.component is not None and previous.edge_used is not None
+    assert mismatch(previous, survey, cfg) is None
+    assert "control points differ" in mismatch(previous, survey, cfg, {"a": (0.0, 0.0)})
+    with np.load(state) as z:
+        old = {k: z[k] for k in z.files if k not in ("component", "frame", "control_digest", "edge_used")}
+    old["format_version"] = np.int64(1)
+    v1 = tmp_path / "v1.npz"
+    np.savez(v1, **old)
+    assert "no components" in mismatch(read_survey_state(v1), survey, cfg)
+    # a format-2 state missing one of its arrays is refused, naming it
+    bad = {**old, "format_version": np.int64(2)}
+    np.savez(tmp_path / "v2bad.npz", **bad)
+    with pytest.raises(Exception, match="component"):
+        read_survey_state(tmp_path / "v2bad.npz")

@@ -20,9 +20,10 @@ import numpy as np
 from graphslam.config import GraphSlamConfig
 from graphslam.core.survey.align import Alignment, ProgressCallback, align, build_problem, initialization, solve
 from graphslam.core.survey.incremental import (
+    control_points_digest,
     PreviousSolution,
     changed_edges,
-    previous_edge_rows,
+    previous_graph_pairs,
     session_digest,
     warm_start,
 )
@@ -45,7 +46,10 @@ def load_previous(previous_dir: str | Path) -> PreviousSolution:
     return read_survey_state(d / STATE_FILE)
 
 
-def mismatch(previous: PreviousSolution, survey: Survey, cfg: GraphSlamConfig) -> str | None:
+def mismatch(
+    previous: PreviousSolution, survey: Survey, cfg: GraphSlamConfig,
+    control_points: Mapping[str, tuple[float, float]] | None = None,
+) -> str | None:
     """Why ``previous`` cannot seed this survey (None: it can)."""
     diff = _config_diff(json.loads(previous.config_json), cfg)
     if diff:
@@ -59,10 +63,13 @@ def mismatch(previous: PreviousSolution, survey: Survey, cfg: GraphSlamConfig) -
             return f"walk {sid!r} changed since the previous survey (its steps or scans differ)"
     if previous.registration_reliable is False and cfg.optimizer.unreliable_registration == "unalign":
         return "the previous survey's registration was unreliable: which walks it aligns depends on all of them"
+    if control_points_digest(control_points) != previous.control_digest:
+        return "the control points differ from the previous run's"
     if initialization(cfg, survey) == "heading":
-        # the incremental path registers new walks onto one solved frame; the heading placement's
-        # components (each in a frame of its own) are formed again from all walks
-        return "the walks carry headings: their components are formed again from every walk"
+        if previous.component is None:
+            return "the previous survey state holds no components (written by an older version)"
+        if previous.frame == "aligned":
+            return "the previous survey was solved without the phones' headings"
     return None
 
 
@@ -101,7 +108,7 @@ def align_update(
         "new_walks": [s.session_id for s in survey if s.session_id not in prev_ids],
         "placed_again": [s.session_id for s in survey if s.session_id in prev_ids - prev_aligned],
     }
-    reason = mismatch(previous, survey, cfg)
+    reason = mismatch(previous, survey, cfg, control_points)
     if reason is not None:
         log.warning("--update: full re-solve: %s", reason)
         al = align(survey, cfg, progress=progress, control_points=control_points)
@@ -118,7 +125,7 @@ def align_update(
     free = problem.free if problem.free is not None else np.zeros(al.n_nodes, bool)
     walk_of = np.repeat(np.arange(len(survey)), np.diff(problem.fingerprints.offsets))
     ids = [s.session_id for s in survey]
-    prev_pairs = problem.fingerprints.node[previous_edge_rows(problem.fingerprints, warm)]
+    prev_pairs = previous_graph_pairs(problem.fingerprints, warm)
     added, removed = changed_edges(problem.wifi_pairs, prev_pairs, warm.solved)
     info.update(
         mode="incremental",

@@ -1,6 +1,7 @@
 """``survey_state.npz``: what a survey output keeps for a later ``graphslam survey --update``.
 
-A NumPy ``.npz`` archive (no pickles), format version 1:
+A NumPy ``.npz`` archive (no pickles), format version 2 (version 1, without the last three
+arrays, is still read: its walks have no components, so a survey with headings re-solves in full):
 
 ==================  ===========  ==================================================
 array               dtype        meaning
@@ -17,6 +18,10 @@ candidates          int64 ()     pairs below threshold before the per-fingerprin
 reference           str ()       the reference walk (its first pose is the frame's origin)
 config_json         str ()       the effective configuration, JSON
 registration_reliable int64 ()   1 / 0, or -1 when the loop check had too few loops to judge
+component           int64 (S,)   each walk's component (0: the main map), -1 if unaligned
+frame               str ()       component 0's frame: aligned, earth or site
+control_digest      str ()       SHA-256 of the control points used ("" none)
+edge_used           bool (E,)    the edge entered the optimiser (its walks' component, the placement's gate)
 ==================  ===========  ==================================================
 """
 
@@ -35,13 +40,15 @@ from graphslam.errors import InputError
 from graphslam.io.atomic import atomic_open
 
 STATE_FILE = "survey_state.npz"
-STATE_FORMAT_VERSION = 1
+STATE_FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 
 
 def write_survey_state(path: str | Path, survey: Survey, al: Alignment, cfg: GraphSlamConfig) -> Path:
     path = Path(path)
     fp = al.fingerprints
     reliable = None if al.placement is None else al.placement.reliable
+    comp = al.component_of()
     arrays = {
         "format_version": np.int64(STATE_FORMAT_VERSION),
         "session_ids": np.array([s.session_id for s in survey], dtype=str),
@@ -55,6 +62,10 @@ def write_survey_state(path: str | Path, survey: Survey, al: Alignment, cfg: Gra
         "reference": np.array(al.reference),
         "config_json": np.array(cfg.model_dump_json()),
         "registration_reliable": np.int64(-1 if reliable is None else int(reliable)),
+        "component": np.array([comp.get(s.session_id, -1) for s in survey], np.int64),
+        "frame": np.array(al.frame),
+        "control_digest": np.array(al.control_digest),
+        "edge_used": np.ones(len(al.edges.i), bool) if al.used_edges is None else np.asarray(al.used_edges, bool),
     }
     with atomic_open(path, "wb") as fh:
         np.savez(fh, **arrays)
@@ -77,9 +88,13 @@ def read_survey_state(path: str | Path) -> PreviousSolution:
     for k in need:
         if k not in data:
             raise InputError(path, "missing array", field=k)
-    if int(data["format_version"]) != STATE_FORMAT_VERSION:
-        raise InputError(path, f"format version {int(data['format_version'])}, expected {STATE_FORMAT_VERSION}",
-                         field="format_version")
+    version = int(data["format_version"])
+    if version not in READABLE_VERSIONS:
+        raise InputError(path, f"format version {version}, expected one of {READABLE_VERSIONS}", field="format_version")
+    if version >= 2:
+        for k in ("component", "frame", "control_digest", "edge_used"):
+            if k not in data:
+                raise InputError(path, "missing array", field=k)
     ids = tuple(str(x) for x in data["session_ids"].reshape(-1))
     n_s = len(ids)
     offsets = data["offsets"].astype(np.int64).reshape(-1)
@@ -106,6 +121,13 @@ def read_survey_state(path: str | Path) -> PreviousSolution:
     if reference not in ids:
         raise InputError(path, f"reference walk {reference!r} is not one of its walks", field="reference")
     rel = int(data["registration_reliable"])
+    component = None
+    if version >= 2:
+        component = data["component"].astype(np.int64).reshape(-1)
+        if component.shape != (n_s,) or bool(np.any(component[aligned] < 0)):
+            raise InputError(path, "array has the wrong shape or values", field="component")
+        if data["edge_used"].shape != (len(es),):
+            raise InputError(path, "array has the wrong shape or values", field="edge_used")
     return PreviousSolution(
         session_ids=ids,
         digests=tuple(str(x) for x in data["digests"]),
@@ -118,4 +140,8 @@ def read_survey_state(path: str | Path) -> PreviousSolution:
         reference=reference,
         config_json=str(data["config_json"]),
         registration_reliable=None if rel < 0 else bool(rel),
+        component=component,
+        frame=str(data["frame"]) if version >= 2 else "aligned",
+        control_digest=str(data["control_digest"]) if version >= 2 else "",
+        edge_used=data["edge_used"].astype(bool) if version >= 2 else None,
     )

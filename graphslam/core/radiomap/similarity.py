@@ -76,16 +76,21 @@ class PowerCosine:
             return np.zeros(0)
         return np.asarray(self.unit[i].multiply(self.unit[j]).sum(axis=1)).ravel()
 
-    def top_matches(self, group: NDArray[np.int64], k: int, *, block_rows: int = 512) -> Matches:
-        """For every fingerprint, its ``k`` most similar fingerprints of another group (walk)."""
+    def top_matches(
+        self, group: NDArray[np.int64], k: int, *, block_rows: int = 512, rows: NDArray[np.int64] | None = None
+    ) -> Matches:
+        """For every fingerprint (``rows``: for these only), its ``k`` most similar fingerprints of
+        another group (walk)."""
         n = len(self)
         group = np.asarray(group, dtype=np.int64)
         if len(group) != n:
             raise ValueError("top_matches: one group label per fingerprint")
         k = int(min(k, max(n - 1, 0)))
-        if n == 0 or k <= 0:
+        if n == 0 or k <= 0 or (rows is not None and len(rows) == 0):
             z = np.zeros(0, np.int64)
             return Matches(z, z, np.zeros(0))
+        if rows is not None:
+            return self._top_of_rows(group, k, np.asarray(rows, np.int64), block_rows)
         rows = max(1, min(block_rows, MAX_BLOCK_CELLS // max(n, 1)))
         cells = n * self.unit.shape[1]
         dense = cells <= DENSE_MAX_CELLS and self.unit.nnz >= DENSE_MIN_FILL * cells
@@ -109,6 +114,25 @@ class PowerCosine:
             s = np.take_along_axis(block, top, axis=1)
             ok = s > 0  # a partner that shares no access point is no match
             out_i.append(np.repeat(np.arange(a, b), k)[ok.ravel()])
+            out_j.append(top.ravel()[ok.ravel()])
+        i, j = np.concatenate(out_i), np.concatenate(out_j)
+        return Matches(i, j, self.pairs(i, j))
+
+
+    def _top_of_rows(self, group: NDArray[np.int64], k: int, rows: NDArray[np.int64], block_rows: int) -> Matches:
+        """``top_matches`` of some rows against every fingerprint (an update's new walks)."""
+        n = len(self)
+        step = max(1, min(block_rows, MAX_BLOCK_CELLS // max(n, 1)))
+        ut = self.unit.T.tocsc()
+        out_i, out_j = [], []
+        for a in range(0, len(rows), step):
+            r = rows[a:a + step]
+            block = (self.unit[r] @ ut).toarray()
+            block[group[r][:, None] == group[None, :]] = -1.0
+            top = np.argpartition(-block, k - 1, axis=1)[:, :k]
+            s = np.take_along_axis(block, top, axis=1)
+            ok = s > 0
+            out_i.append(np.repeat(r, k)[ok.ravel()])
             out_j.append(top.ravel()[ok.ravel()])
         i, j = np.concatenate(out_i), np.concatenate(out_j)
         return Matches(i, j, self.pairs(i, j))

@@ -30,7 +30,7 @@ from graphslam.core.survey.association import FingerprintNodes, associate
 from graphslam.core.survey.chains import expand
 from graphslam.core.survey.components import Component
 from graphslam.core.survey.control import ControlTies
-from graphslam.core.survey.heading_split import ComponentSplit, HeadingTerms, split_by_heading
+from graphslam.core.survey.heading_split import ComponentSplit, HeadingTerms, split_by_heading, split_incremental
 from graphslam.core.survey.edges import WifiEdges, propose_edges, window_thresholds
 from graphslam.core.survey.graph import (
     dead_reckoned_nodes,
@@ -87,6 +87,10 @@ class Alignment:
     # "aligned": the reference walk's first pose; "earth": east/north (x east, y north) from the
     # phones' headings, origin at the reference walk's first pose; "site": control points or UWB anchors
     frame_name: str = "aligned"
+    control_digest: str = ""  # ``incremental.control_points_digest`` of the control points used
+    # (E,) per WiFi edge of ``edges``: it entered the optimiser (same walks' component, the placement's
+    # gate); None: every edge between aligned walks did
+    used_edges: NDArray[np.bool_] | None = None
 
     @property
     def frame(self) -> str:
@@ -196,6 +200,7 @@ class Problem:
     heading: HeadingTerms | None = None
     ties: ControlTies | None = None  # control points: position priors (component 0 in the site frame)
     frame_name: str = "aligned"
+    control_digest: str = ""  # of the control points given (``incremental.control_points_digest``)
 
     @property
     def reference_node(self) -> int:
@@ -277,14 +282,16 @@ def build_problem(
     ea, eb = fp.node[edges.i], fp.node[edges.j]
     placement = None
     unaligned: dict[str, str] = {}
-    method = "registration" if warm is not None else initialization(cfg, survey)
+    method = initialization(cfg, survey)
+    if warm is not None and (method != "heading" or warm.component is None):
+        method = "registration"  # an update without headings: new walks registered to the solved ones
     if control_points and method != "heading" and warm is None:
         raise SolverError(
             "control points need the phones' headings (/phone/heading on every walk, optimizer.initialization "
             f"auto or heading); this survey resolves to {method!r}"
         )
     split: ComponentSplit | None = None
-    if warm is not None:  # --update: solved walks keep their solution, the others are registered to them
+    if warm is not None and method == "registration":  # --update: new walks registered to the solved ones
         placement = incremental.place_new_walks(warm, n_s, node_sess, dr_xyh[:, :2], ea, eb)
         included = placement.placed.copy()
         transforms = placement.transforms
@@ -297,6 +304,11 @@ def build_problem(
                     "between the walks placed anew are consistent"
                 )
                 included[s] = False
+    elif method == "heading" and warm is not None:  # --update: new walks onto the previous components
+        split = split_incremental(survey, fp, dr_xyh, node_sess, cfg, control_points, warm)
+        placement, transforms = split.placement, split.placement.transforms
+        included = np.ones(n_s, bool)
+        ref = split.reference
     elif method == "heading":
         seed = _reference_index(survey, cfg) if cfg.optimizer.reference_session is not None else None
         split = split_by_heading(survey, fp, dr_xyh, node_sess, cfg, control_points, seed=seed)
@@ -355,6 +367,8 @@ def build_problem(
     if uwb is not None:  # UWB hook: the placement from the ranges
         placed = np.isfinite(uwb.init_xyh[:, 0])
         init_xyh[placed] = uwb.init_xyh[placed]
+    if warm is not None:  # --update: solved walks start from their solution; only their neighbourhood moves
+        init_xyh = np.where(warm.solved[:, None], warm.xyh, init_xyh)
     use = included[node_sess[ea]] & included[node_sess[eb]]
     if split is not None:  # no WiFi edge between components: nothing the placement trusted links them
         use &= split.component[node_sess[ea]] == split.component[node_sess[eb]]
@@ -365,13 +379,19 @@ def build_problem(
         if split.ties is not None:  # the control points' component: tighter (the points place its walks)
             tied = split.component[node_sess[wifi_pairs[:, 0]]] == 0
             gate[tied] = min(cfg.heading.wifi_gate_m, cfg.control_points.wifi_gate_m)
-        wifi_pairs = wifi_pairs[gap <= gate]
+        keep = gap <= gate
+        if warm is not None and warm.prev_edge_used is not None:
+            # between walks solved before, the previous graph's choice (its gate saw the placement
+            # then; the solution now would drop other edges and move the whole floor)
+            old_walk = warm.solved_walks(node_sess, n_s)
+            both_old = old_walk[node_sess[wifi_pairs[:, 0]]] & old_walk[node_sess[wifi_pairs[:, 1]]]
+            prev = fp.node[incremental.previous_edge_rows(fp, warm)]
+            keep[both_old] = incremental.pairs_in(wifi_pairs[both_old], prev[warm.prev_edge_used], len(init_xyh))
+        wifi_pairs = wifi_pairs[keep]
     free = None
-    if warm is not None:  # --update: solved walks start from their solution; only their neighbourhood moves
-        init_xyh = np.where(warm.solved[:, None], warm.xyh, init_xyh)
-        prev = incremental.previous_edge_rows(fp, warm)
+    if warm is not None:
         free = incremental.free_nodes(
-            warm, fp.offsets, included, wifi_pairs, fp.node[prev], int(fp.offsets[ref]),
+            warm, fp.offsets, included, wifi_pairs, incremental.previous_graph_pairs(fp, warm), int(fp.offsets[ref]),
             compressed=cfg.optimizer.compress_chains,
         )
     timings["initialise"] = time.perf_counter() - t
@@ -398,6 +418,7 @@ def build_problem(
         heading=None if split is None else split.heading,
         ties=None if split is None else split.ties,
         frame_name="aligned" if split is None else split.frame_name,
+        control_digest=incremental.control_points_digest(control_points),
     )
 
 
@@ -554,4 +575,8 @@ def solve(
         uwb=problem.uwb.summary() if problem.uwb is not None else None,
         component_list=problem.components,
         frame_name=problem.frame_name,
+        control_digest=problem.control_digest,
+        used_edges=incremental.pairs_in(
+            np.column_stack([fp.node[problem.edges.i], fp.node[problem.edges.j]]), problem.wifi_pairs, len(xyh)
+        ),
     )

@@ -93,7 +93,8 @@ def native_graph(
             nm = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.heading.cauchy_sigmas), nm)
         imu_graph.add(gtsam.PoseRotationPrior2D(X(n), gtsam.Rot2(th), nm))
     pn, pxy, ps = point_priors(problem, cfg)
-    for n, (px, py), sg in zip(pn.tolist(), pxy.tolist(), ps.tolist()):
+    local = np.isin(pn, nodes)  # --update: the ties of the re-solved part only
+    for n, (px, py), sg in zip(pn[local].tolist(), pxy[local].tolist(), ps[local].tolist()):
         imu_graph.add(gtsam.PoseTranslationPrior2D(X(n), gtsam.Pose2(px, py, 0.0), gtsam.noiseModel.Isotropic.Sigma(2, sg)))
     values = gtsam.Values()
     for n in nodes.tolist():

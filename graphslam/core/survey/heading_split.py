@@ -19,13 +19,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graphslam.config import GraphSlamConfig
-from graphslam.core.radiomap.similarity import PowerCosine
+from graphslam.core.radiomap.similarity import Matches, PowerCosine
 from graphslam.core.survey.association import FingerprintNodes
-from graphslam.core.survey.components import Component, place_components
+from graphslam.core.survey.components import Component, ComponentPlacement, place_components, se2_apply_rows
 from graphslam.core.survey.control import ControlTies, control_ties, tie_walks
 from graphslam.core.survey.heading import heading_residuals, walk_headings
-from graphslam.core.survey.initialise import Placement, se2_apply_poses
-from graphslam.core.survey.placement import GrowthParams
+from graphslam.core.survey.incremental import WarmStart
+from graphslam.core.survey.initialise import Placement, se2_apply_poses, se2_compose
+from graphslam.core.survey.placement import GrowthParams, grow_placement
 from graphslam.core.types import Survey, wrap_angle
 from graphslam.errors import SolverError
 
@@ -161,3 +162,123 @@ def split_by_heading(
     main = int((cp.component == 0).sum())
     log.info("heading placement: %d components, the main map holds %d of %d walks", cp.n_components, main, len(survey))
     return ComponentSplit(pl, cp.component, comps, reference, fixed, heading, ties, frame)
+
+
+def split_incremental(
+    survey: Survey, fp: FingerprintNodes, dr_xyh: NDArray, node_sess: NDArray, cfg: GraphSlamConfig,
+    control_points: Mapping[str, tuple[float, float]] | None, warm: WarmStart,
+) -> ComponentSplit:
+    """The heading placement of an update (``graphslam survey --update``): the walks solved before
+    keep their solution and their component; each new walk is grown onto the previous components in
+    order (0 first), those solved walks held as rigid bodies at their solved fingerprint positions;
+    the new walks no component takes form components of their own among themselves. Only the new
+    walks' fingerprints are matched (against every fingerprint), so the cost grows with what was
+    added. Two previous components that a new walk would link stay apart until a full survey."""
+    assert warm.component is not None
+    hc, pc = cfg.heading, cfg.placement
+    n_s = len(survey)
+    wh = walk_headings(
+        survey, sigma_floor_rad=np.radians(hc.sigma_floor_deg), cauchy_scale_rad=np.radians(hc.cauchy_scale_deg),
+        correlation_steps=hc.correlation_steps,
+    )
+    if not wh.complete:
+        missing = [survey.sessions[s].session_id for s in np.flatnonzero(~wh.available)]
+        raise SolverError(f"--update with headings needs /phone/heading on every walk; {missing[0]!r} has none")
+    old = warm.solved_walks(node_sess, n_s) & (warm.component >= 0)
+    new = ~old
+    component = np.where(old, warm.component, -1).astype(np.int64)
+    # the site (or Earth) frame's rotation from east/north, as the previous solution has it: the
+    # solved walks' headings against their dead reckoning turned by the phone's heading
+    solved = warm.solved & old[node_sess]
+    d = np.angle(np.exp(1j * (warm.xyh[solved, 2] - dr_xyh[solved, 2] - wh.rotation[node_sess[solved]])))
+    phi = float(np.angle(np.exp(1j * d).mean())) if len(d) else 0.0
+    rotation = wh.rotation + phi
+    ties = control_ties(survey, control_points, fp.offsets) if control_points else None
+    # growth positions: solved walks at their solution (transform 0), new walks turned by their heading
+    pre = np.zeros((n_s, 3))
+    pre[new, 2] = rotation[new]
+    xy = np.where(old[fp.session][:, None], warm.xyh[fp.node, :2], se2_apply_rows(pre[fp.session], dr_xyh[fp.node, :2]))
+    sim = PowerCosine.of(fp.fingerprints, pc.similarity_scale_db)
+    matches = sim.top_matches(fp.session, pc.matches_per_fingerprint, rows=np.flatnonzero(new[fp.session]))
+    params = GrowthParams.from_config(cfg, min_margin=hc.min_margin, rotation_window_deg=hc.rotation_window_deg)
+    T_pre = np.zeros((n_s, 3))
+    support, margin, consistency = (np.full(n_s, np.nan) for _ in range(3))
+    margin[old] = np.inf
+    n_old = int(component.max()) + 1 if old.any() else 0
+    for k in range(n_old):
+        left = new & (component < 0)
+        members = np.flatnonzero(old & (component == k))
+        if not left.any() or not len(members):
+            continue
+        res = grow_placement(n_s, fp.session, xy, matches, params, initial={int(m): np.zeros(3) for m in members},
+                             candidates=left, rotation_sigma=wh.sigma)
+        got = res.placed & left
+        component[got] = k
+        T_pre[got] = res.transforms[got]
+        support[got], margin[got], consistency[got] = res.support[got], res.margin[got], res.consistency[got]
+    transforms = np.zeros((n_s, 3))
+    for s in np.flatnonzero(new & (component >= 0)):
+        transforms[s] = se2_compose(T_pre[s], pre[s])
+    reasons: dict[int, str] = {
+        k: "apart from the main map in the previous survey; no walk added since links it" for k in range(1, n_old)
+    }
+    seeds: dict[int, int] = {}
+    left = np.flatnonzero(new & (component < 0))
+    if len(left):  # the rest: components of their own, among themselves
+        sub = _sub_placement(left, fp, dr_xyh, matches, params, rotation, wh.sigma)
+        for c in range(sub.n_components):
+            walks = left[sub.walks_of(c)]
+            component[walks] = n_old + c
+            transforms[walks] = sub.transforms[sub.walks_of(c)]
+            seeds[n_old + c] = int(left[sub.seeds[c]]) if sub.seeds[c] >= 0 else int(walks[0])
+            reasons[n_old + c] = "new walks that do not register onto a component of the previous survey"
+        sel = sub.component >= 0
+        support[left[sel]], margin[left[sel]], consistency[left[sel]] = sub.support[sel], sub.margin[sel], sub.consistency[sel]
+    ids = [s.session_id for s in survey]
+    n_comp = int(component.max()) + 1 if n_s else 0
+    comps = tuple(
+        Component(k, tuple(ids[s] for s in np.flatnonzero(component == k)), reasons.get(k, ""))
+        for k in range(n_comp) if (component == k).any()
+    )
+    offsets = fp.offsets
+    # one held pose per component: the first walk of an old one (its neighbourhood's border holds the
+    # rest), the seed of a new one
+    fixed = []
+    for k in range(n_comp):
+        walks = np.flatnonzero(component == k)
+        if len(walks):
+            fixed.append(int(offsets[seeds.get(k, int(walks[0]))]))
+    target = np.asarray(wrap_angle(dr_xyh[:, 2] + rotation[node_sess]), float)
+    target[~np.isfinite(target)] = np.nan
+    if hc.prior == "step":
+        init = np.where(warm.solved[:, None], warm.xyh, np.nan)
+        for w in np.flatnonzero(new):
+            a, b = int(offsets[w]), int(offsets[w + 1])
+            init[a:b] = se2_apply_poses(transforms[w], dr_xyh[a:b])
+        target = _step_targets(survey, offsets, init, phi)
+    heading = HeadingTerms(target, wh.sigma, wh.spread, hc.prior, hc.correlation_steps)
+    pl = Placement(
+        transforms, np.ones(n_s, bool), np.full(n_s, -1, np.int64), np.full(n_s, -1, np.int64),
+        method="heading", support=support, margin=margin, consistency=consistency,
+    )
+    log.info("update: %d new walks, %d joined the previous components, %d in new ones", int(new.sum()),
+             int((new & (component < n_old)).sum()), len(left))
+    reference = int(np.flatnonzero(component == 0)[0]) if (component == 0).any() else 0
+    frame = "earth" if ties is None else "site"  # the previous survey's (its control points are these)
+    return ComponentSplit(pl, component, comps, reference, np.array(fixed, np.int64), heading, ties, frame)
+
+
+def _sub_placement(
+    walks: NDArray[np.int64], fp: FingerprintNodes, dr_xyh: NDArray, matches: Matches, params: GrowthParams,
+    rotation: NDArray, sigma: NDArray,
+) -> ComponentPlacement:
+    """``place_components`` over the given walks only (their fingerprints and the matches among them)."""
+    local = np.full(int(fp.session.max()) + 1, -1, np.int64)
+    local[walks] = np.arange(len(walks))
+    rows = np.flatnonzero(local[fp.session] >= 0)
+    row_of = np.full(len(fp), -1, np.int64)
+    row_of[rows] = np.arange(len(rows))
+    keep = (row_of[matches.i] >= 0) & (row_of[matches.j] >= 0)
+    m = Matches(row_of[matches.i[keep]], row_of[matches.j[keep]], matches.similarity[keep])
+    return place_components(len(walks), local[fp.session[rows]], dr_xyh[fp.node[rows], :2], m, params,
+                            rotation=rotation[walks], rotation_sigma=sigma[walks])

@@ -24,6 +24,7 @@ from __future__ import annotations
 import hashlib
 import logging
 from dataclasses import dataclass
+from typing import Mapping
 
 import numpy as np
 from numpy.typing import NDArray
@@ -38,6 +39,18 @@ from graphslam.core.types import Session, Survey
 from graphslam.errors import SolverError
 
 log = logging.getLogger(__name__)
+
+
+def control_points_digest(control_points: Mapping[str, tuple[float, float]] | None) -> str:
+    """SHA-256 of a control-points mapping (landmark id -> site x, y), "" for none: an update whose
+    control points differ from the previous run's must place its walks again."""
+    if not control_points:
+        return ""
+    h = hashlib.sha256()
+    for lid in sorted(control_points):
+        x, y = control_points[lid]
+        h.update(f"{lid}\0{float(x)!r}\0{float(y)!r}\n".encode())
+    return h.hexdigest()
 
 
 def session_digest(session: Session) -> str:
@@ -77,6 +90,11 @@ class PreviousSolution:
     reference: str
     config_json: str  # the effective configuration the solution was computed with
     registration_reliable: bool | None
+    # per walk its component (0: the main map; -1: unaligned); None: a state written before components
+    component: NDArray[np.int64] | None = None
+    frame: str = "aligned"  # component 0's frame (``Alignment.frame``)
+    control_digest: str = ""  # ``control_points_digest`` of the control points used ("" none)
+    edge_used: NDArray[np.bool_] | None = None  # (E,) the edge entered the optimiser (None: all did)
 
     def walk_xyh(self, session_id: str) -> NDArray[np.float64]:
         s = self.session_ids.index(session_id)
@@ -97,6 +115,10 @@ class WarmStart:
     prev_edge_scan: NDArray[np.int64]  # (E, 2)
     prev_candidates: int
     hops: int
+    # (S,) component of each old walk in the previous solution (-1: new, or not aligned before);
+    # None: the previous state has none (written before components)
+    component: NDArray[np.int64] | None = None
+    prev_edge_used: NDArray[np.bool_] | None = None  # (E,) per previous edge: it entered the optimiser
 
     @property
     def solved(self) -> NDArray[np.bool_]:
@@ -125,6 +147,10 @@ def warm_start(previous: PreviousSolution, survey: Survey, hops: int) -> WarmSta
         if previous.aligned[p]:
             xyh[offsets[s] : offsets[s + 1]] = previous.xyh[previous.offsets[p] : previous.offsets[p + 1]]
     remap = np.array([index[sid] for sid in previous.session_ids], np.int64)
+    component = None
+    if previous.component is not None:
+        component = np.full(len(ids), -1, np.int64)
+        component[remap] = np.where(previous.aligned, previous.component, -1)
     return WarmStart(
         xyh=xyh,
         old=old,
@@ -132,6 +158,8 @@ def warm_start(previous: PreviousSolution, survey: Survey, hops: int) -> WarmSta
         prev_edge_scan=previous.edge_scan.copy(),
         prev_candidates=previous.candidates,
         hops=hops,
+        component=component,
+        prev_edge_used=None if previous.edge_used is None else previous.edge_used.copy(),
     )
 
 
@@ -154,6 +182,13 @@ def previous_edge_rows(fp: FingerprintNodes, warm: WarmStart) -> NDArray[np.int6
         _rows_of(fp, warm.prev_edge_session[:, 0], warm.prev_edge_scan[:, 0]),
         _rows_of(fp, warm.prev_edge_session[:, 1], warm.prev_edge_scan[:, 1]),
     ])
+
+
+def previous_graph_pairs(fp: FingerprintNodes, warm: WarmStart) -> NDArray[np.int64]:
+    """(E, 2) node pairs of the WiFi edges the previous optimiser had (every previous edge when the
+    state does not say which)."""
+    pairs = fp.node[previous_edge_rows(fp, warm)]
+    return pairs if warm.prev_edge_used is None else pairs[warm.prev_edge_used]
 
 
 def update_edges(fp: FingerprintNodes, thresholds: NDArray[np.float64], warm: WarmStart, cfg: EdgeConfig) -> WifiEdges:
@@ -280,6 +315,12 @@ def kept_nodes(
     keep[offsets[1:][sizes > 0] - 1] = True
     walk_of = np.repeat(np.arange(len(offsets) - 1), sizes)
     return keep & included[walk_of]
+
+
+def pairs_in(pairs: NDArray[np.int64], of: NDArray[np.int64], n: int) -> NDArray[np.bool_]:
+    """(K,) whether each node pair of ``pairs`` (either order) is one of ``of``; ``n``: node count."""
+    key = lambda p: np.sort(p.reshape(-1, 2), axis=1) @ np.array([n, 1], np.int64)  # noqa: E731
+    return np.isin(key(pairs), key(of))
 
 
 def changed_edges(
