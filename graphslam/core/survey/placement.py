@@ -179,13 +179,11 @@ def refine_rigid(
     free = np.array([s for s in walks if s not in held], dtype=np.int64)
     if len(free) == 0 or len(i) == 0:
         return transforms
-    n = 3 * len(free)
     col = np.full(len(transforms), -1, np.int64)
     col[free] = np.arange(len(free))
     sa, sb = scan_session[i], scan_session[j]
     pa, pb = scan_xy[i], scan_xy[j]
     c2 = params.refine_scale_m**2
-    m = len(i)
 
     def place(T: NDArray, s: NDArray, p: NDArray) -> tuple[NDArray, NDArray]:
         c, sn = np.cos(T[s, 2]), np.sin(T[s, 2])
