@@ -67,7 +67,8 @@ class GrowthParams:
     max_grid_cells: int = 1_000_000  # rotations x cells of one vote grid (bounds memory and blur time)
     # beyond this many placed walks a join refines the new walk alone (the rest held), and every placed
     # walk together only when the map has grown by half since the last such refinement and at the
-    # end: the joint refinement costs O(matches of the map) per join
+    # end: the joint refinement costs O(matches of the map) per join; and a walk the join matched
+    # votes again only when its matches into the map grew by a quarter or it is the next to join
     full_refine_walks: int = 24
     # walks already rotated into a common frame (the phones' headings): rotations searched only
     # within +-rotation_window_deg of it, and the refinement holds each walk's rotation near 0
@@ -330,6 +331,12 @@ def grow_placement(
     cache: dict[int, tuple[float, float, NDArray, float]] = {}  # walk -> (margin, support, T, n votes)
     stale = set(np.flatnonzero(use).tolist())
     last_full = len(held)  # placed walks at the last joint refinement
+    dirty: set[int] = set()  # walks whose cached vote predates joins that matched them
+
+    def _vote(b: int, sel: NDArray) -> tuple[float, float, NDArray, float]:
+        Tb, best, second = hough_se2(scan_xy[ab_src[sel]], world[ab_dst[sel]], ab_w[sel], params)
+        mg = (best - second) / max(n_scans[b], 1.0) if params.margin_per_fingerprint else best - second
+        return mg, best, Tb, float(len(sel))
     with Task("place walks", total=int(use.sum()) - len(held), unit="walks") as task:
         while True:
             for b in list(stale):
@@ -340,13 +347,22 @@ def grow_placement(
                 sel = sel[placed[ab_other[sel]]]
                 if len(sel) < 3:
                     cache.pop(b, None)
+                    dirty.discard(b)
                     continue
-                Tb, best, second = hough_se2(scan_xy[ab_src[sel]], world[ab_dst[sel]], ab_w[sel], params)
-                mg = (best - second) / max(n_scans[b], 1.0) if params.margin_per_fingerprint else best - second
-                cache[b] = (mg, best, Tb, float(len(sel)))
+                if placed.sum() > params.full_refine_walks and b in cache and len(sel) < 1.25 * cache[b][3]:
+                    dirty.add(b)  # a large map: votes again when it could be chosen, or its matches grew by a quarter
+                    continue
+                cache[b] = _vote(b, sel)
+                dirty.discard(b)
             if not cache:
                 break
-            b = max(cache, key=lambda s: cache[s][0])
+            while True:  # the walk chosen is voted on the current map
+                b = max(cache, key=lambda s: cache[s][0])
+                if b not in dirty:
+                    break
+                dirty.discard(b)
+                sel = order_src[bounds[b]:bounds[b + 1]]
+                cache[b] = _vote(b, sel[placed[ab_other[sel]]])
             mg, best, Tb, _ = cache[b]
             if mg < params.min_margin:
                 break  # b stays in the cache: its reason is the ambiguity
