@@ -449,6 +449,25 @@ def bench_batch(
     typer.echo(json.dumps(batch_speed(scenario, floors=floors, size=size, workers=workers, runs=runs)))
 
 
+@bench_app.command("soak")
+def bench_soak(
+    radio_map: Path = typer.Option(..., "--radio-map", help="Radio map (.parquet) to serve (a copy is served)."),
+    minutes: int = typer.Option(60, "--minutes", min=1, help="Minutes of open-loop load (one row each)."),
+    load: float = typer.Option(0.8, "--load", help="Fraction of the measured capacity to send."),
+    rate: Optional[float] = typer.Option(None, "--rate", min=1.0, help="Requests/s instead of --load x capacity."),
+    capacity_s: float = typer.Option(10.0, "--capacity-seconds", min=1.0, help="Closed-loop capacity burst."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the query fingerprints."),
+) -> None:
+    """Soak `graphslam serve --watch` on 127.0.0.1 (issue 42): capacity, then --load of it for --minutes with a
+    map reload every minute; JSON lines: the capacity, one row per minute (requests, errors, p50/p99 ms, server
+    RSS), a summary."""
+    from graphslam.app.soak import run_soak
+
+    result = run_soak(radio_map, minutes=minutes, load=load, rate=rate, capacity_s=capacity_s, seed=seed,
+                      on_row=lambda row: typer.echo(json.dumps(row)))
+    typer.echo(json.dumps({"summary": result.summary}))
+
+
 INDEX_HELP = "kNN search: exact, ivf (approximate inverted file) or auto."
 IVF_CLUSTERS_HELP = "IVF: k-means clusters (default ~2 sqrt(N))."
 IVF_PROBES_HELP = "IVF: clusters searched per query (default 8)."
