@@ -298,7 +298,10 @@ def _local_workers() -> Iterator[None]:
     import dask
     import distributed  # noqa: F401 - its config defaults first, or leaving the context below drops them
 
-    settings: dict[str, Any] = {"distributed.worker.profile.enabled": False}
+    # One floor per worker thread at a time (Dask's default lets a worker hold 2 with 1 thread):
+    # a worker that dies is blamed (counted towards allowed-failures) only for the floor it ran.
+    settings: dict[str, Any] = {"distributed.worker.profile.enabled": False,
+                                "distributed.scheduler.worker-saturation": 1.0}
     if forkserver:
         settings["distributed.worker.multiprocessing-method"] = "forkserver"
     try:

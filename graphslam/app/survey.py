@@ -473,6 +473,8 @@ def write_outputs(
         stage.discard()
         if isinstance(e, OSError):  # e.g. disk full in the middle of a file
             raise OutputError(f"{out_dir}: cannot write the outputs ({e.strerror or e})") from None
+        if isinstance(e, OutputError) and hasattr(e, "reason"):  # a file of the stage: name --out
+            raise OutputError(f"{out_dir}: cannot write the outputs ({e.reason})") from None
         raise
     stage.publish()
     return {key: out_dir / name for key, name in names.items()}

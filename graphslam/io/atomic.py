@@ -111,7 +111,7 @@ def atomic_open(path: str | Path, mode: str = "wb", **kwargs: object) -> Iterato
         remove_stale_temp_files(path)  # what a killed writer of the same file left
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     except OSError as e:
-        raise OutputError(f"{path}: cannot write ({e.strerror or e})") from None
+        raise _output_error(path, e) from None
     fh = None
     try:
         fcntl.flock(fd, fcntl.LOCK_EX)  # held until closed, after the rename: never stale while we live
@@ -124,7 +124,7 @@ def atomic_open(path: str | Path, mode: str = "wb", **kwargs: object) -> Iterato
             kill_point(f"atomic:{path.name}")
             os.replace(tmp, path)
         except OSError as e:  # e.g. the disk full in the middle of the file
-            raise OutputError(f"{path}: cannot write ({e.strerror or e})") from None
+            raise _output_error(path, e) from None
     except BaseException:
         try:
             os.unlink(tmp)
@@ -139,6 +139,17 @@ def atomic_open(path: str | Path, mode: str = "wb", **kwargs: object) -> Iterato
                 pass
         else:
             os.close(fd)
+
+
+def _output_error(path: Path, e: OSError) -> Exception:
+    """``OutputError`` "PATH: cannot write (REASON)"; ``.reason`` keeps REASON for a caller that
+    names a folder instead (a file of a stage is no name an operator knows)."""
+    from graphslam.errors import OutputError
+
+    reason = e.strerror or str(e)
+    err = OutputError(f"{path}: cannot write ({reason})")
+    err.reason = reason  # type: ignore[attr-defined]
+    return err
 
 
 def _umask() -> int:
