@@ -128,6 +128,21 @@ def query_bodies(radio_map: Path, n: int, seed: int) -> list[bytes]:
     return out
 
 
+def wait_for_port(proc: subprocess.Popen, port: int, timeout: float) -> None:
+    """Until ``proc`` (a server) accepts connections on the loopback ``port``; ``GraphSlamError``
+    if it exits first or does not within ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise GraphSlamError(f"the server exited at start (code {proc.returncode})")
+        try:
+            with socket.create_connection((LOOPBACK, port), timeout=1):
+                return
+        except OSError:
+            time.sleep(0.2)
+    raise GraphSlamError(f"the server did not start within {timeout:.0f} s")
+
+
 def _request(body: bytes) -> bytes:
     return (b"POST /v1/locate HTTP/1.1\r\nHost: soak\r\nContent-Type: application/json\r\n"
             b"Content-Length: %d\r\n\r\n%s" % (len(body), body))
@@ -145,17 +160,11 @@ class _Server:
                "--port", str(self.port), "--watch", "--log-level", "warning", *extra]
         with open(log_path, "wb") as err:  # a file, not a pipe: a full pipe would block the server
             self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise GraphSlamError(f"soak: the server exited at start: {self.tail()}")
-            try:
-                with socket.create_connection((LOOPBACK, self.port), timeout=1):
-                    return
-            except OSError:
-                time.sleep(0.2)
-        self.stop()
-        raise GraphSlamError("soak: the server did not start within 120 s")
+        try:
+            wait_for_port(self.proc, self.port, 120.0)
+        except GraphSlamError as e:
+            self.stop()
+            raise GraphSlamError(f"soak: {e}: {self.tail()}") from None
 
     def tail(self) -> str:
         return self.log_path.read_bytes()[-1500:].decode(errors="replace")
@@ -238,7 +247,8 @@ class _Connections:
             w.close()
 
 
-async def _exchange(conn: tuple[asyncio.StreamReader, asyncio.StreamWriter], req: bytes) -> tuple[int, bytes]:
+async def http_exchange(conn: tuple[asyncio.StreamReader, asyncio.StreamWriter], req: bytes) -> tuple[int, bytes]:
+    """Send one raw HTTP/1.1 request on a keep-alive connection; (status, body) of its answer."""
     reader, writer = conn
     writer.write(req)
     head = await reader.readuntil(b"\r\n\r\n")
@@ -269,7 +279,7 @@ async def _one(conns: _Connections, req: bytes, t_sched: float, bucket: _Bucket)
     conn = None
     try:
         conn = await asyncio.wait_for(conns.take(), REQUEST_TIMEOUT_S)
-        code, body = await asyncio.wait_for(_exchange(conn, req), REQUEST_TIMEOUT_S)
+        code, body = await asyncio.wait_for(http_exchange(conn, req), REQUEST_TIMEOUT_S)
     except (OSError, asyncio.TimeoutError, asyncio.IncompleteReadError, asyncio.LimitOverrunError, ValueError) as e:
         bucket.errors += 1
         kind = "timeout" if isinstance(e, asyncio.TimeoutError) else type(e).__name__
@@ -304,7 +314,7 @@ async def _closed_loop(port: int, reqs: list[bytes], clients: int, seconds: floa
         i = c
         try:
             while time.perf_counter() < deadline:
-                code, _ = await _exchange((reader, writer), reqs[i % len(reqs)])
+                code, _ = await http_exchange((reader, writer), reqs[i % len(reqs)])
                 if code != 200:
                     raise GraphSlamError(f"soak: the server answered {code} while measuring capacity")
                 i += clients

@@ -283,7 +283,7 @@ def clean_stale(target: str | Path) -> list[Path]:
     A stage whose run is alive (its lock held), and any folder named like a stage without our
     lock file, are left alone. Returns the paths removed or restored. Errors are ignored: this
     is housekeeping, the run goes on."""
-    target = Path(target).absolute()
+    target = Path(target).resolve()  # as FolderStage names it
     parent, name = target.parent, target.name
     prefix = f".{name}{STAGE_TAG}"
     done: list[Path] = []
