@@ -64,6 +64,8 @@ _EXPORTS: dict[str, str] = {
     # plumbing. Stable enough for studies, not promised to applications. "module:attr" exports
     # attr under another name (a private or ambiguous one); "module:" exports the module itself.
     "run_batch": "graphslam.app.batch",
+    **{n: "graphslam.app.soak" for n in ("free_port", "http_exchange", "query_bodies", "wait_for_port")},
+    "soak_loopback": "graphslam.app.soak:LOOPBACK",
     **{n: "graphslam.app.bench_real" for n in ("real_floors", "real_floor_rows")},
     "show_progress": "graphslam.app.progress",
     "tracking_pipeline": "graphslam.core.tracking.tracker:",

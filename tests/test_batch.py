@@ -104,7 +104,7 @@ def test_batch_on_an_existing_cluster_survives_a_killed_worker(
         assert codes == [0] and all(r["status"] == "ok" for r in rows.values())
     else:
         lost = [r for r in rows.values() if r["status"] == "failed"]
-        assert codes == [1] and len(lost) == 1 and lost[0]["error"] == "worker lost after retries"
+        assert codes == [1] and len(lost) == 1 and lost[0]["error"].startswith("worker lost after retries: ")
         assert [r["status"] for r in rows.values()].count("ok") == 1
 
 

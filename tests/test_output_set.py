@@ -105,7 +105,7 @@ def test_refused_before_any_work(recordings: Path, tmp_path: Path, capsys: pytes
     assert sorted(p.name for p in recordings.iterdir()) == ["a.mcap", "b.mcap"]
 
 
-@pytest.mark.parametrize("where", ["writing", "final rename"])
+@pytest.mark.parametrize("where", ["writing", "final exchange", "final rename"])
 def test_a_failure_leaves_the_previous_set(
     recordings: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, where: str
 ) -> None:
@@ -121,7 +121,15 @@ def test_a_failure_leaves_the_previous_set(
         monkeypatch.setattr(app_survey, "write_aligned", broken)
         msg = fails(capsys, "survey", recordings, "--out", out, "--no-progress", "--set", "wifi.d_max_m=25")
         assert "cannot write the outputs (No space left on device)" in msg
-    else:
+    elif where == "final exchange":  # the one-step swap (Linux renameat2)
+        def exchange(a: Path, b: Path) -> bool:
+            raise OSError(5, "Input/output error")
+
+        monkeypatch.setattr(atomic, "exchange", exchange)
+        msg = fails(capsys, "survey", recordings, "--out", out, "--no-progress", "--set", "wifi.d_max_m=25")
+        assert "cannot replace the output folder" in msg and "Input/output error" in msg
+    else:  # the two renames where there is no exchange
+        monkeypatch.setenv("GRAPHSLAM_NO_EXCHANGE", "1")
         real_rename = os.rename
 
         def rename(src: object, dst: object) -> None:

@@ -11,7 +11,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from graphslam.core.radiomap.radiomap import RadioMap
-from graphslam.errors import RadioMapError
+from graphslam.errors import OutputError, RadioMapError
 from graphslam.io.radiomap_io import METADATA_KEY, radio_map_table, read_radio_map, write_radio_map
 
 
@@ -83,7 +83,7 @@ def test_failed_write_keeps_the_old_file(tmp_path: Path, monkeypatch: pytest.Mon
         raise OSError("disk full")
 
     monkeypatch.setattr(pq, "write_table", boom)
-    with pytest.raises(OSError):
+    with pytest.raises(OutputError, match=r"map\.parquet: cannot write \(disk full\)"):  # one line for the CLI
         write_radio_map(sample_map(False), path)
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["map.parquet"]

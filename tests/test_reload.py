@@ -159,3 +159,34 @@ def test_serve_reloads_on_sighup_and_refuses_a_broken_map(tmp_path: Path) -> Non
         proc.terminate()
         _, err = proc.communicate(timeout=20)
     assert "refused" in err and str(live) in err
+
+
+def test_a_retired_map_is_freed(tmp_path: Path) -> None:
+    """Issue 42's soak: every reload kept the retired app (map, index, search pool) alive, ~3 MB
+    each, through FastAPI's module-level caches of endpoint functions. After a few swaps the
+    first app's locator must be garbage collected."""
+    import gc
+    import weakref
+
+    a, b = _maps(tmp_path)
+    live = tmp_path / "radio_map.parquet"
+    _install(a, live)
+    app = reloading_app(live, None, k=3, search_processes=0)
+    first = weakref.ref(app.current.state.locator)
+    with start_background_server(app) as srv, httpx.Client(base_url=srv.url, timeout=30.0) as c:
+        assert c.post("/v1/locate", json={"readings": {"ap1": -50.0}}).status_code == 200
+        for k in range(3):
+            _install(b if k % 2 == 0 else a, live)
+            app.reload_now()
+            deadline = time.monotonic() + 60
+            while app.generation < k + 1 and time.monotonic() < deadline:
+                time.sleep(0.02)
+            assert app.generation == k + 1
+            assert c.post("/v1/locate", json={"readings": {"ap1": -50.0}}).status_code == 200
+        deadline = time.monotonic() + 30  # the retired apps are closed on a thread of their own
+        while first() is not None and time.monotonic() < deadline:
+            time.sleep(0.05)
+            gc.unfreeze()  # (the server froze the maps out of the collector)
+            gc.collect()
+            gc.freeze()
+        assert first() is None, "the first map's locator is still referenced after 3 reloads"

@@ -17,7 +17,10 @@ Failures stay per floor: bad input or a solver error is the floor's ``error`` (t
 names the file); a worker that dies while surveying a floor (OOM killer, a lost machine)
 makes the scheduler run the floor again on another worker, up to
 ``distributed.scheduler.allowed-failures`` (Dask's default 3) more times, after which the floor
-fails with "worker lost". The other floors go on. ``OUT_ROOT/summary.json`` lists them all.
+fails with "worker lost after retries: ..." (how many tries, the last worker). What a killed try
+left beside the floor's output (its stage) is removed by the next try (``FolderStage``). The
+other floors go on. ``OUT_ROOT/summary.json`` lists them all; it is written atomically (the
+previous summary or the new one). An OUT_ROOT that cannot be written is refused before any work.
 
 Why Dask and not Ray: a fifth of the installed size, and a local cluster that starts several
 times faster (``survey-batch`` pays that on every run; lab/journal/benchmarks-history.md). On worker death both do what is needed: a task whose worker is killed
@@ -39,7 +42,7 @@ from typing import Any, Callable, Iterator
 
 from graphslam.config import GraphSlamConfig, config_from_dict
 from graphslam.errors import ConfigError, GraphSlamError, InputError, require_extra
-from graphslam.io.atomic import atomic_write_json
+from graphslam.io.atomic import atomic_write_json, kill_point
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +102,7 @@ def survey_floor(floor_dir: str, out_dir: str, config_json: str, floor: str, upd
     t = time.perf_counter()
     walks = aligned = main = 0
     error = warning = None
+    kill_point(f"floor:{floor}")  # (a test hook: this worker killed while surveying this floor)
     try:
         import json
 
@@ -155,10 +159,7 @@ def run_batch(
     t0 = time.perf_counter()
     cfg = config or GraphSlamConfig()
     sites, out = Path(sites_root), Path(out_root)
-    if out.exists() and not out.is_dir():
-        from graphslam.errors import OutputError
-
-        raise OutputError(f"{out}: exists and is not a folder")
+    _check_out_root(out)
     floors = find_floors(sites, out)
     rels = [str(f.relative_to(sites)) for f in floors]
     if on_start is not None:
@@ -182,20 +183,48 @@ def run_batch(
             try:
                 row = FloorRow(**fut.result())
             except Exception as e:  # noqa: BLE001 - KilledWorker, a lost connection: this floor only
-                from distributed import KilledWorker
-
-                why = "worker lost after retries" if isinstance(e, KilledWorker) else f"{type(e).__name__}: {e}"
-                row = FloorRow(rel, "failed", why, 0, 0, 0.0)
+                row = FloorRow(rel, "failed", _lost_why(e), 0, 0, 0.0)
             rows[rel] = row
             if row.status == "failed":
                 log.warning("floor %s failed: %s", rel, row.error)
             if on_floor is not None:
                 on_floor(row)
     ordered = [rows[r] for r in rels]
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        from graphslam.errors import OutputError
+
+        raise OutputError(f"{out}: cannot write ({e.strerror or e})") from None
     summary = out / SUMMARY_FILE
     atomic_write_json(summary, [asdict(r) for r in ordered])
     return BatchResult(ordered, summary, time.perf_counter() - t0)
+
+
+def _check_out_root(out: Path) -> None:
+    """``OutputError`` before any work when OUT_ROOT is not a folder, or cannot be written (a
+    read-only mount, no permission): every floor would fail after its survey."""
+    from graphslam.errors import OutputError
+
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out}: exists and is not a folder")
+    probe = out
+    while not probe.exists():  # created on the way
+        probe = probe.parent
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise OutputError(f"{out}: cannot write into {probe}")
+
+
+def _lost_why(e: BaseException) -> str:
+    """A failed row's ``error`` for a floor whose task did not return: the worker surveying it
+    died on every allowed try (``KilledWorker``), or the cluster lost it otherwise."""
+    from distributed import KilledWorker
+
+    if isinstance(e, KilledWorker):
+        last = getattr(getattr(e, "last_worker", None), "address", "?")
+        return (f"worker lost after retries: the process surveying this floor died on each of "
+                f"{e.allowed_failures + 1} tries (killed, e.g. out of memory; the last: {last}, see its log)")
+    return f"{type(e).__name__}: {e}"
 
 
 def _recorded_bytes(floor: Path) -> int:
@@ -269,7 +298,10 @@ def _local_workers() -> Iterator[None]:
     import dask
     import distributed  # noqa: F401 - its config defaults first, or leaving the context below drops them
 
-    settings: dict[str, Any] = {"distributed.worker.profile.enabled": False}
+    # One floor per worker thread at a time (Dask's default lets a worker hold 2 with 1 thread):
+    # a worker that dies is blamed (counted towards allowed-failures) only for the floor it ran.
+    settings: dict[str, Any] = {"distributed.worker.profile.enabled": False,
+                                "distributed.scheduler.worker-saturation": 1.0}
     if forkserver:
         settings["distributed.worker.multiprocessing-method"] = "forkserver"
     try:

@@ -11,7 +11,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -21,7 +21,7 @@ from graphslam.core.survey.align import Alignment, ProgressCallback, align
 from graphslam.core.survey.evaluate import Evaluation, evaluate
 from graphslam.core.types import Survey
 from graphslam.errors import InputError, OutputError
-from graphslam.io.atomic import FolderStage, atomic_write_json, atomic_write_text, check_replaceable_folder
+from graphslam.io.atomic import FolderStage, atomic_write_json, atomic_write_text, check_replaceable_folder, clean_stale
 from graphslam.io.csv_io import write_trajectories
 from graphslam.io.mcap_reader import read_survey
 from graphslam.io.mcap_writer import write_aligned
@@ -276,6 +276,10 @@ def _run_survey(
     update: str | Path | None,
     control_points: str | Path | Mapping[str, tuple[float, float]] | None,
 ) -> SurveyResult:
+    for folder in {Path(f).absolute() for f in (out_dir, update) if f is not None}:
+        # what runs into these folders that were killed left (only theirs): a previous set is put
+        # back before --update reads it
+        clean_stale(folder)
     _check_outputs(paths, out_dir, rerun_path, floor_plan)
     plan = _picture_plan(floor_plan, floor_size) if picture and out_dir is not None else None
     timings: dict[str, float] = {}
@@ -314,27 +318,39 @@ def _run_survey(
     report = build_report(survey, alignment, evaluation, cfg, timings, floor=floor_name(paths, survey))
     if update_info is not None:
         report["update"] = update_info
+
+    def finish(folder: Path | None) -> None:
+        """The last of the run, before its set is published: survey.png into the stage, the
+        Rerun child waited for, report.json's timings (written last, with the set)."""
+        if folder is not None and picture:
+            _write_picture(folder, survey, alignment, cfg, evaluation, plan, files, timings)
+            if "picture" in files:
+                files["picture"] = Path(out_dir) / files["picture"].name  # where it is once published
+        if viz is not None:
+            t_wait = time.perf_counter()
+            timings["rerun"] = viz.wait()  # log_survey itself, in the child
+            timings["rerun_wait"] = time.perf_counter() - t_wait  # what the parent still waited for it
+        timings["total"] = time.perf_counter() - t0
+        report["timings_s"] = {k: round(v, 4) for k, v in timings.items()}
+
     if out_dir is not None:
         t = time.perf_counter()
+
+        def before_publish(stage: Path) -> None:
+            timings["write"] = time.perf_counter() - t
+            finish(stage)
+
         try:
             with Task("write"):
-                files = write_outputs(Path(out_dir), survey, alignment, report, cfg, surveyed=surveyed)
+                files |= write_outputs(Path(out_dir), survey, alignment, report, cfg, surveyed=surveyed,
+                                       before_publish=before_publish)
         except BaseException:
             if viz is not None:  # let the child finish (and clean up its temp file) before failing
                 with contextlib.suppress(Exception):
                     viz.wait()
             raise
-        timings["write"] = time.perf_counter() - t
-        if picture:
-            _write_picture(Path(out_dir), survey, alignment, cfg, evaluation, plan, files, timings)
-    if viz is not None:
-        t = time.perf_counter()
-        timings["rerun"] = viz.wait()  # log_survey itself, in the child
-        timings["rerun_wait"] = time.perf_counter() - t  # what the parent still waited for it
-    timings["total"] = time.perf_counter() - t0
-    report["timings_s"] = {k: round(v, 4) for k, v in timings.items()}
-    if out_dir is not None:
-        atomic_write_json(Path(out_dir) / "report.json", report)
+    else:
+        finish(None)
     warning = main_map_warning(report)
     if warning is not None:
         log.warning("%s", warning)
@@ -382,8 +398,8 @@ def _write_picture(
     out_dir: Path, survey: Survey, al: Alignment, cfg: GraphSlamConfig, ev: Evaluation | None, plan: Any,
     files: dict[str, Path], timings: dict[str, float],
 ) -> None:
-    """survey.png beside the outputs, once they are in place; a picture that fails is a warning,
-    not a failed survey (``graphslam.viz.survey_picture``: Pillow, a small share of the survey)."""
+    """survey.png in ``out_dir`` (the stage folder: it is published with the set); a picture that
+    fails is a warning, not a failed survey (``graphslam.viz.survey_picture``: Pillow, a small share of the survey)."""
     from graphslam.errors import GraphSlamError
     from graphslam.viz.survey_picture import PICTURE, draw_survey, scene_of_alignment
 
@@ -424,12 +440,14 @@ def _check_outputs(
 
 
 def write_outputs(
-    out_dir: Path, survey: Survey, al: Alignment, report: dict, cfg: GraphSlamConfig, *, surveyed: bool = False
+    out_dir: Path, survey: Survey, al: Alignment, report: dict, cfg: GraphSlamConfig, *, surveyed: bool = False,
+    before_publish: Callable[[Path], None] | None = None,
 ) -> dict[str, Path]:
     """Write every output into a staging folder beside ``out_dir``, then swap it in as a whole
     (``FolderStage``): ``out_dir`` holds this run's files and nothing else (no ``ap_models.json``
-    or ``radio_map_surveyed.parquet`` left from an earlier run), or, if anything fails, exactly
-    what it held before."""
+    or ``radio_map_surveyed.parquet`` left from an earlier run), or, if anything fails or the
+    process is killed, exactly what it held before. ``before_publish(stage folder)`` runs after
+    the data files and before report.json (which it may still change) is written, the last file."""
     stage = FolderStage.create(out_dir, set(OUTPUT_FILES.values()) | set(DERIVED_FILES))
     try:
         names = {k: v for k, v in OUTPUT_FILES.items() if k != "radio_map_surveyed" or surveyed}
@@ -448,11 +466,15 @@ def write_outputs(
                             stage.path / names["radio_map_surveyed"])
         atomic_write_text(stage.path / names["config"], cfg.to_yaml())
         write_survey_state(stage.path / names["state"], survey, al, cfg)
+        if before_publish is not None:
+            before_publish(stage.path)
         atomic_write_json(stage.path / names["report"], report)
     except BaseException as e:
         stage.discard()
         if isinstance(e, OSError):  # e.g. disk full in the middle of a file
             raise OutputError(f"{out_dir}: cannot write the outputs ({e.strerror or e})") from None
+        if isinstance(e, OutputError) and hasattr(e, "reason"):  # a file of the stage: name --out
+            raise OutputError(f"{out_dir}: cannot write the outputs ({e.reason})") from None
         raise
     stage.publish()
     return {key: out_dir / name for key, name in names.items()}

@@ -185,9 +185,10 @@ def _read_calibration(path: Path, key: str) -> SelfCalibration | None:
 
 
 def _write_calibration(path: Path, key: str, cal: SelfCalibration) -> None:
+    from graphslam.errors import OutputError
     from graphslam.io.atomic import atomic_write_json
 
     try:
         atomic_write_json(path, {"format": _CALIBRATION_FORMAT, "key": key, **dataclasses.asdict(cal)})
-    except OSError as e:  # a read-only map folder: track anyway, measure again next time
+    except (OSError, OutputError) as e:  # a read-only or full map folder: track anyway, measure again next time
         log.warning("%s: cannot keep the self-calibration (%s)", path, e)

@@ -1,6 +1,7 @@
 """``graphslam bench``: what a user runs on their own recordings with ground truth: ``real`` (the
 survey per variant, scored per component) and ``tracking-real`` (held-out walks tracked on a map of
-the others). The simulator and public-data benchmarks are the lab's (``python -m lab.bench``)."""
+the others); and ``soak``, the HTTP service on a user's own map under load for a set time. The
+simulator and public-data benchmarks are the lab's (``python -m lab.bench``)."""
 
 from __future__ import annotations
 
@@ -76,3 +77,22 @@ def bench_tracking_real(
         area=area,
     )
     typer.echo(json.dumps(res))
+
+
+@bench_app.command("soak")
+def bench_soak(
+    radio_map: Path = typer.Option(..., "--radio-map", help="Radio map (.parquet) to serve (a copy is served)."),
+    minutes: int = typer.Option(60, "--minutes", min=1, help="Minutes of open-loop load (one row each)."),
+    load: float = typer.Option(0.8, "--load", help="Fraction of the measured capacity to send."),
+    rate: Optional[float] = typer.Option(None, "--rate", min=1.0, help="Requests/s instead of --load x capacity."),
+    capacity_s: float = typer.Option(10.0, "--capacity-seconds", min=1.0, help="Closed-loop capacity burst (s)."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the query fingerprints."),
+) -> None:
+    """Soak `graphslam serve --watch` on 127.0.0.1: its capacity, then --load of it for --minutes with a
+    map reload every minute; JSON lines: the capacity, one row per minute (requests, errors, p50/p99 ms,
+    server RSS), a summary."""
+    from graphslam.app.soak import run_soak
+
+    result = run_soak(radio_map, minutes=minutes, load=load, rate=rate, capacity_s=capacity_s, seed=seed,
+                      on_row=lambda row: typer.echo(json.dumps(row)))
+    typer.echo(json.dumps({"summary": result.summary}))

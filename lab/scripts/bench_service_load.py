@@ -41,30 +41,10 @@ from pathlib import Path
 
 import numpy as np
 
+from graphslam import GraphSlamError, free_port, http_exchange, query_bodies, wait_for_port
+from graphslam import soak_loopback as LOOPBACK
+
 REPO = Path(__file__).resolve().parents[2]
-LOOPBACK = "127.0.0.1"
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP) as s:
-        s.bind((LOOPBACK, 0))
-        return s.getsockname()[1]
-
-
-def query_bodies(radio_map: Path, n: int, seed: int) -> list[bytes]:
-    from graphslam import read_radio_map
-
-    rm = read_radio_map(radio_map)
-    rng = np.random.default_rng(seed)
-    v = rm.fingerprints.values.tocsr()
-    rows = [i for i in range(len(rm)) if v.indptr[i + 1] > v.indptr[i]]
-    out = []
-    for i in rng.choice(rows, size=min(n, len(rows)), replace=len(rows) < n):
-        lo, hi = v.indptr[i], v.indptr[i + 1]
-        rss = v.data[lo:hi] + rm.missing_dbm + rng.uniform(-3, 3, hi - lo)
-        readings = {rm.bssids[j]: round(float(min(r, 0.0)), 1) for j, r in zip(v.indices[lo:hi], rss)}
-        out.append(json.dumps({"readings": readings}).encode())
-    return out
 
 
 class Server:
@@ -85,16 +65,10 @@ class Server:
         # stderr to a file, not a pipe: a full pipe would block the server's access log
         with open(log, "wb") as err:
             self.proc = subprocess.Popen(cmd, cwd=checkout, env=env, stdout=subprocess.DEVNULL, stderr=err)
-        deadline = time.monotonic() + 90
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"{name}: server exited: {log.read_text()[-2000:]}")
-            try:
-                with socket.create_connection((LOOPBACK, self.port), timeout=1):
-                    return
-            except OSError:
-                time.sleep(0.2)
-        raise RuntimeError(f"{name}: server did not start")
+        try:
+            wait_for_port(self.proc, self.port, 90.0)
+        except GraphSlamError as e:
+            raise RuntimeError(f"{name}: {e}: {log.read_text()[-2000:]}") from None
 
     def stop(self) -> None:
         self.proc.terminate()
@@ -117,14 +91,7 @@ async def _client(port: int, reqs: list[bytes], first: int, n: int, deadline: fl
             if clock() > deadline:
                 break
             t0 = clock()
-            writer.write(reqs[(first + i) % len(reqs)])
-            head = await reader.readuntil(b"\r\n\r\n")
-            code = int(head[9:12])
-            length = 0
-            for line in head.split(b"\r\n")[1:]:
-                if line[:15].lower() == b"content-length:":
-                    length = int(line[15:])
-            await reader.readexactly(length)
+            code, _ = await http_exchange((reader, writer), reqs[(first + i) % len(reqs)])
             lat.append(clock() - t0)
             status[code] = status.get(code, 0) + 1
     finally:
