@@ -62,6 +62,13 @@ def test_quiet_silences_progress(recordings: Path, tmp_path: Path, args: list[st
         assert "progress" not in p.stderr and "\r" not in p.stderr
 
 
+@pytest.mark.parametrize("after", [["--progress-interval", "0"], ["--progress-interval=0"]])
+def test_progress_interval_is_accepted_after_the_command_name(recordings: Path, after: list[str]) -> None:
+    p = _run(["inspect", str(recordings), *after])  # as -q is: a root option users put after the command
+    assert p.returncode == 0, p.stderr
+    assert "progress read: 12/12 files (100 %) done in" in p.stderr
+
+
 def test_terminal_shows_tqdm_bars(recordings: Path, tmp_path: Path) -> None:
     import fcntl
     import struct

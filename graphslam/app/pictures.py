@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from graphslam.app.locate import LocateRun
 from graphslam.app.track import TrackRun
 from graphslam.core.progress import Task
+from graphslam.core.summary import plural
 from graphslam.core.common.geometry import interpolate_xy
 from graphslam.core.tracking.apmodel import ApModels
 from graphslam.core.types import Survey
@@ -93,7 +94,7 @@ def write_track_picture(
                     truth[s.session_id] = site_to_frame(T, s.ground_truth.xy)
                     at[s.session_id] = site_to_frame(T, interpolate_xy(s.ground_truth, tr.t_ns.astype(float)))
         steps = sum(len(t.t_ns) for t in run.tracks)
-        title = f"track{' ' + label if label else ''}: {len(run.tracks)} sessions, {steps:,} steps"
+        title = f"track{' ' + label if label else ''}: {plural(len(run.tracks), 'session')}, {plural(steps, 'step')}"
         return draw_tracks(estimates, path, truth=truth or None, truth_at_estimates=at or None, map_xy=np.asarray(rm.xy),
                            title=title, frame=_frame_note(rm.frame, truth, why, survey))
 
@@ -121,7 +122,7 @@ def write_locate_picture(
             if T is not None and s.ground_truth is not None:
                 truth[s.session_id] = site_to_frame(T, s.ground_truth.xy)
                 at[s.session_id] = site_to_frame(T, interpolate_xy(s.ground_truth, pos.t_ns[rows].astype(float)))
-        title = f"locate (kNN): {run.n_located:,} of {run.n_scans:,} scans located, {run.n_sessions} sessions"
+        title = f"locate (kNN): {run.n_located:,} of {plural(run.n_scans, 'scan')} located, {plural(run.n_sessions, 'session')}"
         return draw_tracks(estimates, path, truth=truth or None, truth_at_estimates=at or None, map_xy=np.asarray(rm.xy),
                            points=True, title=title, frame=_frame_note(rm.frame, truth, why, survey))
 

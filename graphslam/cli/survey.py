@@ -19,7 +19,7 @@ def inspect(
     as_json: bool = typer.Option(False, "--json", help="One JSON object per session, then the totals."),
 ) -> None:
     """Print per-session statistics: steps, scans, distinct APs, duration, walked length, landmarks."""
-    from graphslam.core.summary import SurveySummary
+    from graphslam.core.summary import SurveySummary, plural
     from graphslam.io.mcap_reader import read_survey
 
     summary = SurveySummary.of(read_survey(paths))
@@ -39,9 +39,9 @@ def inspect(
         )
     t = summary.totals
     typer.echo(
-        f"{t['sessions']} sessions, {t['steps']:,} steps, {t['scans']:,} scans, "
-        f"{t['access_points']:,} distinct APs, {t['duration_s'] / 60:.1f} min, "
-        f"{t['walked_m'] / 1000:.2f} km walked, {t['landmarks']:,} landmarks"
+        f"{plural(t['sessions'], 'session')}, {plural(t['steps'], 'step')}, {plural(t['scans'], 'scan')}, "
+        f"{plural(t['access_points'], 'distinct AP')}, {t['duration_s'] / 60:.1f} min, "
+        f"{t['walked_m'] / 1000:.2f} km walked, {plural(t['landmarks'], 'landmark')}"
     )
 
 
@@ -143,6 +143,7 @@ def survey_batch(
     from tqdm import tqdm
 
     from graphslam.app.batch import run_batch
+    from graphslam.core.summary import plural
     from graphslam.errors import require_extra
 
     require_extra("distributed", "survey-batch (Dask)")
@@ -161,7 +162,7 @@ def survey_batch(
                         on_start=lambda n: bar.reset(total=n))
     finally:
         bar.close()
-    typer.echo(f"{len(res.rows)} floors: {res.ok} ok, {res.partial} partial, {res.failed} failed in "
+    typer.echo(f"{plural(len(res.rows), 'floor')}: {res.ok} ok, {res.partial} partial, {res.failed} failed in "
                f"{res.seconds:.1f} s; summary in {res.summary}")
     for row in res.rows:
         if row.status == "partial":
@@ -239,6 +240,7 @@ def simulate(
     """
     import time
 
+    from graphslam.core.summary import plural
     from graphslam.sim import HeadingModel, SurveyStats, with_overrides
     from graphslam.sim import simulate as run_simulation
 
@@ -249,15 +251,16 @@ def simulate(
     sim.write(out)
     st = SurveyStats.of(sim.survey)
     typer.echo(
-        f"{scenario} seed={seed} size={size:g}: {len(st.walks)} sessions, {st.steps:,} steps, "
-        f"{st.scans:,} scans, {len(sim.building.aps)} APs ({st.access_points_heard} heard), "
+        f"{scenario} seed={seed} size={size:g}: {plural(len(st.walks), 'session')}, {plural(st.steps, 'step')}, "
+        f"{plural(st.scans, 'scan')}, {plural(len(sim.building.aps), 'AP')} ({st.access_points_heard} heard), "
         f"{st.length_m / 1000:.2f} km, {st.duration_s / 60:.1f} min, {st.marks} landmark marks"
     )
     drifts = ", ".join(f"{w.max_drift_m:.1f}" for w in st.walks[:12]) + (", ..." if len(st.walks) > 12 else "")
     typer.echo(f"max raw drift {st.max_drift_m:.1f} m (per walk: {drifts})")
     if sim.test_sessions:
         tst = SurveyStats.of(sim.test_sessions)
-        typer.echo(f"test: {len(tst.walks)} sessions, {tst.steps:,} steps, {tst.scans:,} scans -> {out / 'test'}")
+        typer.echo(f"test: {plural(len(tst.walks), 'session')}, {plural(tst.steps, 'step')}, {plural(tst.scans, 'scan')} "
+                   f"-> {out / 'test'}")
     typer.echo(f"wrote {out} (simulated in {t_sim:.1f} s, total {time.perf_counter() - t0:.1f} s)")
 
 
