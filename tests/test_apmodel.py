@@ -126,9 +126,9 @@ def test_fit_aps_and_track_cli_end_to_end(tiny_case):
 
 @pytest.mark.parametrize(
     ("option", "value", "message"),
-    [("--filter", "pf", "--filter 'pf': track: invalid tracking configuration: filter.kind"),
-     ("--smooth", "ks", "--smooth 'ks': track: invalid tracking configuration: filter.smoother"),
-     ("--bank-report", "mean", "--bank-report 'mean': track: invalid tracking configuration: fixed_lag.bank_report"),
+    [("--filter", "pf", "Invalid value for '--filter': Value error, 'pf' is not one of 'fixed-lag', 'ekf', 'ukf', 'particle'"),
+     ("--smooth", "ks", "Invalid value for '--smooth': Value error, 'ks' is not one of 'none', 'rts', 'map'"),
+     ("--bank-report", "mean", "Invalid value for '--bank-report': Value error, 'mean' is not one of 'mixture', 'best'"),
      ("--bank-temper", "0.5", "fixed_lag.bank_temper: Input should be greater than or equal to 1"),
      ("--rssi-field", "0.5", "field_m must be 0 (off) or >= 1")],
 )
@@ -225,7 +225,7 @@ def test_track_cli_floor_plan_keeps_the_track_on_the_walkable_area(tiny_case, ca
         (["--floor-plan", str(d / "missing.png"), "--floor-size", "10", "10"], "missing.png"),
         (["--floor-size", "10", "10"], "--floor-size given without --floor-plan"),
         (["--floor-plan", str(plan), "--floor-size", f"{w}", f"{h}", "--walkable-sigma", "0"], "floor_plan.sigma_m"),
-        (["--floor-plan", str(plan), "--floor-size", f"{w}", f"{h}", "--floor-plan-use", "teleport"], "floor_plan.mode"),
+        (["--floor-plan", str(plan), "--floor-size", f"{w}", f"{h}", "--floor-plan-use", "teleport"], "Invalid value for '--floor-plan-use'"),
     ):
         with pytest.raises(SystemExit) as e:
             main(["-q", "track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--out", str(out), *args])

@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 from graphslam.core.progress import Task
 from graphslam.core.radiomap.knn import KnnConfig, KnnLocator, SurveyPositions, locate_survey
 from graphslam.io.atomic import atomic_open
+from graphslam.names import DEFAULT_INDEX, DEFAULT_K, DEFAULT_METRIC
 
 log = logging.getLogger(__name__)
 
@@ -75,14 +76,14 @@ def locate_files(
     query_paths: Iterable[str | Path],
     *,
     out: str | Path | None = None,
-    k: int = 3,
+    k: int = DEFAULT_K,
     weighted: bool = True,
     min_common: int = 1,
-    index: str = "exact",
-    metric: str = "eq9",
+    index: str = DEFAULT_INDEX,
+    metric: str = DEFAULT_METRIC,
 ) -> LocateRun:
     """Read the radio map and the query sessions (MCAP), locate every scan, write ``out`` (CSV).
-    ``index``: kNN search (``KnnConfig.index``): exact by default; ``metric``: ``KnnConfig.metric``."""
+    ``index``: kNN search (``KnnConfig.index``); ``metric``: ``KnnConfig.metric`` (defaults: ``graphslam.names``)."""
     from graphslam.io.mcap_reader import read_survey
     from graphslam.io.radiomap_io import read_radio_map
 

@@ -9,8 +9,11 @@ from typing import List, Optional
 
 import typer
 
+from graphslam import names
 from graphslam.cli.base import app
-from graphslam.cli.options import config_from_options, require_plots, require_rerun
+from graphslam.cli.options import choices, config_from_options, plain, require_plots, require_rerun
+
+Scenario = choices("Scenario", names.SCENARIOS)
 
 
 @app.command()
@@ -222,7 +225,7 @@ def evaluate(
 
 @app.command()
 def simulate(
-    scenario: str = typer.Argument(..., help="Scenario: paper, corridor, crowd or museum (see docs/simulator.md)."),
+    scenario: Scenario = typer.Argument(..., help="Scenario (docs/simulator.md)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (created); existing files are replaced."),
     seed: int = typer.Option(0, "--seed", min=0, help="Random seed; same seed, same recordings."),
     size: float = typer.Option(1.0, "--size", help="Multiplies the number of walks (paper --size 12: ~100k steps)."),
@@ -245,6 +248,7 @@ def simulate(
     from graphslam.sim import simulate as run_simulation
 
     t0 = time.perf_counter()
+    scenario = plain(scenario)
     chosen = with_overrides(scenario, heading=HeadingModel(enabled=False)) if no_heading else scenario
     sim = run_simulation(chosen, seed=seed, size=size, test_walks=test_walks)
     t_sim = time.perf_counter() - t0
@@ -331,9 +335,12 @@ def view(
 
 @app.command()
 def demo(
-    out: Path = typer.Option(Path("graphslam-demo"), "--out", "-o", help="Working folder (created)."),
-    seed: int = typer.Option(0, help="Simulator seed."),
-    rerun: bool = typer.Option(False, "--rerun", help="Also write OUT/survey.rrd."),
+    out: Path = typer.Option(Path("out/demo"), "--out", "-o", help="Working folder (created)."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Random seed of the simulation; same seed, same figures."),
+    rerun: Optional[Path] = typer.Option(
+        None, "--rerun", help="Also log the survey to this .rrd file, and the located held-out scans beside it "
+        "(NAME.locate.rrd).",
+    ),
 ) -> None:
     """Simulate the paper's survey, align it, locate held-out walks; print the headline figures."""
     from graphslam.app.demo import run_demo

@@ -95,8 +95,9 @@ def walkable_area(cfg: TrackConfig, area: WalkableArea | None) -> WalkableArea |
 
 
 def knn_config(cfg: TrackConfig) -> KnnConfig:
-    """The kNN fixes' search (and the particle filter's scan matches)."""
-    return KnnConfig(k=cfg.knn_fixes.k, metric=cfg.knn_fixes.metric)
+    """The kNN fixes' search (and the particle filter's scan matches). Exact: a walk's scans are a
+    small batch, and the self-calibration builds a locator per replayed walk (an IVF index each)."""
+    return KnnConfig(k=cfg.knn_fixes.k, metric=cfg.knn_fixes.metric, index="exact")
 
 
 def particle_config(cfg: TrackConfig, area_m2: float = 1.0, seed: int = 0) -> ParticleConfig:
