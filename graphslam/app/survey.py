@@ -301,7 +301,8 @@ def _run_survey(
 
     t = time.perf_counter()
     # component 0 only: one site fit over walks in unrelated frames would measure nothing
-    evaluation = evaluate(alignment.main_tracks(), survey) if survey.has_ground_truth else None
+    with Task("evaluate"):
+        evaluation = evaluate(alignment.main_tracks(), survey) if survey.has_ground_truth else None
     timings["evaluate"] = time.perf_counter() - t
 
     viz = None

@@ -82,7 +82,11 @@ def track(
     ),
     calibration_cache: bool = typer.Option(
         True, "--calibration-cache/--no-calibration-cache",
-        help="Keep the self-calibration in track_calibration.json beside the map; reuse it for the same map, AP models and options.",
+        help="Keep the self-calibration in the cache folder (--cache-dir) and reuse it for the same map, AP models and "
+        "options (the survey's folder is never written).",
+    ),
+    cache_dir: Optional[Path] = typer.Option(
+        None, "--cache-dir", help="Cache folder (default: $XDG_CACHE_HOME/graphslam, else ~/.cache/graphslam).",
     ),
     metric: Optional[Metric] = typer.Option(
         None, "--metric", help=METRIC_HELP.replace("Fingerprint distance", "Fingerprint distance of the kNN fixes (and "
@@ -113,8 +117,11 @@ def track(
     ),
     picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: the tracks (and truth)."),
 ) -> None:
-    """Track walks on a radio map: fusion of step velocity, WiFi RSSI and kNN fixes (fixed-lag MAP, or EKF/UKF)."""
-    from graphslam.app.track import track_files
+    """Track walks on a radio map: fusion of step velocity, WiFi RSSI and kNN fixes (fixed-lag MAP, or EKF/UKF).
+    The default fixed-lag tracker takes ~0.1 s a step (the EKF a twentieth), plus a self-calibration
+    on a map the first time (kept in --cache-dir): a long run is announced before it starts."""
+    from graphslam.app.progress import progress_shown
+    from graphslam.app.track import prepare_track
     from graphslam.core.radiomap.ivf import limit_blas_threads
 
     limit_blas_threads(1)  # thousands of tiny solves: OpenBLAS threads only slow them down
@@ -125,8 +132,12 @@ def track(
         "--walkable-sigma": walkable_sigma,
     }
     cfg = track_config_from_options(config, set_, {k: plain(v) for k, v in given.items() if v is not None})
-    run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg, calibration_cache=calibration_cache,
-                      floor_plan=floor_plan, floor_size=floor_size)
+    job = prepare_track(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg, calibration_cache=calibration_cache,
+                        cache_dir=cache_dir, floor_plan=floor_plan, floor_size=floor_size)
+    notice = job.notice()
+    if notice and progress_shown():  # as progress: not with --quiet
+        typer.echo(notice, err=True)
+    run = job.run()
     shown = {}
     if picture:
         from graphslam.app.pictures import write_track_picture
