@@ -126,8 +126,9 @@ def fit_aps(
     from graphslam.io.radiomap_io import read_radio_map
 
     rm = read_radio_map(radio_map)
-    models = ApModels.fit(rm, ApFitConfig(min_readings=min_readings))
-    path = write_ap_models(models, out or radio_map.with_name("ap_models.json"), radio_map=rm)
+    fit = ApFitConfig(min_readings=min_readings)
+    models = ApModels.fit(rm, fit)
+    path = write_ap_models(models, out or radio_map.with_name("ap_models.json"), radio_map=rm, fit=fit)
     reasons: dict[str, int] = {}
     for u in models.unfitted:
         key = u.reason.split(" (")[0]
