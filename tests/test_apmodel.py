@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import logging
 
 import numpy as np
@@ -447,3 +448,21 @@ def test_track_announces_a_long_run_before_it_starts(tiny_case, monkeypatch, cap
     assert "expect about" in err and "self-calibration" not in err
     main([*args, "-q"])  # --quiet: no progress, no announcement
     assert "expect about" not in capsys.readouterr().err
+
+
+def test_track_prints_its_errors_against_the_truth(tiny_case, capsys, tmp_path):
+    from graphslam.cli import main
+    from graphslam.core.common.geometry import interpolate_xy
+
+    d, session = tiny_case
+    out = tmp_path / "t.csv"
+    main(["-q", "track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--filter", "ekf",
+          "--no-picture", "-o", str(out)])
+    ev = json.loads(capsys.readouterr().out)["errors"]
+    assert ev["evaluated"] and ev["frame"] == "site frame (the map is in the site frame)"
+    rows = list(csv.DictReader(out.open()))
+    xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
+    e = np.linalg.norm(xy - interpolate_xy(session.ground_truth, np.array([float(r["t_ns"]) for r in rows])), axis=1)
+    assert ev["truth"]["n"] == len(session.steps) == len(rows)
+    assert ev["truth"]["mean_m"] == pytest.approx(float(e.mean()), abs=2e-3)
+    assert "landmarks" not in ev  # the walk marks none

@@ -34,7 +34,7 @@ COMMANDS = dict(_commands())
 
 
 def test_every_option_has_help_and_out_has_o() -> None:
-    assert {"graphslam locate", "graphslam serve", "graphslam track", "graphslam bench real"} <= set(COMMANDS)
+    assert {"graphslam locate", "graphslam serve", "graphslam track", "graphslam export", "graphslam bench real"} <= set(COMMANDS)
     for where, cmd in COMMANDS.items():
         for p in cmd.params:
             assert (getattr(p, "help", None) or "").strip(), (where, p.opts)  # e.g. simulate-uwb --seed had none
@@ -79,6 +79,7 @@ def test_one_default_per_concept() -> None:
     (["track"], ["<sorensen|eq9>", "<fixed-lag|ekf|ukf|particle>", "<none|rts|map>", "<mixture|best>", "<snap|prior|both>"]),
     (["simulate"], ["<paper|corridor|crowd|museum>"]),
     (["simulate-uwb"], ["<zones|crowd>"]),
+    (["export"], ["<tum|kitti|csv>", "<map|site>"]),
 ])
 def test_help_lists_the_choices(command: list[str], shown: list[str]) -> None:
     env = {**os.environ, "COLUMNS": "250", "NO_COLOR": "1", "TERM": "dumb"}

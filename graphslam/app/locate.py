@@ -32,6 +32,7 @@ class LocateRun:
     n_sessions: int
     n_scans: int
     n_located: int
+    radio_map_frame: str = ""  # the frame of the answers
 
     def as_dict(self) -> dict[str, object]:
         return {
@@ -96,7 +97,12 @@ def locate_files(
     written = write_positions_csv(positions, out) if out is not None else None
     n_ok = int(positions.result.valid.sum())
     log.info("located %d of %d scans from %d sessions", n_ok, len(positions), len(survey))
-    return LocateRun(positions, written, len(survey), len(positions), n_ok)
+    return LocateRun(positions, written, len(survey), len(positions), n_ok, rm.frame)
+
+
+def answers_by_session(p: SurveyPositions) -> dict[str, tuple[NDArray[np.int64], NDArray[np.float64]]]:
+    """session id -> (scan times, answers (N, 2) in the map's frame; NaN where unlocated)."""
+    return {sid: (p.t_ns[p.session_ids == sid], p.result.xy[p.session_ids == sid]) for sid in dict.fromkeys(p.session_ids.tolist())}
 
 
 __all__: Sequence[str] = ("LocateRun", "locate_files", "write_positions_csv", "POSITIONS_HEADER")

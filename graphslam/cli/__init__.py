@@ -1,5 +1,5 @@
-"""Command-line interface, by command group: ``survey`` (survey, survey-batch, evaluate, simulate,
-inspect, plot, view, demo), ``radiomap`` (locate, serve, fit-aps), ``tracking`` (track), ``uwb``
+"""Command-line interface, by command group: ``survey`` (survey, survey-batch, evaluate, export,
+simulate, inspect, plot, view, demo), ``radiomap`` (locate, serve, fit-aps), ``tracking`` (track), ``uwb``
 (simulate-uwb, track-uwb), ``bench`` (real, tracking-real). Each command parses its arguments,
 calls one library function and prints its result; the modules import nothing heavy at start-up.
 

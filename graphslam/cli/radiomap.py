@@ -57,7 +57,13 @@ def locate(
             query_ids=[f"{s}@{t}" for s, t in zip(pos.session_ids.tolist(), pos.t_ns.tolist())],
             site_from_map=site_from_map,
         )
-    shown = {}
+    from graphslam.app.locate import answers_by_session
+    from graphslam.app.scoring import answer_errors
+    from graphslam.io.mcap_reader import read_survey
+
+    errors = answer_errors(answers_by_session(run.positions), read_survey(query_paths), radio_map,
+                           run.radio_map_frame, site_from_map)
+    shown: dict[str, object] = {} if errors is None else {"errors": errors}
     if picture:
         from graphslam.app.pictures import write_locate_picture
 

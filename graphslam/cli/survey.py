@@ -1,4 +1,4 @@
-"""Survey commands: inspect, survey, survey-batch, evaluate, simulate, plot, view, demo."""
+"""Survey commands: inspect, survey, survey-batch, evaluate, export, simulate, plot, view, demo."""
 
 from __future__ import annotations
 
@@ -14,6 +14,8 @@ from graphslam.cli.base import app
 from graphslam.cli.options import choices, config_from_options, plain, require_plots, require_rerun
 
 Scenario = choices("Scenario", names.SCENARIOS)
+ExportFormat = choices("ExportFormat", names.EXPORT_FORMATS)
+ExportFrame = choices("ExportFrame", names.EXPORT_FRAMES)
 
 
 @app.command()
@@ -189,6 +191,7 @@ def evaluate(
 ) -> None:
     """Landmark errors after an SE(2) fit, heading alignment and raw-vs-aligned comparison."""
     require_plots(plot)
+    from graphslam.core.summary import plural
     from graphslam.core.survey.evaluate import evaluate as run_evaluation
     from graphslam.errors import InputError
     from graphslam.io.atomic import atomic_write_json, json_safe
@@ -204,7 +207,16 @@ def evaluate(
     survey_ = read_survey(paths)
     if not survey_.has_ground_truth:
         raise InputError(", ".join(map(str, paths)), "no /landmarks or /ground_truth/pose to evaluate against")
+    recorded = [s.session_id for s in survey_]
+    if not set(tracks) & set(recorded):
+        raise InputError(
+            trajectories, f"none of its {plural(len(tracks), 'walk')} of component {component} (e.g. {next(iter(tracks))!r}) is "
+            f"among the {len(recorded)} recorded sessions (e.g. {recorded[0]!r}): evaluate a survey's trajectories "
+            "against that survey's recordings")
     ev = run_evaluation(tracks, survey_)
+    if not (ev.landmarks.n or ev.steps.n):
+        raise InputError(", ".join(map(str, paths)), f"the {plural(len(set(tracks) & set(recorded)), 'walk')} of "
+                         f"component {component} found there carry no /landmarks or /ground_truth/pose to evaluate against")
     if out:
         atomic_write_json(out, ev.as_dict())
     if plot:
@@ -221,6 +233,31 @@ def evaluate(
         "steps_mean_m": ev.steps.mean_m,
     }
     typer.echo(json.dumps(json_safe(summary)))
+
+
+@app.command()
+def export(
+    out_dir: Path = typer.Argument(..., help="A finished `graphslam survey --out` folder."),
+    fmt: ExportFormat = typer.Option(
+        "tum", "--format", help="tum (timestamp tx ty tz qx qy qz qw, s), kitti (a 3x4 pose matrix per line) or csv "
+        "(t_ns,x,y,heading): as evo_traj / evo_ape read them.",
+    ),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (created): one file per walk, <walk>.<format>."),
+    frame: ExportFrame = typer.Option(
+        "map", "--frame", help="map: as trajectories.csv (report.json's frame); site: the main map placed in the site "
+        "frame by report.json's landmark fit (needs ground truth or control points).",
+    ),
+    component: int = typer.Option(0, "--component", min=0, help="The walks of this component (0: the main map)."),
+    recordings: Optional[List[Path]] = typer.Option(
+        None, "--recordings", "-r", help="The survey's recordings (repeat): also each walk's /ground_truth/pose, as "
+        "<walk>.truth.<format> in the same frame (the reference for evo_ape).",
+    ),
+) -> None:
+    """Write a survey's walks as trajectory files other tools read (evo: TUM, KITTI), one per walk."""
+    from graphslam.app.export import export_survey
+
+    run = export_survey(out_dir, out, fmt=plain(fmt), frame=plain(frame), component=component, recordings=recordings or ())
+    typer.echo(json.dumps(run.as_dict()))
 
 
 @app.command()

@@ -138,7 +138,10 @@ def track(
     if notice and progress_shown():  # as progress: not with --quiet
         typer.echo(notice, err=True)
     run = job.run()
-    shown = {}
+    from graphslam.app.scoring import answer_errors
+
+    errors = answer_errors({t.session_id: (t.t_ns, t.xy) for t in run.tracks}, job.survey, radio_map, job.radio_map.frame)
+    shown: dict[str, object] = {} if errors is None else {"errors": errors}
     if picture:
         from graphslam.app.pictures import write_track_picture
 
