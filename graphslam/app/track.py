@@ -17,7 +17,7 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterable
+from typing import TYPE_CHECKING, Any, Iterable
 
 from graphslam.core.progress import Task
 from graphslam.core.tracking.apmodel import ApModels
@@ -174,22 +174,9 @@ def default_cache_dir() -> Path:
     return Path(base) / "graphslam"
 
 
-def track_files(
-    radio_map_path: str | Path,
-    session_paths: Iterable[str | Path],
-    *,
-    ap_models_path: str | Path | None = None,
-    out: str | Path | None = None,
-    cfg: TrackConfig = DEFAULTS,
-    calibration_cache: bool = True,
-    cache_dir: str | Path | None = None,
-    floor_plan: str | Path | None = None,
-    floor_size: tuple[float, float] | None = None,
-) -> TrackRun:
-    """``prepare_track`` then ``TrackJob.run``: read, track, write ``out`` (CSV)."""
-    return prepare_track(radio_map_path, session_paths, ap_models_path=ap_models_path, out=out, cfg=cfg,
-                         calibration_cache=calibration_cache, cache_dir=cache_dir, floor_plan=floor_plan,
-                         floor_size=floor_size).run()
+def track_files(radio_map_path: str | Path, session_paths: Iterable[str | Path], **options: Any) -> TrackRun:
+    """``prepare_track`` (same arguments) then ``TrackJob.run``: read, track, write ``out`` (CSV)."""
+    return prepare_track(radio_map_path, session_paths, **options).run()
 
 
 def prepare_track(
