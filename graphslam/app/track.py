@@ -145,8 +145,10 @@ class TrackJob:
         c = self.expected
         if c.total_s < (NOTICE_ABOVE_S if above_s is None else above_s):
             return None
-        walks = f"{c.walks} walk{'s' if c.walks != 1 else ''}, {c.steps:,} step{'s' if c.steps != 1 else ''}"
-        text = f"track: {walks} with the {c.filter} tracker: expect about {_duration(c.tracking_s)}"
+        from graphslam.core.summary import plural
+
+        text = (f"track: {plural(c.walks, 'walk')}, {plural(c.steps, 'step')} with the {c.filter} tracker: expect about "
+                f"{_duration(c.tracking_s)}")
         if c.calibration_s:
             where = f", kept in {self.cache.parent} for the next run" if self.cache is not None else ""
             text += f", after about {_duration(c.calibration_s)} of self-calibration on this map{where}"
