@@ -7,7 +7,8 @@ until it answers ``/healthz`` on a free port, then is stopped. Afterwards nothin
 wrote is left untracked by git, given the repository's ``.gitignore``.
 
 One test per command, in the README's order (they share the folder): a failing command names
-itself. The slowest is the default tracker on one walk (its self-calibration, ~1 min)."""
+itself. The default tracker's command is in the README's prose with its cost (~2 min, its
+self-calibration included), not in a block: tests/test_apmodel.py runs it on a short walk."""
 
 from __future__ import annotations
 
