@@ -73,6 +73,10 @@ class OutputError(GraphSlamError):
     """An output file or folder cannot be written (permissions, not a folder, disk full)."""
 
 
+class ServiceError(GraphSlamError):
+    """The HTTP service cannot start: e.g. its address is taken or not this machine's."""
+
+
 class MissingExtraError(GraphSlamError):
     """A feature needs an optional dependency that is not installed (``pip install "graphslam[EXTRA]"``)."""
 

@@ -18,11 +18,7 @@ from pydantic import Field, ValidationError, model_validator
 from graphslam.config import _Strict, commented_yaml, load_model, problems, validated
 from graphslam.errors import ConfigError
 
-TRACKERS = ("fixed-lag", "ekf", "ukf", "particle")
-SMOOTHERS = ("none", "rts", "map")
-BANK_REPORTS = ("mixture", "best")
-WALKABLE_MODES = ("snap", "prior", "both")
-METRICS = ("eq9", "sorensen")
+from graphslam.names import BANK_REPORTS, DEFAULT_METRIC, METRICS, SMOOTHERS, TRACKERS, WALKABLE_MODES  # noqa: F401
 
 
 class _Section(_Strict):
@@ -101,8 +97,8 @@ class KnnFixSection(_Section):
 
     enabled: bool = Field(True, description="fuse the kNN fixes (false: the papers' RSSI-only model)")
     k: int = Field(3, ge=1, description="neighbours")
-    metric: Literal["eq9", "sorensen"] = Field(
-        "sorensen", description="fingerprint distance of the fixes (and of the particle filter's scan matches): "
+    metric: Literal["sorensen", "eq9"] = Field(
+        DEFAULT_METRIC, description="fingerprint distance of the fixes (and of the particle filter's scan matches): "
         "sorensen (on powed RSS) or eq9 (the paper's RMS dB difference)",
     )
     sigma_floor_m: float = Field(2.0, gt=0, description="a fix's std = max(kNN neighbour spread, this)")

@@ -1,4 +1,7 @@
-"""Shared test helpers: tiny hand-made recordings, raw MCAP writer for bad-input cases."""
+"""Shared test helpers: tiny hand-made recordings, raw MCAP writer for bad-input cases; commands that
+keep a cache (``graphslam track``'s self-calibration, ``$XDG_CACHE_HOME/graphslam``) keep it in a
+temporary folder, never the user's. (No conftest.py at the repository root: the tests import this
+one as ``conftest``, and so do the Dask workers of test_batch.)"""
 
 from __future__ import annotations
 
@@ -6,7 +9,7 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Iterator
 
 import numpy as np
 import pytest
@@ -20,6 +23,17 @@ DATA = Path(os.environ.get("GRAPHSLAM_DATA", REPO.parent / "shared" / "data"))
 ILC = DATA / "ilc20" / "site1"
 
 T0 = 1_767_225_600_000_000_000  # 2026-01-01T00:00:00Z in ns
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _private_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    before = os.environ.get("XDG_CACHE_HOME")
+    os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("cache"))  # subprocesses inherit it
+    yield
+    if before is None:
+        os.environ.pop("XDG_CACHE_HOME", None)
+    else:
+        os.environ["XDG_CACHE_HOME"] = before
 
 
 def needs_data(sub: str) -> Any:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import logging
 
 import numpy as np
@@ -126,9 +127,9 @@ def test_fit_aps_and_track_cli_end_to_end(tiny_case):
 
 @pytest.mark.parametrize(
     ("option", "value", "message"),
-    [("--filter", "pf", "--filter 'pf': track: invalid tracking configuration: filter.kind"),
-     ("--smooth", "ks", "--smooth 'ks': track: invalid tracking configuration: filter.smoother"),
-     ("--bank-report", "mean", "--bank-report 'mean': track: invalid tracking configuration: fixed_lag.bank_report"),
+    [("--filter", "pf", "Invalid value for '--filter': Value error, 'pf' is not one of 'fixed-lag', 'ekf', 'ukf', 'particle'"),
+     ("--smooth", "ks", "Invalid value for '--smooth': Value error, 'ks' is not one of 'none', 'rts', 'map'"),
+     ("--bank-report", "mean", "Invalid value for '--bank-report': Value error, 'mean' is not one of 'mixture', 'best'"),
      ("--bank-temper", "0.5", "fixed_lag.bank_temper: Input should be greater than or equal to 1"),
      ("--rssi-field", "0.5", "field_m must be 0 (off) or >= 1")],
 )
@@ -225,7 +226,7 @@ def test_track_cli_floor_plan_keeps_the_track_on_the_walkable_area(tiny_case, ca
         (["--floor-plan", str(d / "missing.png"), "--floor-size", "10", "10"], "missing.png"),
         (["--floor-size", "10", "10"], "--floor-size given without --floor-plan"),
         (["--floor-plan", str(plan), "--floor-size", f"{w}", f"{h}", "--walkable-sigma", "0"], "floor_plan.sigma_m"),
-        (["--floor-plan", str(plan), "--floor-size", f"{w}", f"{h}", "--floor-plan-use", "teleport"], "floor_plan.mode"),
+        (["--floor-plan", str(plan), "--floor-size", f"{w}", f"{h}", "--floor-plan-use", "teleport"], "Invalid value for '--floor-plan-use'"),
     ):
         with pytest.raises(SystemExit) as e:
             main(["-q", "track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--out", str(out), *args])
@@ -316,10 +317,11 @@ def test_track_cli_default_is_the_fixed_lag_tracker_and_rejects_a_negative_lag(t
         TrackConfig(fixed_lag={"lag_s": float("nan")})
 
 
-def test_track_keeps_its_self_calibration_beside_the_map(tiny_case, tmp_path, monkeypatch, caplog):
-    """The self-calibration is measured once per (map, AP models, configuration), kept in
-    track_calibration.json beside the map and reused (same tracks); another configuration, a
-    damaged or tampered file mean measuring again (logged, never an error)."""
+def test_track_keeps_its_self_calibration_in_the_cache_folder(tiny_case, tmp_path, monkeypatch, caplog):
+    """The self-calibration is measured once per (map, AP models, configuration), kept in the cache
+    folder ($XDG_CACHE_HOME/graphslam, one file per key; never beside the map: the survey's folder
+    is the survey's) and reused (same tracks); another configuration, a damaged or tampered file
+    mean measuring again (logged, never an error)."""
     import dataclasses
     import json
     import logging
@@ -330,19 +332,26 @@ def test_track_keeps_its_self_calibration_beside_the_map(tiny_case, tmp_path, mo
     d, _ = tiny_case
     shutil.copy(d / "radio_map.parquet", tmp_path / "radio_map.parquet")
     shutil.copy(d / "walk.mcap", tmp_path / "walk.mcap")
-    rm_path, walk, cache = tmp_path / "radio_map.parquet", [tmp_path / "walk.mcap"], tmp_path / T.CALIBRATION_FILE
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    rm_path, walk = tmp_path / "radio_map.parquet", [tmp_path / "walk.mcap"]
     measured = []
     real = T.SelfCalibration.measure.__func__
     monkeypatch.setattr(T.SelfCalibration, "measure", classmethod(lambda cls, *a: measured.append(1) or real(cls, *a)))
     cfg = T.TrackConfig(filter={"kind": "ekf"})
     first = T.track_files(rm_path, walk, cfg=cfg)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["radio_map.parquet", "walk.mcap", "xdg"]  # nothing beside the map
+    cache, = (tmp_path / "xdg" / "graphslam" / T.CALIBRATION_FOLDER).iterdir()
     assert len(measured) == 1 and json.loads(cache.read_text())["covariance_scale"] >= 1
     again = T.track_files(rm_path, walk, cfg=cfg)
     assert len(measured) == 1  # reused
     np.testing.assert_array_equal(again.tracks[0].x, first.tracks[0].x)
     np.testing.assert_array_equal(again.tracks[0].P, first.tracks[0].P)
     T.track_files(rm_path, walk, cfg=cfg.updated({"knn_fixes.k": 5}))
-    assert len(measured) == 2  # another configuration: another calibration
+    assert len(measured) == 2  # another configuration: another calibration, kept beside the first
+    assert len(list(cache.parent.iterdir())) == 2
+    T.track_files(rm_path, walk, cfg=cfg, cache_dir=tmp_path / "elsewhere")  # --cache-dir
+    assert len(measured) == 3 and (tmp_path / "elsewhere" / T.CALIBRATION_FOLDER / cache.name).is_file()
+    measured.pop()
     caplog.set_level(logging.INFO, logger="graphslam.app.track")
     cache.write_text("{not json")
     T.track_files(rm_path, walk, cfg=cfg)
@@ -368,3 +377,92 @@ def test_track_cli_particle_filter_follows_the_walk_and_has_no_offline_smoother(
         main(["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--filter", "particle",
               "--smooth", "map", "--out", str(bad)])
     assert e.value.code == 2 and "no offline smoother" in capsys.readouterr().err and not bad.exists()
+
+
+def test_tracking_reports_its_sessions_and_self_calibration_as_it_goes(tiny_case, monkeypatch):
+    """The default (fixed-lag) tracker is slow: its progress moves within a walk, names the walk,
+    and the self-calibration (and the RSSI field before it) report their parts."""
+    import dataclasses
+    import logging
+
+    import graphslam.core.progress as progress
+    from graphslam.core.tracking.tracker import Tracker
+    from graphslam.io.radiomap_io import read_radio_map
+    from graphslam.tracking_config import TrackConfig
+
+    d, session = tiny_case
+    rm = read_radio_map(d / "radio_map.parquet")
+    models = ApModels.fit(rm)
+    ticks: list = []
+
+    class Grab(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            ticks.append(record.tick)  # type: ignore[attr-defined]
+
+    log = logging.getLogger(progress.PROGRESS_LOGGER)
+    monkeypatch.setattr(progress, "MIN_INTERVAL_S", 0.0)  # every advance reported
+    h = Grab()
+    log.addHandler(h)
+    log.setLevel(logging.INFO)
+    try:
+        tracker = Tracker.on_map(rm, models, TrackConfig())
+        tracker.track_all([session, dataclasses.replace(session, session_id="second")])
+    finally:
+        log.removeHandler(h)
+        log.setLevel(logging.NOTSET)
+    by = lambda name: [t for t in ticks if t.name == name]  # noqa: E731
+    assert [t.event for t in by("track: RSSI field")] == ["start", "end"]
+    cal = by("track: self-calibration")
+    assert cal[-1].event == "end" and cal[-1].done == cal[-1].total == 4
+    assert {"RSSI variance", "kNN fix noise", "heading bank temper", "replaying the map's walks"} <= {t.info for t in cal}
+    track = by("track")
+    n = len(session.steps)
+    assert track[-1].event == "end" and track[-1].done == track[-1].total == 2 * n
+    assert {f"session 1/2: {session.session_id}", "session 2/2: second"} <= {t.info for t in track}
+    # the fixed-lag stream advances step by step within the first walk, not once at its end
+    assert any(0 < t.done < n and t.info == f"session 1/2: {session.session_id}" for t in track)
+
+
+def test_track_announces_a_long_run_before_it_starts(tiny_case, monkeypatch, capsys, tmp_path):
+    from graphslam.app import track as T
+    from graphslam.cli import main
+
+    d, session = tiny_case
+    job = T.prepare_track(d / "radio_map.parquet", [d / "walk.mcap"], cache_dir=tmp_path / "cache")
+    n = len(session.steps)
+    assert (job.expected.steps, job.expected.walks, job.expected.filter) == (n, 1, "fixed-lag")
+    assert job.expected.tracking_s == pytest.approx(n * T.SECONDS_PER_STEP["fixed-lag"])
+    assert job.expected.calibration_s > 0  # nothing kept for this map yet
+    assert job.notice() is None  # 80 steps: not worth a line
+    text = job.notice(above_s=0.0)
+    assert text is not None and text.startswith(f"track: 1 walk, {n} steps with the fixed-lag tracker: expect about ")
+    assert "of self-calibration on this map, kept in" in text and "(--filter ekf: about" in text
+    monkeypatch.setattr(T, "NOTICE_ABOVE_S", 0.0)
+    args = ["track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--filter", "ekf", "--no-picture",
+            "--cache-dir", str(tmp_path / "cache"), "-o", str(tmp_path / "t.csv")]
+    main(args)
+    err = capsys.readouterr().err
+    assert f"track: 1 walk, {n} steps with the ekf tracker: expect about" in err and "self-calibration" in err
+    main(args)  # the calibration is kept now: only the tracking is announced
+    err = capsys.readouterr().err
+    assert "expect about" in err and "self-calibration" not in err
+    main([*args, "-q"])  # --quiet: no progress, no announcement
+    assert "expect about" not in capsys.readouterr().err
+
+
+def test_track_prints_its_errors_against_the_truth(tiny_case, capsys, tmp_path):
+    from graphslam.cli import main
+    from graphslam.core.common.geometry import interpolate_xy
+
+    d, session = tiny_case
+    out = tmp_path / "t.csv"
+    main(["-q", "track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--filter", "ekf",
+          "--no-picture", "-o", str(out)])
+    ev = json.loads(capsys.readouterr().out)["errors"]
+    assert ev["evaluated"] and ev["frame"] == "site frame (the map is in the site frame)"
+    rows = list(csv.DictReader(out.open()))
+    xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
+    e = np.linalg.norm(xy - interpolate_xy(session.ground_truth, np.array([float(r["t_ns"]) for r in rows])), axis=1)
+    assert ev["truth"]["n"] == len(session.steps) == len(rows)
+    assert ev["truth"]["mean_m"] == pytest.approx(float(e.mean()), abs=2e-3)
+    assert "landmarks" not in ev  # the walk marks none

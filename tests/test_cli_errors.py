@@ -46,6 +46,10 @@ USAGE_ERRORS = {
     "not an integer": (["simulate", "paper", "--out", "sim", "--seed", "abc"], "Invalid value for '--seed'"),
     "out of range": (["simulate", "paper", "--out", "sim", "--seed", "-1"], "Invalid value for '--seed'"),
     "group without command": (["bench"], "Missing command"),
+    # an option's arity: click names no command; the line points to the command's own help
+    "option arity": (["survey", "x.mcap", "--out", "o", "--floor-size", "1"],
+                     "graphslam survey: Option '--floor-size' requires 2 arguments. (see 'graphslam survey --help')"),
+    "option arity in a group": (["-q", "bench", "real", "x", "--floors"], "(see 'graphslam bench real --help')"),
 }
 
 
@@ -88,3 +92,12 @@ def test_non_finite_config_values_are_refused(tmp_path: Path, value: str, capsys
     err = capsys.readouterr().err.strip().splitlines()
     assert e.value.code == 2 and len(err) == 1 and "wifi.e_max" in err[0]
     assert not (tmp_path / "out").exists()
+
+
+def test_a_count_of_one_is_singular(tmp_path: Path) -> None:
+    write_session(make_session("w", 12), tmp_path / "w.mcap")
+    p = subprocess.run(_entry_point() + ["inspect", "w.mcap"], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    totals = p.stdout.strip().splitlines()[-1]
+    assert totals.startswith("1 session, 12 steps, "), totals
+    assert "1 sessions" not in p.stdout

@@ -50,12 +50,12 @@ def test_cli_metric_options_reject_unknown_metrics_before_reading_files(capsys, 
     for argv, option in (
         (["locate", str(tmp_path), "--radio-map", missing, "--out", str(tmp_path / "o.csv"), "--metric", "cosine"], "--metric"),
         (["serve", "--radio-map", missing, "--metric", "cosine"], "--metric"),
-        (["track", str(tmp_path), "--radio-map", missing, "--out", str(tmp_path / "o.csv"), "--knn-metric", "cosine"], "--knn-metric"),
+        (["track", str(tmp_path), "--radio-map", missing, "--out", str(tmp_path / "o.csv"), "--metric", "cosine"], "--metric"),
     ):
         with pytest.raises(SystemExit) as e:
             main(argv)
         err = capsys.readouterr().err
-        assert e.value.code == 2 and f"{option}: 'cosine' is not one of eq9, sorensen" in err, argv
+        assert e.value.code == 2 and f"Invalid value for '{option}': Value error, 'cosine' is not one of 'sorensen', 'eq9'" in err, argv
         assert len(err.strip().splitlines()) == 1
     assert list(tmp_path.iterdir()) == []
 
@@ -76,7 +76,7 @@ def test_track_config_knn_metric() -> None:
     assert particle_config(TrackConfig(filter={"kind": "particle"}, particle={"temperature": 0.1})).temperature == 0.1
     with pytest.raises(ConfigError, match="particle.temperature"):
         TrackConfig(filter={"kind": "particle"}, particle={"temperature": 0.0})
-    with pytest.raises(ConfigError, match="knn_fixes.metric: Input should be 'eq9' or 'sorensen'"):
+    with pytest.raises(ConfigError, match="knn_fixes.metric: Input should be 'sorensen' or 'eq9'"):
         TrackConfig(knn_fixes={"metric": "cosine"})
     with pytest.raises(ConfigError, match="fixed_lag.bank_temper"):
         TrackConfig(fixed_lag={"bank_temper": 0.5})  # below 1 would sharpen the bank's odds beyond its own likelihood

@@ -40,13 +40,32 @@ def building(n_ref: int, n_q: int, *, seed: int = 0, integer: bool = False) -> t
 
 def test_all_clusters_probed_is_the_exact_search() -> None:
     rm, q = building(600, 200)
-    exact = KnnLocator(rm, KnnConfig(k=5)).locate(q)
-    ivf = KnnLocator(rm, KnnConfig(k=5, index="ivf", ivf_clusters=12, ivf_probes=12)).locate(q)
+    exact = KnnLocator(rm, KnnConfig(metric="eq9", k=5)).locate(q)
+    ivf = KnnLocator(rm, KnnConfig(metric="eq9", k=5, index="ivf", ivf_clusters=12, ivf_probes=12)).locate(q)
     assert ivf.valid.all()
     np.testing.assert_array_equal(ivf.neighbours, exact.neighbours)
     np.testing.assert_allclose(ivf.distances, exact.distances, rtol=1e-12)
     np.testing.assert_allclose(ivf.xy, exact.xy, rtol=1e-12)
     assert ivf.floor.tolist() == exact.floor.tolist()  # type: ignore[union-attr]
+
+
+@pytest.mark.parametrize("min_common", [1, 3])
+def test_sorensen_with_all_clusters_probed_is_the_exact_sorensen_search(min_common: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    import graphslam.core.radiomap.ivf as ivf_module
+
+    rm, q = building(600, 200, seed=5)
+    exact = KnnLocator(rm, KnnConfig(k=5, metric="sorensen", index="exact", min_common=min_common)).locate(q)
+    monkeypatch.setattr(ivf_module, "SORENSEN_CHUNK_CELLS", 5_000)  # several chunks of queries per cluster
+    ivf = KnnLocator(rm, KnnConfig(k=5, metric="sorensen", index="ivf", ivf_clusters=12, ivf_probes=12,
+                                   min_common=min_common)).locate(q)
+    assert ivf.valid.all()
+    np.testing.assert_array_equal(ivf.neighbours, exact.neighbours)
+    np.testing.assert_allclose(ivf.distances, exact.distances, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(ivf.score, exact.score, rtol=1e-9)
+    # fewer probes: approximate, yet nearly always the same neighbours on this floor
+    few = KnnLocator(rm, KnnConfig(k=5, metric="sorensen", index="ivf", ivf_clusters=12, ivf_probes=4,
+                                   min_common=min_common)).locate(q)
+    assert np.mean((np.sort(few.neighbours, 1) == np.sort(exact.neighbours, 1)).all(1)) > 0.8
 
 
 def test_integer_rss_with_ties_is_bit_identical_to_exact() -> None:
@@ -60,8 +79,8 @@ def test_integer_rss_with_ties_is_bit_identical_to_exact() -> None:
     )
     for m in (rm, rm2):
         for k in (1, 3, 8):
-            exact = KnnLocator(m, KnnConfig(k=k)).locate(q)
-            ivf = KnnLocator(m, KnnConfig(k=k, index="ivf", ivf_clusters=9, ivf_probes=9)).locate(q)
+            exact = KnnLocator(m, KnnConfig(metric="eq9", k=k)).locate(q)
+            ivf = KnnLocator(m, KnnConfig(metric="eq9", k=k, index="ivf", ivf_clusters=9, ivf_probes=9)).locate(q)
             np.testing.assert_array_equal(ivf.neighbours, exact.neighbours)
             np.testing.assert_array_equal(ivf.distances, exact.distances)
 
@@ -79,8 +98,8 @@ def test_clustering_is_deterministic_per_seed() -> None:
 
 def test_default_settings_recall_on_a_clustered_map() -> None:
     rm, q = building(3000, 300, seed=1)
-    exact = KnnLocator(rm, KnnConfig(k=7)).locate(q)
-    ivf = KnnLocator(rm, KnnConfig(k=7, index="ivf")).locate(q)
+    exact = KnnLocator(rm, KnnConfig(metric="eq9", k=7)).locate(q)
+    ivf = KnnLocator(rm, KnnConfig(metric="eq9", k=7, index="ivf")).locate(q)
     assert ivf.config.ivf_probes == knn.DEFAULT_IVF_PROBES
     assert ivf is not None and default_clusters(3000) == 110
     same = (np.sort(ivf.neighbours, axis=1) == np.sort(exact.neighbours, axis=1)).all(axis=1)
@@ -94,10 +113,10 @@ def test_empty_clusters_are_dropped() -> None:
     base = [{f"ap{j}": float(rng.uniform(-90, -40)) for j in range(6)} for _ in range(5)]
     scans = [dict(base[i % 5]) for i in range(60)]
     rm = RadioMap.from_scans(scans, rng.uniform(0, 10, (60, 2)), session_ids="s", t_ns=np.arange(60), frame="f")
-    loc = KnnLocator(rm, KnnConfig(k=4, index="ivf", ivf_clusters=20, ivf_probes=20))
+    loc = KnnLocator(rm, KnnConfig(metric="eq9", k=4, index="ivf", ivf_clusters=20, ivf_probes=20))
     assert loc.ivf is not None and 1 <= loc.ivf.n_clusters <= 5 and (loc.ivf.sizes > 0).all()
     q = [{"ap0": -50.0, "ap3": -70.0}, base[2]]
-    exact = KnnLocator(rm, KnnConfig(k=4)).locate(q)
+    exact = KnnLocator(rm, KnnConfig(metric="eq9", k=4)).locate(q)
     got = loc.locate(q)
     np.testing.assert_array_equal(got.neighbours, exact.neighbours)
     np.testing.assert_allclose(got.distances, exact.distances, rtol=1e-12)
@@ -109,7 +128,7 @@ def test_unanswerable_queries_are_flagged_as_in_the_exact_path() -> None:
     rm, q = building(400, 3)
     queries = [q[0], {"unknown": -50.0}, {"ap1": -99.0}]  # ok, unknown AP only, below min_rssi only
     for index in ("exact", "ivf"):
-        loc = KnnLocator(rm, KnnConfig(k=3, index=index, ivf_clusters=10, ivf_probes=2))  # type: ignore[arg-type]
+        loc = KnnLocator(rm, KnnConfig(metric="eq9", k=3, index=index, ivf_clusters=10, ivf_probes=2))  # type: ignore[arg-type]
         res = loc.locate(queries)
         assert res.status.tolist() == ["ok", "no_known_ap", "no_known_ap"]
         assert np.isnan(res.xy[1:]).all() and (res.neighbours[1:] == -1).all()
@@ -121,8 +140,8 @@ def test_too_few_candidates_in_the_probed_clusters_fall_back_to_exact() -> None:
     # One probe, and a query hearing one AP that only a far-away corner of the map hears:
     # whatever cluster is probed, the k answers must be the exact ones.
     rm, q = building(400, 50, seed=6)
-    exact = KnnLocator(rm, KnnConfig(k=6)).locate(q)
-    ivf = KnnLocator(rm, KnnConfig(k=6, index="ivf", ivf_clusters=40, ivf_probes=1)).locate(q)
+    exact = KnnLocator(rm, KnnConfig(metric="eq9", k=6)).locate(q)
+    ivf = KnnLocator(rm, KnnConfig(metric="eq9", k=6, index="ivf", ivf_clusters=40, ivf_probes=1)).locate(q)
     np.testing.assert_array_equal(ivf.n_neighbours, exact.n_neighbours)
     assert ivf.valid.all()
 
@@ -130,20 +149,21 @@ def test_too_few_candidates_in_the_probed_clusters_fall_back_to_exact() -> None:
 def test_index_config_and_auto(monkeypatch: pytest.MonkeyPatch) -> None:
     for bad in ({"index": "hnsw"}, {"ivf_probes": 0}, {"ivf_clusters": 0}, {"ivf_probes": True}):
         with pytest.raises(ConfigError):
-            KnnConfig(**bad)  # type: ignore[arg-type]
+            KnnConfig(metric="eq9", **bad)  # type: ignore[arg-type]
     rm, _ = building(300, 1)
-    assert KnnLocator(rm, KnnConfig(index="auto")).index_kind == "exact"
+    assert KnnLocator(rm, KnnConfig(metric="eq9", index="auto")).index_kind == "exact"
     monkeypatch.setattr(knn, "IVF_AUTO_MIN_REFS", 200)
-    assert KnnLocator(rm, KnnConfig(index="auto")).index_kind == "ivf"
-    assert KnnLocator(rm, KnnConfig()).index_kind == "exact"  # exact stays the default
+    assert KnnLocator(rm, KnnConfig(metric="eq9", index="auto")).index_kind == "ivf"
+    assert KnnLocator(rm, KnnConfig(metric="eq9", index="exact")).index_kind == "exact"
+    assert KnnConfig().index == "auto" and KnnLocator(rm).index_kind == "ivf"  # auto is the default, for either metric
 
 
 def test_fingerprints_outside_the_index_count_as_extra_aps() -> None:
     # Query APs unknown to the map add to eq. 9's numerator and |U| in the IVF path too.
     rm, q = building(300, 40, seed=8)
     q2 = [{**s, "zz:1": -60.0, "zz:2": -80.0} for s in q]
-    exact = KnnLocator(rm, KnnConfig(k=3)).locate(q2)
-    ivf = KnnLocator(rm, KnnConfig(k=3, index="ivf", ivf_clusters=8, ivf_probes=8)).locate(q2)
+    exact = KnnLocator(rm, KnnConfig(metric="eq9", k=3)).locate(q2)
+    ivf = KnnLocator(rm, KnnConfig(metric="eq9", k=3, index="ivf", ivf_clusters=8, ivf_probes=8)).locate(q2)
     np.testing.assert_allclose(ivf.distances, exact.distances, rtol=1e-12)
     fm = rm.encode(q2)
     assert isinstance(fm, FingerprintMatrix) and (fm.extra_n == 2).all()

@@ -30,7 +30,7 @@ def corner_map(**kw: object) -> RadioMap:
 def test_k1_returns_the_nearest_fingerprint_position_and_its_distance() -> None:
     rm = corner_map()
     q = {"a": -42.0, "b": -71.0, "c": -69.0, "d": -88.0}
-    res = KnnLocator(rm, KnnConfig(k=1)).locate([q])
+    res = KnnLocator(rm, KnnConfig(metric="eq9", k=1)).locate([q])
     assert res.neighbours[0].tolist() == [0]
     assert res.xy[0].tolist() == [0.0, 0.0]
     assert res.score[0] == pytest.approx(rss_distance(q, SCANS[0]))
@@ -45,12 +45,12 @@ def test_unweighted_k2_is_the_midpoint_and_weighted_leans_to_the_closer_match() 
     q = {"a": -50.0, "b": -52.0, "c": -80.0, "d": -80.0}
     d0, d1 = rss_distance(q, SCANS[0]), rss_distance(q, SCANS[1])
     assert d0 < d1 < min(rss_distance(q, SCANS[2]), rss_distance(q, SCANS[3]))
-    plain = KnnLocator(rm, KnnConfig(k=2, weighted=False)).locate([q])
+    plain = KnnLocator(rm, KnnConfig(metric="eq9", k=2, weighted=False)).locate([q])
     assert plain.neighbours[0].tolist() == [0, 1]
     assert plain.xy[0] == pytest.approx([5.0, 0.0])
     assert plain.spread[0] == pytest.approx(5.0)
     assert plain.score[0] == pytest.approx((d0 + d1) / 2)
-    weighted = KnnLocator(rm, KnnConfig(k=2, weighted=True)).locate([q])
+    weighted = KnnLocator(rm, KnnConfig(metric="eq9", k=2, weighted=True)).locate([q])
     w0, w1 = 1 / d0, 1 / d1
     assert weighted.xy[0] == pytest.approx([10.0 * w1 / (w0 + w1), 0.0], rel=1e-5)
     assert weighted.xy[0, 0] < 5.0
@@ -61,8 +61,8 @@ def test_floor_vote_is_weighted() -> None:
     # Nearest is corner 2 (F2); corners 0 and 1 (F1) are further: uniform vote of k=3 says F1,
     # inverse-distance vote says F2 when corner 2 is much closer.
     q = {"a": -70.0, "b": -90.0, "c": -41.0, "d": -70.0}
-    uni = KnnLocator(rm, KnnConfig(k=3, weighted=False)).locate([q])
-    wtd = KnnLocator(rm, KnnConfig(k=3, weighted=True)).locate([q])
+    uni = KnnLocator(rm, KnnConfig(metric="eq9", k=3, weighted=False)).locate([q])
+    wtd = KnnLocator(rm, KnnConfig(metric="eq9", k=3, weighted=True)).locate([q])
     assert uni.neighbours[0, 0] == 2 and set(uni.neighbours[0, 1:].tolist()) <= {0, 3}
     nb_floors = rm.floors[uni.neighbours[0]]  # type: ignore[index]
     majority = max(set(nb_floors.tolist()), key=nb_floors.tolist().count)
@@ -73,7 +73,7 @@ def test_floor_vote_is_weighted() -> None:
 
 def test_unknown_aps_are_flagged_or_raise() -> None:
     rm = corner_map()
-    loc = KnnLocator(rm, KnnConfig(k=2))
+    loc = KnnLocator(rm, KnnConfig(metric="eq9", k=2))
     res = loc.locate([{"zz": -50.0}, {"a": -40.0}, {"a": -101.0}])  # the last is below min_rssi
     assert res.valid.tolist() == [False, True, False]
     assert res.status.tolist() == ["no_known_ap", "ok", "no_known_ap"]
@@ -88,14 +88,14 @@ def test_min_common_excludes_neighbours_sharing_too_few_aps() -> None:
         frame="f",
     )
     q = {"a": -50.0, "b": -95.0, "c": -95.0}
-    assert KnnLocator(rm, KnnConfig(k=1)).locate([q]).neighbours[0, 0] == 0
-    assert KnnLocator(rm, KnnConfig(k=1, min_common=3)).locate([q]).neighbours[0, 0] == 1
-    only_a = KnnLocator(rm, KnnConfig(k=1, min_common=2)).locate([{"a": -50.0}])
+    assert KnnLocator(rm, KnnConfig(metric="eq9", k=1)).locate([q]).neighbours[0, 0] == 0
+    assert KnnLocator(rm, KnnConfig(metric="eq9", k=1, min_common=3)).locate([q]).neighbours[0, 0] == 1
+    only_a = KnnLocator(rm, KnnConfig(metric="eq9", k=1, min_common=2)).locate([{"a": -50.0}])
     assert only_a.status.tolist() == ["no_candidate"]
 
 
 def test_k_larger_than_map_pads() -> None:
-    res = KnnLocator(corner_map(), KnnConfig(k=6)).locate([SCANS[0]])
+    res = KnnLocator(corner_map(), KnnConfig(metric="eq9", k=6)).locate([SCANS[0]])
     assert res.n_neighbours[0] == 4
     assert res.neighbours[0, 4:].tolist() == [-1, -1]
     assert np.isinf(res.distances[0, 4:]).all()
@@ -103,9 +103,9 @@ def test_k_larger_than_map_pads() -> None:
 
 def test_bad_config() -> None:
     with pytest.raises(ConfigError, match="k must be"):
-        KnnConfig(k=0)
+        KnnConfig(metric="eq9", k=0)
     with pytest.raises(ConfigError, match="min_common"):
-        KnnConfig(min_common=0)
+        KnnConfig(metric="eq9", min_common=0)
 
 
 def _random_scans(rng: np.random.Generator, n: int, n_aps: int, per_scan: int) -> list[dict[str, float]]:
@@ -139,7 +139,7 @@ def test_sparse_candidate_distances_equal_the_engine(min_common: int) -> None:
         assert mine[i, j] == pytest.approx(rss_distance(queries[i], refs[j]))
     # kNN = brute force argsort of the same distances, on both paths (small blocks: gather; big: products)
     for cells in (2000, 10**6):
-        res = KnnLocator(rm, KnnConfig(k=5, min_common=min_common), block_cells=cells, threads=2).locate(q)
+        res = KnnLocator(rm, KnnConfig(metric="eq9", k=5, min_common=min_common), block_cells=cells, threads=2).locate(q)
         for i in range(len(queries)):
             order = np.lexsort((np.arange(full.shape[1]), full[i]))[:5]
             expect = [int(j) if np.isfinite(full[i, j]) else -1 for j in order]
@@ -151,7 +151,7 @@ def test_scans_fingerprints_and_foreign_index_give_the_same_answer() -> None:
     refs = _random_scans(rng, 120, 60, 10)
     rm = RadioMap.from_scans(refs, rng.uniform(0, 50, (120, 2)), session_ids="s", t_ns=np.arange(120), frame="f")
     queries = _random_scans(rng, 30, 70, 10)
-    loc = KnnLocator(rm, KnnConfig(k=4))
+    loc = KnnLocator(rm, KnnConfig(metric="eq9", k=4))
     a = loc.locate(queries)
     foreign = FingerprintMatrix.from_scans(queries)  # its own AP index
     b = loc.locate(foreign)
@@ -162,7 +162,7 @@ def test_scans_fingerprints_and_foreign_index_give_the_same_answer() -> None:
 def test_dense_engine_path_agrees() -> None:
     # <= 64 APs: DistanceEngine goes dense; the locator must use it and agree with brute force.
     rm = corner_map()
-    loc = KnnLocator(rm, KnnConfig(k=4, weighted=False))
+    loc = KnnLocator(rm, KnnConfig(metric="eq9", k=4, weighted=False))
     assert loc.engine.dense
     q = {"a": -60.0, "b": -60.0, "e": -50.0}
     res = loc.locate([q])
@@ -190,7 +190,7 @@ def test_radio_map_checks_and_canonical_index() -> None:
 def test_empty_map_answers_nothing() -> None:
     rm = RadioMap.from_scans([], np.zeros((0, 2)), session_ids=[], t_ns=[], frame="f")
     assert len(rm) == 0 and rm.summary().bbox is None
-    res = KnnLocator(rm).locate([{"a": -50.0}])
+    res = KnnLocator(rm, KnnConfig(metric="eq9")).locate([{"a": -50.0}])
     assert res.status.tolist() == ["no_known_ap"]
 
 
@@ -201,7 +201,7 @@ def test_ties_at_the_kth_distance_take_the_lowest_rows() -> None:
     n = 200
     scans = [{"a": -50.0, "b": -60.0} if i % 7 == 0 else {"a": -50.0, "b": -70.0} for i in range(n)]
     rm = RadioMap.from_scans(scans, np.zeros((n, 2)), session_ids="s", t_ns=np.arange(n), frame="f")
-    res = KnnLocator(rm, KnnConfig(k=40)).locate([{"a": -50.0, "b": -60.0}] * 2)
+    res = KnnLocator(rm, KnnConfig(metric="eq9", k=40)).locate([{"a": -50.0, "b": -60.0}] * 2)
     better = list(range(0, n, 7))
     tied = [i for i in range(n) if i % 7][:11]
     assert res.neighbours.tolist() == [better + tied] * 2
@@ -263,7 +263,7 @@ def test_sorensen_weighs_a_reading_by_its_strength_where_eq9_charges_a_fixed_gap
         session_ids="s", t_ns=[1, 2], frame="f",
     )
     q = [{"a": -45.0, "b": -90.0, "c": -90.0}]
-    assert KnnLocator(rm, KnnConfig(k=1)).locate(q).neighbours[0, 0] == 1
+    assert KnnLocator(rm, KnnConfig(metric="eq9", k=1)).locate(q).neighbours[0, 0] == 1
     res = KnnLocator(rm, KnnConfig(k=1, metric="sorensen")).locate(q)
     assert res.neighbours[0, 0] == 0 and res.xy[0].tolist() == [0.0, 0.0]
     assert 0.0 < res.score[0] < 0.1  # a unitless distance in [0, 1]
@@ -272,11 +272,12 @@ def test_sorensen_weighs_a_reading_by_its_strength_where_eq9_charges_a_fixed_gap
 def test_sorensen_config_and_index() -> None:
     with pytest.raises(ConfigError, match="metric must be one of"):
         KnnConfig(metric="cosine")  # type: ignore[arg-type]
-    with pytest.raises(ConfigError, match="IVF index searches eq. 9"):
-        KnnConfig(metric="sorensen", index="ivf")
     rng = np.random.default_rng(6)
     n = 5000  # IVF_AUTO_MIN_REFS: "auto" would pick the IVF index for eq. 9
     rm = RadioMap.from_scans(_random_scans(rng, n, 300, 6), rng.uniform(0, 50, (n, 2)), session_ids="s",
                              t_ns=np.arange(n), frame="f")
-    assert KnnLocator(rm, KnnConfig(index="auto")).index_kind == "ivf"
-    assert KnnLocator(rm, KnnConfig(index="auto", metric="sorensen")).index_kind == "exact"
+    assert KnnLocator(rm, KnnConfig(metric="eq9", index="auto")).index_kind == "ivf"
+    # the IVF index searches Sørensen too: "auto" (the default) picks it for either metric
+    assert KnnLocator(rm, KnnConfig(index="auto", metric="sorensen")).index_kind == "ivf"
+    assert KnnLocator(rm).index_kind == "ivf" and KnnLocator(rm).config.metric == "sorensen"
+    assert KnnLocator(rm, KnnConfig(index="exact")).index_kind == "exact"

@@ -1,4 +1,4 @@
-"""The package is layered errors -> config -> core -> io -> sim / service / viz -> app -> cli:
+"""The package is layered errors, names -> config -> core -> io -> sim / service / viz -> app -> cli:
 no module imports (at module level or lazily inside a function) from a layer above its own,
 and core does no file I/O beyond what its own layer allows. Inside core the sub-packages depend in
 one direction too: common (with types, progress, summary) -> radiomap -> uwb -> survey, and
@@ -12,7 +12,7 @@ from pathlib import Path
 import graphslam
 
 PKG = Path(graphslam.__file__).parent
-LAYER = {"errors": 0, "config": 1, "tracking_config": 1, "core": 2, "io": 3, "sim": 4, "service": 4, "viz": 4, "app": 5, "cli": 6}
+LAYER = {"errors": 0, "names": 0, "config": 1, "tracking_config": 1, "core": 2, "io": 3, "sim": 4, "service": 4, "viz": 4, "app": 5, "cli": 6}
 # sim/service/viz are side by side: none may import another of the three
 PEERS = {"sim", "service", "viz"}
 # the core sub-packages (and core's own modules, which count as common)

@@ -49,7 +49,7 @@ def test_locate_cli_writes_positions_csv(tmp_path: Path) -> None:
     write_session(query_session("q2", [35.0], unknown_last=True), tmp_path / "q" / "q2.mcap")
     out = tmp_path / "out" / "positions.csv"
     res = CliRunner().invoke(
-        app, ["locate", "--radio-map", str(rm_path), str(tmp_path / "q"), "--out", str(out), "--k", "1"]
+        app, ["locate", "--radio-map", str(rm_path), str(tmp_path / "q"), "--out", str(out), "-k", "1"]
     )
     assert res.exit_code == 0, res.output
     summary = json.loads(res.output.strip().splitlines()[-1])
@@ -88,7 +88,7 @@ def test_locate_cli_metric_sorensen_answers_as_the_library(tmp_path: Path) -> No
     assert not np.allclose(expect["eq9"].xy, expect["sorensen"].xy)  # the metric matters for these queries
     out = tmp_path / "positions.csv"
     res = CliRunner().invoke(app, ["locate", "--radio-map", str(rm_path), str(tmp_path / "q.mcap"), "--out", str(out),
-                                   "--k", "2", "--metric", "sorensen", "--no-picture"])
+                                   "-k", "2", "--metric", "sorensen", "--no-picture"])
     assert res.exit_code == 0, res.output
     rows = list(csv.DictReader(out.open()))
     got = np.array([[float(r["x"]), float(r["y"])] for r in rows])
@@ -120,7 +120,7 @@ def test_locate_rerun_logs_answers_and_truth(tmp_path: Path) -> None:
     rrd = tmp_path / "loc.rrd"
     res = CliRunner().invoke(
         app,
-        ["locate", "--radio-map", str(rm_path), str(tmp_path / "q"), "--out", str(tmp_path / "p.csv"), "--k", "1",
+        ["locate", "--radio-map", str(rm_path), str(tmp_path / "q"), "--out", str(tmp_path / "p.csv"), "-k", "1",
          "--rerun", str(rrd)],
     )
     assert res.exit_code == 0, res.output

@@ -1,9 +1,10 @@
-"""`graphslam survey --out`: the folder is always one run's set of files.
+"""`graphslam survey --out`: the folder is always one consistent set of files.
 
-Re-running into a used folder leaves no earlier run's file (ap_models.json,
-radio_map_surveyed.parquet); a folder holding anything else, the input folder, or a folder
-inside it is refused before any work; a failure while writing or during the final rename
-leaves the previous set exactly as it was and nothing staged behind.
+Re-running into a used folder leaves no earlier run's own file (radio_map_surveyed.parquet) and
+rebuilds the files other commands added (fit-aps' ap_models.json, plot's radio_map.png) for the
+new map; nothing track writes lands there; a folder holding anything else, the input folder, or
+a folder inside it is refused before any work; a failure while writing or during the final
+rename leaves the previous set exactly as it was and nothing staged behind.
 """
 
 from __future__ import annotations
@@ -59,14 +60,22 @@ def test_rerun_replaces_the_whole_set_and_track_refits_stale_models(
     first = snapshot(out)
     assert {"radio_map_surveyed.parquet", "ap_models.json"} <= set(first)
 
-    survey(recordings, out, "--set", "wifi.d_max_m=25")  # another run: no --surveyed, no fit-aps
+    survey(recordings, out, "--set", "wifi.d_max_m=25")  # another run: no --surveyed
     second = snapshot(out)
-    assert set(second) == {
+    assert set(second) == {  # the survey's own file it did not write this time is gone; fit-aps' is rebuilt
         "trajectories.csv", "aligned.mcap", "radio_map.parquet", "wifi_edges.parquet", "config.yaml", "report.json",
-        "survey.png", "survey_state.npz",
+        "survey.png", "survey_state.npz", "ap_models.json",
     }
     assert second["config.yaml"] != first["config.yaml"] and b"d_max_m: 25" in second["config.yaml"]
     assert no_leftovers(tmp_path)
+    from graphslam.io.apmodel_io import read_ap_models, read_fit_config
+    from graphslam.io.radiomap_io import read_radio_map
+
+    assert second["ap_models.json"] != first["ap_models.json"]
+    read_ap_models(out / "ap_models.json", radio_map=read_radio_map(out / "radio_map.parquet"))  # the new map's
+    assert read_fit_config(out / "ap_models.json").min_readings == 5  # refitted as fit-aps was told
+    derived = json.loads(second["report.json"])["derived_files"]
+    assert derived == {"ap_models.json": {"written_by": "fit-aps", "status": "rebuilt"}}
 
     # ap_models.json of the first run's map put back beside the second run's map: never used silently
     (out / "ap_models.json").write_bytes(first["ap_models.json"])
@@ -143,3 +152,37 @@ def test_a_failure_leaves_the_previous_set(
     assert snapshot(out) == before
     assert json.loads(before["report.json"])["aligned_sessions"] == 2
     assert no_leftovers(tmp_path)
+
+
+def test_nothing_another_command_wrote_blocks_or_is_lost_in_an_update(
+    recordings: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The README's order: survey, fit-aps, plot, track, then an in-place `survey --update`."""
+    from graphslam.app.pictures import plot_options
+    from graphslam.io.apmodel_io import read_ap_models
+    from graphslam.io.radiomap_io import read_radio_map
+
+    out = tmp_path / "out"
+    survey(recordings, out)
+    main(["fit-aps", "--radio-map", str(out / "radio_map.parquet"), "--min-readings", "5"])
+    main(["plot", str(out), "--top-aps", "2", "--recordings", str(recordings)])
+    a = two_walks().sessions[0]
+    walk = write_session(Session(a.session_id, PoseTrack(a.steps.t_ns[:20], a.steps.xy[:20], a.steps.heading[:20]),
+                                 a.scans[:10]), tmp_path / "short.mcap")
+    before = snapshot(out)
+    main(["-q", "track", str(walk), "--radio-map", str(out / "radio_map.parquet"), "--filter", "ekf", "--no-picture",
+          "-o", str(tmp_path / "t.csv")])
+    assert snapshot(out) == before  # track writes nothing into the survey's folder
+    (out / "track_calibration.json").write_text("{}")  # what an earlier graphslam's track left there
+    capsys.readouterr()
+    survey(recordings, out, "--update", str(out), "--set", "wifi.d_max_m=25")  # in place: not refused
+    after = snapshot(out)
+    assert set(before) | {"track_calibration.json"} == set(after)  # nothing deleted
+    assert after["track_calibration.json"] == b"{}"  # kept as it was
+    read_ap_models(out / "ap_models.json", radio_map=read_radio_map(out / "radio_map.parquet"))  # rebuilt for this map
+    assert after["radio_map.png"] != before["radio_map.png"]  # redrawn from the new map ...
+    assert plot_options(out / "radio_map.png")["top_aps"] == 2  # ... as plot drew it
+    derived = json.loads(after["report.json"])["derived_files"]
+    assert {k: v["status"] for k, v in derived.items()} == {
+        "ap_models.json": "rebuilt", "radio_map.png": "rebuilt", "track_calibration.json": "kept",
+    }

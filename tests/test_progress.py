@@ -11,6 +11,7 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+from typing import Iterator
 
 import pytest
 
@@ -60,6 +61,13 @@ def test_quiet_silences_progress(recordings: Path, tmp_path: Path, args: list[st
         assert "progress read: 12/12 files (100 %) done in" in p.stderr
     else:
         assert "progress" not in p.stderr and "\r" not in p.stderr
+
+
+@pytest.mark.parametrize("after", [["--progress-interval", "0"], ["--progress-interval=0"]])
+def test_progress_interval_is_accepted_after_the_command_name(recordings: Path, after: list[str]) -> None:
+    p = _run(["inspect", str(recordings), *after])  # as -q is: a root option users put after the command
+    assert p.returncode == 0, p.stderr
+    assert "progress read: 12/12 files (100 %) done in" in p.stderr
 
 
 def test_terminal_shows_tqdm_bars(recordings: Path, tmp_path: Path) -> None:
@@ -139,3 +147,63 @@ def test_line_handler_throttles_to_its_interval_and_skips_quick_stages() -> None
     assert re.search(r"progress slow: 0/5 \(0 %\) done in 7200\.0 s", text)
     with pytest.raises(ConfigError):
         show_progress("sometimes")
+
+
+class _Grab(logging.Handler):
+    """Every tick of every task, while installed (``_grabbing``)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.ticks: list[Tick] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.ticks.append(record.tick)  # type: ignore[attr-defined]
+
+    def ended(self) -> set[str]:
+        started = {t.task_id for t in self.ticks if t.event == "start"}
+        return {t.name for t in self.ticks if t.event == "end" and t.task_id in started}
+
+
+@pytest.fixture
+def grab() -> Iterator[_Grab]:
+    log = logging.getLogger(PROGRESS_LOGGER)
+    h = _Grab()
+    log.addHandler(h)
+    log.setLevel(logging.INFO)
+    try:
+        yield h
+    finally:
+        log.removeHandler(h)
+        log.setLevel(logging.NOTSET)
+
+
+# What ran >= 1 s at `paper --size 12` (2026-12-03, 2 busy cores): simulate 7.9 s, write 8.5 s; survey:
+# read 4.5 s, edges (the IVF index: 100k steps) 5.5 s, initialise 25.8 s (of which place walks 13.2 s),
+# optimise 87 s, write 3.4 s. The tests below check, on small inputs, that every stage a survey times
+# (report.json's timings_s: what could run long on a big floor) reports, with either edge search.
+@pytest.mark.parametrize("candidates", ["exact", "ivf"])
+def test_every_timed_survey_stage_reports_progress(recordings: Path, tmp_path: Path, grab: _Grab, candidates: str) -> None:
+    from graphslam.app.survey import run_survey
+    from graphslam.config import load_config
+
+    cfg = load_config(None, {"edges": {"candidates": candidates}})
+    result = run_survey([recordings], tmp_path / "out", cfg)
+    stages = {k.removeprefix("align.").replace("_", " ") for k in result.report["timings_s"]} - {"total"}
+    assert {"read", "edges", "initialise", "optimise", "write", "evaluate"} <= stages
+    assert stages <= grab.ended(), stages - grab.ended()
+    edges = [t for t in grab.ticks if t.name == "edges"]
+    assert edges[-1].done == edges[-1].total == result.report["fingerprints"]
+    if candidates == "ivf":  # the IVF stage was silent: its index build and its search now report
+        assert {"IVF index", "IVF search"} <= {t.info for t in edges}
+
+
+def test_simulators_report_progress(tmp_path: Path, grab: _Grab) -> None:
+    from graphslam.sim.uwb.scenarios import CrowdUwb, simulate_crowd
+
+    simulate("paper", seed=0).write(tmp_path / "paper")
+    assert {"simulate", "write"} <= grab.ended()
+    crowd = simulate_crowd(0, CrowdUwb(n_walkers=2, duration_min=(0.5, 0.6)))  # `simulate-uwb crowd`: 38 s, was silent
+    net = [t for t in grab.ticks if t.name == "simulate UWB network"]
+    assert net[0].event == "start" and net[-1].event == "end" and net[-1].unit == "cycles"
+    assert net[-1].done == len(crowd.network.cycles) and net[-1].total == pytest.approx(net[-1].done, abs=2)
+    assert net[-1].info == f"{len(crowd.network.ranges.t_s):,} ranges"

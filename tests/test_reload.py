@@ -159,6 +159,28 @@ def test_serve_reloads_on_sighup_and_refuses_a_broken_map(tmp_path: Path) -> Non
         proc.terminate()
         _, err = proc.communicate(timeout=20)
     assert "refused" in err and str(live) in err
+    # a reload is logged at INFO (not a warning), and a plain serve (--log-level info) shows it
+    assert f"INFO graphslam.service.reload: radio map {live} reloaded (generation 1" in err
+    assert "WARNING" not in err
+
+
+def test_serve_on_a_port_in_use_is_one_line_and_exit_2(tmp_path: Path) -> None:
+    a, _ = _maps(tmp_path)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        runs = [
+            subprocess.run([sys.executable, "-m", "graphslam", "serve", "--radio-map", str(a), "--port", str(port), *extra],
+                           capture_output=True, text=True, timeout=120)
+            for extra in ([], ["--workers", "2"])
+        ]
+    for p in runs:
+        assert p.returncode == 2, p.stderr
+        assert p.stderr.splitlines() == [
+            f"error: serve: cannot listen on 127.0.0.1:{port}: Address already in use (another server listens there: "
+            "stop it or choose another --port)"
+        ]
 
 
 def test_a_retired_map_is_freed(tmp_path: Path) -> None:

@@ -86,7 +86,7 @@ def test_radio_map_summary_and_openapi(client: httpx.Client) -> None:
     s = client.get("/v1/radio-map").json()
     assert s["n_fingerprints"] == 40 and s["n_access_points"] == 12 and s["frame"] == "aligned"
     assert s["floors"] == {"F1": 20, "F2": 20} and set(s["bbox"]) == {"min_x", "min_y", "max_x", "max_y"}
-    assert s["k"] == 3 and s["metric"] == "eq9"
+    assert s["k"] == 3 and s["metric"] == "sorensen"
     spec = client.get("/openapi.json").json()
     assert {"/v1/locate", "/v1/radio-map", "/healthz"} <= set(spec["paths"])
     assert "LocateRequest" in spec["components"]["schemas"]
@@ -185,7 +185,7 @@ def test_sorensen_service_matches_the_sorensen_library() -> None:
     app = create_app(RM, k=3, metric="sorensen")
     q = [{"ap1": -50.0, "ap2": -70.0, "unknown": -40.0}, {"ap5": -60, "ap7": -80.5}, {"ap3": -41.5, "ap9": -90.0}]
     expect = KnnLocator(RM, KnnConfig(k=3, metric="sorensen")).locate(q)
-    eq9 = KnnLocator(RM, KnnConfig(k=3)).locate(q)
+    eq9 = KnnLocator(RM, KnnConfig(k=3, metric="eq9")).locate(q)
     assert not np.allclose(expect.xy, eq9.xy)  # the two metrics answer differently here
     with start_background_server(app) as srv, httpx.Client(base_url=srv.url, timeout=10.0) as c:
         assert c.get("/v1/radio-map").json()["metric"] == "sorensen"

@@ -105,13 +105,15 @@ def test_non_loopback_without_token_warns(monkeypatch: pytest.MonkeyPatch, caplo
     assert not is_loopback("0.0.0.0") and not is_loopback("::") and not is_loopback("192.168.1.4")
     path = write_radio_map(RM, tmp_path / "m.parquet")
     runs: list[dict] = []
-    monkeypatch.setattr(uvicorn, "run", lambda app, **kw: runs.append(kw))  # no socket is bound
+    # the socket is bound (a free port) and closed: nothing is served
+    monkeypatch.setattr(uvicorn.Server, "run", lambda self, sockets: (runs.append({"log_level": self.config.log_level}),
+                                                                      [s.close() for s in sockets]))
     with caplog.at_level(logging.WARNING, logger="graphslam.service.server"):
-        srv.serve(path, ServeConfig(host="0.0.0.0", search_processes=0, log_level="warning"))
+        srv.serve(path, ServeConfig(host="0.0.0.0", port=0, search_processes=0, log_level="warning"))
         assert "without a bearer token" in caplog.text
         caplog.clear()
-        srv.serve(path, ServeConfig(host="0.0.0.0", search_processes=0, token=TOKEN))
-        srv.serve(path, ServeConfig(host="127.0.0.1", search_processes=0))
+        srv.serve(path, ServeConfig(host="0.0.0.0", port=0, search_processes=0, token=TOKEN))
+        srv.serve(path, ServeConfig(host="127.0.0.1", port=0, search_processes=0))
         assert "without a bearer token" not in caplog.text
     assert [r["log_level"] for r in runs] == ["warning", "info", "info"]
     with pytest.raises(GraphSlamError, match="serve: log_level: Input should be 'critical'"):

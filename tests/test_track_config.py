@@ -94,6 +94,6 @@ def test_serve_builds_one_config_object_from_the_options_given(monkeypatch, caps
     with pytest.raises(SystemExit) as e:
         main(["serve", "--radio-map", str(tmp_path / "m.parquet"), "--index", "kdtree"])
     err = capsys.readouterr().err
-    assert e.value.code == 2 and "serve: index" in err and len(err.strip().splitlines()) == 1
+    assert e.value.code == 2 and "Invalid value for '--index'" in err and len(err.strip().splitlines()) == 1
     with pytest.raises(ConfigError, match="port"):
         ServeConfig(port=70000)

@@ -23,7 +23,9 @@ class DemoResult:
 
 
 def run_demo(out_dir: str | Path, *, scenario: str = "paper", seed: int = 0, test_walks: int = 3,
-             config: GraphSlamConfig | None = None, rerun: bool = False) -> DemoResult:
+             config: GraphSlamConfig | None = None, rerun: str | Path | None = None) -> DemoResult:
+    """Simulate, survey into OUT/survey, locate the held-out walks; ``rerun``: also the survey's
+    Rerun recording there, and the located scans' beside it (``NAME.locate.rrd``)."""
     from graphslam.core.common.geometry import interpolate_xy
     from graphslam.core.common.geometry import se2_apply
     from graphslam.core.radiomap.knn import KnnLocator, locate_survey
@@ -42,7 +44,7 @@ def run_demo(out_dir: str | Path, *, scenario: str = "paper", seed: int = 0, tes
         [p for p in sorted((out / "recordings").glob("*.mcap"))],
         out / "survey",
         config,
-        rerun_path=(out / "survey.rrd") if rerun else None,
+        rerun_path=rerun,
     )
     ev = result.evaluation
 
@@ -56,11 +58,11 @@ def run_demo(out_dir: str | Path, *, scenario: str = "paper", seed: int = 0, tes
         [interpolate_xy(s.ground_truth, np.array([sc.t_ns for sc in s.scans], float)) for s in test if s.ground_truth is not None]
     )
     est = se2_apply(np.array(ev.site_from_aligned), located.result.xy) if ev is not None else located.result.xy
-    if rerun:
+    if rerun is not None:
         from graphslam.viz.rerun_log import log_locate_results
 
         log_locate_results(
-            out / "locate.rrd",
+            locate_recording(rerun),
             located.result.xy,
             truth,
             site_from_map=ev.site_from_aligned if ev is not None else None,
@@ -84,3 +86,8 @@ def run_demo(out_dir: str | Path, *, scenario: str = "paper", seed: int = 0, tes
         "total_s": round(time.perf_counter() - t0, 2),
     }
     return DemoResult(out, figures)
+
+
+def locate_recording(rerun: str | Path) -> Path:
+    """Where ``demo --rerun NAME.rrd`` logs the located held-out scans: ``NAME.locate.rrd``."""
+    return Path(rerun).with_suffix(".locate.rrd")

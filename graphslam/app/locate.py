@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 from graphslam.core.progress import Task
 from graphslam.core.radiomap.knn import KnnConfig, KnnLocator, SurveyPositions, locate_survey
 from graphslam.io.atomic import atomic_open
+from graphslam.names import DEFAULT_INDEX, DEFAULT_K, DEFAULT_METRIC
 
 log = logging.getLogger(__name__)
 
@@ -31,6 +32,7 @@ class LocateRun:
     n_sessions: int
     n_scans: int
     n_located: int
+    radio_map_frame: str = ""  # the frame of the answers
 
     def as_dict(self) -> dict[str, object]:
         return {
@@ -75,14 +77,14 @@ def locate_files(
     query_paths: Iterable[str | Path],
     *,
     out: str | Path | None = None,
-    k: int = 3,
+    k: int = DEFAULT_K,
     weighted: bool = True,
     min_common: int = 1,
-    index: str = "exact",
-    metric: str = "eq9",
+    index: str = DEFAULT_INDEX,
+    metric: str = DEFAULT_METRIC,
 ) -> LocateRun:
     """Read the radio map and the query sessions (MCAP), locate every scan, write ``out`` (CSV).
-    ``index``: kNN search (``KnnConfig.index``): exact by default; ``metric``: ``KnnConfig.metric``."""
+    ``index``: kNN search (``KnnConfig.index``); ``metric``: ``KnnConfig.metric`` (defaults: ``graphslam.names``)."""
     from graphslam.io.mcap_reader import read_survey
     from graphslam.io.radiomap_io import read_radio_map
 
@@ -95,7 +97,12 @@ def locate_files(
     written = write_positions_csv(positions, out) if out is not None else None
     n_ok = int(positions.result.valid.sum())
     log.info("located %d of %d scans from %d sessions", n_ok, len(positions), len(survey))
-    return LocateRun(positions, written, len(survey), len(positions), n_ok)
+    return LocateRun(positions, written, len(survey), len(positions), n_ok, rm.frame)
+
+
+def answers_by_session(p: SurveyPositions) -> dict[str, tuple[NDArray[np.int64], NDArray[np.float64]]]:
+    """session id -> (scan times, answers (N, 2) in the map's frame; NaN where unlocated)."""
+    return {sid: (p.t_ns[p.session_ids == sid], p.result.xy[p.session_ids == sid]) for sid in dict.fromkeys(p.session_ids.tolist())}
 
 
 __all__: Sequence[str] = ("LocateRun", "locate_files", "write_positions_csv", "POSITIONS_HEADER")

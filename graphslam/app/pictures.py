@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -21,14 +21,24 @@ from numpy.typing import NDArray
 from graphslam.app.locate import LocateRun
 from graphslam.app.track import TrackRun
 from graphslam.core.progress import Task
+from graphslam.core.summary import plural
 from graphslam.core.common.geometry import interpolate_xy
 from graphslam.core.tracking.apmodel import ApModels
 from graphslam.core.types import Survey
 from graphslam.errors import InputError
 from graphslam.viz.common import fitted_site_from_aligned, site_to_frame
 
+if TYPE_CHECKING:
+    from graphslam.core.radiomap.radiomap import RadioMap
+    from graphslam.viz.common import FloorPlan
+
 SURVEY_PNG = "survey.png"
 RADIO_MAP_PNG = "radio_map.png"
+
+
+# radio_map.png's text chunk holding the options `plot` drew it with, so that `survey` redraws it
+# the same way when it replaces the folder (graphslam.app.derived)
+PLOT_OPTIONS_KEY = "graphslam-plot"
 
 
 def plot_survey_folder(
@@ -42,7 +52,8 @@ def plot_survey_folder(
     radio_map: bool = True,
 ) -> dict[str, Path]:
     """(Re)draw OUT/survey.png and, when OUT has radio_map.parquet, OUT/radio_map.png (with the
-    fitted APs of OUT/ap_models.json when ``fit-aps`` has run). Returns the files written."""
+    fitted APs of OUT/ap_models.json when ``fit-aps`` has run). Returns the files written.
+    radio_map.png records these options (``PLOT_OPTIONS_KEY``): a later survey into OUT redraws it."""
     from graphslam.viz.common import load_floor_plan
     from graphslam.viz.survey_picture import draw_survey, scene_of_folder
 
@@ -52,7 +63,7 @@ def plot_survey_folder(
     rm = None
     if radio_map and rm_path.exists():
         from graphslam.io.radiomap_io import read_radio_map
-        from graphslam.viz.radiomap_picture import ap_columns, draw_radio_map
+        from graphslam.viz.radiomap_picture import ap_columns
 
         rm = read_radio_map(rm_path)
         ap_columns(rm, aps, top_aps)
@@ -63,13 +74,69 @@ def plot_survey_folder(
         files = {"survey": draw_survey(scene, d / SURVEY_PNG, floor_plan=plan)}
         task.advance()
         if rm is not None:
-            T = np.zeros(3) if rm.frame == "site" else scene.site_from_output
-            files["radio_map"] = draw_radio_map(
-                rm, d / RADIO_MAP_PNG, aps=aps, top=top_aps, ap_models=_ap_models_beside(rm_path), floor_plan=plan,
-                site_from_map=T,
-            )
+            options = {
+                "floor_plan": str(Path(floor_plan).resolve()) if floor_plan is not None else None,
+                "floor_size": list(floor_size) if floor_size is not None else None,
+                "recordings": [str(Path(r).resolve()) for r in recordings], "aps": list(aps), "top_aps": top_aps,
+            }
+            files["radio_map"] = _draw_radio_map(d, rm, plan, scene.site_from_output, options)
             task.advance()
     return files
+
+
+def _draw_radio_map(
+    d: Path, rm: "RadioMap", plan: "FloorPlan | None", site_from_output: NDArray[np.float64] | None, options: dict
+) -> Path:
+    """OUT/radio_map.png, recording ``options`` in it (``PLOT_OPTIONS_KEY``)."""
+    from graphslam.viz.radiomap_picture import draw_radio_map
+
+    T = np.zeros(3) if rm.frame == "site" else site_from_output
+    return draw_radio_map(
+        rm, d / RADIO_MAP_PNG, aps=options["aps"], top=options["top_aps"], ap_models=_ap_models_beside(d / "radio_map.parquet"),
+        floor_plan=plan, site_from_map=T, text={PLOT_OPTIONS_KEY: json.dumps(options)},
+    )
+
+
+def plot_options(picture: str | Path) -> dict | None:
+    """The options a radio_map.png was drawn with (``plot_survey_folder``), None when it does not say."""
+    from PIL import Image
+
+    try:
+        with Image.open(picture) as im:
+            text = getattr(im, "text", {}).get(PLOT_OPTIONS_KEY)
+        options = json.loads(text) if text else None
+    except (OSError, ValueError):
+        return None
+    return options if isinstance(options, dict) else None
+
+
+def redraw_radio_map(folder: str | Path, options: dict) -> Path:
+    """radio_map.png of ``folder`` (a survey set: radio_map.parquet, report.json, trajectories.csv,
+    maybe ap_models.json) drawn with ``options`` (``plot_options``); a recorded floor plan or
+    recording that is gone is left out (logged)."""
+    import logging
+
+    from graphslam.io.radiomap_io import read_radio_map
+    from graphslam.viz.common import load_floor_plan
+    from graphslam.viz.survey_picture import scene_of_folder
+
+    log = logging.getLogger(__name__)
+    d = Path(folder)
+    options = {"floor_plan": None, "floor_size": None, "recordings": [], "aps": [], "top_aps": 5} | options
+    plan_path = options["floor_plan"]
+    if plan_path is not None and not Path(plan_path).is_file():
+        log.warning("%s: the floor plan it was drawn over, %s, is gone: drawn without it", d / RADIO_MAP_PNG, plan_path)
+        options |= {"floor_plan": None, "floor_size": None}
+    recordings = [r for r in options["recordings"] if Path(r).exists()]
+    size = tuple(options["floor_size"]) if options["floor_size"] else None
+    plan = load_floor_plan(options["floor_plan"], size)
+    rm = read_radio_map(d / "radio_map.parquet")
+    from graphslam.viz.radiomap_picture import ap_columns
+
+    aps = [a for a in options["aps"] if a in set(rm.bssids)]  # an AP the new map does not hear: left out
+    ap_columns(rm, aps, int(options["top_aps"]))
+    scene = scene_of_folder(d, recordings)
+    return _draw_radio_map(d, rm, plan, scene.site_from_output, options | {"aps": aps, "recordings": recordings})
 
 
 def write_track_picture(
@@ -93,7 +160,7 @@ def write_track_picture(
                     truth[s.session_id] = site_to_frame(T, s.ground_truth.xy)
                     at[s.session_id] = site_to_frame(T, interpolate_xy(s.ground_truth, tr.t_ns.astype(float)))
         steps = sum(len(t.t_ns) for t in run.tracks)
-        title = f"track{' ' + label if label else ''}: {len(run.tracks)} sessions, {steps:,} steps"
+        title = f"track{' ' + label if label else ''}: {plural(len(run.tracks), 'session')}, {plural(steps, 'step')}"
         return draw_tracks(estimates, path, truth=truth or None, truth_at_estimates=at or None, map_xy=np.asarray(rm.xy),
                            title=title, frame=_frame_note(rm.frame, truth, why, survey))
 
@@ -121,7 +188,7 @@ def write_locate_picture(
             if T is not None and s.ground_truth is not None:
                 truth[s.session_id] = site_to_frame(T, s.ground_truth.xy)
                 at[s.session_id] = site_to_frame(T, interpolate_xy(s.ground_truth, pos.t_ns[rows].astype(float)))
-        title = f"locate (kNN): {run.n_located:,} of {run.n_scans:,} scans located, {run.n_sessions} sessions"
+        title = f"locate (kNN): {run.n_located:,} of {plural(run.n_scans, 'scan')} located, {plural(run.n_sessions, 'session')}"
         return draw_tracks(estimates, path, truth=truth or None, truth_at_estimates=at or None, map_xy=np.asarray(rm.xy),
                            points=True, title=title, frame=_frame_note(rm.frame, truth, why, survey))
 

@@ -56,6 +56,12 @@ def show_progress(mode: str = "auto", *, interval_s: float = DEFAULT_INTERVAL_S,
     return mode
 
 
+def progress_shown() -> bool:
+    """Whether progress is shown (``show_progress`` installed a bar or a line handler): what a
+    command prints about its progress besides the ticks (e.g. ``track``'s expected cost) follows it."""
+    return _installed is not None
+
+
 def _isatty(stream: IO[str]) -> bool:
     try:
         return bool(stream.isatty())

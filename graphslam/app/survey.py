@@ -15,6 +15,7 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
+from graphslam.app.derived import DERIVED_FILES, KEPT_FILES, rebuild_derived
 from graphslam.config import GraphSlamConfig
 from graphslam.core.progress import Task
 from graphslam.core.survey.align import Alignment, ProgressCallback, align
@@ -30,8 +31,9 @@ from graphslam.io.survey_state import STATE_FILE, write_survey_state
 log = logging.getLogger(__name__)
 
 REPORT_VERSION = 1
-# What a survey writes into --out, and what later commands add there by default (fit-aps:
-# ap_models.json beside the map). --out may hold only these: it is replaced as a whole.
+# What a survey writes into --out (and survey.png after them); what other commands add there is
+# declared in graphslam.app.derived (rebuilt or kept when the folder is replaced). --out may hold
+# only these: it is replaced as a whole.
 OUTPUT_FILES = {
     "trajectories": "trajectories.csv",
     "aligned": "aligned.mcap",
@@ -42,9 +44,8 @@ OUTPUT_FILES = {
     "config": "config.yaml",
     "report": "report.json",
 }
-# written into --out after the set is in place (a picture that fails is a warning), or later by
-# other commands (fit-aps, plot)
-DERIVED_FILES = ("ap_models.json", "survey.png", "radio_map.png")
+# survey.png: written into --out after the set is in place (a picture that fails is a warning)
+OWNED_FILES = {*OUTPUT_FILES.values(), "survey.png", *DERIVED_FILES, *KEPT_FILES}
 
 # report.json's ``frame_description``: what the coordinates of component 0 mean
 FRAME_DESCRIPTIONS = {
@@ -305,7 +306,8 @@ def _run_survey(
 
     t = time.perf_counter()
     # component 0 only: one site fit over walks in unrelated frames would measure nothing
-    evaluation = evaluate(alignment.main_tracks(), survey) if survey.has_ground_truth else None
+    with Task("evaluate"):
+        evaluation = evaluate(alignment.main_tracks(), survey) if survey.has_ground_truth else None
     timings["evaluate"] = time.perf_counter() - t
 
     viz = None
@@ -430,7 +432,7 @@ def _check_outputs(
                 raise OutputError(f"{out_dir}: is {'inside ' if out != folder else ''}the input folder {folder}")
             if out in p.resolve().parents:
                 raise OutputError(f"{out_dir}: holds the input {p}, and is replaced as a whole")
-        check_replaceable_folder(out, set(OUTPUT_FILES.values()) | set(DERIVED_FILES))
+        check_replaceable_folder(out, OWNED_FILES)
         if rerun_path is not None and out in Path(rerun_path).resolve().parents:
             raise OutputError(f"{rerun_path}: inside --out {out_dir}, which is replaced as a whole: put it beside")
     if rerun_path is not None and Path(rerun_path).is_dir():
@@ -444,11 +446,12 @@ def write_outputs(
     before_publish: Callable[[Path], None] | None = None,
 ) -> dict[str, Path]:
     """Write every output into a staging folder beside ``out_dir``, then swap it in as a whole
-    (``FolderStage``): ``out_dir`` holds this run's files and nothing else (no ``ap_models.json``
-    or ``radio_map_surveyed.parquet`` left from an earlier run), or, if anything fails or the
-    process is killed, exactly what it held before. ``before_publish(stage folder)`` runs after
+    (``FolderStage``): ``out_dir`` holds this run's files (no ``radio_map_surveyed.parquet`` left
+    from an earlier run) and the other commands' files it held, rebuilt for the new map
+    (``graphslam.app.derived``, listed in report.json's ``derived_files``), or, if anything fails or
+    the process is killed, exactly what it held before. ``before_publish(stage folder)`` runs after
     the data files and before report.json (which it may still change) is written, the last file."""
-    stage = FolderStage.create(out_dir, set(OUTPUT_FILES.values()) | set(DERIVED_FILES))
+    stage = FolderStage.create(out_dir, OWNED_FILES)
     try:
         names = {k: v for k, v in OUTPUT_FILES.items() if k != "radio_map_surveyed" or surveyed}
         component = al.component_of()
@@ -468,6 +471,8 @@ def write_outputs(
         write_survey_state(stage.path / names["state"], survey, al, cfg)
         if before_publish is not None:
             before_publish(stage.path)
+        atomic_write_json(stage.path / names["report"], report)
+        report["derived_files"] = rebuild_derived(out_dir, stage.path)  # from the complete new set
         atomic_write_json(stage.path / names["report"], report)
     except BaseException as e:
         stage.discard()

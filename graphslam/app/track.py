@@ -1,6 +1,11 @@
 """``graphslam track``: the files around ``graphslam.core.tracking.tracker.Tracker`` (which tracks):
-read the radio map, its AP models and the walks, keep the self-calibration beside the map, write
-the tracks (CSV) and, beside them, the effective configuration (``<out>.config.yaml``).
+read the radio map, its AP models and the walks, keep the self-calibration in a cache folder
+(``cache_dir``: ``$XDG_CACHE_HOME/graphslam``, else ``~/.cache/graphslam``; never the survey's
+folder, which ``graphslam survey`` owns), write the tracks (CSV) and, beside them, the effective
+configuration (``<out>.config.yaml``).
+
+``prepare_track`` reads everything and says what the work will cost (``TrackJob.expected``: the
+default fixed-lag tracker takes ~0.1 s a step), ``TrackJob.run`` tracks; ``track_files`` is both.
 """
 
 from __future__ import annotations
@@ -9,16 +14,22 @@ import csv
 import dataclasses
 import logging
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable
+from typing import TYPE_CHECKING, Any, Iterable
 
 from graphslam.core.progress import Task
 from graphslam.core.tracking.apmodel import ApModels
 from graphslam.core.tracking.tracker import SelfCalibration, SessionTrack, Tracker
-from graphslam.errors import ConfigError
+from graphslam.errors import ConfigError, OutputError
 from graphslam.io.atomic import atomic_open, atomic_write_text
 from graphslam.tracking_config import DEFAULTS, TrackConfig
+
+if TYPE_CHECKING:
+    from graphslam.core.radiomap.radiomap import RadioMap
+    from graphslam.core.tracking.walkable import WalkableArea
+    from graphslam.core.types import Survey
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +79,109 @@ def write_track_csv(tracks: Iterable[SessionTrack], path: str | Path) -> Path:
     return path
 
 
-def track_files(
+# Seconds per tracked step on one core (default settings, measured 2026-12 on `paper`'s held-out
+# walks, docs/tracking.md): what ``TrackJob.expected`` says before the work. Rough by design.
+SECONDS_PER_STEP = {"fixed-lag": 0.1, "ekf": 0.004, "ukf": 0.012, "particle": 0.01}
+# the self-calibration's kNN passes over the map (leave-one-walk-out fixes, their correlation): ~N^2
+SECONDS_PER_MAP_PAIR = 6e-7
+# a run expected to take this long is announced (``TrackJob.notice``)
+NOTICE_ABOVE_S = 30.0
+
+
+@dataclass(frozen=True)
+class TrackCost:
+    """What a track run is expected to cost (s, one core): tracking the walks, and self-calibrating
+    on the map first when no calibration is kept for it (0 when one is)."""
+
+    steps: int
+    walks: int
+    filter: str
+    tracking_s: float
+    calibration_s: float
+
+    @property
+    def total_s(self) -> float:
+        return self.tracking_s + self.calibration_s
+
+
+def expected_cost(survey: "Survey", rm: "RadioMap", cfg: TrackConfig, calibrate: bool) -> TrackCost:
+    """``TrackCost`` from ``SECONDS_PER_STEP``: the walks' steps, plus (``calibrate``) the replay of
+    ``calibration.replay_sessions`` map segments as steps and the kNN passes over the map."""
+    import numpy as np
+
+    per_step = SECONDS_PER_STEP.get(cfg.filter.kind, SECONDS_PER_STEP["fixed-lag"])
+    steps = sum(len(s.steps) for s in survey.sessions)
+    cal = 0.0
+    if calibrate:
+        _, per_walk = np.unique(rm.session_ids, return_counts=True)
+        per_walk = per_walk[per_walk >= 5]  # what the replay replays (none with fewer than two such walks)
+        segment = min(cfg.calibration.replay_max_scans, float(np.mean(per_walk))) if len(per_walk) >= 2 else 0.0
+        cal = cfg.calibration.replay_sessions * segment * per_step + SECONDS_PER_MAP_PAIR * len(rm) ** 2
+    return TrackCost(steps, len(survey.sessions), cfg.filter.kind, steps * per_step, cal)
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds / 60:.0f} min" if seconds >= 90 else f"{seconds:.0f} s"
+
+
+@dataclass(frozen=True, eq=False)
+class TrackJob:
+    """Everything read, nothing tracked yet (``prepare_track``): ``expected`` says what ``run`` costs."""
+
+    radio_map: "RadioMap"
+    models: ApModels
+    survey: "Survey"
+    cfg: TrackConfig
+    expected: TrackCost
+    out: Path | None = None
+    cached: SelfCalibration | None = None  # the calibration kept for this map and configuration
+    area: "WalkableArea | None" = None
+    cache: Path | None = None  # where the calibration is kept (None: not kept)
+    key: str | None = None
+
+    def notice(self, above_s: float | None = None) -> str | None:
+        """One line announcing a long run (None below ``above_s``, default ``NOTICE_ABOVE_S``), for a
+        person waiting on it."""
+        c = self.expected
+        if c.total_s < (NOTICE_ABOVE_S if above_s is None else above_s):
+            return None
+        from graphslam.core.summary import plural
+
+        text = (f"track: {plural(c.walks, 'walk')}, {plural(c.steps, 'step')} with the {c.filter} tracker: expect about "
+                f"{_duration(c.tracking_s)}")
+        if c.calibration_s:
+            where = f", kept in {self.cache.parent} for the next run" if self.cache is not None else ""
+            text += f", after about {_duration(c.calibration_s)} of self-calibration on this map{where}"
+        if c.filter == "fixed-lag":
+            text += f" (--filter ekf: about {_duration(c.steps * SECONDS_PER_STEP['ekf'])})"
+        return text
+
+    def run(self) -> TrackRun:
+        tracker = Tracker.on_map(self.radio_map, self.models, self.cfg, calibration=self.cached, area=self.area)
+        if self.cache is not None and self.cached is None and tracker.calibration is not None:
+            _write_calibration(self.cache, self.key or "", tracker.calibration)
+        tracks = tracker.track_all(self.survey.sessions)
+        written = config = None
+        if self.out is not None:
+            written = write_track_csv(tracks, self.out)
+            config = config_path(self.out)
+            atomic_write_text(config, self.cfg.to_yaml())  # the effective configuration, beside the tracks
+        return TrackRun(tracks, written, len(self.models.fitted), config)
+
+
+def default_cache_dir() -> Path:
+    """Where commands keep what they measured and may reuse: ``$XDG_CACHE_HOME/graphslam``, else
+    ``~/.cache/graphslam``."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "graphslam"
+
+
+def track_files(radio_map_path: str | Path, session_paths: Iterable[str | Path], **options: Any) -> TrackRun:
+    """``prepare_track`` (same arguments) then ``TrackJob.run``: read, track, write ``out`` (CSV)."""
+    return prepare_track(radio_map_path, session_paths, **options).run()
+
+
+def prepare_track(
     radio_map_path: str | Path,
     session_paths: Iterable[str | Path],
     *,
@@ -76,14 +189,15 @@ def track_files(
     out: str | Path | None = None,
     cfg: TrackConfig = DEFAULTS,
     calibration_cache: bool = True,
+    cache_dir: str | Path | None = None,
     floor_plan: str | Path | None = None,
     floor_size: tuple[float, float] | None = None,
-) -> TrackRun:
+) -> TrackJob:
     """Read the radio map, its AP models (``ap_models_path``, else ``ap_models.json`` beside the map,
-    else fitted now), the sessions (MCAP); track; write ``out`` (CSV). ``calibration_cache``: keep
-    the self-calibration in ``track_calibration.json`` beside the map and reuse it while the map,
-    AP models and configuration are the same. ``floor_plan`` (image; ``floor_size`` W H in metres,
-    else ``floor_info.json`` beside it): its walkable area constrains the positions
+    else fitted now), the sessions (MCAP). ``calibration_cache``: keep the self-calibration in
+    ``cache_dir`` (``default_cache_dir()``), one file per (map, AP models, configuration, floor
+    plan), and reuse it. ``floor_plan`` (image; ``floor_size`` W H in metres, else
+    ``floor_info.json`` beside it): its walkable area constrains the positions
     (``TrackConfig.walkable_mode``); the radio map must be in the plan's site frame."""
     from graphslam.io.apmodel_io import StaleApModelsError, read_ap_models
     from graphslam.io.floor_plan import load_floor_plan, read_walkable_area
@@ -105,7 +219,7 @@ def track_files(
     elif beside.exists():
         try:
             models = read_ap_models(beside, radio_map=rm)
-        except StaleApModelsError as e:  # e.g. left by an earlier survey into the same folder
+        except StaleApModelsError as e:  # e.g. written by hand for an earlier map
             log.warning("%s; fitting them now", e)
             models = ApModels.fit(rm)
     else:
@@ -114,26 +228,24 @@ def track_files(
     survey = read_survey(list(session_paths))
     cache = key = cached = None
     if cfg.calibration.enabled and calibration_cache:
-        cache = Path(radio_map_path).with_name(CALIBRATION_FILE)
         models_source = Path(ap_models_path) if ap_models_path is not None else beside if beside.exists() else None
         key = _calibration_key(Path(radio_map_path), models_source, models, cfg, plan.path if plan is not None else None)
+        cache = calibration_path(cache_dir, key)
         cached = _read_calibration(cache, key)
-    tracker = Tracker.on_map(rm, models, cfg, calibration=cached, area=area)
-    if cache is not None and cached is None and tracker.calibration is not None:
-        _write_calibration(cache, key, tracker.calibration)
-    with Task("track", total=sum(len(s.steps) for s in survey.sessions), unit="steps") as task:
-        tracks = tuple(tracker.track(s, task) for s in survey.sessions)
-    written = config = None
-    if out is not None:
-        written = write_track_csv(tracks, out)
-        config = config_path(out)
-        atomic_write_text(config, cfg.to_yaml())  # the effective configuration, beside the tracks
-    return TrackRun(tracks, written, len(models.fitted), config)
+    calibrate = cfg.calibration.enabled and cached is None
+    return TrackJob(rm, models, survey, cfg, expected_cost(survey, rm, cfg, calibrate),
+                    Path(out) if out is not None else None, cached, area, cache, key)
 
 
-# Self-calibration kept beside the radio map: measuring it replays the map's walks (the longest
+# Self-calibration kept in the cache folder: measuring it replays the map's walks (the longest
 # step of a track run), the same for every call with the same map, AP models and configuration.
-CALIBRATION_FILE = "track_calibration.json"
+# One file per key (a content hash), so that several maps and configurations are kept at once.
+CALIBRATION_FOLDER = "track-calibration"
+
+
+def calibration_path(cache_dir: str | Path | None, key: str) -> Path:
+    """The file the self-calibration of ``key`` is kept in: ``CACHE/track-calibration/<key>.json``."""
+    return Path(cache_dir or default_cache_dir()) / CALIBRATION_FOLDER / f"{key}.json"
 
 
 _CALIBRATION_FORMAT = 2  # 2: with the heading bank's temper
@@ -190,5 +302,5 @@ def _write_calibration(path: Path, key: str, cal: SelfCalibration) -> None:
 
     try:
         atomic_write_json(path, {"format": _CALIBRATION_FORMAT, "key": key, **dataclasses.asdict(cal)})
-    except (OSError, OutputError) as e:  # a read-only or full map folder: track anyway, measure again next time
+    except (OSError, OutputError) as e:  # a read-only cache folder: track anyway, measure again next time
         log.warning("%s: cannot keep the self-calibration (%s)", path, e)

@@ -64,7 +64,10 @@ def track_uwb_sessions(
     session_of = {(s.uwb_id or s.session_id): s.session_id for s in sessions}
     started = [t for t, tr in tracks.items() if len(tr.t_ns)]
     if not started:
-        raise EstimationError("track-uwb: no session ever ranged to 3 anchors at once: the filter cannot start")
+        raise EstimationError(
+            "track-uwb: no session ever ranged to 3 anchors at once: the filter starts a tag at its first "
+            "trilateration (anchors placed along corridors for a survey, as simulate-uwb crowd's, are for "
+            "`graphslam survey`; simulate-uwb zones has rooms with 3 and 4 anchors; docs/uwb.md)")
     for t, tr in tracks.items():
         if not len(tr.t_ns):
             log.warning("track-uwb: %s never ranged to 3 anchors at once: no estimate", session_of.get(t, t))

@@ -1,5 +1,5 @@
-"""Command-line interface, by command group: ``survey`` (survey, survey-batch, evaluate, simulate,
-inspect, plot, view, demo), ``radiomap`` (locate, serve, fit-aps), ``tracking`` (track), ``uwb``
+"""Command-line interface, by command group: ``survey`` (survey, survey-batch, evaluate, export,
+simulate, inspect, plot, view, demo), ``radiomap`` (locate, serve, fit-aps), ``tracking`` (track), ``uwb``
 (simulate-uwb, track-uwb), ``bench`` (real, tracking-real). Each command parses its arguments,
 calls one library function and prints its result; the modules import nothing heavy at start-up.
 
@@ -20,12 +20,55 @@ from graphslam.cli.options import parse_lags, parse_metric, parse_smoothers  # n
 from graphslam.cli.process import _defer_numpy_extras, _exit_now
 from graphslam.errors import GraphSlamError
 
+# root options users put after the command name: --quiet/-q (a flag) and --progress-interval (a value)
+_ROOT_FLAGS = ("--quiet", "-q")
+_ROOT_VALUED = ("--progress-interval",)
+
+
 def _hoist_quiet(argv: list[str]) -> list[str]:
-    """``graphslam survey ... --quiet`` means ``graphslam --quiet survey ...``: --quiet/-q is a
-    root option (every command has progress), but users put it after the command."""
+    """``graphslam survey ... --quiet --progress-interval 5`` means ``graphslam --quiet
+    --progress-interval 5 survey ...``: progress is a root option (every command has it), but users
+    put it after the command. ``--progress-interval=5`` is moved too; a value-less one at the end is
+    left where it is, for click to name it."""
     end = argv.index("--") if "--" in argv else len(argv)
-    flags = [a for a in argv[:end] if a in ("--quiet", "-q")]
-    return flags + [a for a in argv[:end] if a not in ("--quiet", "-q")] + argv[end:]
+    hoisted: list[str] = []
+    rest: list[str] = []
+    i = 0
+    while i < end:
+        a = argv[i]
+        if a in _ROOT_FLAGS or a.partition("=")[0] in _ROOT_VALUED and "=" in a:
+            hoisted.append(a)
+        elif a in _ROOT_VALUED and i + 1 < end:
+            hoisted += argv[i : i + 2]
+            i += 1
+        else:
+            rest.append(a)
+        i += 1
+    return hoisted + rest + argv[end:]
+
+
+def _command_path(typer_app: typer.Typer, argv: list[str], prog_name: str) -> str:
+    """The command an argument list names (``graphslam survey``, ``graphslam bench real``), for an
+    error click raises without a context (an option's arity): its help is the one to read."""
+    import typer.main
+
+    group = typer.main.get_command(typer_app)
+    path = [prog_name]
+    args = iter(_hoist_quiet(argv))
+    for a in args:
+        if a in _ROOT_VALUED:
+            next(args, None)
+            continue
+        if a.startswith("-"):
+            continue
+        sub = getattr(group, "commands", {}).get(a)
+        if sub is None:
+            break
+        path.append(a)
+        group = sub
+        if not hasattr(group, "commands"):
+            break
+    return " ".join(path)
 
 
 def _one_line(text: str) -> str:
@@ -37,10 +80,11 @@ def _fail(message: str) -> None:
     sys.exit(EXIT_ERROR)
 
 
-def _usage_message(e: Exception) -> str:
-    """One line for a click usage error: where, what, and where to read more."""
+def _usage_message(e: Exception, typer_app: typer.Typer | None = None, argv: list[str] | None = None,
+                   prog_name: str = "graphslam") -> str:
+    """One line for a click usage error: where, what, and where to read more (the command's help)."""
     ctx = getattr(e, "ctx", None)
-    where = ctx.command_path if ctx is not None else "graphslam"
+    where = ctx.command_path if ctx is not None else _command_path(typer_app or app, argv or [], prog_name)
     return f"{where}: {e.format_message()} (see '{where} --help')"  # type: ignore[attr-defined]
 
 
@@ -63,7 +107,7 @@ def run_app(typer_app: typer.Typer, argv: list[str], prog_name: str) -> None:
     except GraphSlamError as e:
         _fail(str(e))
     except _CLICK_EXCEPTION as e:
-        _fail(_usage_message(e))
+        _fail(_usage_message(e, typer_app, argv, prog_name))
     except typer.Abort:
         typer.echo("aborted", err=True)
         sys.exit(1)

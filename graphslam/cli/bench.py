@@ -12,16 +12,18 @@ from typing import List, Optional
 import typer
 
 from graphslam.cli.base import bench_app
-from graphslam.cli.options import config_from_options, parse_lags, parse_smoothers
+from graphslam.cli.options import choices, config_from_options, parse_lags, parse_smoothers, plain
+
+ControlPoints = choices("ControlPoints", ("auto", "none"))
 
 
 @bench_app.command("real")
 def bench_real(
     folders: List[Path] = typer.Argument(..., help="Floor folders of recordings with /landmarks, or site folders of floors."),
     floors: Optional[str] = typer.Option(None, help="Comma-separated floor sub-folders of a site (default: all)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c"),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="Survey configuration (YAML)."),
     set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value."),
-    control_points: str = typer.Option(
+    control_points: ControlPoints = typer.Option(
         "auto", "--control-points",
         help="auto: also the control_points variant on floors whose folder holds control_points.csv; none: never.",
     ),
@@ -39,7 +41,7 @@ def bench_real(
     rows = []
     for row in real_floor_rows(
         folders, config_from_options(config, set_), floors.split(",") if floors else None,
-        variants=[v.strip() for v in variants.split(",") if v.strip()], control_points=control_points,
+        variants=[v.strip() for v in variants.split(",") if v.strip()], control_points=plain(control_points),
     ):
         rows.append(row)
         typer.echo(json.dumps(row))

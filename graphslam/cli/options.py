@@ -5,11 +5,29 @@ Each parser raises ``ConfigError`` (one line, exit code 2) before any file is re
 from __future__ import annotations
 
 import math
+from enum import Enum
 from pathlib import Path
-from typing import TYPE_CHECKING, List, Optional
+from typing import TYPE_CHECKING, Any, List, Optional, Sequence
+
+from graphslam import names
 
 if TYPE_CHECKING:
     from graphslam.config import GraphSlamConfig
+
+
+def choices(name: str, values: Sequence[str]) -> Any:
+    """A ``str`` enum of ``values`` as an option's type: typer lists them in ``--help``
+    (``<sorensen|eq9>``) and refuses any other value with one line naming the option."""
+    return Enum(name, {v: v for v in values}, type=str)
+
+
+def plain(value: Any) -> Any:
+    """An option's value as the library takes it: a choice's string (None and others as they are)."""
+    return value.value if isinstance(value, Enum) else value
+
+
+Metric = choices("Metric", names.METRICS)
+Index = choices("Index", names.INDEXES)
 
 def config_from_options(config: Optional[Path], set_: Optional[List[str]]) -> "GraphSlamConfig":
     """Config file (partial files merge over the defaults) plus ``--set a.b=value`` overrides."""
@@ -18,7 +36,10 @@ def config_from_options(config: Optional[Path], set_: Optional[List[str]]) -> "G
     return load_config(config, parse_overrides(set_))
 
 
-INDEX_HELP = "kNN search: exact, ivf (approximate inverted file) or auto."
+INDEX_HELP = (
+    "kNN search: auto (the approximate IVF index from 5,000 references, exact below), exact (every reference "
+    "scored) or ivf (docs/radio_map.md)."
+)
 
 
 IVF_CLUSTERS_HELP = "IVF: k-means clusters (default ~2 sqrt(N))."
@@ -28,9 +49,12 @@ IVF_PROBES_HELP = "IVF: clusters searched per query (default 8)."
 
 
 METRIC_HELP = (
-    "Fingerprint distance: eq9 (the paper's RMS dB difference) or sorensen (Sørensen on powed RSS, "
-    "Torres-Sospedra 2015; exact search only)."
+    "Fingerprint distance: sorensen (Sørensen on powed RSS, Torres-Sospedra 2015: the better on every data set "
+    "measured, docs/radio_map.md) or eq9 (the paper's RMS dB difference)."
 )
+
+
+K_HELP = "Neighbours (k)."
 
 
 def parse_lags(text: str) -> list[float]:

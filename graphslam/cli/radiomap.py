@@ -9,15 +9,20 @@ from typing import List, Optional
 import typer
 
 from graphslam.cli.base import app
-from graphslam.cli.options import INDEX_HELP, IVF_CLUSTERS_HELP, IVF_PROBES_HELP, METRIC_HELP, parse_metric, require_rerun
+from graphslam import names
+from graphslam.cli.options import (
+    INDEX_HELP, IVF_CLUSTERS_HELP, IVF_PROBES_HELP, K_HELP, METRIC_HELP, Index, Metric, choices, plain, require_rerun,
+)
+
+LogLevel = choices("LogLevel", names.LOG_LEVELS)
 
 
 @app.command()
 def locate(
     query_paths: List[Path] = typer.Argument(..., help="Query recordings (.mcap) or folders of them."),
     radio_map: Path = typer.Option(..., "--radio-map", help="Radio map (.parquet)."),
-    out: Path = typer.Option(..., "--out", help="Output CSV: session_id,t_ns,x,y,score,spread,..."),
-    k: int = typer.Option(3, "--k", min=1, help="Neighbours."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output CSV: session_id,t_ns,x,y,score,spread,..."),
+    k: int = typer.Option(names.DEFAULT_K, "--neighbours", "-k", min=1, help=K_HELP),
     weighted: bool = typer.Option(True, "--weighted/--no-weighted", help="Inverse-distance weights, else uniform."),
     min_common: int = typer.Option(1, "--min-common", min=1, help="Neighbours must share this many APs."),
     rerun: Optional[Path] = typer.Option(
@@ -27,18 +32,18 @@ def locate(
         None, "--site-from-map", help="X Y THETA placing the map frame in the site frame (e.g. report.json's "
         "evaluation.site_from_aligned), for the truth overlay."
     ),
-    index: str = typer.Option("exact", "--index", help=INDEX_HELP + " Default: exact."),
-    metric: str = typer.Option("eq9", "--metric", help=METRIC_HELP),
+    index: Index = typer.Option(names.DEFAULT_INDEX, "--index", help=INDEX_HELP),
+    metric: Metric = typer.Option(names.DEFAULT_METRIC, "--metric", help=METRIC_HELP),
     picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: answers (and truth)."),
 ) -> None:
     """Locate every /wifi/scan of the query sessions by kNN against a radio map."""
-    metric = parse_metric(metric)
     from graphslam.app.locate import locate_files
 
     require_rerun(rerun)
 
     run = locate_files(
-        radio_map, query_paths, out=out, k=k, weighted=weighted, min_common=min_common, index=index, metric=metric
+        radio_map, query_paths, out=out, k=k, weighted=weighted, min_common=min_common, index=plain(index),
+        metric=plain(metric),
     )
     if rerun is not None:
         from graphslam.app.locate import query_truth
@@ -52,7 +57,13 @@ def locate(
             query_ids=[f"{s}@{t}" for s, t in zip(pos.session_ids.tolist(), pos.t_ns.tolist())],
             site_from_map=site_from_map,
         )
-    shown = {}
+    from graphslam.app.locate import answers_by_session
+    from graphslam.app.scoring import answer_errors
+    from graphslam.io.mcap_reader import read_survey
+
+    errors = answer_errors(answers_by_session(run.positions), read_survey(query_paths), radio_map,
+                           run.radio_map_frame, site_from_map)
+    shown: dict[str, object] = {} if errors is None else {"errors": errors}
     if picture:
         from graphslam.app.pictures import write_locate_picture
 
@@ -65,12 +76,12 @@ def serve(
     radio_map: Path = typer.Option(..., "--radio-map", help="Radio map (.parquet)."),
     host: Optional[str] = typer.Option(None, "--host", help="Bind address (default: loopback, 127.0.0.1)."),
     port: Optional[int] = typer.Option(None, "--port", min=0, max=65535, help="TCP port (default 8077)."),
-    k: Optional[int] = typer.Option(None, "--k", min=1, help="Neighbours (default 3)."),
+    k: Optional[int] = typer.Option(None, "--neighbours", "-k", min=1, help=f"{K_HELP} Default: {names.DEFAULT_K}."),
     weighted: Optional[bool] = typer.Option(None, "--weighted/--no-weighted", help="Inverse-distance weights (default), else uniform."),
     min_common: Optional[int] = typer.Option(None, "--min-common", min=1, help="Neighbours must share this many APs (default 1)."),
     max_batch: Optional[int] = typer.Option(None, "--max-batch", min=1, help="Most fingerprints per request (default 10,000)."),
     max_body_bytes: Optional[int] = typer.Option(None, "--max-body-bytes", min=1024, help="Largest request body (default 32 MiB)."),
-    index: Optional[str] = typer.Option(None, "--index", help=INDEX_HELP + " Default: auto (IVF from 5,000 references)."),
+    index: Optional[Index] = typer.Option(None, "--index", help=f"{INDEX_HELP} Default: {names.DEFAULT_INDEX}."),
     ivf_clusters: Optional[int] = typer.Option(None, "--ivf-clusters", min=1, help=IVF_CLUSTERS_HELP),
     ivf_probes: Optional[int] = typer.Option(None, "--ivf-probes", min=1, help=IVF_PROBES_HELP),
     workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Server processes (each loads the map; ~1 core each; default 1)."),
@@ -79,8 +90,9 @@ def serve(
         help="Forked search workers sharing the map; batches of 64+ fingerprints are split over them. "
         "0 = search in the server process. Default: min(2, cores), 0 with --workers > 1.",
     ),
-    log_level: Optional[str] = typer.Option(
-        None, "--log-level", help="critical, error, warning, info (default: one access line per request), debug, trace."
+    log_level: Optional[LogLevel] = typer.Option(
+        None, "--log-level", case_sensitive=False, help="uvicorn's and the service's log lines; info (the default) logs one access line per "
+        "request and every map reload, warning neither.",
     ),
     token: Optional[str] = typer.Option(
         None, "--token", envvar="GRAPHSLAM_SERVE_TOKEN", show_envvar=True,
@@ -92,18 +104,17 @@ def serve(
         "does not load is refused and the old one kept. No request fails during a swap.",
     ),
     watch_interval: Optional[float] = typer.Option(None, "--watch-interval", min=0.05, help="--watch: seconds between checks (default 1)."),
-    metric: Optional[str] = typer.Option(None, "--metric", help=METRIC_HELP + " Default: eq9."),
+    metric: Optional[Metric] = typer.Option(None, "--metric", help=f"{METRIC_HELP} Default: {names.DEFAULT_METRIC}."),
 ) -> None:
-    """Serve kNN positioning over HTTP (POST /v1/locate, GET /v1/radio-map, GET /healthz, /openapi.json, /docs)."""
-    if metric is not None:
-        parse_metric(metric)
+    """Serve kNN positioning over HTTP (POST /v1/locate, GET /v1/radio-map, GET /healthz, /openapi.json, /docs).
+    A port already in use is one line and exit code 2."""
     from graphslam.service.config import DEFAULT_WATCH_S, ServeConfig
     from graphslam.service.server import serve as serve_map
 
     given = dict(
         host=host, port=port, k=k, weighted=weighted, min_common=min_common, max_batch=max_batch,
-        max_body_bytes=max_body_bytes, index=index, ivf_clusters=ivf_clusters, ivf_probes=ivf_probes, workers=workers,
-        search_processes=search_processes, log_level=log_level.lower() if log_level else None, token=token, metric=metric,
+        max_body_bytes=max_body_bytes, index=plain(index), ivf_clusters=ivf_clusters, ivf_probes=ivf_probes,
+        workers=workers, search_processes=search_processes, log_level=plain(log_level), token=token, metric=plain(metric),
         watch_s=(watch_interval or DEFAULT_WATCH_S) if watch else None,
     )
     serve_map(radio_map, ServeConfig(**{k_: v for k_, v in given.items() if v is not None}))
@@ -112,7 +123,7 @@ def serve(
 @app.command("fit-aps")
 def fit_aps(
     radio_map: Path = typer.Option(..., "--radio-map", help="Radio map (.parquet)."),
-    out: Optional[Path] = typer.Option(None, "--out", help="AP models JSON (default: ap_models.json beside the map)."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="AP models JSON (default: ap_models.json beside the map)."),
     min_readings: int = typer.Option(20, "--min-readings", min=5, help="Fit only APs heard this often."),
 ) -> None:
     """Fit position, P0 and gamma of every often-heard AP of a radio map (robust least squares)."""
@@ -121,8 +132,9 @@ def fit_aps(
     from graphslam.io.radiomap_io import read_radio_map
 
     rm = read_radio_map(radio_map)
-    models = ApModels.fit(rm, ApFitConfig(min_readings=min_readings))
-    path = write_ap_models(models, out or radio_map.with_name("ap_models.json"), radio_map=rm)
+    fit = ApFitConfig(min_readings=min_readings)
+    models = ApModels.fit(rm, fit)
+    path = write_ap_models(models, out or radio_map.with_name("ap_models.json"), radio_map=rm, fit=fit)
     reasons: dict[str, int] = {}
     for u in models.unfitted:
         key = u.reason.split(" (")[0]

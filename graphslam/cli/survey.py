@@ -1,4 +1,4 @@
-"""Survey commands: inspect, survey, survey-batch, evaluate, simulate, plot, view, demo."""
+"""Survey commands: inspect, survey, survey-batch, evaluate, export, simulate, plot, view, demo."""
 
 from __future__ import annotations
 
@@ -9,8 +9,13 @@ from typing import List, Optional
 
 import typer
 
+from graphslam import names
 from graphslam.cli.base import app
-from graphslam.cli.options import config_from_options, require_plots, require_rerun
+from graphslam.cli.options import choices, config_from_options, plain, require_plots, require_rerun
+
+Scenario = choices("Scenario", names.SCENARIOS)
+ExportFormat = choices("ExportFormat", names.EXPORT_FORMATS)
+ExportFrame = choices("ExportFrame", names.EXPORT_FRAMES)
 
 
 @app.command()
@@ -19,7 +24,7 @@ def inspect(
     as_json: bool = typer.Option(False, "--json", help="One JSON object per session, then the totals."),
 ) -> None:
     """Print per-session statistics: steps, scans, distinct APs, duration, walked length, landmarks."""
-    from graphslam.core.summary import SurveySummary
+    from graphslam.core.summary import SurveySummary, plural
     from graphslam.io.mcap_reader import read_survey
 
     summary = SurveySummary.of(read_survey(paths))
@@ -39,9 +44,9 @@ def inspect(
         )
     t = summary.totals
     typer.echo(
-        f"{t['sessions']} sessions, {t['steps']:,} steps, {t['scans']:,} scans, "
-        f"{t['access_points']:,} distinct APs, {t['duration_s'] / 60:.1f} min, "
-        f"{t['walked_m'] / 1000:.2f} km walked, {t['landmarks']:,} landmarks"
+        f"{plural(t['sessions'], 'session')}, {plural(t['steps'], 'step')}, {plural(t['scans'], 'scan')}, "
+        f"{plural(t['access_points'], 'distinct AP')}, {t['duration_s'] / 60:.1f} min, "
+        f"{t['walked_m'] / 1000:.2f} km walked, {plural(t['landmarks'], 'landmark')}"
     )
 
 
@@ -143,6 +148,7 @@ def survey_batch(
     from tqdm import tqdm
 
     from graphslam.app.batch import run_batch
+    from graphslam.core.summary import plural
     from graphslam.errors import require_extra
 
     require_extra("distributed", "survey-batch (Dask)")
@@ -161,7 +167,7 @@ def survey_batch(
                         on_start=lambda n: bar.reset(total=n))
     finally:
         bar.close()
-    typer.echo(f"{len(res.rows)} floors: {res.ok} ok, {res.partial} partial, {res.failed} failed in "
+    typer.echo(f"{plural(len(res.rows), 'floor')}: {res.ok} ok, {res.partial} partial, {res.failed} failed in "
                f"{res.seconds:.1f} s; summary in {res.summary}")
     for row in res.rows:
         if row.status == "partial":
@@ -185,6 +191,7 @@ def evaluate(
 ) -> None:
     """Landmark errors after an SE(2) fit, heading alignment and raw-vs-aligned comparison."""
     require_plots(plot)
+    from graphslam.core.summary import plural
     from graphslam.core.survey.evaluate import evaluate as run_evaluation
     from graphslam.errors import InputError
     from graphslam.io.atomic import atomic_write_json, json_safe
@@ -200,7 +207,16 @@ def evaluate(
     survey_ = read_survey(paths)
     if not survey_.has_ground_truth:
         raise InputError(", ".join(map(str, paths)), "no /landmarks or /ground_truth/pose to evaluate against")
+    recorded = [s.session_id for s in survey_]
+    if not set(tracks) & set(recorded):
+        raise InputError(
+            trajectories, f"none of its {plural(len(tracks), 'walk')} of component {component} (e.g. {next(iter(tracks))!r}) is "
+            f"among the {len(recorded)} recorded sessions (e.g. {recorded[0]!r}): evaluate a survey's trajectories "
+            "against that survey's recordings")
     ev = run_evaluation(tracks, survey_)
+    if not (ev.landmarks.n or ev.steps.n):
+        raise InputError(", ".join(map(str, paths)), f"the {plural(len(set(tracks) & set(recorded)), 'walk')} of "
+                         f"component {component} found there carry no /landmarks or /ground_truth/pose to evaluate against")
     if out:
         atomic_write_json(out, ev.as_dict())
     if plot:
@@ -220,8 +236,33 @@ def evaluate(
 
 
 @app.command()
+def export(
+    out_dir: Path = typer.Argument(..., help="A finished `graphslam survey --out` folder."),
+    fmt: ExportFormat = typer.Option(
+        "tum", "--format", help="tum (timestamp tx ty tz qx qy qz qw, s), kitti (a 3x4 pose matrix per line) or csv "
+        "(t_ns,x,y,heading): as evo_traj / evo_ape read them.",
+    ),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (created): one file per walk, <walk>.<format>."),
+    frame: ExportFrame = typer.Option(
+        "map", "--frame", help="map: as trajectories.csv (report.json's frame); site: the main map placed in the site "
+        "frame by report.json's landmark fit (needs ground truth or control points).",
+    ),
+    component: int = typer.Option(0, "--component", min=0, help="The walks of this component (0: the main map)."),
+    recordings: Optional[List[Path]] = typer.Option(
+        None, "--recordings", "-r", help="The survey's recordings (repeat): also each walk's /ground_truth/pose, as "
+        "<walk>.truth.<format> in the same frame (the reference for evo_ape).",
+    ),
+) -> None:
+    """Write a survey's walks as trajectory files other tools read (evo: TUM, KITTI), one per walk."""
+    from graphslam.app.export import export_survey
+
+    run = export_survey(out_dir, out, fmt=plain(fmt), frame=plain(frame), component=component, recordings=recordings or ())
+    typer.echo(json.dumps(run.as_dict()))
+
+
+@app.command()
 def simulate(
-    scenario: str = typer.Argument(..., help="Scenario: paper, corridor, crowd or museum (see docs/simulator.md)."),
+    scenario: Scenario = typer.Argument(..., help="Scenario (docs/simulator.md)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (created); existing files are replaced."),
     seed: int = typer.Option(0, "--seed", min=0, help="Random seed; same seed, same recordings."),
     size: float = typer.Option(1.0, "--size", help="Multiplies the number of walks (paper --size 12: ~100k steps)."),
@@ -239,25 +280,28 @@ def simulate(
     """
     import time
 
+    from graphslam.core.summary import plural
     from graphslam.sim import HeadingModel, SurveyStats, with_overrides
     from graphslam.sim import simulate as run_simulation
 
     t0 = time.perf_counter()
+    scenario = plain(scenario)
     chosen = with_overrides(scenario, heading=HeadingModel(enabled=False)) if no_heading else scenario
     sim = run_simulation(chosen, seed=seed, size=size, test_walks=test_walks)
     t_sim = time.perf_counter() - t0
     sim.write(out)
     st = SurveyStats.of(sim.survey)
     typer.echo(
-        f"{scenario} seed={seed} size={size:g}: {len(st.walks)} sessions, {st.steps:,} steps, "
-        f"{st.scans:,} scans, {len(sim.building.aps)} APs ({st.access_points_heard} heard), "
+        f"{scenario} seed={seed} size={size:g}: {plural(len(st.walks), 'session')}, {plural(st.steps, 'step')}, "
+        f"{plural(st.scans, 'scan')}, {plural(len(sim.building.aps), 'AP')} ({st.access_points_heard} heard), "
         f"{st.length_m / 1000:.2f} km, {st.duration_s / 60:.1f} min, {st.marks} landmark marks"
     )
     drifts = ", ".join(f"{w.max_drift_m:.1f}" for w in st.walks[:12]) + (", ..." if len(st.walks) > 12 else "")
     typer.echo(f"max raw drift {st.max_drift_m:.1f} m (per walk: {drifts})")
     if sim.test_sessions:
         tst = SurveyStats.of(sim.test_sessions)
-        typer.echo(f"test: {len(tst.walks)} sessions, {tst.steps:,} steps, {tst.scans:,} scans -> {out / 'test'}")
+        typer.echo(f"test: {plural(len(tst.walks), 'session')}, {plural(tst.steps, 'step')}, {plural(tst.scans, 'scan')} "
+                   f"-> {out / 'test'}")
     typer.echo(f"wrote {out} (simulated in {t_sim:.1f} s, total {time.perf_counter() - t0:.1f} s)")
 
 
@@ -328,9 +372,12 @@ def view(
 
 @app.command()
 def demo(
-    out: Path = typer.Option(Path("graphslam-demo"), "--out", "-o", help="Working folder (created)."),
-    seed: int = typer.Option(0, help="Simulator seed."),
-    rerun: bool = typer.Option(False, "--rerun", help="Also write OUT/survey.rrd."),
+    out: Path = typer.Option(Path("out/demo"), "--out", "-o", help="Working folder (created)."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Random seed of the simulation; same seed, same figures."),
+    rerun: Optional[Path] = typer.Option(
+        None, "--rerun", help="Also log the survey to this .rrd file, and the located held-out scans beside it "
+        "(NAME.locate.rrd).",
+    ),
 ) -> None:
     """Simulate the paper's survey, align it, locate held-out walks; print the headline figures."""
     from graphslam.app.demo import run_demo

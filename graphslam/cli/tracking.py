@@ -14,14 +14,20 @@ from typing import Any, List, Optional
 
 import typer
 
+from graphslam import names
 from graphslam.cli.base import app
-from graphslam.cli.options import parse_metric
+from graphslam.cli.options import METRIC_HELP, Metric, choices, plain
+
+Tracker = choices("Tracker", names.TRACKERS)
+Smoother = choices("Smoother", names.SMOOTHERS)
+BankReport = choices("BankReport", names.BANK_REPORTS)
+WalkableMode = choices("WalkableMode", names.WALKABLE_MODES)
 
 # option -> configuration key it sets (shortcuts of --set KEY=VALUE)
 SHORTCUTS = {
     "--filter": "filter.kind", "--smooth": "filter.smoother", "--lag": "fixed_lag.lag_s",
     "--bank-report": "fixed_lag.bank_report", "--bank-temper": "fixed_lag.bank_temper",
-    "--knn-fixes": "knn_fixes.enabled", "--knn-metric": "knn_fixes.metric", "--adaptive-rssi": "rssi.adaptive",
+    "--knn-fixes": "knn_fixes.enabled", "--metric": "knn_fixes.metric", "--adaptive-rssi": "rssi.adaptive",
     "--rssi-field": "rssi.field_m", "--self-calibrate": "calibration.enabled", "--walk-axes": "walk_axes.enabled",
     "--floor-plan-use": "floor_plan.mode", "--walkable-sigma": "floor_plan.sigma_m",
 }
@@ -35,11 +41,11 @@ def _key(option: str) -> str:
 def track(
     sessions: List[Path] = typer.Argument(..., help="Session recordings (.mcap) or folders of them."),
     radio_map: Path = typer.Option(..., "--radio-map", help="Radio map (.parquet); positions come out in its frame."),
-    out: Path = typer.Option(..., "--out", help="Output CSV: one row per step (t_ns, x, y, covariance, ...); the "
+    out: Path = typer.Option(..., "--out", "-o", help="Output CSV: one row per step (t_ns, x, y, covariance, ...); the "
                              "effective configuration is written beside it (OUT with .config.yaml)."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML tracking config (see configs/track.yaml)."),
     set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value, e.g. fixed_lag.lag_s=1."),
-    filter_: Optional[str] = typer.Option(
+    filter_: Optional[Tracker] = typer.Option(
         None, "--filter", help="fixed-lag (online, reports each step --lag s late), the causal ekf / ukf, or particle "
         "(map-matching particle filter, --lag s late; docs/tracking.md) " + _key("--filter"),
     ),
@@ -47,7 +53,7 @@ def track(
         None, "--lag", min=0.0, help="fixed-lag / particle: latency in s (a step is reported once the data up to lag s "
         "later are in) " + _key("--lag"),
     ),
-    bank_report: Optional[str] = typer.Option(
+    bank_report: Optional[BankReport] = typer.Option(
         None, "--bank-report", help="fixed-lag: mixture (the heading hypotheses' posterior mixture) or best (the most "
         "probable one only) " + _key("--bank-report"),
     ),
@@ -58,7 +64,7 @@ def track(
     ap_models: Optional[Path] = typer.Option(
         None, "--ap-models", help="AP models JSON (default: ap_models.json beside the map, else fitted now)."
     ),
-    smooth: Optional[str] = typer.Option(
+    smooth: Optional[Smoother] = typer.Option(
         None, "--smooth", help="Offline, whole session: none (the online tracker), rts, or map (whole-run MAP) "
         + _key("--smooth"),
     ),
@@ -76,11 +82,15 @@ def track(
     ),
     calibration_cache: bool = typer.Option(
         True, "--calibration-cache/--no-calibration-cache",
-        help="Keep the self-calibration in track_calibration.json beside the map; reuse it for the same map, AP models and options.",
+        help="Keep the self-calibration in the cache folder (--cache-dir) and reuse it for the same map, AP models and "
+        "options (the survey's folder is never written).",
     ),
-    knn_metric: Optional[str] = typer.Option(
-        None, "--knn-metric", help="Fingerprint distance of the kNN fixes (and the particle filter's scan matches): "
-        "sorensen or eq9 " + _key("--knn-metric"),
+    cache_dir: Optional[Path] = typer.Option(
+        None, "--cache-dir", help="Cache folder (default: $XDG_CACHE_HOME/graphslam, else ~/.cache/graphslam).",
+    ),
+    metric: Optional[Metric] = typer.Option(
+        None, "--metric", help=METRIC_HELP.replace("Fingerprint distance", "Fingerprint distance of the kNN fixes (and "
+                                                   "the particle filter's scan matches)") + " " + _key("--metric"),
     ),
     walk_axes: Optional[bool] = typer.Option(
         None, "--walk-axes/--no-walk-axes", help="fixed-lag / --smooth map: walkers keep to the two perpendicular "
@@ -97,7 +107,7 @@ def track(
     floor_size: Optional[tuple[float, float]] = typer.Option(
         None, "--floor-size", help="W H of the floor plan (m); default: floor_info.json beside the image."
     ),
-    floor_plan_use: Optional[str] = typer.Option(
+    floor_plan_use: Optional[WalkableMode] = typer.Option(
         None, "--floor-plan-use", help="snap (each position off the walkable area to its nearest cell), prior (a row "
         "per step in the fixed-lag / --smooth map problem, std --walkable-sigma) or both " + _key("--floor-plan-use"),
     ),
@@ -107,23 +117,31 @@ def track(
     ),
     picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: the tracks (and truth)."),
 ) -> None:
-    """Track walks on a radio map: fusion of step velocity, WiFi RSSI and kNN fixes (fixed-lag MAP, or EKF/UKF)."""
-    from graphslam.app.track import track_files
+    """Track walks on a radio map: fusion of step velocity, WiFi RSSI and kNN fixes (fixed-lag MAP, or EKF/UKF).
+    The default fixed-lag tracker takes ~0.1 s a step (the EKF a twentieth), plus a self-calibration
+    on a map the first time (kept in --cache-dir): a long run is announced before it starts."""
+    from graphslam.app.progress import progress_shown
+    from graphslam.app.track import prepare_track
     from graphslam.core.radiomap.ivf import limit_blas_threads
 
     limit_blas_threads(1)  # thousands of tiny solves: OpenBLAS threads only slow them down
-    if knn_metric is not None:
-        parse_metric(knn_metric, "--knn-metric")
     given = {
         "--filter": filter_, "--smooth": smooth, "--lag": lag, "--bank-report": bank_report, "--bank-temper": bank_temper,
-        "--knn-fixes": knn_fixes, "--knn-metric": knn_metric, "--adaptive-rssi": adaptive_rssi, "--rssi-field": rssi_field,
+        "--knn-fixes": knn_fixes, "--metric": metric, "--adaptive-rssi": adaptive_rssi, "--rssi-field": rssi_field,
         "--self-calibrate": self_calibrate, "--walk-axes": walk_axes, "--floor-plan-use": floor_plan_use,
         "--walkable-sigma": walkable_sigma,
     }
-    cfg = track_config_from_options(config, set_, {k: v for k, v in given.items() if v is not None})
-    run = track_files(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg, calibration_cache=calibration_cache,
-                      floor_plan=floor_plan, floor_size=floor_size)
-    shown = {}
+    cfg = track_config_from_options(config, set_, {k: plain(v) for k, v in given.items() if v is not None})
+    job = prepare_track(radio_map, sessions, ap_models_path=ap_models, out=out, cfg=cfg, calibration_cache=calibration_cache,
+                        cache_dir=cache_dir, floor_plan=floor_plan, floor_size=floor_size)
+    notice = job.notice()
+    if notice and progress_shown():  # as progress: not with --quiet
+        typer.echo(notice, err=True)
+    run = job.run()
+    from graphslam.app.scoring import answer_errors
+
+    errors = answer_errors({t.session_id: (t.t_ns, t.xy) for t in run.tracks}, job.survey, radio_map, job.radio_map.frame)
+    shown: dict[str, object] = {} if errors is None else {"errors": errors}
     if picture:
         from graphslam.app.pictures import write_track_picture
 

@@ -67,10 +67,10 @@ class Tick:
 class Task:
     """A stage of work in progress; starts when made, ends at ``end()`` or when its ``with`` exits."""
 
-    def __init__(self, name: str, total: int | None = None, unit: str = "") -> None:
+    def __init__(self, name: str, total: int | None = None, unit: str = "", info: str = "") -> None:
         self.name, self.total, self.unit = name, total, unit
         self.done = 0
-        self.info = ""
+        self.info = info  # the first detail, shown from the start
         self._id = next(_ids)
         self._t0 = time.perf_counter()
         self._last = self._t0

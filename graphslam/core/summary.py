@@ -63,3 +63,8 @@ class SurveySummary:
             "walked_m": round(sum(s.walked_m for s in ss), 3),
             "landmarks": sum(s.landmarks for s in ss),
         }
+
+
+def plural(n: int, noun: str, many: str | None = None) -> str:
+    """``1 session``, ``2 sessions``, ``1,204 steps`` (``many``: an irregular plural)."""
+    return f"{n:,} {noun if n == 1 else many or noun + 's'}"

@@ -8,18 +8,20 @@ used for this one.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 from pathlib import Path
 from typing import Any
 
 from graphslam.core.radiomap.radiomap import RadioMap
-from graphslam.core.tracking.apmodel import ApModels
+from graphslam.core.tracking.apmodel import ApFitConfig, ApModels
 from graphslam.errors import GraphSlamError, InputError
 from graphslam.io.atomic import atomic_write_text, json_safe
 
 HASH_KEY = "content_sha256"
 RADIO_MAP_KEY = "radio_map_sha256"
+FIT_KEY = "fit"  # the ApFitConfig the models were fitted with (a later survey refits with it)
 
 
 class StaleApModelsError(InputError):
@@ -31,14 +33,19 @@ def _digest(doc: dict[str, Any]) -> str:
     return hashlib.sha256(canonical.encode()).hexdigest()
 
 
-def write_ap_models(models: ApModels, path: str | Path, *, radio_map: RadioMap | None = None) -> Path:
+def write_ap_models(
+    models: ApModels, path: str | Path, *, radio_map: RadioMap | None = None, fit: ApFitConfig | None = None
+) -> Path:
     """JSON, written atomically (the file is complete or absent). ``radio_map``: the map the
-    models were fitted from (recorded, so that ``read_ap_models`` can refuse another map's)."""
+    models were fitted from (recorded, so that ``read_ap_models`` can refuse another map's);
+    ``fit``: the settings they were fitted with (recorded, ``read_fit_config``)."""
     from graphslam.io.radiomap_io import content_hash
 
     doc: dict[str, Any] = json_safe(models.as_dict())  # type: ignore[assignment]
     if radio_map is not None:
         doc[RADIO_MAP_KEY] = content_hash(radio_map)
+    if fit is not None:
+        doc[FIT_KEY] = json_safe(dataclasses.asdict(fit))
     doc[HASH_KEY] = _digest(doc)
     atomic_write_text(path, json.dumps(doc, indent=2, allow_nan=False))
     return Path(path)
@@ -79,3 +86,16 @@ def read_ap_models(path: str | Path, *, radio_map: RadioMap | None = None) -> Ap
         return ApModels.from_dict(d)
     except (KeyError, TypeError, ValueError, GraphSlamError) as e:
         raise InputError(path, f"malformed AP models ({type(e).__name__}: {e})") from None
+
+
+def read_fit_config(path: str | Path) -> ApFitConfig:
+    """The fit settings an AP models file records (``write_ap_models(fit=...)``); the defaults when
+    it records none (checked and read as ``read_ap_models`` does)."""
+    read_ap_models(path)  # damaged or malformed: InputError
+    d = json.loads(Path(path).read_text(encoding="utf-8")).get(FIT_KEY)
+    if not isinstance(d, dict):
+        return ApFitConfig()
+    try:
+        return ApFitConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+    except (TypeError, ValueError, GraphSlamError) as e:
+        raise InputError(path, f"malformed fit settings: {e}", field=FIT_KEY) from None

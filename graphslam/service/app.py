@@ -38,6 +38,7 @@ from fastapi_offline import FastAPIOffline
 from graphslam.core.radiomap.knn import IndexKind, KnnConfig, KnnLocator, KnnResult, strict_error
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import QueryError
+from graphslam.names import DEFAULT_INDEX, DEFAULT_METRIC
 from graphslam.service.config import DEFAULT_MAX_BATCH, DEFAULT_MAX_BODY_BYTES
 from graphslam.service.models import (  # re-exported: the service's public models
     BSSID_MAX_CHARS,
@@ -201,12 +202,12 @@ def create_app(
     max_batch: int = DEFAULT_MAX_BATCH,
     max_body_bytes: int = DEFAULT_MAX_BODY_BYTES,
     threads: int | None = None,
-    index: IndexKind = "auto",
+    index: IndexKind = DEFAULT_INDEX,  # type: ignore[assignment]
     ivf_clusters: int | None = None,
     ivf_probes: int | None = None,
     search_processes: int = 0,
     token: str | None = None,
-    metric: str = "eq9",
+    metric: str = DEFAULT_METRIC,
 ) -> FastAPI:
     """The service for ``radio_map``. ``threads``: search threads per large request (default:
     up to 2, the machine's cores; small requests use one). ``index``: kNN search (see
@@ -234,7 +235,7 @@ def create_app(
     app = FastAPIOffline(  # a FastAPI app whose /docs and /redoc use packaged assets, not a CDN
         title="graphslam radio map service",
         version="1",
-        summary="kNN WiFi fingerprint positioning (eq. 9 RSS distance) against one radio map",
+        summary="kNN WiFi fingerprint positioning (Sørensen or eq. 9 RSS distance) against one radio map",
         lifespan=lifespan,
     )
     app.state.locator = locator

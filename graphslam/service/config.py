@@ -9,13 +9,13 @@ from pydantic import Field, ValidationError
 
 from graphslam.config import _Strict, problems
 from graphslam.errors import ConfigError
+from graphslam.names import DEFAULT_INDEX, DEFAULT_K, DEFAULT_METRIC, LOG_LEVELS  # noqa: F401 (LOG_LEVELS: API)
 
 DEFAULT_HOST = "127.0.0.1"  # loopback unless the operator says otherwise
 DEFAULT_PORT = 8077
 DEFAULT_MAX_BATCH = 10_000
 DEFAULT_MAX_BODY_BYTES = 32 * 1024 * 1024
 DEFAULT_WATCH_S = 1.0  # serve --watch without --watch-interval
-LOG_LEVELS = ("critical", "error", "warning", "info", "debug", "trace")  # uvicorn's; info logs every request
 
 
 class ServeConfig(_Strict):
@@ -23,13 +23,13 @@ class ServeConfig(_Strict):
 
     host: str = Field(DEFAULT_HOST, description="bind address (loopback by default)")
     port: int = Field(DEFAULT_PORT, ge=0, le=65535, description="TCP port")
-    k: int = Field(3, ge=1, description="neighbours")
+    k: int = Field(DEFAULT_K, ge=1, description="neighbours")
     weighted: bool = Field(True, description="inverse-distance weights, else uniform")
     min_common: int = Field(1, ge=1, description="neighbours must share this many APs")
-    metric: Literal["eq9", "sorensen"] = Field("eq9", description="fingerprint distance")
+    metric: Literal["sorensen", "eq9"] = Field(DEFAULT_METRIC, description="fingerprint distance")
     max_batch: int = Field(DEFAULT_MAX_BATCH, ge=1, description="most fingerprints per request")
     max_body_bytes: int = Field(DEFAULT_MAX_BODY_BYTES, ge=1024, description="largest request body")
-    index: Literal["exact", "ivf", "auto"] = Field("auto", description="kNN search; auto: IVF from 5,000 references")
+    index: Literal["auto", "exact", "ivf"] = Field(DEFAULT_INDEX, description="kNN search; auto: IVF from 5,000 references")
     ivf_clusters: int | None = Field(None, ge=1, description="IVF: k-means clusters (null: ~2 sqrt(N))")
     ivf_probes: int | None = Field(None, ge=1, description="IVF: clusters searched per query (null: 8)")
     workers: int = Field(1, ge=1, description="server processes (each loads the map)")

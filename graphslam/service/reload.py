@@ -180,8 +180,9 @@ class ReloadingApp:
         self._seen = sig
         self.generation += 1
         self._busy.release()
-        # WARNING, not INFO: shown by a plain `graphslam serve`, since every answer changes with it
-        log.warning(
+        # INFO: a plain `graphslam serve` shows it (serve's --log-level, info by default, is the
+        # service loggers' level too: ``server.serve``); a reload is news, not a problem
+        log.info(
             "radio map %s reloaded (generation %d: %d fingerprints, %s search)", self.path, self.generation,
             len(app.state.locator.radio_map), app.state.locator.index_kind,
         )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import gc
 import ipaddress
 import json
@@ -18,7 +19,7 @@ from typing import TYPE_CHECKING
 import uvicorn
 from fastapi import FastAPI
 
-from graphslam.errors import GraphSlamError
+from graphslam.errors import GraphSlamError, ServiceError
 from graphslam.service.config import DEFAULT_HOST, ServeConfig
 
 if TYPE_CHECKING:
@@ -92,10 +93,24 @@ def serve(radio_map_path: str | Path, cfg: ServeConfig | None = None) -> None:
     of the map and index; connections, not requests, are spread over them. ``log_level``: one
     of ``LOG_LEVELS`` (``warning`` drops the access line per request). ``token``: bearer token
     required on ``/v1/`` (a warning when ``host`` is not loopback and there is none).
-    SIGHUP reloads the map (in every worker); ``watch_s``: also poll the file every so many seconds."""
+    SIGHUP reloads the map (in every worker); ``watch_s``: also poll the file every so many seconds.
+    The socket is bound first: an address that cannot be (taken, not this machine's) is a
+    ``ServiceError``, before the map is read."""
+    cfg = cfg or ServeConfig()
+    log_level = cfg.log_level
+    # the service's own lines (map loaded, reloaded, refused) at uvicorn's level: info by default
+    service_log = logging.getLogger("graphslam.service")
+    level = service_log.level
+    service_log.setLevel(logging.DEBUG if log_level == "trace" else log_level.upper())
+    try:
+        _serve(radio_map_path, cfg)
+    finally:
+        service_log.setLevel(level)
+
+
+def _serve(radio_map_path: str | Path, cfg: ServeConfig) -> None:
     from graphslam.service.pool import default_search_processes
 
-    cfg = cfg or ServeConfig()
     host, port, workers, log_level, watch = cfg.host, cfg.port, cfg.workers, cfg.log_level, cfg.watch_s
     if not cfg.token and not is_loopback(host):
         log.warning(
@@ -106,12 +121,18 @@ def serve(radio_map_path: str | Path, cfg: ServeConfig | None = None) -> None:
     if search_processes is None:
         search_processes = default_search_processes() if workers <= 1 else 0
     kwargs: dict[str, object] = {**cfg.app_options(), "search_processes": search_processes}
+    sock = listen(host, port)  # before the map loads: a taken port is one line, not uvicorn's start-up failure
     log.info(
         "serving %s on http://%s:%d (%d worker process(es), %d search process(es) each)", radio_map_path, host,
-        port, workers, search_processes,
+        sock.getsockname()[1], workers, search_processes,
     )
     if workers <= 1:
-        uvicorn.run(reloading_app(radio_map_path, watch, **kwargs), host=host, port=port, log_level=log_level)
+        try:
+            app = reloading_app(radio_map_path, watch, **kwargs)
+        except BaseException:
+            sock.close()
+            raise
+        uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_level=log_level)).run(sockets=[sock])
         return
     from uvicorn.supervisors import Multiprocess
 
@@ -130,7 +151,7 @@ def serve(radio_map_path: str | Path, cfg: ServeConfig | None = None) -> None:
     # What uvicorn.run does for workers > 1, but with our own listening socket: uvicorn's
     # bind_socket() omits IPPROTO_TCP, so asyncio skips TCP_NODELAY and every small response
     # waits for a delayed ACK.
-    Supervisor(config, sockets=[_tcp_listener(host, port)]).run()
+    Supervisor(config, sockets=[sock]).run()
 
 
 @dataclass
@@ -162,11 +183,26 @@ def _tcp_listener(host: str, port: int) -> socket.socket:
     """A bound listening-ready TCP socket. proto=IPPROTO_TCP matters: asyncio sets TCP_NODELAY on
     accepted sockets only when the listening socket says TCP; with proto 0, Nagle + delayed ACK
     delay every response."""
-    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    sock.bind((host, port))
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind((host.strip("[]"), port))
+    except BaseException:
+        sock.close()
+        raise
     sock.set_inheritable(True)  # handed to the worker processes
     return sock
+
+
+def listen(host: str, port: int) -> socket.socket:
+    """``_tcp_listener``; an address that cannot be bound (taken, not this machine's) is a
+    ``ServiceError`` naming it."""
+    try:
+        return _tcp_listener(host, port)
+    except OSError as e:
+        hint = " (another server listens there: stop it or choose another --port)" if e.errno == errno.EADDRINUSE else ""
+        raise ServiceError(f"serve: cannot listen on {host}:{port}: {e.strerror or e}{hint}") from None
 
 
 def start_background_server(

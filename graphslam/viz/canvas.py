@@ -20,7 +20,7 @@ import importlib.util
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -345,9 +345,10 @@ class Picture:
             self._legend(d, f_leg)
         return im
 
-    def save(self, path: str | Path) -> Path:
-        """Render and write the PNG atomically (complete or absent)."""
-        data = png_bytes(np.asarray(self.render()))
+    def save(self, path: str | Path, text: Mapping[str, str] | None = None) -> Path:
+        """Render and write the PNG atomically (complete or absent); ``text``: tEXt chunks (ASCII
+        keyword -> Latin-1 text), e.g. how the picture was drawn."""
+        data = png_bytes(np.asarray(self.render()), text=text)
         with atomic_open(path, "wb") as fh:
             fh.write(data)
         return Path(path)
@@ -417,8 +418,9 @@ def bounds_of(*arrays: NDArray | None) -> tuple[float, float, float, float]:
     return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
 
 
-def png_bytes(rgb: NDArray[np.uint8], level: int = PNG_COMPRESS_LEVEL) -> bytes:
-    """An 8-bit RGB PNG of ``rgb`` (H, W, 3), every row with filter type 0 (none).
+def png_bytes(rgb: NDArray[np.uint8], level: int = PNG_COMPRESS_LEVEL, text: Mapping[str, str] | None = None) -> bytes:
+    """An 8-bit RGB PNG of ``rgb`` (H, W, 3), every row with filter type 0 (none); ``text``: one
+    tEXt chunk per item (what Pillow reads back as ``Image.text``).
 
     Pillow's encoder tries its adaptive row filters and costs several plain zlib passes on these
     mostly white pictures for about the same size:
@@ -436,4 +438,6 @@ def png_bytes(rgb: NDArray[np.uint8], level: int = PNG_COMPRESS_LEVEL) -> bytes:
         return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
 
     ihdr = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)  # 8 bits, colour type 2 (RGB), no interlace
-    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(rows.tobytes(), level)) + chunk(b"IEND", b"")
+    notes = b"".join(chunk(b"tEXt", k.encode("ascii") + b"\0" + v.encode("latin-1")) for k, v in (text or {}).items())
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + notes + chunk(b"IDAT", zlib.compress(rows.tobytes(), level))
+            + chunk(b"IEND", b""))

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -57,8 +57,10 @@ def draw_radio_map(
     cell_m: float | None = None,
     bandwidth_m: float | None = None,
     size_px: tuple[int, int] = SIZE_PX,
+    text: Mapping[str, str] | None = None,
 ) -> Path:
-    """Render the radio map picture to ``path`` (PNG of ``size_px``, written atomically).
+    """Render the radio map picture to ``path`` (PNG of ``size_px``, written atomically; ``text``:
+    PNG text chunks, e.g. the options it was drawn with).
 
     ``site_from_map`` (x, y, theta) draws a map in the aligned frame over a ``floor_plan`` in
     the site frame (e.g. report.json's landmark fit); without it the plan is drawn as is.
@@ -117,7 +119,7 @@ def draw_radio_map(
         elif bssid in unfitted:
             note = f"AP not fitted: {unfitted[bssid].split(' (')[0]}"
         pic.caption((box[0], box[1] - 34), f"{bssid}, heard by {len(rows):,} fingerprints\n{note}", 12)
-    return pic.save(path)
+    return pic.save(path, text)
 
 
 def _layout(n: int, size_px: tuple[int, int], top: int) -> list[tuple[int, int, int, int]]:

@@ -18,6 +18,7 @@ from typing import Mapping
 import numpy as np
 from numpy.typing import NDArray
 
+from graphslam.core.summary import plural
 from graphslam.viz.canvas import BLACK, LegendEntry, Picture, bounds_of
 from graphslam.viz.common import session_colours
 
@@ -74,7 +75,7 @@ def draw_tracks(
     if len(ids) <= MAX_LEGEND:
         legend += [LegendEntry(s, colours[s], width=4) for s in ids]
     else:
-        legend.append(LegendEntry(f"{len(ids)} sessions, one colour each", colours[ids[0]], width=4))
+        legend.append(LegendEntry(f"{plural(len(ids), 'session')}, one colour each", colours[ids[0]], width=4))
     starts = [xy[:1] for xy in lines if len(xy)]
     if starts:
         panel.points(np.concatenate(starts), BLACK, radius=6, kind="ring")

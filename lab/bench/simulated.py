@@ -148,7 +148,7 @@ def fig8(
         )
         row: dict[str, Any] = {"seed": seed, "queries": len(scans)}
         for name, rm in maps.items():
-            res = KnnLocator(rm, KnnConfig(k=k)).locate([sc.readings for sc in scans])
+            res = KnnLocator(rm, KnnConfig(k=k, metric="eq9", index="exact")).locate([sc.readings for sc in scans])  # the paper's
             e = np.linalg.norm(res.xy - truth, axis=1)
             e = e[np.isfinite(e)]
             errs[name].append(e)
@@ -341,7 +341,7 @@ def tracking_paper(
         sessions = sim.test_sessions
         t_scan = [np.array([sc.t_ns for sc in s.scans], float) for s in sessions]
         truth = np.concatenate([interpolate_xy(s.ground_truth, t) for s, t in zip(sessions, t_scan)])
-        knn = KnnLocator(rm, KnnConfig(k=3)).locate([sc.readings for s in sessions for sc in s.scans])
+        knn = KnnLocator(rm, KnnConfig(k=3, metric="eq9", index="exact")).locate([sc.readings for s in sessions for sc in s.scans])
         e = np.linalg.norm(knn.xy - truth, axis=1)
         errs["knn"].append(e[np.isfinite(e)])
         row["knn_mean_m"] = round(float(np.nanmean(e)), 3)

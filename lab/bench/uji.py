@@ -102,7 +102,7 @@ def run_ujiindoorloc_benchmark(
     assert res is not None
     recall = 1.0
     if locator.index_kind != "exact":
-        ref = KnnLocator(rm, KnnConfig(k=k, weighted=weighted, min_common=min_common, metric=metric), threads=threads).locate(queries)  # type: ignore[arg-type]
+        ref = KnnLocator(rm, KnnConfig(k=k, weighted=weighted, min_common=min_common, metric=metric, index="exact"), threads=threads).locate(queries)  # type: ignore[arg-type]
         same = (np.sort(ref.neighbours, axis=1) == np.sort(res.neighbours, axis=1)).all(axis=1)
         recall = float(same.mean())
     ok = res.valid

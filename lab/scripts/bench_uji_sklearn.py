@@ -58,7 +58,7 @@ def main() -> int:
         return 2
 
     rm = train.to_radio_map(missing_dbm=args.missing_dbm, min_rssi_dbm=args.min_rssi)
-    loc = KnnLocator(rm, KnnConfig(k=args.k, weighted=args.weighted))
+    loc = KnnLocator(rm, KnnConfig(k=args.k, weighted=args.weighted, metric="eq9", index="exact"))
     queries = test.fingerprints(missing_dbm=args.missing_dbm, min_rssi_dbm=args.min_rssi)
 
     weights = "distance" if args.weighted else "uniform"

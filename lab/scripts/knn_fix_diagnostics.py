@@ -51,7 +51,7 @@ def autocorrelation(walks: list, k: int = 3, extra: int = 30) -> None:
 def conditioned_knn(walks: list) -> None:
     _, test = held_out_folds(walks, 5, 0)[0]
     rm = oracle_radio_map([w for i, w in enumerate(walks) if i not in set(test)])
-    loc = KnnLocator(rm, KnnConfig(k=40))
+    loc = KnnLocator(rm, KnnConfig(k=40, metric="eq9", index="exact"))
     rows = []  # (candidate positions, distances, truth) per scan
     for i in test:
         w = walks[i]

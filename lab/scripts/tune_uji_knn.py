@@ -42,7 +42,7 @@ def main() -> int:
         q = test.fingerprints(missing_dbm=missing, min_rssi_dbm=min_rssi)
         for k in KS:
             for weighted in (True, False):
-                r = KnnLocator(rm, KnnConfig(k=k, weighted=weighted)).locate(q)
+                r = KnnLocator(rm, KnnConfig(k=k, weighted=weighted, metric="eq9", index="exact")).locate(q)
                 ok = r.valid
                 e = np.linalg.norm(r.xy[ok] - test.xy[ok], axis=1)
                 b = np.mean(r.building == test.building.astype(str))

@@ -1,4 +1,4 @@
-"""Inverted-file (IVF) approximate search for eq. 9 kNN.
+"""Inverted-file (IVF) approximate search for kNN: eq. 9, or Sørensen on powed RSS.
 
 Exact kNN scores every query against every reference (UJIIndoorLoc: ~40 GFlop per
 1,000 queries). The IVF index partitions the references once, by k-means on their
@@ -19,6 +19,13 @@ and k rounds of ``argmin`` pick the k nearest.
 
 Ties follow the exact path: equal distances are ordered by map row, so with all
 clusters probed the neighbours are the same references in the same order.
+
+Sørensen (``powed`` given: the map of shifted RSS to powed values, ``knn.KnnConfig.metric``):
+the same clusters and probes (k-means on shifted RSS groups places whatever the distance), and
+per cluster its members' powed values over the cluster's columns; the numerator
+``sum min(p_q, p_r)`` is an element-wise minimum over (queries x members x columns), in chunks
+of at most ``SORENSEN_CHUNK_CELLS`` cells, and the query's powed sum runs over all its APs the
+map knows, as in the exact path (only APs both heard add to the minimum).
 """
 
 from __future__ import annotations
@@ -43,6 +50,8 @@ DEFAULT_KMEANS_ITERATIONS = 25
 DEFAULT_SEED = 0
 # Clusters above this multiple of the mean size are split (see split_oversized).
 DEFAULT_MAX_SIZE_RATIO = 2.0
+# Sørensen: cells (queries x members x columns) of one element-wise minimum (~16 MB of float64)
+SORENSEN_CHUNK_CELLS = 2_000_000
 
 
 def limit_blas_threads(n: int = 1) -> bool:
@@ -186,17 +195,22 @@ class _Cluster:
     bT: NDArray[np.float32]  # (|cols|, n_c) 1 where heard
     ref_n: NDArray[np.float64]  # (n_c,) APs heard
     arange: NDArray[np.int64]  # 0 .. n_c - 1, for scattering into the candidate buffer
+    powed: NDArray[np.float64] | None = None  # Sørensen: (n_c, |cols|) members' powed values
+    powed_sum: NDArray[np.float64] | None = None  # Sørensen: (n_c,) their sum over every AP
 
 
 class IvfIndex:
     """k-means inverted file over a reference ``FingerprintMatrix``. Read-only after construction
     (thread-safe). ``clusters``: k-means C (``None``: ``default_clusters(N)``). The index's
     ``n_clusters`` can differ: clusters left empty (fewer distinct fingerprints than C) are
-    dropped, clusters over ``max_size_ratio`` x the mean size are split."""
+    dropped, clusters over ``max_size_ratio`` x the mean size are split. ``powed``: the powed
+    representation of shifted RSS values (element-wise); given, the index scores the Sørensen
+    distance of powed fingerprints instead of eq. 9 (see the module docstring)."""
 
     def __init__(
         self, ref: FingerprintMatrix, *, clusters: int | None = None, seed: int = DEFAULT_SEED,
         iterations: int = DEFAULT_KMEANS_ITERATIONS, max_size_ratio: float = DEFAULT_MAX_SIZE_RATIO,
+        powed: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None = None,
     ) -> None:
         n = len(ref)
         c_req = default_clusters(n) if clusters is None else clusters
@@ -204,6 +218,7 @@ class IvfIndex:
             raise ConfigError(f"IVF: clusters must be an integer >= 1, got {clusters!r}")
         self.ref = ref
         self.seed = seed
+        self.powed = powed
         v = ref.values
         x: NDArray | sparse.csr_matrix
         if n * ref.n_aps <= KMEANS_DENSE_MAX_CELLS:
@@ -241,12 +256,21 @@ class IvfIndex:
                     bT=np.ascontiguousarray((dense.T > 0).astype(np.float32)),
                     ref_n=ref_n[mem],
                     arange=np.arange(len(mem)),
+                    **self._powed_members(dense),
                 )
             )
         self.sizes = np.array([len(c.members) for c in self.clusters], np.int64)
         self.max_size = int(self.sizes.max()) if len(self.sizes) else 0
         self.starts = np.concatenate([[0], np.cumsum(self.sizes)[:-1]]).astype(np.int64)
         self.members_flat = order.astype(np.int64)  # cluster after cluster, as ``starts`` indexes
+
+    def _powed_members(self, dense: NDArray[np.float64]) -> dict[str, NDArray[np.float64]]:
+        """Sørensen: a cluster's members' powed values over its columns and their sums (the
+        columns hold every AP a member heard, so the sums are over all of them)."""
+        if self.powed is None:
+            return {}
+        p = np.where(dense > 0, self.powed(dense), 0.0)
+        return {"powed": np.ascontiguousarray(p), "powed_sum": p.sum(axis=1)}
 
     @property
     def n_clusters(self) -> int:
@@ -267,8 +291,9 @@ class IvfIndex:
     def search(
         self, q: FingerprintMatrix, *, k: int, probes: int, min_common: int = 1
     ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-        """(Q, k) map rows and eq. 9 distances of the k nearest references among the probed
-        clusters, nearest first, ties by map row; -1 / inf padded (as ``knn._nearest``)."""
+        """(Q, k) map rows and distances (eq. 9, or Sørensen with ``powed``) of the k nearest
+        references among the probed clusters, nearest first, ties by map row; -1 / inf padded
+        (as ``knn._nearest``)."""
         m = len(q)
         if m == 0 or self.n_clusters == 0:
             return np.full((m, k), -1, np.int64), np.full((m, k), np.inf)
@@ -287,6 +312,8 @@ class IvfIndex:
         qa[:, -2] = q_sq
         qa[:, -1] = 1.0
         qb = (qd > 0).astype(np.float32)
+        qp = np.where(qd > 0, self.powed(qd), 0.0) if self.powed is not None else None
+        qp_sum = qp.sum(axis=1) if qp is not None else None
         probe = self.probe(q, probes)
         p = probe.shape[1]
         width = max(1, self.max_size)
@@ -304,14 +331,17 @@ class IvfIndex:
                 cl = self.clusters[c]
                 lo, hi = bounds[c], bounds[c + 1]
                 rows = q_of[lo:hi]
-                # take(rows) then take(cols): two contiguous gathers, cheaper than one 2-D fancy index
-                num = qa.take(rows, axis=0).take(cl.acols, axis=1) @ cl.aT
                 com = qb.take(rows, axis=0).take(cl.cols, axis=1) @ cl.bT
-                den = q_n[rows, None] + cl.ref_n - com
-                # eq. 9, clamped like the exact path (rounding can leave a tiny negative numerator)
-                np.maximum(num, 0.0, out=num)
-                num /= den
-                np.sqrt(num, out=num)
+                if qp is not None:
+                    num = _sorensen(qp.take(rows, axis=0).take(cl.cols, axis=1), qp_sum[rows], cl)  # type: ignore[index]
+                else:
+                    # take(rows) then take(cols): two contiguous gathers, cheaper than one 2-D fancy index
+                    num = qa.take(rows, axis=0).take(cl.acols, axis=1) @ cl.aT
+                    den = q_n[rows, None] + cl.ref_n - com
+                    # eq. 9, clamped like the exact path (rounding can leave a tiny negative numerator)
+                    np.maximum(num, 0.0, out=num)
+                    num /= den
+                    np.sqrt(num, out=num)
                 np.copyto(num, np.inf, where=com < need)  # also every 0/0 (den is 0 only if nothing is shared)
                 buf[order[lo:hi], : len(cl.members)] = num
         buf = buf.reshape(m, p * width)
@@ -333,6 +363,20 @@ class IvfIndex:
         ci = np.take_along_axis(probe, slot, axis=1)
         ok = local < self.sizes[ci]
         return np.where(ok, self.members_flat[np.where(ok, self.starts[ci] + local, 0)], -1)
+
+
+def _sorensen(qp: NDArray[np.float64], qp_sum: NDArray[np.float64], cl: _Cluster) -> NDArray[np.float64]:
+    """(queries, members) Sørensen distances of powed fingerprints ``qp`` (over the cluster's
+    columns; ``qp_sum``: over all their APs) to the cluster's members: ``1 - 2 sum min / (sum_q +
+    sum_r)``, clamped at 0 like the exact path, the minimum taken in chunks of queries."""
+    assert cl.powed is not None and cl.powed_sum is not None
+    m, n_c = len(qp), len(cl.members)
+    both = np.empty((m, n_c))
+    step = max(1, SORENSEN_CHUNK_CELLS // max(1, n_c * qp.shape[1]))
+    for s in range(0, m, step):
+        both[s : s + step] = np.minimum(qp[s : s + step, None, :], cl.powed[None, :, :]).sum(axis=2)
+    d = 1.0 - 2.0 * both / (qp_sum[:, None] + cl.powed_sum[None, :])
+    return np.maximum(d, 0.0)
 
 
 def _k_smallest(buf: NDArray[np.float64], k: int) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.bool_]]:

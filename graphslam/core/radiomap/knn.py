@@ -1,7 +1,8 @@
-"""kNN and weighted kNN fingerprint positioning on the paper's RSS distance (eq. 9).
+"""kNN and weighted kNN fingerprint positioning: Sørensen on powed RSS (the default) or the
+paper's RSS distance (eq. 9).
 
-Distances come from ``DistanceEngine`` (same precomputation, same formula, same
-floating-point operations). For sparse reference sets (typical: a scan hears a few
+eq. 9 distances come from ``DistanceEngine`` (same precomputation, same formula, same
+floating-point operations); Sørensen's from the postings of each query AP (``SorensenRefs``). For sparse reference sets (typical: a scan hears a few
 dozen of thousands of APs) the engine's products are kept sparse here: only pairs
 that share at least one AP are ever candidates (``min_common >= 1``), so eq. 9 is
 evaluated on those pairs only and the rest of the block stays ``inf``. On
@@ -35,6 +36,7 @@ from graphslam.core.radiomap.ivf import IvfIndex
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.types import Survey
 from graphslam.errors import ConfigError, QueryError
+from graphslam.names import DEFAULT_INDEX, DEFAULT_K, DEFAULT_METRIC, INDEXES, METRICS
 
 log = logging.getLogger(__name__)
 
@@ -52,9 +54,8 @@ DEFAULT_IVF_PROBES = 8
 # bigger blocks amortise it (the candidate buffer is ~rows x 2,000 float64 on UJIIndoorLoc).
 IVF_BLOCK_ROWS = 4096
 
-IndexKind = Literal["exact", "ivf", "auto"]
-Metric = Literal["eq9", "sorensen"]
-METRICS = ("eq9", "sorensen")
+IndexKind = Literal["auto", "exact", "ivf"]
+Metric = Literal["sorensen", "eq9"]
 # Torres-Sospedra et al. 2015's "powed" representation: (shifted RSS / its range) ** e.
 POWED_EXPONENT = float(np.e)
 
@@ -68,37 +69,37 @@ class KnnConfig:
     """k nearest fingerprints; ``weighted``: inverse-distance weights, else uniform;
     ``min_common``: a reference is a candidate only if it shares this many APs with the query.
 
-    ``index``: ``"exact"`` scores every reference (the default); ``"ivf"`` searches an inverted
-    file (``graphslam.core.radiomap.ivf``: k-means clusters of the references, eq. 9 evaluated exactly on
-    the members of the ``ivf_probes`` clusters nearest to the query; approximate, ~10x faster on
-    UJIIndoorLoc); ``"auto"``: IVF from ``IVF_AUTO_MIN_REFS`` references, exact below.
-    ``ivf_clusters``: ``None`` = ~2 sqrt(N); ``ivf_seed`` makes the clustering reproducible.
+    ``index``: ``"exact"`` scores every reference; ``"ivf"`` searches an inverted file
+    (``graphslam.core.radiomap.ivf``: k-means clusters of the references, the distance evaluated
+    exactly on the members of the ``ivf_probes`` clusters nearest to the query; approximate, ~7-10x
+    faster on UJIIndoorLoc's batch); ``"auto"`` (the default, ``graphslam.names``): IVF from
+    ``IVF_AUTO_MIN_REFS`` references, exact below. ``ivf_clusters``: ``None`` = ~2 sqrt(N);
+    ``ivf_seed`` makes the clustering reproducible.
 
-    ``metric``: ``"eq9"`` (the paper's RMS dB difference over the union of heard APs, missing =
-    ``missing_dbm``) or ``"sorensen"``: the Sørensen (Bray-Curtis) distance on the *powed*
+    ``metric`` (default ``"sorensen"``, ``graphslam.names``): ``"eq9"`` (the paper's RMS dB
+    difference over the union of heard APs, missing = ``missing_dbm``) or ``"sorensen"``: the
+    Sørensen (Bray-Curtis) distance on the *powed*
     representation ``p = (v / -missing_dbm) ** e`` of the shifted RSS ``v`` (Torres-Sospedra et al.,
     "Comprehensive analysis of distance and similarity measures for Wi-Fi fingerprinting indoor
     positioning systems", 2015): ``1 - 2 sum min(p_q, p_r) / (sum p_q + sum p_r)`` over the map's
     APs. Strong readings dominate and a missing reading costs what it weighs, not a fixed -110 dBm
-    gap; query APs the map never heard are left out (equally far from every reference). Exact
-    search only."""
+    gap; query APs the map never heard are left out (equally far from every reference). It locates
+    better on every data set measured (docs/radio_map.md)."""
 
-    k: int = 3
+    k: int = DEFAULT_K
     weighted: bool = True
     min_common: int = 1
-    index: IndexKind = "exact"
+    index: IndexKind = DEFAULT_INDEX  # type: ignore[assignment]
     ivf_clusters: int | None = None
     ivf_probes: int = DEFAULT_IVF_PROBES
     ivf_seed: int = 0
-    metric: Metric = "eq9"
+    metric: Metric = DEFAULT_METRIC  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
         if self.metric not in METRICS:
             raise ConfigError(f"kNN: metric must be one of {', '.join(METRICS)}, got {self.metric!r}")
-        if self.metric != "eq9" and self.index == "ivf":
-            raise ConfigError(f"kNN: the IVF index searches eq. 9 distances; metric {self.metric!r} needs index 'exact'")
-        if self.index not in ("exact", "ivf", "auto"):
-            raise ConfigError(f"kNN: index must be 'exact', 'ivf' or 'auto', got {self.index!r}")
+        if self.index not in INDEXES:
+            raise ConfigError(f"kNN: index must be one of {', '.join(INDEXES)}, got {self.index!r}")
         for name in ("ivf_probes", "ivf_clusters"):
             v = getattr(self, name)
             if v is None and name == "ivf_clusters":
@@ -234,14 +235,18 @@ class SorensenRefs:
         scale = -ref.missing_dbm if ref.missing_dbm < 0 else float(ref.values.data.max(initial=1.0))
         self.scale = scale
         p = ref.values.copy()
-        p.data = (p.data / scale) ** POWED_EXPONENT
+        p.data = self.powed_values(p.data)
         self.sum = np.asarray(p.sum(axis=1)).ravel()
         self.pT = p.T.tocsr()
 
     def powed(self, q: FingerprintMatrix) -> sparse.csr_matrix:
         p = q.values.copy()
-        p.data = (p.data / self.scale) ** POWED_EXPONENT
+        p.data = self.powed_values(p.data)
         return p
+
+    def powed_values(self, v: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Shifted RSS values -> powed values (element-wise; the IVF index's Sørensen too)."""
+        return (v / self.scale) ** POWED_EXPONENT
 
 
 def _sorensen_block(refs: SorensenRefs, q: FingerprintMatrix, min_common: int) -> NDArray[np.float64]:
@@ -329,13 +334,11 @@ class KnnLocator:
         self.block_rows = max(1, block_cells // max(1, len(radio_map)))
         cfg = self.config
         self._sorensen = SorensenRefs(radio_map.fingerprints) if cfg.metric == "sorensen" else None
-        # "auto" never picks the IVF index for a metric it does not search
-        use_ivf = cfg.index == "ivf" or (
-            cfg.index == "auto" and cfg.metric == "eq9" and len(radio_map) >= IVF_AUTO_MIN_REFS
-        )
+        use_ivf = cfg.index == "ivf" or (cfg.index == "auto" and len(radio_map) >= IVF_AUTO_MIN_REFS)
         # The exact engine stays: IVF queries that find fewer than k candidates are re-run exactly.
         self.ivf: IvfIndex | None = (
-            IvfIndex(radio_map.fingerprints, clusters=cfg.ivf_clusters, seed=cfg.ivf_seed)
+            IvfIndex(radio_map.fingerprints, clusters=cfg.ivf_clusters, seed=cfg.ivf_seed,
+                     powed=self._sorensen.powed_values if self._sorensen is not None else None)
             if use_ivf and len(radio_map) else None
         )
         if self.ivf is not None:

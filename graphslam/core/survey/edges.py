@@ -188,12 +188,12 @@ def _ivf_candidates(
     rows = max(256, 4 * (block_rows or 1024))  # the search buffer is rows x probes x largest cluster
     # one BLAS thread: the index is hundreds of tiny GEMMs, which OpenBLAS's thread hand-off
     # made 4x slower (paper size 4, 2 busy cores); scoped to this search only
-    with threadpool_limits(limits=1, user_api="blas"):
+    with threadpool_limits(limits=1, user_api="blas"), Task("edges", n, "fingerprints", info="IVF index") as task:
         index = IvfIndex(fp.fingerprints, iterations=IVF_KMEANS_ITERATIONS)
-        found = [
-            index.search(fp.fingerprints.rows(slice(s, s + rows)), k=k + 1, probes=probes, min_common=min_common)
-            for s in range(0, n, rows)
-        ]
+        found = []
+        for s in range(0, n, rows):
+            found.append(index.search(fp.fingerprints.rows(slice(s, s + rows)), k=k + 1, probes=probes, min_common=min_common))
+            task.advance(min(rows, n - s), info="IVF search")
     for b, (idx, dist) in enumerate(found):
         ok = idx >= 0
         ri = np.nonzero(ok)[0] + b * rows

@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from graphslam.core.radiomap.knn import WEIGHT_EPS_DB, KnnConfig, KnnLocator
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import EstimationError
+from graphslam.names import DEFAULT_METRIC
 
 if TYPE_CHECKING:
     from graphslam.core.tracking.apmodel import ApModels
@@ -47,7 +48,7 @@ class FixNoise:
 
 
 def leave_one_session_out_error_vectors(
-    rm: RadioMap, rows: NDArray[np.int64] | None = None, *, k: int = 3, extra: int = 30, metric: str = "eq9"
+    rm: RadioMap, rows: NDArray[np.int64] | None = None, *, k: int = 3, extra: int = 30, metric: str = DEFAULT_METRIC
 ) -> NDArray[np.float64]:
     """(len(rows), 2) kNN error vectors (estimate - map position, m) of the map's fingerprints
     ``rows`` (default all), each located among the other sessions' fingerprints: the ``k``
@@ -56,7 +57,7 @@ def leave_one_session_out_error_vectors(
     if len(rm) < 2 or len(set(rm.session_ids.tolist())) < 2:
         raise EstimationError("fix noise: the radio map needs fingerprints of at least 2 sessions")
     rows = np.arange(len(rm)) if rows is None else np.asarray(rows, np.int64)
-    cfg = KnnConfig(k=min(k + extra, len(rm)), metric=metric)  # type: ignore[arg-type]
+    cfg = KnnConfig(k=min(k + extra, len(rm)), metric=metric, index="exact")  # type: ignore[arg-type]
     res = KnnLocator(rm, cfg).locate(rm.fingerprints.rows(rows))
     idx, dist = res.neighbours, res.distances
     other = (idx >= 0) & (rm.session_ids[np.maximum(idx, 0)] != rm.session_ids[rows][:, None])
@@ -71,7 +72,7 @@ def leave_one_session_out_error_vectors(
 
 
 def leave_one_session_out_errors(
-    rm: RadioMap, *, k: int = 3, extra: int = 30, max_queries: int = 3000, seed: int = 0, metric: str = "eq9"
+    rm: RadioMap, *, k: int = 3, extra: int = 30, max_queries: int = 3000, seed: int = 0, metric: str = DEFAULT_METRIC
 ) -> NDArray[np.float64]:
     """kNN error (m) of (up to ``max_queries``, seeded sample of) the map's fingerprints, each
     located among the other sessions' fingerprints (``leave_one_session_out_error_vectors``).
@@ -84,7 +85,7 @@ def leave_one_session_out_errors(
     return np.linalg.norm(e, axis=1)
 
 
-def fix_noise(rm: RadioMap, *, k: int = 3, metric: str = "eq9") -> FixNoise:
+def fix_noise(rm: RadioMap, *, k: int = 3, metric: str = DEFAULT_METRIC) -> FixNoise:
     """``FixNoise`` of ``rm`` from ``leave_one_session_out_errors``."""
     e = leave_one_session_out_errors(rm, k=k, metric=metric)
     if not len(e):
@@ -94,7 +95,7 @@ def fix_noise(rm: RadioMap, *, k: int = 3, metric: str = "eq9") -> FixNoise:
 
 
 def fix_error_correlation(
-    rm: RadioMap, *, k: int = 3, metric: str = "eq9", max_queries: int = 3000, seed: int = 0
+    rm: RadioMap, *, k: int = 3, metric: str = DEFAULT_METRIC, max_queries: int = 3000, seed: int = 0
 ) -> float:
     """Correlation of consecutive kNN fix errors along a walk: the leave-one-session-out error
     vectors (``leave_one_session_out_error_vectors``) of each session's fingerprints in time order,

@@ -40,7 +40,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import scipy.linalg as sla
@@ -273,13 +273,15 @@ def fixed_lag_smooth(
     vel_available_s: NDArray | None = None,
     axes: WalkAxes | None = None,
     area: WalkableArea | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> FixedLagRun:
     """Stream ``epochs`` through a bank of fixed-lag smoothers, one per start state ``x0`` (prior
     N(x0, P0) on the first epoch); report every epoch ``lag_s`` after its time (see module
     docstring). RSSI and fixes are available at their epoch; velocity readings at their epoch or
     at ``vel_available_s`` (one per reading, s, same clock as ``epochs.t_s``). ``axes``: the walk-axes
     prior on the velocity (``graphslam.core.tracking.axes``), ``area``: the walkable-area prior on the
-    position (``graphslam.core.tracking.walkable``); map rows of every window."""
+    position (``graphslam.core.tracking.walkable``); map rows of every window. ``progress``: called
+    with the number of epochs streamed so far, after each."""
     if not len(starts):
         raise EstimationError("fixed-lag: no start state")
     epochs.check_model(model)
@@ -321,6 +323,8 @@ def fixed_lag_smooth(
             w.solve(now, restart=cfg.restart_every > 0 and j % cfg.restart_every == 0 and j > 0)
             solves += 1
         _prune(bank, None if cfg.prune_cost is None else cfg.prune_cost * cfg.temper)
+        if progress is not None:
+            progress(j + 1)
     report(math.inf)
     costs = np.array([w.total_cost if w.alive else np.inf for w in bank])
     return FixedLagRun(xs, Ps, hyp, at, vf, costs, solves, bank[int(np.argmin(costs))].dropped)

@@ -95,8 +95,9 @@ def walkable_area(cfg: TrackConfig, area: WalkableArea | None) -> WalkableArea |
 
 
 def knn_config(cfg: TrackConfig) -> KnnConfig:
-    """The kNN fixes' search (and the particle filter's scan matches)."""
-    return KnnConfig(k=cfg.knn_fixes.k, metric=cfg.knn_fixes.metric)
+    """The kNN fixes' search (and the particle filter's scan matches). Exact: a walk's scans are a
+    small batch, and the self-calibration builds a locator per replayed walk (an IVF index each)."""
+    return KnnConfig(k=cfg.knn_fixes.k, metric=cfg.knn_fixes.metric, index="exact")
 
 
 def particle_config(cfg: TrackConfig, area_m2: float = 1.0, seed: int = 0) -> ParticleConfig:
@@ -154,8 +155,9 @@ class Tracker:
         if models.frame != rm.frame:
             raise EstimationError(f"track: AP models are in frame {models.frame!r}, radio map in {rm.frame!r}")
         model = fusion_model(models, cfg)
-        if cfg.rssi.enabled:
-            model = with_residual_field(model, rm, cfg, leave_out=True)
+        if cfg.rssi.enabled and cfg.rssi.field_m > 0:
+            with Task("track: RSSI field"):
+                model = with_residual_field(model, rm, cfg, leave_out=True)
         area = walkable_area(cfg, area)  # once: its distance field is rebuilt for another std
         if not cfg.calibration.enabled:
             calibration = None
@@ -176,6 +178,15 @@ class Tracker:
 
     def track(self, session: Session, progress: Task | None = None) -> SessionTrack:
         return track_session(session, self.model, self.locator, self.cfg, progress, self.area)
+
+    def track_all(self, sessions: Sequence[Session]) -> tuple[SessionTrack, ...]:
+        """Every session in turn, as one ``track`` task over their steps (its detail: which session)."""
+        out = []
+        with Task("track", total=sum(len(s.steps) for s in sessions), unit="steps") as task:
+            for i, s in enumerate(sessions):
+                task.advance(0, info=f"session {i + 1}/{len(sessions)}: {s.session_id}")
+                out.append(self.track(s, task))
+        return tuple(out)
 
 
 def fusion_model(models: ApModels, cfg: TrackConfig) -> FusionModel:
@@ -216,9 +227,7 @@ def track_sessions(
     sessions: Sequence[Session], rm: RadioMap, models: ApModels, cfg: TrackConfig = DEFAULTS
 ) -> tuple[SessionTrack, ...]:
     """Track every session on ``rm`` with the AP models ``models`` (same frame as ``rm``)."""
-    tracker = Tracker.on_map(rm, models, cfg)
-    with Task("track", total=sum(len(s.steps) for s in sessions), unit="steps") as task:
-        return tuple(tracker.track(s, task) for s in sessions)
+    return Tracker.on_map(rm, models, cfg).track_all(sessions)
 
 
 def track_session(
@@ -281,10 +290,8 @@ def _track_session(
     axes = walk_axes_of(cfg, locator.radio_map) if windowed else None
     area = walkable_area(cfg, area) if windowed else None
     if cfg.filter.kind == "fixed-lag" and cfg.filter.smoother == "none":
-        tr = _track_fixed_lag(session.session_id, model, starts, P0, t, y_v, walked, meas, fixes, cfg, axes, area)
-        if progress is not None:
-            progress.advance(len(t))
-        return tr
+        return _track_fixed_lag(session.session_id, model, starts, P0, t, y_v, walked, meas, fixes, cfg, axes, area,
+                                progress)
     states = [GaussianState(x0, P0) for x0 in starts]
     ll = np.zeros(H)
     penalty = 0.5 * cfg.filter.gate_sigma**2  # a gated reading costs at least what a 'gate_sigma' one would
@@ -344,12 +351,21 @@ def _track_session(
 def _track_fixed_lag(
     session_id: str, model: FusionModel, starts: list[NDArray], P0: NDArray, t: NDArray[np.int64], y_v: NDArray,
     walked: NDArray[np.bool_], meas: Sequence[tuple[int, NDArray, NDArray]], fixes: dict[int, tuple[NDArray, float]],
-    cfg: TrackConfig, axes: WalkAxes | None = None, area: WalkableArea | None = None,
+    cfg: TrackConfig, axes: WalkAxes | None = None, area: WalkableArea | None = None, progress: Task | None = None,
 ) -> SessionTrack:
     """The fixed-lag smoother over the session's epochs; a step interval's velocity is known at its
-    end step (``vel_available_s``), so a lag of 0 reports each step from the data up to it."""
+    end step (``vel_available_s``), so a lag of 0 reports each step from the data up to it.
+    ``progress`` advances by one per step as the stream passes it."""
     epochs, step_epoch = _session_epochs(t, y_v, walked, meas, fixes)
     avail = epochs.t_s[step_epoch[1:][walked]]
+    passed = [0]  # steps reported to ``progress`` so far
+
+    def streamed(n_epochs: int) -> None:
+        steps = int(np.searchsorted(step_epoch, n_epochs - 1, side="right"))
+        if progress is not None and steps > passed[0]:
+            progress.advance(steps - passed[0])
+            passed[0] = steps
+
     run = fixed_lag_smooth(
         model, starts, P0, epochs,
         FixedLagConfig(
@@ -357,8 +373,10 @@ def _track_fixed_lag(
             adaptive_rssi=cfg.rssi.adaptive, report=cfg.fixed_lag.bank_report, angle_index=None if model.theta_rad is not None else 6,
             temper=1.0 if cfg.fixed_lag.bank_temper is None else cfg.fixed_lag.bank_temper,
         ),
-        vel_available_s=avail, axes=axes, area=area,
+        vel_available_s=avail, axes=axes, area=area, progress=streamed if progress is not None else None,
     )
+    if progress is not None and passed[0] < len(t):
+        progress.advance(len(t) - passed[0])
     P = run.P * (run.variance_factor[:, None, None] if cfg.fixed_lag.calibrate_covariance else 1.0)
     return SessionTrack(
         session_id, t.copy(), run.x[step_epoch], P[step_epoch], run.hypothesis[step_epoch],
@@ -467,20 +485,26 @@ class SelfCalibration:
         the correlation of consecutive fix errors along the map's walks (``calibration.bank_temper``)."""
         from graphslam.core.tracking.calibration import bank_temper, fix_error_correlation, fix_noise, rssi_variance_factor
 
-        kappa = rssi_variance_factor(rm, models, np.sqrt(model.r_rssi)) if len(models.fitted) else 1.0
-        try:
-            floor = max(cfg.knn_fixes.sigma_floor_m, fix_noise(rm, k=cfg.knn_fixes.k, metric=knn_config(cfg).metric).sigma_m)
-        except EstimationError as e:  # a one-session map: keep the configured floor
-            log.info("track: no leave-one-session-out fix noise (%s)", e)
-            floor = cfg.knn_fixes.sigma_floor_m
-        temper = 1.0
-        if cfg.fixed_lag.bank_temper is None and cfg.filter.kind == "fixed-lag":  # only the fixed-lag tracker runs a weighted bank
+        # four parts; the replay (the longest) reports its own segments
+        with Task("track: self-calibration", total=4, unit="parts", info="RSSI variance") as task:
+            kappa = rssi_variance_factor(rm, models, np.sqrt(model.r_rssi)) if len(models.fitted) else 1.0
+            task.advance(info="kNN fix noise")
             try:
-                temper = bank_temper(fix_error_correlation(rm, k=cfg.knn_fixes.k, metric=knn_config(cfg).metric))
-            except EstimationError as e:  # a one-session map: the bank's costs as they are
-                log.info("track: no fix error correlation (%s)", e)
-        half = cls(float(kappa), float(floor), 1.0, temper)
-        scale = replay_covariance_scale(rm, *half.apply(model, cfg), area=area) if cfg.calibration.replay_sessions > 0 else 1.0
+                floor = max(cfg.knn_fixes.sigma_floor_m, fix_noise(rm, k=cfg.knn_fixes.k, metric=knn_config(cfg).metric).sigma_m)
+            except EstimationError as e:  # a one-session map: keep the configured floor
+                log.info("track: no leave-one-session-out fix noise (%s)", e)
+                floor = cfg.knn_fixes.sigma_floor_m
+            task.advance(info="heading bank temper")
+            temper = 1.0
+            if cfg.fixed_lag.bank_temper is None and cfg.filter.kind == "fixed-lag":  # only the fixed-lag tracker runs a weighted bank
+                try:
+                    temper = bank_temper(fix_error_correlation(rm, k=cfg.knn_fixes.k, metric=knn_config(cfg).metric))
+                except EstimationError as e:  # a one-session map: the bank's costs as they are
+                    log.info("track: no fix error correlation (%s)", e)
+            task.advance(info="replaying the map's walks")
+            half = cls(float(kappa), float(floor), 1.0, temper)
+            scale = replay_covariance_scale(rm, *half.apply(model, cfg), area=area) if cfg.calibration.replay_sessions > 0 else 1.0
+            task.advance()
         log.info("track: self-calibration: RSSI variance x %.2f, kNN fix std floor %.2f m, covariance x %.2f, "
                  "heading bank temper %.2f", kappa, floor, scale, temper)
         return cls(float(kappa), float(floor), float(scale), float(temper))

@@ -30,12 +30,14 @@ from __future__ import annotations
 
 import heapq
 import logging
+import math
 from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
 
+from graphslam.core.progress import Task
 from graphslam.core.uwb.ekf import UwbEpoch
 from graphslam.errors import ConfigError, SimulationError
 from graphslam.sim.uwb.clock import ClockParams, Clocks, SyncParams, sync_phase
@@ -213,115 +215,120 @@ def simulate_network(
     r_tag, r_t, r_resp, r_rng, r_true, r_nlos = [], [], [], [], [], []
     s_tag, s_t = [], []
     k = 0
-    while True:
-        start_L = k * cyc_s
-        t_start = float(np.min(clocks.true_time(np.arange(n), start_L)))
-        if t_start >= t1_s:
-            break
-        on = devices.on(t_start + 0.5 * params.sync.duration_s)
-        tags = tags_all[on[:nt]]
-        if not len(tags):
-            records.append(CycleRecord(k, t_start, (), 0, 0, {}, 0, {}, 0, {}, 0, (), 0, 0, 0, 0))
-            k += 1
-            continue
-        part = np.concatenate([tags, anchors])
-        # 1. synchronisation
-        t_mid = t_start + 0.5 * params.sync.duration_s
-        linked, _ = link_matrix(devices.xy(t_mid), devices.walls, params.radio, on)
-        sync = sync_phase(clocks, part, start_L, linked, params.sync, params.clock, params.radio, rng)
-        t_end_sync = float(np.mean(clocks.true_time(part, start_L + params.sync.duration_s)))
-        L = clocks.logical(np.arange(n), t_end_sync)
-        offsets = {}
-        for i in tags.tolist():
-            nb = np.flatnonzero(linked[i])
-            if len(nb):
-                offsets[i] = float(abs(L[i] - L[nb].mean()))
-        for r, s in sync.heard:
-            tables[r][s] = k
-        # garbage collector: forget neighbours not heard for gc_cycles
-        for i in range(n):
-            for j in [j for j, last in tables[i].items() if k - last >= params.gc_cycles]:
-                del tables[i][j]
-        tag_tables = {i: {j for j in tables[i] if j < nt} for i in tags.tolist()}
-        # 2. scheduling
-        sched_L = start_L + params.sync.duration_s
-        t_sched = float(np.mean(clocks.true_time(part, sched_L + 0.5 * tp.duration_s)))
-        linked_s, _ = link_matrix(devices.xy(t_sched), devices.walls, params.radio, on)
-        sched = schedule_phase(clocks, tags, anchors, tag_tables, sched_L, linked_s, tp, params.radio, rng)
-        heard_now: dict[int, set[int]] = {i: set() for i in range(n)}
-        for r, s in sync.heard | sched.heard:
-            tables[r][s] = k
-            heard_now[r].add(s)
-        conflicts = _two_hop_conflicts(sched.slots, linked_s)
-        # 3. execution
-        exec_L = sched_L + tp.duration_s
-        suspended: set[int] = set()
-        n_frames = n_coll = n_exch = n_ok = 0
-        for slot in range(tp.n_slots):
-            slot_L = exec_L + slot * sp.slot_s
-            t_slot = float(np.mean(clocks.true_time(part, slot_L)))
-            if t_slot >= t1_s:
+    # cycles expected (the logical clocks drift by ppm: a cycle more or less)
+    task = Task("simulate UWB network", total=max(1, math.ceil((t1_s - t0_s) / cyc_s)), unit="cycles")
+    with task:
+        while True:
+            start_L = k * cyc_s
+            t_start = float(np.min(clocks.true_time(np.arange(n), start_L)))
+            if t_start >= t1_s:
                 break
-            on_now = devices.on(t_slot)
-            xy = devices.xy(t_slot)
-            linked_x, walls_x = link_matrix(xy, devices.walls, params.radio, on_now)
-            new = linked_x & ~(linked & linked_s)  # a link must have been there to sync and to schedule
-            suspended |= set(np.flatnonzero(new.any(axis=1) & (np.arange(n) < nt)).tolist())
-            owners = [i for i in tags.tolist() if slot in sched.slots[i] and i not in suspended and on_now[i]]
-            if not owners:
+            on = devices.on(t_start + 0.5 * params.sync.duration_s)
+            tags = tags_all[on[:nt]]
+            if not len(tags):
+                records.append(CycleRecord(k, t_start, (), 0, 0, {}, 0, {}, 0, {}, 0, (), 0, 0, 0, 0))
+                k += 1
+                task.advance(info=f"{len(r_t):,} ranges")
                 continue
-            medium = Medium(linked_x, params.radio, rng)
-            # frames in time order: a frame is settled when it ends; a response is sent only if
-            # the poll arrived, the final only if the response did (a responder out of reach
-            # stays silent)
-            events: list[tuple[float, int, int, int, int, int]] = []  # (time, kind, stage, exchange, sender, receiver)
-            exch: list[tuple[int, int, float]] = []
-            for i in owners:
-                responders = sorted(heard_now[i], key=lambda j: (j < nt, j))[: sp.max_responders]
-                s_tag.append(i)
-                s_t.append(float(clocks.true_time(i, slot_L)))
-                for e, j in enumerate(responders):
-                    t_poll = float(clocks.true_time(i, slot_L + sp.guard_s + e * sp.exchange_s))
-                    events.append((t_poll, _SEND, 0, len(exch), i, j))
-                    exch.append((i, j, t_poll))
-            n_exch += len(exch)
-            heapq.heapify(events)
-            frames: dict[tuple[int, int], Frame] = {}
-            while events:
-                t_ev, kind, stage, e, sender, receiver = heapq.heappop(events)
-                if kind == _SEND:
-                    f = medium.send(t_ev, sender, None)
-                    frames[(e, stage)] = f
-                    heapq.heappush(events, (f.end, _SETTLE, stage, e, sender, receiver))
+            part = np.concatenate([tags, anchors])
+            # 1. synchronisation
+            t_mid = t_start + 0.5 * params.sync.duration_s
+            linked, _ = link_matrix(devices.xy(t_mid), devices.walls, params.radio, on)
+            sync = sync_phase(clocks, part, start_L, linked, params.sync, params.clock, params.radio, rng)
+            t_end_sync = float(np.mean(clocks.true_time(part, start_L + params.sync.duration_s)))
+            L = clocks.logical(np.arange(n), t_end_sync)
+            offsets = {}
+            for i in tags.tolist():
+                nb = np.flatnonzero(linked[i])
+                if len(nb):
+                    offsets[i] = float(abs(L[i] - L[nb].mean()))
+            for r, s in sync.heard:
+                tables[r][s] = k
+            # garbage collector: forget neighbours not heard for gc_cycles
+            for i in range(n):
+                for j in [j for j, last in tables[i].items() if k - last >= params.gc_cycles]:
+                    del tables[i][j]
+            tag_tables = {i: {j for j in tables[i] if j < nt} for i in tags.tolist()}
+            # 2. scheduling
+            sched_L = start_L + params.sync.duration_s
+            t_sched = float(np.mean(clocks.true_time(part, sched_L + 0.5 * tp.duration_s)))
+            linked_s, _ = link_matrix(devices.xy(t_sched), devices.walls, params.radio, on)
+            sched = schedule_phase(clocks, tags, anchors, tag_tables, sched_L, linked_s, tp, params.radio, rng)
+            heard_now: dict[int, set[int]] = {i: set() for i in range(n)}
+            for r, s in sync.heard | sched.heard:
+                tables[r][s] = k
+                heard_now[r].add(s)
+            conflicts = _two_hop_conflicts(sched.slots, linked_s)
+            # 3. execution
+            exec_L = sched_L + tp.duration_s
+            suspended: set[int] = set()
+            n_frames = n_coll = n_exch = n_ok = 0
+            for slot in range(tp.n_slots):
+                slot_L = exec_L + slot * sp.slot_s
+                t_slot = float(np.mean(clocks.true_time(part, slot_L)))
+                if t_slot >= t1_s:
+                    break
+                on_now = devices.on(t_slot)
+                xy = devices.xy(t_slot)
+                linked_x, walls_x = link_matrix(xy, devices.walls, params.radio, on_now)
+                new = linked_x & ~(linked & linked_s)  # a link must have been there to sync and to schedule
+                suspended |= set(np.flatnonzero(new.any(axis=1) & (np.arange(n) < nt)).tolist())
+                owners = [i for i in tags.tolist() if slot in sched.slots[i] and i not in suspended and on_now[i]]
+                if not owners:
                     continue
-                f = frames.pop((e, stage))
-                n_frames += 1
-                st = medium.status(f, receiver)
-                n_coll += st == "collision"
-                if st != "ok":
-                    continue
-                i, j, t_poll = exch[e]
-                if stage == 0 and receiver in suspended:
-                    continue  # a device whose links changed stays silent, as responder too
-                if stage < 2:  # the reply goes out reply_s after reception, on the replier's clock
-                    heapq.heappush(events, (f.start + sp.reply_s / clocks.rate[receiver], _SEND, stage + 1, e, receiver, sender))
-                    continue
-                d3 = float(np.sqrt(np.sum((xy[i] - xy[j]) ** 2) + (heights[i] - heights[j]) ** 2))
-                excess, nlos = nlos_excess(np.array([walls_x[i, j]]), params.radio, rng)
-                meas = ds_twr_range(np.array([d3]), excess, clocks.rate[i], clocks.rate[j], sp.reply_s, params.radio, rng)
-                r_tag.append(i)
-                r_t.append(t_poll)
-                r_resp.append(j)
-                r_rng.append(float(meas[0]))
-                r_true.append(d3)
-                r_nlos.append(bool(nlos[0]))
-                n_ok += 1
-        records.append(CycleRecord(
-            k, t_start, tuple(tags.tolist()), sync.messages, sync.collisions, offsets, len(sync.synced_at_s),
-            sched.packets, sched.collisions, sched.slots, conflicts, tuple(sorted(suspended)), n_frames, n_coll,
-            n_exch, n_ok,
-        ))
-        k += 1
+                medium = Medium(linked_x, params.radio, rng)
+                # frames in time order: a frame is settled when it ends; a response is sent only if
+                # the poll arrived, the final only if the response did (a responder out of reach
+                # stays silent)
+                events: list[tuple[float, int, int, int, int, int]] = []  # (time, kind, stage, exchange, sender, receiver)
+                exch: list[tuple[int, int, float]] = []
+                for i in owners:
+                    responders = sorted(heard_now[i], key=lambda j: (j < nt, j))[: sp.max_responders]
+                    s_tag.append(i)
+                    s_t.append(float(clocks.true_time(i, slot_L)))
+                    for e, j in enumerate(responders):
+                        t_poll = float(clocks.true_time(i, slot_L + sp.guard_s + e * sp.exchange_s))
+                        events.append((t_poll, _SEND, 0, len(exch), i, j))
+                        exch.append((i, j, t_poll))
+                n_exch += len(exch)
+                heapq.heapify(events)
+                frames: dict[tuple[int, int], Frame] = {}
+                while events:
+                    t_ev, kind, stage, e, sender, receiver = heapq.heappop(events)
+                    if kind == _SEND:
+                        f = medium.send(t_ev, sender, None)
+                        frames[(e, stage)] = f
+                        heapq.heappush(events, (f.end, _SETTLE, stage, e, sender, receiver))
+                        continue
+                    f = frames.pop((e, stage))
+                    n_frames += 1
+                    st = medium.status(f, receiver)
+                    n_coll += st == "collision"
+                    if st != "ok":
+                        continue
+                    i, j, t_poll = exch[e]
+                    if stage == 0 and receiver in suspended:
+                        continue  # a device whose links changed stays silent, as responder too
+                    if stage < 2:  # the reply goes out reply_s after reception, on the replier's clock
+                        heapq.heappush(events, (f.start + sp.reply_s / clocks.rate[receiver], _SEND, stage + 1, e, receiver, sender))
+                        continue
+                    d3 = float(np.sqrt(np.sum((xy[i] - xy[j]) ** 2) + (heights[i] - heights[j]) ** 2))
+                    excess, nlos = nlos_excess(np.array([walls_x[i, j]]), params.radio, rng)
+                    meas = ds_twr_range(np.array([d3]), excess, clocks.rate[i], clocks.rate[j], sp.reply_s, params.radio, rng)
+                    r_tag.append(i)
+                    r_t.append(t_poll)
+                    r_resp.append(j)
+                    r_rng.append(float(meas[0]))
+                    r_true.append(d3)
+                    r_nlos.append(bool(nlos[0]))
+                    n_ok += 1
+            records.append(CycleRecord(
+                k, t_start, tuple(tags.tolist()), sync.messages, sync.collisions, offsets, len(sync.synced_at_s),
+                sched.packets, sched.collisions, sched.slots, conflicts, tuple(sorted(suspended)), n_frames, n_coll,
+                n_exch, n_ok,
+            ))
+            k += 1
+            task.advance(info=f"{len(r_t):,} ranges")
     log.info("UWB network: %d cycles, %d ranges", len(records), len(r_t))
     ranges = RangeLog(
         np.array(r_tag, np.int64), np.array(r_t, float), np.array(r_resp, np.int64), np.array(r_rng, float),

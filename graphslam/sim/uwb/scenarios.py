@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graphslam.core.types import Session, Survey, UwbRanges
-from graphslam.core.uwb.motion import position_at
+from graphslam.core.uwb.motion import stride_knots
 from graphslam.errors import ConfigError
 from graphslam.io.mcap_writer import write_session
 from graphslam.sim.scenarios import Building, SimulatedSurvey, simulate, with_overrides
@@ -303,9 +303,13 @@ def simulate_crowd(seed: int, spec: CrowdUwb = CrowdUwb(), params: NetworkParams
     assert all(g is not None for g in truths)
     spans = np.array([[g.t_ns[0], g.t_ns[-1]] for g in truths], np.int64)  # type: ignore[union-attr]
 
+    # each walker's stride knots once (position_at's, which the network asks for thousands of times)
+    knots = [(int(g.t_ns[0]), *stride_knots(g.t_ns, g.xy)) for g in truths]  # type: ignore[union-attr]
+
     def positions(t: float) -> NDArray:
-        q = np.array([t0_ns + int(round(t * NS))], np.int64)
-        return np.vstack([position_at(g.t_ns, g.xy, q)[0] for g in truths])  # type: ignore[union-attr]
+        q = t0_ns + int(round(t * NS))
+        return np.array([[np.interp((q - t0) / 1e9, kt, kxy[:, 0]), np.interp((q - t0) / 1e9, kt, kxy[:, 1])]
+                         for t0, kt, kxy in knots])
 
     def active(t: float) -> NDArray:
         tn = t0_ns + t * NS
