@@ -71,23 +71,15 @@ class ResidualField:
         """Correction (m,) dB of AP ``idx[j]`` at ``xy[j]`` (m, 2): bilinear between cell centres,
         0 off the AP's grid. In the trackers' inner loop: a few array operations, no Python per pair."""
         xy = np.asarray(xy, float).reshape(-1, 2)
-        v = self.values
-        if not v.size:
-            return np.zeros(len(xy))
-        g = self._table[np.asarray(idx, dtype=np.int64).ravel()]  # (m, 6): one gather per call
-        u = (xy - g[:, 0:2]) * (1.0 / self.cell_m)  # (m, 2) in cells: x, y
-        top = g[:, 2:4]  # last cell centre (negative: no grid)
-        inside = ((u >= 0.0) & (u <= top)).all(axis=1)
-        u = np.minimum(np.maximum(u, 0.0), np.maximum(top - 1e-9, 0.0))
-        i0 = u.astype(np.int64)  # floor: u >= 0
-        fx, fy = u[:, 0] - i0[:, 0], u[:, 1] - i0[:, 1]
-        nx = g[:, 4].astype(np.int64)
-        last = v.size - 1
-        base = np.minimum(g[:, 5].astype(np.int64) + i0[:, 1] * nx + i0[:, 0], last)
-        up = np.minimum(base + nx, last)
-        val = (v[base] * (1 - fx) + v[np.minimum(base + 1, last)] * fx) * (1 - fy) \
-            + (v[up] * (1 - fx) + v[np.minimum(up + 1, last)] * fx) * fy
-        return np.where(inside, val, 0.0)
+        return self.rows(np.asarray(idx, dtype=np.int64).ravel()).at(xy[:, 0], xy[:, 1])
+
+    def rows(self, idx: NDArray) -> "FieldRows":
+        """The grids of APs ``idx`` (m,) gathered once, for reading them at many positions."""
+        g = self._table[np.asarray(idx, dtype=np.int64)]  # (m, 6)
+        top = g[:, 2:4]  # last cell centre in cells (negative: no grid)
+        hi = np.maximum(top - 1e-9, 0.0)
+        return FieldRows(1.0 / self.cell_m, g[:, 0], g[:, 1], top[:, 0], top[:, 1], hi[:, 0], hi[:, 1],
+                         g[:, 4].astype(np.int64), g[:, 5].astype(np.int64), self.values)
 
     @property
     def _table(self) -> NDArray[np.float64]:
@@ -99,6 +91,42 @@ class ResidualField:
             t = np.column_stack([self.origin, np.where(full, self.shape[:, ::-1] - 1.0, -1.0), self.shape[:, 1], self.offset])
             object.__setattr__(self, "_table_cache", t)
         return t
+
+
+@dataclass(frozen=True, eq=False)
+class FieldRows:
+    """The field of one AP per reading (``ResidualField.rows``): per reading its grid's origin (m), last
+    cell centre (cells; negative: no grid, never inside), the clamp inside it, row length and offset."""
+
+    inv_cell: float
+    ox: NDArray[np.float64]
+    oy: NDArray[np.float64]
+    top_x: NDArray[np.float64]
+    top_y: NDArray[np.float64]
+    hi_x: NDArray[np.float64]
+    hi_y: NDArray[np.float64]
+    nx: NDArray[np.int64]
+    offset: NDArray[np.int64]
+    values: NDArray[np.float32]
+
+    def at(self, x: NDArray, y: NDArray) -> NDArray[np.float64]:
+        """Correction (dB) of each reading's AP at positions ``x``, ``y`` (m; shape (..., m))."""
+        v = self.values
+        if not v.size:
+            return np.zeros(np.broadcast_shapes(np.shape(x), self.ox.shape))
+        ux = (x - self.ox) * self.inv_cell  # in cells
+        uy = (y - self.oy) * self.inv_cell
+        inside = (ux >= 0.0) & (uy >= 0.0) & (ux <= self.top_x) & (uy <= self.top_y)
+        ux = np.minimum(np.maximum(ux, 0.0), self.hi_x)
+        uy = np.minimum(np.maximum(uy, 0.0), self.hi_y)
+        ix, iy = ux.astype(np.int64), uy.astype(np.int64)  # floor: u >= 0
+        fx, fy = ux - ix, uy - iy
+        last = v.size - 1
+        base = np.minimum(self.offset + iy * self.nx + ix, last)
+        up = np.minimum(base + self.nx, last)
+        val = (v[base] * (1 - fx) + v[np.minimum(base + 1, last)] * fx) * (1 - fy) \
+            + (v[up] * (1 - fx) + v[np.minimum(up + 1, last)] * fx) * fy
+        return np.where(inside, val, 0.0)
 
 
 @dataclass(frozen=True)
