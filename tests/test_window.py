@@ -16,7 +16,7 @@ from graphslam.core.tracking.fixed_lag import FixedLagConfig, _Bank, _Stream, fi
 from graphslam.core.tracking.smoother import MapProblem, levenberg_marquardt, map_smooth
 from graphslam.core.tracking.walkable import WalkableArea
 from graphslam.core.tracking.window import (
-    WindowProblem, WindowReadings, banded_cholesky, levenberg_marquardt_bank, marginal_covariances,
+    RunReadings, banded_cholesky, banded_solve, levenberg_marquardt_bank, marginal_covariances,
 )
 
 
@@ -60,8 +60,9 @@ def _priors(m: FusionModel, B: int, seed: int = 1) -> tuple[np.ndarray, np.ndarr
     return x0, P0
 
 
-def _readings(e: Epochs) -> WindowReadings:
-    return WindowReadings(e.t_s, e.vel_k, e.vel_y, e.rss_k, e.rss_ap, e.rss_y, e.fix_k, e.fix_xy, e.fix_sigma, e.travel_m)
+def _window(m: FusionModel, e: Epochs, x0: np.ndarray, P0: np.ndarray, scale: np.ndarray, **kw):
+    """The whole run as one window (every reading known)."""
+    return RunReadings(m, e, **kw).window(0, len(e) - 1, np.inf, x0, np.linalg.inv(P0), scale)
 
 
 CASES = [
@@ -84,7 +85,7 @@ def test_rows_cost_and_normal_equations_are_the_map_problems(case):
     x0, P0 = _priors(m, B)
     rng = np.random.default_rng(2)
     scale = rng.uniform(1.0, 2.0, (B, len(e.rss_k)))
-    p = WindowProblem(m, _readings(e), x0, P0, scale, huber_k=huber, axes=axes, area=area)
+    p = _window(m, e, x0, P0, scale, huber_k=huber, axes=axes, area=area)
     X = x0[:, None, :] + rng.normal(0.0, 0.7, (B, len(e), m.n))
     r = p.residual(X)
     band, g = p.normal_equations(X, r)
@@ -93,7 +94,8 @@ def test_rows_cost_and_normal_equations_are_the_map_problems(case):
         eb = Epochs(e.t_s, e.vel_k, e.vel_y, e.rss_k, e.rss_ap, e.rss_y, e.fix_k, e.fix_xy, e.fix_sigma, scale[b], e.travel_m)
         ref = MapProblem(m, x0[b], P0[b], eb, huber_k=huber, axes=axes, area=area)
         rr = ref.residual(X[b].ravel())
-        np.testing.assert_allclose(np.abs(r[b, : m.n]), np.abs(rr[: m.n]), rtol=1e-9, atol=1e-9)  # prior rows: same whitening
+        # prior rows: whitened by another square root of the same information, so only their norm is the same
+        assert np.linalg.norm(r[b, : m.n]) == pytest.approx(np.linalg.norm(rr[: m.n]), rel=1e-9)
         np.testing.assert_allclose(r[b, m.n:], rr[m.n:], rtol=1e-12, atol=1e-12)
         assert p.cost(r)[b] == pytest.approx(ref.cost(rr), rel=1e-12)
         sw = ref.weights(rr)
@@ -112,9 +114,9 @@ def test_the_banks_levenberg_marquardt_reaches_the_reference_solutions(case):
     B = 3
     x0, P0 = _priors(m, B)
     scale = np.ones((B, len(e.rss_k)))
-    p = WindowProblem(m, _readings(e), x0, P0, scale, huber_k=huber, axes=axes, area=area)
+    p = _window(m, e, x0, P0, scale, huber_k=huber, axes=axes, area=area)
     X0 = x0[:, None, :] + np.random.default_rng(4).normal(0.0, 0.3, (B, len(e), m.n))
-    X, cost, r, _, _ = levenberg_marquardt_bank(p, X0, 60, rel_tol=1e-13)
+    X, cost, r, _, _, _ = levenberg_marquardt_bank(p, X0, 60, rel_tol=1e-13)
     for b in range(B):
         ref = MapProblem(m, x0[b], P0[b], e, huber_k=huber, axes=axes, area=area)
         Xr, cr, _ = levenberg_marquardt(ref, X0[b], 60, rel_tol=1e-13)
@@ -127,7 +129,7 @@ def test_marginal_covariances_of_the_stacked_factor_are_blocks_of_the_inverses()
     m, e, axes, area, huber = _case(theta=True, axes=True)
     B = 3
     x0, P0 = _priors(m, B)
-    p = WindowProblem(m, _readings(e), x0, P0, np.ones((B, len(e.rss_k))), huber_k=huber, axes=axes)
+    p = _window(m, e, x0, P0, np.ones((B, len(e.rss_k))), huber_k=huber, axes=axes)
     X = x0[:, None, :] + np.random.default_rng(6).normal(0.0, 0.5, (B, len(e), m.n))
     band, _ = p.normal_equations(X, p.residual(X))
     inv = np.linalg.inv(p.dense(band))
@@ -138,9 +140,11 @@ def test_marginal_covariances_of_the_stacked_factor_are_blocks_of_the_inverses()
         np.testing.assert_allclose(S, inv[:, i * n : (i + 1) * n, i * n : (i + 1) * n], rtol=1e-9, atol=1e-12)
 
 
-def test_marginalising_the_first_epoch_is_the_dense_schur_complement_of_its_rows():
+@pytest.mark.parametrize("reuse", [True, False], ids=["from the last solve", "own problem"])
+def test_marginalising_the_first_epoch_is_the_dense_schur_complement_of_its_rows(reuse):
     # The reference: the rows of the window problem that touch its first epoch, linearised at the
-    # current states (IRLS weights), dense, and that epoch eliminated.
+    # current states (IRLS weights), dense, and that epoch eliminated. The bank takes them from the
+    # last solve's information when that window is this one's, else builds them.
     m, e, axes, area, huber = _case(theta=True, axes=True)
     cfg = FixedLagConfig(huber_k=huber, adaptive_rssi=False)
     stream = _Stream(m, e, cfg, None, axes)
@@ -169,6 +173,8 @@ def test_marginalising_the_first_epoch_is_the_dense_schur_complement_of_its_rows
         head = p.cost(r) - p.cost(kept)
         refs.append((bank.X[h, 1] - step, np.linalg.inv(H1),
                      bank.const[h] + head - g[:n] @ np.linalg.solve(H[:n, :n], g[:n]) - g1 @ step))
+    if not reuse:
+        bank._solved = None
     bank.marginalise_first()
     for h, (x1, P1, const) in enumerate(refs):
         np.testing.assert_allclose(bank.prior_x[h], x1, rtol=1e-9, atol=1e-10)
@@ -194,12 +200,10 @@ def test_an_indefinite_damped_system_fails_alone():
     m, e, axes, area, huber = _case(theta=True)
     B = 3
     x0, P0 = _priors(m, B)
-    p = WindowProblem(m, _readings(e), x0, P0, np.ones((B, len(e.rss_k))), huber_k=huber)
+    p = _window(m, e, x0, P0, np.ones((B, len(e.rss_k))), huber_k=huber)
     X = np.repeat(x0[:, None, :], len(e), axis=1)
     band, g = p.normal_equations(X, p.residual(X))
     band[1, 3, 0] = -1.0  # hypothesis 1's matrix is no longer positive definite
-    from graphslam.core.tracking.window import banded_solve
-
     dx, ok = banded_solve(band, -g, np.zeros(B))
     assert ok.tolist() == [True, False, True] and np.isnan(dx[1]).all()
     for b in (0, 2):

@@ -143,34 +143,44 @@ def rssi_variance_factor(
     (docs/tracking.md). Uses only the map and its AP models."""
     pl = models.path_loss()
     index = {b: i for i, b in enumerate(pl.bssids)}
-    cols = np.array([index.get(b, -1) for b in rm.bssids])
+    cols = np.array([index.get(b, -1) for b in rm.bssids], np.int64)
     v = rm.fingerprints.values.tocsr()
     rows = np.arange(len(rm))
     if len(rows) > max_queries:
         rows = np.sort(np.random.default_rng(seed).choice(rows, max_queries, replace=False))
-    d2 = []
-    for r in rows.tolist():
-        j = v.indices[v.indptr[r] : v.indptr[r + 1]]
-        a = cols[j]
-        keep = a >= 0
-        if keep.sum() < 3:
-            continue
-        a, y = a[keep], v.data[v.indptr[r] : v.indptr[r + 1]][keep] + rm.missing_dbm
-        w = 1.0 / np.asarray(sigma_db, float)[a] ** 2
-        p = rm.xy[r].copy()
-        for _ in range(iterations):
-            h, g = pl.rss_pairs(np.tile(p, (len(a), 1)), a)
-            A = (g * w[:, None]).T @ g
-            try:
-                p = p + np.linalg.solve(A, (g * w[:, None]).T @ (y - h))
-            except np.linalg.LinAlgError:
-                break
-        else:
-            g = pl.rss_gradient(np.tile(p, (len(a), 1)), a)
-            A = (g * w[:, None]).T @ g
-            e = p - rm.xy[r]
-            d2.append(float(e @ A @ e))
-    if not d2:
+    # every query's readings of modelled APs at once: fingerprint f, AP a, RSS y (queries with >= 3 only)
+    sub = v[rows]
+    f = np.repeat(np.arange(len(rows)), np.diff(sub.indptr))
+    a = cols[sub.indices] if sub.nnz else np.zeros(0, np.int64)
+    keep = a >= 0
+    f, a, y = f[keep], a[keep], sub.data[keep] + rm.missing_dbm
+    enough = np.bincount(f, minlength=len(rows)) >= 3
+    keep = enough[f]
+    f, a, y = np.unique(f[keep], return_inverse=True)[1], a[keep], y[keep]
+    q = rows[enough]
+    if not len(q):
+        return 1.0
+    F = len(q)
+    w = 1.0 / np.asarray(sigma_db, float)[a] ** 2
+    law = pl.rows(a)
+    p = rm.xy[q].astype(float)
+    ok = np.ones(F, bool)  # Gauss-Newton has not met a singular system
+    for _ in range(iterations + 1):
+        gx, gy = law.gradient(p[f, 0], p[f, 1])
+        A = np.stack([np.bincount(f, w * gx * gx, F), np.bincount(f, w * gx * gy, F), np.bincount(f, w * gy * gy, F)], 1)
+        det = A[:, 0] * A[:, 2] - A[:, 1] * A[:, 1]
+        if _ == iterations:
+            break
+        ok &= det != 0
+        r = w * (y - law.mean(p[f, 0], p[f, 1]))
+        bx, by = np.bincount(f, gx * r, F), np.bincount(f, gy * r, F)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = np.stack([A[:, 2] * bx - A[:, 1] * by, A[:, 0] * by - A[:, 1] * bx], 1) / det[:, None]
+        p = np.where(ok[:, None], p + step, p)
+    e = p - rm.xy[q]
+    d2 = A[:, 0] * e[:, 0] ** 2 + 2.0 * A[:, 1] * e[:, 0] * e[:, 1] + A[:, 2] * e[:, 1] ** 2
+    d2 = d2[ok]
+    if not len(d2):
         return 1.0
     return max(1.0, float(np.median(d2)) / CHI2_2DOF_MEDIAN)
 

@@ -41,6 +41,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Sequence
 
 import numpy as np
@@ -51,7 +52,7 @@ from graphslam.core.tracking.filters import Epochs, FusionModel
 from graphslam.core.tracking.smoother import MapProblem, dead_reckoning_starts, levenberg_marquardt
 from graphslam.core.tracking.walkable import WalkableArea
 from graphslam.core.tracking.window import (
-    WindowProblem, WindowReadings, banded_cholesky, levenberg_marquardt_bank, marginal_covariances,
+    RunReadings, WindowProblem, banded_cholesky, levenberg_marquardt_bank, marginal_covariances,
 )
 from graphslam.errors import EstimationError
 from graphslam.tracking_config import DEFAULTS
@@ -123,19 +124,29 @@ class _Bank:
         H, n = len(starts), stream.model.n
         self.lo = self.hi = 0
         self.prior_x = np.array([np.asarray(x0, float).ravel() for x0 in starts]).reshape(H, n)
-        self.prior_P = np.repeat(np.asarray(P0, float).reshape(1, n, n), H, axis=0)
+        try:
+            info = np.linalg.inv(np.linalg.cholesky(np.asarray(P0, float).reshape(n, n)))
+        except np.linalg.LinAlgError:
+            raise EstimationError("fixed-lag: P0 is not positive definite") from None
+        self.prior_info = np.repeat((info.T @ info)[None], H, axis=0)  # inverse covariance: what a window needs
         self.X = self.prior_x[:, None, :].copy()  # (H, window epochs, n)
         self.const = np.zeros(H)  # cost of what was marginalised, at its minimum
         self.window_cost = np.zeros(H)
         self.alive = np.ones(H, bool)
         self.dropped = np.zeros(H, np.int64)  # velocity readings of marginalised epochs that were not yet available
-        self.rss_scale = np.repeat(stream.epochs.rss_scale[None, :], H, axis=0)  # as used: adaptive RSSI scales new epochs
+        self.rss_scale = np.repeat(stream.run.rss_scale[None, :], H, axis=0)  # as used: adaptive RSSI scales new epochs
         cfg = stream.cfg
         # innovation statistics of the position fixes (see ``innovate``), with prior pseudo-counts
         self.n_fix = np.full(H, cfg.prior_count)
         self.sum_nis = np.full(H, 2.0 * cfg.prior_count)  # E[NIS] = 2 (dof) when the model is right
-        self._solved: tuple | None = None  # the last solve: problem, its hypotheses, states, residuals, bands
+        self._solved: _Solved | None = None
         self._factor: NDArray | None = None
+
+    @property
+    def prior_P(self) -> NDArray[np.float64]:
+        """(H, n, n) prior covariances."""
+        P = np.linalg.inv(self.prior_info)
+        return 0.5 * (P + np.swapaxes(P, 1, 2))
 
     @property
     def live(self) -> NDArray[np.int64]:
@@ -169,8 +180,8 @@ class _Bank:
         adaptive R, ``filters._inflate_rssi_noise``, kept for that epoch)."""
         s, cfg = self.s, self.s.cfg
         e = s.epochs
-        fixes = range(s.fix_at[j], s.fix_at[j + 1])
-        rss = np.arange(s.rss_at[j], s.rss_at[j + 1]) if cfg.adaptive_rssi else np.zeros(0, np.int64)
+        fixes = range(s.run.fix_at[j], s.run.fix_at[j + 1])
+        rss = np.arange(s.run.rss_at[j], s.run.rss_at[j + 1]) if cfg.adaptive_rssi else np.zeros(0, np.int64)
         if not (len(fixes) or len(rss)) or self._solved is None or j != self.hi or j - 1 < self.lo:
             return
         m, hs = s.model, self.live
@@ -200,47 +211,63 @@ class _Bank:
 
     def solve(self, now: float, restart: bool = False) -> None:
         hs, cfg = self.live, self.s.cfg
-        p = self.s.window(self.lo, self.hi, now, self.prior_x[hs], self.prior_P[hs], self.rss_scale[hs])
-        X, cost, r, band, fresh = levenberg_marquardt_bank(
+        p = self.s.run.window(self.lo, self.hi, now, self.prior_x[hs], self.prior_info[hs], self.rss_scale[hs])
+        X, cost, r, band, g, fresh = levenberg_marquardt_bank(
             p, self.X[hs], cfg.max_iter, rel_tol=cfg.rel_tol, max_damping=cfg.max_damping)
         if restart:
+            prior_P = self.prior_P
             for b, h in enumerate(hs):
-                mp = self.s.problem(self.lo, self.hi, now, self.prior_x[h], self.prior_P[h], self.rss_scale[h])
+                mp = self.s.problem(self.lo, self.hi, now, self.prior_x[h], prior_P[h], self.rss_scale[h])
                 for X0 in dead_reckoning_starts(mp):
                     Xr, cr, _ = levenberg_marquardt(mp, X0, cfg.max_iter * 5, rel_tol=cfg.rel_tol)
                     if cr < cost[b]:
                         X[b], cost[b], fresh[b] = Xr, cr, False
             r = p.residual(X)
+        if not fresh.all():  # the information at the final states (marginals, marginalisation)
+            k = np.flatnonzero(~fresh)
+            band[k], g[k] = p.normal_equations(X[k], r[k], k)
         self.X[hs], self.window_cost[hs] = X, cost
-        self._solved, self._factor = (p, hs, X, r, band, fresh), None
+        # what marginalising the first epoch needs, kept before the band becomes its factor
+        self._solved = _Solved(p, hs, now, r, band, band[:, : p.n].copy(), g[:, : p.n].copy())
+        self._factor = None
 
     def marginals(self, i: int, hs: NDArray) -> NDArray[np.float64]:
         """(len(hs), n, n) marginal covariances of window epoch ``i`` of the hypotheses ``hs`` at the
         last solve: one block column of the inverse information of each, by banded solves."""
-        if self._solved is None:
-            return self.prior_P[hs].copy()
-        p, solved = self._solved[0], self._solved[1]
+        sv = self._solved
+        if sv is None:
+            return self.prior_P[hs]
         if self._factor is None:
-            _, _, X, r, band, fresh = self._solved
-            if not fresh.all():  # the information at the final states
-                k = np.flatnonzero(~fresh)
-                band[k] = p.normal_equations(X[k], r[k], k)[0]
-            self._factor = banded_cholesky(band, overwrite=True)
+            self._factor = banded_cholesky(sv.band, overwrite=True)
             if self._factor is None:
                 raise EstimationError("fixed-lag: the information matrix is singular (unobservable state)")
-        S = marginal_covariances(self._factor, len(solved), p.size, p.n, i)
-        return S[np.searchsorted(solved, hs)]
+        S = marginal_covariances(self._factor, len(sv.hs), sv.p.size, sv.p.n, i)
+        return S[np.searchsorted(sv.hs, hs)]
 
     def marginalise_first(self) -> None:
         """Eliminate epoch ``lo`` (linearised at the current estimate); prior on ``lo + 1``."""
         assert self.hi > self.lo
         hs, n, s = self.live, self.s.model.n, self.s
-        # the rows that touch epoch lo (its prior, its readings known now, the process step to lo + 1)
-        p = s.window(self.lo, self.lo + 1, s.now, self.prior_x[hs], self.prior_P[hs], self.rss_scale[hs], upto=self.lo)
-        X2 = self.X[hs, :2]
-        r = p.residual(X2)
-        band, g = p.normal_equations(X2, r)
-        H = p.dense(band)
+        # the rows that touch epoch lo (its prior, its readings known now, the process step to lo + 1):
+        # those of the last solve's window when it is this one's (its information and gradient at
+        # the current states), else their own problem
+        sv, run = self._solved, s.run
+        v = slice(run.vel_at[self.lo], run.vel_at[self.lo + 1])
+        at = None if sv is None else np.searchsorted(sv.hs, hs)  # live now among those solved (pruning only drops)
+        if (sv is not None and sv.p.N > 1 and ((run.vel_avail[v] <= sv.now) == (run.vel_avail[v] <= s.now)).all()):
+            H = np.zeros((len(hs), 2 * n, 2 * n))
+            rows, cols, d = _first_block_maps(n)
+            H[:, rows, cols] = H[:, cols, rows] = sv.block0[at][:, cols, d]
+            H[:, np.arange(n, 2 * n), np.arange(n, 2 * n)] = sv.p.inv_sq[0] ** 2  # the process step alone
+            r = sv.r[at]
+            g = np.concatenate([sv.g0[at], r[:, n : 2 * n] * sv.p.inv_sq[0]], axis=1)
+            head = sv.p.first_epoch_cost(r)
+        else:
+            p = run.window(self.lo, self.lo + 1, s.now, self.prior_x[hs], self.prior_info[hs], self.rss_scale[hs], upto=self.lo)
+            X2 = self.X[hs, :2]
+            r = p.residual(X2)
+            band, g = p.normal_equations(X2, r)
+            H, head = p.dense(band), p.cost(r)
         g0, g1 = g[:, :n], g[:, n:]
         try:
             A = np.linalg.solve(H[:, :n, :n], np.concatenate([H[:, :n, n:], g0[..., None]], axis=2))
@@ -248,14 +275,12 @@ class _Bank:
             H1 = 0.5 * (H1 + np.swapaxes(H1, 1, 2))
             g1 = g1 - np.einsum("bij,bi->bj", A[..., :n], g0)
             step = np.linalg.solve(H1, g1[..., None])[..., 0]
-            P1 = np.linalg.inv(H1)
         except np.linalg.LinAlgError:
             raise EstimationError("fixed-lag: the marginalised epoch's information is singular") from None
-        self.const[hs] += p.cost(r) - np.einsum("bi,bi->b", g0, A[..., n]) - np.einsum("bi,bi->b", g1, step)
+        self.const[hs] += head - np.einsum("bi,bi->b", g0, A[..., n]) - np.einsum("bi,bi->b", g1, step)
         self.prior_x[hs] = self.X[hs, 1] - step
-        self.prior_P[hs] = 0.5 * (P1 + np.swapaxes(P1, 1, 2))
-        v = slice(s.vel_at[self.lo], s.vel_at[self.lo + 1])
-        self.dropped[hs] += int((s.vel_avail[v] > s.now).sum())
+        self.prior_info[hs] = H1
+        self.dropped[hs] += int((run.vel_avail[v] > s.now).sum())
         self.X, self.lo = self.X[:, 1:], self.lo + 1
         self._solved = self._factor = None  # the next solve builds the shorter window
 
@@ -266,9 +291,30 @@ class _Bank:
         self.alive &= ~(tc > tc[self.alive].min() + prune_cost)
 
 
+@dataclass(eq=False)
+class _Solved:
+    """The last solve: its problem, hypotheses and time, final residuals and information (band, to
+    be factored in place), and the first epoch's block column of that band and of the gradient."""
+
+    p: WindowProblem
+    hs: NDArray[np.int64]
+    now: float
+    r: NDArray[np.float64]
+    band: NDArray[np.float64]
+    block0: NDArray[np.float64]
+    g0: NDArray[np.float64]
+
+
+@lru_cache(maxsize=8)
+def _first_block_maps(n: int) -> tuple[NDArray, NDArray, NDArray]:
+    """Row, column (< n) and band offset of the lower entries of the first two epochs' information
+    that a band (kd = n) holds in the first epoch's columns."""
+    cols, d = np.divmod(np.arange(n * (n + 1)), n + 1)
+    return cols + d, cols, d
+
+
 class _Stream:
-    """The run's readings, each kind sorted by epoch, sliced into windows by epoch range and
-    availability time."""
+    """The run's readings, each kind sorted by epoch (``run``: sliced into the windows' problems)."""
 
     def __init__(
         self, model: FusionModel, epochs: Epochs, cfg: FixedLagConfig, vel_available_s: NDArray | None,
@@ -279,39 +325,20 @@ class _Stream:
         va = e.t_s[e.vel_k] if vel_available_s is None else np.asarray(vel_available_s, float).ravel()
         if va.shape != e.vel_k.shape or (va < e.t_s[e.vel_k] - 1e-9).any():
             raise EstimationError("fixed-lag: one availability time per velocity reading, not before its epoch")
-        ov, orr, of = (np.argsort(k, kind="stable") for k in (e.vel_k, e.rss_k, e.fix_k))
+        run = self.run = RunReadings(model, e, va, huber_k=cfg.huber_k, axes=axes, area=area)
         self.epochs = Epochs(
-            e.t_s, e.vel_k[ov], e.vel_y[ov], e.rss_k[orr], e.rss_ap[orr], e.rss_y[orr], e.fix_k[of], e.fix_xy[of],
-            e.fix_sigma[of], e.rss_scale[orr], e.travel_m,
+            e.t_s, run.vel_k, run.vel_y, run.rss_k, run.rss_ap, run.rss_y, run.fix_k, run.fix_xy, run.fix_sigma,
+            run.rss_scale, e.travel_m,
         )
-        self.vel_avail = va[ov]
-        every = np.arange(len(e) + 1)
-        self.vel_at, self.rss_at, self.fix_at = (
-            np.searchsorted(k, every) for k in (self.epochs.vel_k, self.epochs.rss_k, self.epochs.fix_k))
         self.now = float(e.t_s[0])
-
-    def window(
-        self, lo: int, hi: int, now: float, x0: NDArray, P0: NDArray, rss_scale: NDArray, upto: int | None = None
-    ) -> WindowProblem:
-        """The window ``[lo, hi]`` at time ``now`` for the hypotheses whose priors and RSSI scales
-        (per reading of the run) are given; with ``upto`` only the readings of epochs up to it."""
-        e, last = self.epochs, hi if upto is None else upto
-        v = slice(self.vel_at[lo], self.vel_at[last + 1])
-        known = self.vel_avail[v] <= now
-        r = slice(self.rss_at[lo], self.rss_at[last + 1])
-        f = slice(self.fix_at[lo], self.fix_at[last + 1])
-        w = WindowReadings(
-            e.t_s[lo : hi + 1], e.vel_k[v][known] - lo, e.vel_y[v][known], e.rss_k[r] - lo, e.rss_ap[r], e.rss_y[r],
-            e.fix_k[f] - lo, e.fix_xy[f], e.fix_sigma[f], None if e.travel_m is None else e.travel_m[lo:hi],
-        )
-        return WindowProblem(self.model, w, x0, P0, rss_scale[:, r], huber_k=self.cfg.huber_k, axes=self.axes, area=self.area)
 
     def problem(
         self, lo: int, hi: int, now: float, x0: NDArray, P0: NDArray, rss_scale: NDArray
     ) -> MapProblem:
-        """The same window for one hypothesis as a ``MapProblem`` (the dead-reckoning restarts)."""
-        e = self.epochs
-        v = (e.vel_k >= lo) & (e.vel_k <= hi) & (self.vel_avail <= now)
+        """The window ``[lo, hi]`` at ``now`` for one hypothesis as a ``MapProblem`` (the dead-reckoning
+        restarts): prior N(x0, P0), RSSI scales per reading of the run."""
+        e, run = self.epochs, self.run
+        v = (e.vel_k >= lo) & (e.vel_k <= hi) & (run.vel_avail <= now)
         r = (e.rss_k >= lo) & (e.rss_k <= hi)
         f = (e.fix_k >= lo) & (e.fix_k <= hi)
         win = Epochs(

@@ -77,9 +77,12 @@ class ResidualField:
         """The grids of APs ``idx`` (m,) gathered once, for reading them at many positions."""
         g = self._table[np.asarray(idx, dtype=np.int64)]  # (m, 6)
         top = g[:, 2:4]  # last cell centre in cells (negative: no grid)
+        full = (top >= 0.0).all(axis=1)
         hi = np.maximum(top - 1e-9, 0.0)
+        # a reading without a grid is never inside: its cells are read at 0, 1 (in range, discarded)
         return FieldRows(1.0 / self.cell_m, g[:, 0], g[:, 1], top[:, 0], top[:, 1], hi[:, 0], hi[:, 1],
-                         g[:, 4].astype(np.int64), g[:, 5].astype(np.int64), self.values)
+                         np.where(full, g[:, 4], 0).astype(np.int64), np.where(full, g[:, 5], 0).astype(np.int64),
+                         self.values)
 
     @property
     def _table(self) -> NDArray[np.float64]:
@@ -112,21 +115,25 @@ class FieldRows:
     def at(self, x: NDArray, y: NDArray) -> NDArray[np.float64]:
         """Correction (dB) of each reading's AP at positions ``x``, ``y`` (m; shape (..., m))."""
         v = self.values
-        if not v.size:
+        if v.size < 2:  # no grid of 2 x 2 cells: never inside one
             return np.zeros(np.broadcast_shapes(np.shape(x), self.ox.shape))
         ux = (x - self.ox) * self.inv_cell  # in cells
         uy = (y - self.oy) * self.inv_cell
         inside = (ux >= 0.0) & (uy >= 0.0) & (ux <= self.top_x) & (uy <= self.top_y)
         ux = np.minimum(np.maximum(ux, 0.0), self.hi_x)
         uy = np.minimum(np.maximum(uy, 0.0), self.hi_y)
-        ix, iy = ux.astype(np.int64), uy.astype(np.int64)  # floor: u >= 0
+        ix, iy = ux.astype(np.int64), uy.astype(np.int64)  # floor: u >= 0; the cell and its neighbours are in the grid
         fx, fy = ux - ix, uy - iy
-        last = v.size - 1
-        base = np.minimum(self.offset + iy * self.nx + ix, last)
-        up = np.minimum(base + self.nx, last)
-        val = (v[base] * (1 - fx) + v[np.minimum(base + 1, last)] * fx) * (1 - fy) \
-            + (v[up] * (1 - fx) + v[np.minimum(up + 1, last)] * fx) * fy
+        gx = 1 - fx
+        base = self.offset + iy * self.nx + ix
+        up = base + self.nx
+        val = (v[base] * gx + v[base + 1] * fx) * (1 - fy) + (v[up] * gx + v[up + 1] * fx) * fy
         return np.where(inside, val, 0.0)
+
+    def take(self, rows: slice | NDArray) -> "FieldRows":
+        """The field of these readings only."""
+        return FieldRows(self.inv_cell, self.ox[rows], self.oy[rows], self.top_x[rows], self.top_y[rows], self.hi_x[rows],
+                         self.hi_y[rows], self.nx[rows], self.offset[rows], self.values)
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,9 @@ The cost is ``MapProblem``'s (``graphslam.core.tracking.smoother``) on the same 
 in the same order (the tests compare the two). The normal equations are assembled per epoch rather
 than from a sparse Jacobian: every reading touches the state of one epoch only, and the process rows
 (the only ones linking two epochs) do not depend on the states, so ``J^T W J`` is a band that is
-constant per window plus one small block per reading on the diagonal.
+constant per window plus one small block per reading on the diagonal. What does not depend on the
+states (the process band, the readings' Jacobian constants and band positions, their APs' law and
+field) is computed once per run (``RunReadings``) and sliced per window.
 
 Frames and units as the filters (m, m/s, rad, dBm, s).
 """
@@ -25,111 +27,200 @@ import scipy.linalg.lapack as lapack
 from numpy.typing import NDArray
 
 from graphslam.core.tracking.axes import WalkAxes
-from graphslam.core.tracking.filters import FusionModel
+from graphslam.core.tracking.filters import Epochs, FusionModel
 from graphslam.core.tracking.walkable import WalkableArea
 from graphslam.errors import EstimationError
 
 
-@dataclass(frozen=True, eq=False)
-class WindowReadings:
-    """What a window holds, shared by every hypothesis: epoch times (N,) and the readings with
-    their epoch as an index into the window (each kind sorted by epoch). ``travel_m`` (N - 1,):
-    distances moved (models with shadowing states only)."""
+class RunReadings:
+    """A run's readings, each kind sorted by epoch, with what about them does not depend on the
+    states; ``window`` cuts the problem of one window out of them. Velocity readings are available
+    from ``vel_available_s`` (one per reading; default: their epoch's time)."""
 
-    t_s: NDArray[np.float64]
-    vel_k: NDArray[np.int64]
-    vel_y: NDArray[np.float64]
-    rss_k: NDArray[np.int64]
-    rss_ap: NDArray[np.int64]
-    rss_y: NDArray[np.float64]
-    fix_k: NDArray[np.int64]
-    fix_xy: NDArray[np.float64]
-    fix_sigma: NDArray[np.float64]
-    travel_m: NDArray[np.float64] | None = None
+    def __init__(
+        self, model: FusionModel, epochs: Epochs, vel_available_s: NDArray | None = None, *,
+        huber_k: float | None = None, axes: WalkAxes | None = None, area: WalkableArea | None = None,
+    ) -> None:
+        e = epochs
+        e.check_model(model)
+        n, N = model.n, len(e)
+        self.model, self.n, self.kd, self.huber_k, self.axes, self.area = model, n, n, huber_k, axes, area
+        kd1 = n + 1
+        va = e.t_s[e.vel_k] if vel_available_s is None else np.asarray(vel_available_s, float).ravel()
+        ov, orr, of = (np.argsort(k, kind="stable") for k in (e.vel_k, e.rss_k, e.fix_k))
+        self.t_s = e.t_s
+        self.vel_k, self.vel_y, self.vel_avail = e.vel_k[ov], e.vel_y[ov], va[ov]
+        self.rss_k, self.rss_ap, self.rss_y, self.rss_scale = e.rss_k[orr], e.rss_ap[orr], e.rss_y[orr], e.rss_scale[orr]
+        self.fix_k, self.fix_xy, self.fix_sigma = e.fix_k[of], e.fix_xy[of], e.fix_sigma[of]
+        self.travel_m = e.travel_m
+        every = np.arange(N + 1)
+        self.vel_at, self.rss_at, self.fix_at = (np.searchsorted(k, every) for k in (self.vel_k, self.rss_k, self.fix_k))
+        self.shadow = model.shadowing is not None
+        self.theta = model.theta_rad is None
+        # the process: whitened rows p_k = (x_k+1 - rho x_k - dt (v_k, 0)) / sq per interval
+        self.dt = np.diff(e.t_s)
+        sq = np.sqrt(np.outer(self.dt / model.period_s, np.asarray(model.q_diag, float)))  # (N-1, n_base)
+        self.rho = np.ones((N - 1, n))
+        if model.shadowing is not None:
+            if e.travel_m is None:
+                raise EstimationError("fixed-lag: a model with shadowing states needs the distance moved (Epochs.travel_m)")
+            rho = model.shadowing.decay(e.travel_m)
+            self.rho[:, model.n_base:] = rho[:, None]
+            sq = np.hstack([sq, np.repeat(np.sqrt(model.shadowing.noise_var(rho))[:, None], n - model.n_base, axis=1)])
+        self.inv_sq = 1.0 / sq
+        Bk = np.zeros((N - 1, n, n))  # d p_k / d x_k; d p_k / d x_k+1 = diag(inv_sq)
+        Bk[:, np.arange(n), np.arange(n)] = -self.rho * self.inv_sq
+        Bk[:, 0, 2] = -self.dt * self.inv_sq[:, 0]
+        Bk[:, 1, 3] = -self.dt * self.inv_sq[:, 1]
+        self.Bk = Bk
+        # their J^T J by band column: interval k's own block (B^T B) and the block below it
+        # (A^T B) in block k's columns, its diag(inv_sq^2) in block k + 1's
+        posD, selD, posO, selO = _band_maps(N, n)
+        m = N * n * (n + 1) // 2 - n * (n + 1) // 2  # the first N - 1 blocks' lower triangles
+        self._next, self._prev = np.zeros((N * n, kd1)), np.zeros((N * n, kd1))
+        if N > 1:
+            self._next.reshape(-1)[posD[:m]] = np.einsum("kij,kil->kjl", Bk, Bk).reshape(-1)[selD[:m]]
+            self._next.reshape(-1)[posO] = (self.inv_sq[:, :, None] * Bk).reshape(-1)[selO]
+            self._prev[n:, 0] = (self.inv_sq * self.inv_sq).ravel()
+        # reading rows: Jacobian constants, columns, band and gradient positions (epochs of the run)
+        c = 5 if self.theta else 4
+        self.c = c
+        sv = np.sqrt(model.r_velocity)
+        self.inv_sv = 1.0 / sv
+        vc = np.arange(2, 2 + c)  # vx vy bx by (theta)
+        self._J0v = np.zeros((2, c))
+        self._J0v[0, 2], self._J0v[1, 3] = -self.inv_sv[0], -self.inv_sv[1]  # bias entries are constant
+        self._pos_v, gv = _positions(self.vel_k, np.broadcast_to(vc, (len(self.vel_k), c)), n)
+        self._gpos_v = np.repeat(gv[:, None, :], 2, axis=1)  # both rows of a reading
+        rc = np.broadcast_to(np.arange(2), (len(self.rss_k), 2))
+        if self.shadow:
+            rc = np.column_stack([rc, model.shadow_state(self.rss_ap)])
+        self._pos_r, self._gpos_r = _positions(self.rss_k, rc, n)
+        self._pos_f, self._gpos_f = _positions(np.repeat(self.fix_k, 2), np.tile([[0], [1]], (len(self.fix_k), 1)), n)
+        self.inv_fs = 1.0 / self.fix_sigma
+        self._pos_a, self._gpos_a = _positions(self.vel_k, np.broadcast_to([2, 3], (len(self.vel_k), 2)), n)
+        self._pos_w, self._gpos_w = _positions(self.vel_k, np.broadcast_to([0, 1], (len(self.vel_k), 2)), n)
+        self.law = model.path_loss.rows(self.rss_ap)
+        self.sr0 = np.sqrt(model.r_rssi[self.rss_ap])
+        self._rss_col = model.shadow_state(self.rss_ap) if self.shadow else None
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    def window(
+        self, lo: int, hi: int, now: float, x0: NDArray, info: NDArray, rss_scale: NDArray, upto: int | None = None
+    ) -> "WindowProblem":
+        """The window of epochs ``lo`` .. ``hi`` at time ``now`` (velocity readings available by then),
+        for hypotheses with prior means ``x0`` (B, n), prior informations (inverse covariances) ``info``
+        (B, n, n) and RSSI std scales ``rss_scale`` (B, the run's readings); with ``upto``, only the
+        readings of epochs up to it (the rows a marginalisation of epoch ``lo`` removes)."""
+        return WindowProblem(self, lo, hi, now, x0, info, rss_scale, upto)
 
 
 class WindowProblem:
-    """The whitened residuals of one window for ``B`` hypotheses: prior ``N(x0[b], P0[b])`` on the
+    """The whitened residuals of one window for ``B`` hypotheses: prior ``N(x0[b], info[b]^-1)`` on the
     first epoch and RSSI std ``sqrt(r_rssi) * rss_scale[b]`` per reading; rows as ``MapProblem``'s
-    (prior, process, velocity, then the Huber-weighted map rows: RSSI, fixes, axes, area).
+    (prior, process, velocity, then the Huber-weighted map rows: RSSI, fixes, axes, area), the prior
+    rows whitened by the Cholesky factor of ``info`` (the same cost as ``MapProblem``'s).
 
     States ``X`` are (B', N, n) or (B', N n) for the hypotheses ``hs`` (indices into the B; all by
     default); residuals (B', rows); costs (B',). Bands are (B', N n, kd + 1) with ``band[b, j, d] =
     A_b[j + d, j]``: each hypothesis's rows are LAPACK's lower band layout, column-major."""
 
     def __init__(
-        self, model: FusionModel, w: WindowReadings, x0: NDArray, P0: NDArray, rss_scale: NDArray, *,
-        huber_k: float | None = None, axes: WalkAxes | None = None, area: WalkableArea | None = None,
+        self, run: RunReadings, lo: int, hi: int, now: float, x0: NDArray, info: NDArray, rss_scale: NDArray,
+        upto: int | None = None,
     ) -> None:
-        n, N = model.n, len(w.t_s)
-        self.model, self.w, self.n, self.N, self.size = model, w, n, N, N * n
-        self.huber_k, self.axes, self.area = huber_k, axes, area
-        # band: an epoch couples its neighbour only through the process, whose block (k + 1, k) is
-        # diagonal but for (x, vx) and (y, vy) above it: bandwidth n, not 2n - 1
-        self.kd = n if N > 1 else n - 1
+        n, N = run.n, hi - lo + 1
+        self.run, self.model, self.n, self.N, self.size = run, run.model, n, N, N * n
+        self.huber_k, self.axes, self.area, self.theta, self.kd = run.huber_k, run.axes, run.area, run.theta, run.kd
+        kd1, last = self.kd + 1, hi if upto is None else upto
+        v = np.arange(run.vel_at[lo], run.vel_at[last + 1])
+        v = v[run.vel_avail[v] <= now]
+        r = slice(run.rss_at[lo], run.rss_at[last + 1])
+        f = slice(run.fix_at[lo], run.fix_at[last + 1])
+        self.vel_k, self.vel_y = run.vel_k[v] - lo, run.vel_y[v]
+        self.rss_k, self.rss_y, self.law = run.rss_k[r] - lo, run.rss_y[r], run.law.take(r)
+        self.fix_k, self.fix_xy, self.inv_fs = run.fix_k[f] - lo, run.fix_xy[f], run.inv_fs[f]
         self.x0 = np.asarray(x0, float).reshape(-1, n)
+        B = len(self.x0)
+        self.sr = run.sr0[r] * np.asarray(rss_scale, float).reshape(B, -1)[:, r]
+        self._rss_col = None if run._rss_col is None else run._rss_col[r]
         try:
-            C = np.linalg.cholesky(np.asarray(P0, float).reshape(-1, n, n))
+            L = np.linalg.cholesky(np.asarray(info, float).reshape(B, n, n))
         except np.linalg.LinAlgError:
-            raise EstimationError("fixed-lag: a window's prior covariance is not positive definite") from None
-        self.W0 = np.linalg.inv(C)  # C^-1 whitens x - x0
-        ii, jj = _tril(n)
-        self._prior_vals = np.einsum("bki,bkj->bij", self.W0, self.W0)[:, ii, jj]  # P0^-1, lower triangle
-        self._prior_pos = jj * (self.kd + 1) + ii - jj
-        self._shadow = model.shadowing is not None
-        self.dt = np.diff(w.t_s)
-        self.sq = np.sqrt(np.outer(self.dt / model.period_s, np.asarray(model.q_diag, float)))  # (N-1, n) process std
-        self.rho = np.ones((N - 1, n))
-        if self._shadow:
-            assert model.shadowing is not None and w.travel_m is not None
-            rho = model.shadowing.decay(w.travel_m)
-            self.rho[:, model.n_base:] = rho[:, None]
-            sd = np.sqrt(model.shadowing.noise_var(rho))
-            self.sq = np.hstack([self.sq, np.repeat(sd[:, None], n - model.n_base, axis=1)])
-            self._rss_col = model.shadow_state(w.rss_ap)
-        self.sv = np.sqrt(model.r_velocity)
-        self.sr = np.sqrt(model.r_rssi[w.rss_ap]) * np.asarray(rss_scale, float).reshape(len(self.x0), -1)
-        self._pl = model.path_loss.rows(w.rss_ap)
-        self.theta = model.theta_rad is None
-        Mv, Mr, Mf = len(w.vel_k), len(w.rss_k), len(w.fix_k)
+            raise EstimationError("fixed-lag: a window's prior information is not positive definite") from None
+        self.W0 = np.swapaxes(L, 1, 2)  # W0^T W0 = info
+        self.dt, self.rho, self.inv_sq, self._Bk = run.dt[lo:hi], run.rho[lo:hi], run.inv_sq[lo:hi], run.Bk[lo:hi]
+        self._band_const = np.zeros((self.size, kd1))
+        if N > 1:
+            self._band_const[: (N - 1) * n] += run._next[lo * n : hi * n]
+            self._band_const[n:] += run._prev[(lo + 1) * n : (hi + 1) * n]
+        Mv, Mr, Mf = len(v), r.stop - r.start, f.stop - f.start
         self.meas = n + (N - 1) * n  # first reading row
         self.head = self.meas + 2 * Mv  # rows before the (robust) map rows
-        self.rows = self.head + Mr + 2 * Mf + (Mv if axes is not None else 0) + (Mv if area is not None else 0)
-        self._band_const = self._process_band()
-        self._reading_structure()
+        self.rows = self.head + Mr + 2 * Mf + (Mv if run.axes is not None else 0) + (Mv if run.area is not None else 0)
+        # the reading rows' Jacobian as (rows, c) entries in their epoch's columns (``jacobian_rows``),
+        # the band positions of the products each reading adds (lower triangle of its entries) and
+        # the gradient positions of its entries, the prior's first
+        c, ii, jj = run.c, *_tril(n)
+        ps, gs = [jj * kd1 + ii - jj], [np.arange(n)]
+        shift, gshift = lo * n * kd1, lo * n
+        f2 = slice(2 * f.start, 2 * f.stop)
+        parts = [(Mv, run._pos_v[v], run._gpos_v[v]), (Mr, run._pos_r[r], run._gpos_r[r]), (Mf, run._pos_f[f2], run._gpos_f[f2])]
+        if run.axes is not None:
+            parts.append((Mv, run._pos_a[v], run._gpos_a[v]))
+        if run.area is not None:
+            parts.append((Mv, run._pos_w[v], run._gpos_w[v]))
+        for m, pp, gp in parts:
+            if m:
+                ps.append(pp.ravel() - shift)
+                gs.append(gp.ravel() - gshift)
+        self._pos, self._gpos = np.concatenate(ps), np.concatenate(gs)
+        self._prior_vals = np.asarray(info, float).reshape(B, n, n)[:, ii, jj]
+        J0 = np.zeros((self.rows - self.meas, c))
+        J0[: 2 * Mv] = np.tile(run._J0v, (Mv, 1))
+        J0[2 * Mv + Mr : 2 * Mv + Mr + 2 * Mf, 0] = -np.repeat(self.inv_fs, 2)
+        self._J0 = J0
+        # reading kinds as (first row, rows, entries, rows per reading) of the reading rows
+        seg = [(0, 2 * Mv, c, 2), (2 * Mv, Mr, 3 if run.shadow else 2, 1), (2 * Mv + Mr, 2 * Mf, 1, 1),
+               (2 * Mv + Mr + 2 * Mf, self.rows - self.head - Mr - 2 * Mf, 2, 1)]
+        self._segments = [(a, a + m, e, per, _tril(e)) for a, m, e, per in seg if m]
+        self._gsegments = [(a, a + m, e) for a, m, e, _ in seg if m]
 
     # --- residuals and costs -------------------------------------------------------------------
     def residual(self, X: NDArray, hs: NDArray | None = None) -> NDArray[np.float64]:
         X = np.asarray(X, float).reshape(-1, self.N, self.n)
         h = slice(None) if hs is None else hs
-        w, B = self.w, len(X)
+        n, B, run = self.n, len(X), self.run
         out = np.empty((B, self.rows))
-        out[:, : self.n] = np.einsum("bij,bj->bi", self.W0[h], X[:, 0] - self.x0[h])
+        out[:, :n] = np.matmul(self.W0[h], (X[:, 0] - self.x0[h])[..., None])[..., 0]
         if self.N > 1:
-            proc = X[:, 1:] - self.rho * X[:, :-1]
+            proc = X[:, 1:] - self.rho * X[:, :-1] if run.shadow else X[:, 1:] - X[:, :-1]
             proc[..., 0:2] -= self.dt[:, None] * X[:, :-1, 2:4]
-            out[:, self.n : self.meas] = (proc / self.sq).reshape(B, -1)
-        xv = X[:, w.vel_k]
-        if len(w.vel_k):
+            out[:, n : self.meas] = (proc * self.inv_sq).reshape(B, -1)
+        xv = X[:, self.vel_k]
+        if len(self.vel_k):
             s, c = self._sincos(xv)
             vx, vy = xv[..., 2], xv[..., 3]
-            out[:, self.meas : self.head : 2] = (w.vel_y[:, 0] - (c * vy - s * vx) - xv[..., 4]) / self.sv[0]
-            out[:, self.meas + 1 : self.head : 2] = (w.vel_y[:, 1] - (c * vx + s * vy) - xv[..., 5]) / self.sv[1]
+            out[:, self.meas : self.head : 2] = (self.vel_y[:, 0] - (c * vy - s * vx) - xv[..., 4]) * run.inv_sv[0]
+            out[:, self.meas + 1 : self.head : 2] = (self.vel_y[:, 1] - (c * vx + s * vy) - xv[..., 5]) * run.inv_sv[1]
         at = self.head
-        if len(w.rss_k):
-            xr = X[:, w.rss_k]
-            hr = self._pl.mean(xr[..., 0], xr[..., 1])
-            if self._shadow:
-                hr = hr + xr[:, np.arange(len(w.rss_k)), self._rss_col]
-            out[:, at : at + len(w.rss_k)] = (w.rss_y - hr) / self.sr[h]
-            at += len(w.rss_k)
-        if len(w.fix_k):
-            out[:, at : at + 2 * len(w.fix_k)] = ((w.fix_xy - X[:, w.fix_k, 0:2]) / w.fix_sigma[:, None]).reshape(B, -1)
-            at += 2 * len(w.fix_k)
-        for prior, part in ((self.axes, 2), (self.area, 0)):
-            if prior is not None:
-                out[:, at : at + len(w.vel_k)] = prior.residual(xv[..., part : part + 2].reshape(-1, 2)).reshape(B, -1)
-                at += len(w.vel_k)
+        if len(self.rss_k):
+            xr = X[:, self.rss_k]
+            hr = self.law.mean(xr[..., 0], xr[..., 1])
+            if run.shadow:
+                hr = hr + xr[:, np.arange(len(self.rss_k)), self._rss_col]
+            out[:, at : at + len(self.rss_k)] = (self.rss_y - hr) / self.sr[h]
+            at += len(self.rss_k)
+        if len(self.fix_k):
+            out[:, at : at + 2 * len(self.fix_k)] = ((self.fix_xy - X[:, self.fix_k, 0:2]) * self.inv_fs[:, None]).reshape(B, -1)
+            at += 2 * len(self.fix_k)
+        if self.axes is not None:
+            out[:, at : at + len(self.vel_k)] = self.axes.residual_xy(xv[..., 2], xv[..., 3])
+            at += len(self.vel_k)
+        if self.area is not None:
+            out[:, at:] = self.area.residual(xv[..., 0:2].reshape(-1, 2)).reshape(B, -1)
         return out
 
     def _sincos(self, xv: NDArray) -> tuple[NDArray, NDArray]:
@@ -143,6 +234,24 @@ class WindowProblem:
         k, hd, a = self.huber_k, r[:, : self.head], np.abs(r[:, self.head:])
         return np.einsum("br,br->b", hd, hd) + np.where(a <= k, a * a, 2.0 * k * a - k * k).sum(axis=1)
 
+    def first_epoch_cost(self, r: NDArray) -> NDArray[np.float64]:
+        """Per hypothesis: the cost of the rows that touch the first epoch (its prior, the process
+        step to the second, its readings): what marginalising it takes out of the window."""
+        n, m = self.n, [np.searchsorted(k, 1) for k in (self.vel_k, self.rss_k, self.fix_k)]
+        Mv, Mr, Mf = len(self.vel_k), len(self.rss_k), len(self.fix_k)
+        head = np.r_[0 : n * min(2, self.N), self.meas : self.meas + 2 * m[0]]
+        at = self.head + np.r_[0 : m[1], Mr : Mr + 2 * m[2]]
+        extra = Mr + 2 * Mf
+        for prior in (self.axes, self.area):
+            if prior is not None:
+                at = np.r_[at, self.head + extra + np.arange(m[0])]
+                extra += Mv
+        rh, a = r[:, head], np.abs(r[:, at])
+        if self.huber_k is None:
+            return np.einsum("br,br->b", rh, rh) + np.einsum("br,br->b", a, a)
+        k = self.huber_k
+        return np.einsum("br,br->b", rh, rh) + np.where(a <= k, a * a, 2.0 * k * a - k * k).sum(axis=1)
+
     def weights(self, r: NDArray) -> NDArray[np.float64]:
         """IRLS weights (squared) of the reading rows (``r``'s from the first velocity row on): 1,
         Huber's k / |r| on map rows beyond k."""
@@ -152,100 +261,39 @@ class WindowProblem:
         return w
 
     # --- normal equations -----------------------------------------------------------------------
-    def _process_band(self) -> NDArray[np.float64]:
-        """The process rows' J^T J (size, kd + 1) (constant: the process is linear)."""
-        n, N = self.n, self.N
-        band = np.zeros((self.size, self.kd + 1))
-        if N == 1:
-            return band
-        inv = 1.0 / self.sq  # (N-1, n)
-        Bk = np.zeros((N - 1, n, n))  # d p_k / d x_k (whitened)
-        Bk[:, np.arange(n), np.arange(n)] = -self.rho * inv
-        Bk[:, 0, 2] = -self.dt * inv[:, 0]
-        Bk[:, 1, 3] = -self.dt * inv[:, 1]
-        D = np.zeros((N, n, n))
-        D[1:, np.arange(n), np.arange(n)] = inv * inv
-        D[:-1] += np.einsum("kij,kil->kjl", Bk, Bk)
-        O = inv[:, :, None] * Bk  # block (k + 1, k): A_k^T B_k, A_k = diag(inv)
-        self._Bk = Bk
-        posD, selD, posO, selO = _band_maps(N, n)
-        band.reshape(-1)[posD] = D.reshape(-1)[selD]
-        band.reshape(-1)[posO] = O.reshape(-1)[selO]
-        return band
-
-    def _reading_structure(self) -> None:
-        """Every reading row as up to ``c`` Jacobian entries in its epoch's columns (unused ones in
-        column 0 with value 0): their columns, the constant entries, and the band and gradient
-        positions of their products, in the row order of ``residual``."""
-        n, w, kd1 = self.n, self.w, self.kd + 1
-        Mv, Mr, Mf = len(w.vel_k), len(w.rss_k), len(w.fix_k)
-        c = 5 if self.theta else 4
-        R = self.rows - self.meas
-        cols, J0, k = np.zeros((R, c), np.int64), np.zeros((R, c)), np.zeros(R, np.int64)
-        vc = np.arange(2, 2 + c)  # vx vy bx by (theta)
-        cols[: 2 * Mv] = vc
-        k[: 2 * Mv] = np.repeat(w.vel_k, 2)
-        J0[0 : 2 * Mv : 2, 2] = -1.0 / self.sv[0]  # bias entries are constant
-        J0[1 : 2 * Mv : 2, 3] = -1.0 / self.sv[1]
-        at = 2 * Mv
-        cols[at : at + Mr, 1] = 1
-        if self._shadow:
-            cols[at : at + Mr, 2] = self._rss_col
-        k[at : at + Mr] = w.rss_k
-        at += Mr
-        cols[at : at + 2 * Mf : 2, 0], cols[at + 1 : at + 2 * Mf : 2, 0] = 0, 1
-        J0[at : at + 2 * Mf, 0] = -np.repeat(1.0 / w.fix_sigma, 2)
-        k[at : at + 2 * Mf] = np.repeat(w.fix_k, 2)
-        at += 2 * Mf
-        for prior, part in ((self.axes, 2), (self.area, 0)):
-            if prior is not None:
-                cols[at : at + Mv, 0], cols[at : at + Mv, 1] = part, part + 1
-                k[at : at + Mv] = w.vel_k
-                at += Mv
-        # products of the entries (i >= j) each reading adds, per kind: (first row, rows, entries, rows per reading)
-        seg = [(0, 2 * Mv, c, 2), (2 * Mv, Mr, 3 if self._shadow else 2, 1), (2 * Mv + Mr, 2 * Mf, 1, 1),
-               (2 * Mv + Mr + 2 * Mf, R - 2 * Mv - Mr - 2 * Mf, 2, 1)]
-        self._segments = [(a, a + m, e, per, _tril(e)) for a, m, e, per in seg if m]
-        pos = []
-        for a, b, e, per, (ii, jj) in self._segments:
-            cs, ks = cols[a:b:per, :e], k[a:b:per]
-            lo, hi = np.minimum(cs[:, ii], cs[:, jj]), np.maximum(cs[:, ii], cs[:, jj])
-            pos.append(((ks[:, None] * n + lo) * kd1 + hi - lo).ravel())
-        self._J0 = J0
-        self._pos = np.concatenate(pos) if pos else np.zeros(0, np.int64)
-        self._gpos = (k[:, None] * n + cols).ravel()
-
     def jacobian_rows(self, X: NDArray, hs: NDArray | None = None) -> NDArray[np.float64]:
-        """(B', reading rows, c): the reading rows' Jacobian entries (columns as ``_reading_structure``)."""
+        """(B', reading rows, c): the reading rows' Jacobian entries, in their epoch's columns vx vy bx
+        by (theta) for a velocity row, x y (shadowing offset) for RSSI, x or y for a fix, vx vy for
+        the axes, x y for the area."""
         X = np.asarray(X, float).reshape(-1, self.N, self.n)
         h = slice(None) if hs is None else hs
-        w, B = self.w, len(X)
+        B, run = len(X), self.run
         J = np.repeat(self._J0[None], B, axis=0)
-        xv = X[:, w.vel_k]
-        Mv = len(w.vel_k)
+        xv = X[:, self.vel_k]
+        Mv = len(self.vel_k)
         if Mv:
             s, c = self._sincos(xv)
-            a, b = 1.0 / self.sv[0], 1.0 / self.sv[1]
+            a, b = run.inv_sv
             J[:, 0 : 2 * Mv : 2, 0], J[:, 0 : 2 * Mv : 2, 1] = s * a, -c * a
             J[:, 1 : 2 * Mv : 2, 0], J[:, 1 : 2 * Mv : 2, 1] = -c * b, -s * b
             if self.theta:
                 vx, vy = xv[..., 2], xv[..., 3]
                 J[:, 0 : 2 * Mv : 2, 4] = (c * vx + s * vy) * a
                 J[:, 1 : 2 * Mv : 2, 4] = (s * vx - c * vy) * b
-        at = 2 * Mv
-        if len(w.rss_k):
-            xr = X[:, w.rss_k]
-            gx, gy = self._pl.gradient(xr[..., 0], xr[..., 1])
+        at, Mr = 2 * Mv, len(self.rss_k)
+        if Mr:
+            xr = X[:, self.rss_k]
+            gx, gy = self.law.gradient(xr[..., 0], xr[..., 1])
             inv = -1.0 / self.sr[h]
-            J[:, at : at + len(w.rss_k), 0], J[:, at : at + len(w.rss_k), 1] = gx * inv, gy * inv
-            if self._shadow:
-                J[:, at : at + len(w.rss_k), 2] = inv
-            at += len(w.rss_k)
-        at += 2 * len(w.fix_k)
-        for prior, part in ((self.axes, 2), (self.area, 0)):
-            if prior is not None:
-                J[:, at : at + Mv, 0:2] = prior.jacobian(xv[..., part : part + 2].reshape(-1, 2)).reshape(B, Mv, 2)
-                at += Mv
+            J[:, at : at + Mr, 0], J[:, at : at + Mr, 1] = gx * inv, gy * inv
+            if run.shadow:
+                J[:, at : at + Mr, 2] = inv
+        at += Mr + 2 * len(self.fix_k)
+        if self.axes is not None:
+            J[:, at : at + Mv, 0], J[:, at : at + Mv, 1] = self.axes.jacobian_xy(xv[..., 2], xv[..., 3])
+            at += Mv
+        if self.area is not None:
+            J[:, at:, 0:2] = self.area.jacobian(xv[..., 0:2].reshape(-1, 2)).reshape(B, Mv, 2)
         return J
 
     def normal_equations(
@@ -257,25 +305,25 @@ class WindowProblem:
         n, B, kd1 = self.n, len(r), self.kd + 1
         J = self.jacobian_rows(X, hs)
         WJ = J * self.weights(r)[..., None]
-        vals = []
+        vals = [self._prior_vals[h]]
         for a, b, e, per, (ii, jj) in self._segments:
             if per == 1:
                 vals.append((WJ[:, a:b, ii] * J[:, a:b, jj]).reshape(B, -1))
             else:  # a velocity reading's two rows share their columns: their products summed
                 Ws, Js = WJ[:, a:b, :e].reshape(B, -1, per, e), J[:, a:b, :e].reshape(B, -1, per, e)
                 vals.append(np.einsum("bmrp,bmrp->bmp", Ws[..., ii], Js[..., jj]).reshape(B, -1))
-        vals = np.concatenate(vals, axis=1) if vals else np.zeros((B, 0))
         nb = self.size * kd1
-        band = _sums((np.arange(B)[:, None] * nb + self._pos).ravel(), vals.ravel(), B * nb)
+        band = np.bincount((np.arange(B)[:, None] * nb + self._pos).ravel(), np.concatenate(vals, axis=1).ravel(),
+                           minlength=B * nb)
         band = band.reshape(B, self.size, kd1) + self._band_const
-        band.reshape(B, -1)[:, self._prior_pos] += self._prior_vals[h]
-        gv = WJ * r[:, self.meas :, None]
-        g = _sums((np.arange(B)[:, None] * self.size + self._gpos).ravel(), gv.ravel(), B * self.size)
-        g = g.reshape(B, self.size)
-        g[:, :n] += np.einsum("bki,bk->bi", self.W0[h], r[:, :n])
+        gr = WJ * r[:, self.meas :, None]
+        gv = [np.matmul(r[:, None, :n], self.W0[h])[:, 0]]  # W0^T r of the prior rows
+        gv += [gr[:, a:b, :e].reshape(B, -1) for a, b, e in self._gsegments]
+        g = np.bincount((np.arange(B)[:, None] * self.size + self._gpos).ravel(), np.concatenate(gv, axis=1).ravel(),
+                        minlength=B * self.size).reshape(B, self.size)
         if self.N > 1:
             p = r[:, n : self.meas].reshape(B, self.N - 1, n)
-            g[:, n:] += (p / self.sq).reshape(B, -1)
+            g[:, n:] += (p * self.inv_sq).reshape(B, -1)
             g[:, :-n] += np.einsum("kij,bki->bkj", self._Bk, p).reshape(B, -1)
         return band, g
 
@@ -283,15 +331,19 @@ class WindowProblem:
         """(B', size, size) symmetric matrices of bands (B', size, kd + 1)."""
         A = np.zeros((len(band), self.size, self.size))
         i = np.arange(self.size)
-        for d in range(self.kd + 1):
+        for d in range(min(self.kd + 1, self.size)):
             A[:, i[d:], i[: self.size - d]] = band[:, : self.size - d, d]
             A[:, i[: self.size - d], i[d:]] = band[:, : self.size - d, d]
         return A
 
 
-def _sums(idx: NDArray, vals: NDArray, length: int) -> NDArray[np.float64]:
-    """Sums of ``vals`` by index ``idx`` (floats, also when there are none)."""
-    return np.bincount(idx, vals, minlength=length) if len(vals) else np.zeros(length)
+def _positions(k: NDArray, cols: NDArray, n: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """For rows at epochs ``k`` (m,) with Jacobian entries in columns ``cols`` (m, c) of their epoch
+    (ascending): the band positions (m, c (c + 1) / 2; layout of ``WindowProblem``, kd = n) of the
+    products of entries i >= j, and the gradient positions (m, c) of the entries."""
+    ii, jj = _tril(cols.shape[1])
+    ci, cj = cols[:, ii], cols[:, jj]
+    return (k[:, None] * n + cj) * (n + 1) + ci - cj, k[:, None] * n + cols
 
 
 @lru_cache(maxsize=16)
@@ -299,7 +351,6 @@ def _tril(c: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     return np.tril_indices(c)
 
 
-@lru_cache(maxsize=256)
 def _band_maps(N: int, n: int) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """Flat band positions (layout of ``WindowProblem``, kd = n) of the lower triangles of N diagonal
     blocks (and their flat indices in a (N, n, n) array), and of the nonzero entries of the N - 1
@@ -360,14 +411,14 @@ def marginal_covariances(c: NDArray, B: int, size: int, n: int, i: int) -> NDArr
 
 def levenberg_marquardt_bank(
     p: WindowProblem, X0: NDArray, max_iter: int, *, rel_tol: float = 1e-8, max_damping: float = 1e10
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray, NDArray[np.bool_]]:
     """``smoother.levenberg_marquardt`` for every hypothesis of ``p`` at once, each with its own damping
     and stop; one more stop: after an iteration whose first step (damped at most as much as the
     first try) promises less than ``rel_tol`` of the cost, taken if it lowers the cost. At the
     optimum such a step often fails to lower the cost by rounding, and the damping would retry it
     ten times over before giving up, with nothing to gain. Returns the states
-    (B, N, n), costs (B,), the final residuals, the last undamped bands and which of them are at
-    the final states."""
+    (B, N, n), costs (B,), the final residuals, the last normal equations (bands and gradients)
+    and which of them are at the final states."""
     B = len(p.x0)
     x = np.asarray(X0, float).reshape(B, p.size).copy()
     if not np.isfinite(x).all():
@@ -414,4 +465,4 @@ def levenberg_marquardt_bank(
             stop = (drop <= rel_tol * cost[ac]) | (np.abs(dx[acc]).max(axis=1) < 1e-10) | (it[ac] >= max_iter)
             done[ac[stop]] = True
         done[a[last]] = True  # taken if it lowered the cost; nothing left to gain either way
-    return x.reshape(B, p.N, p.n), cost, r, band, fresh
+    return x.reshape(B, p.N, p.n), cost, r, band, g, fresh
