@@ -71,22 +71,24 @@ def leave_one_session_out_error_vectors(
 
 
 def leave_one_session_out_errors(
-    rm: RadioMap, *, k: int = 3, extra: int = 30, max_queries: int = 3000, seed: int = 0, metric: str = "eq9"
+    rm: RadioMap, *, k: int = 3, extra: int = 30, max_queries: int = 3000, seed: int = 0, metric: str = "eq9",
+    vectors: NDArray | None = None,
 ) -> NDArray[np.float64]:
     """kNN error (m) of (up to ``max_queries``, seeded sample of) the map's fingerprints, each
-    located among the other sessions' fingerprints (``leave_one_session_out_error_vectors``).
+    located among the other sessions' fingerprints (``leave_one_session_out_error_vectors``; or
+    taken from ``vectors``, those of every fingerprint with these ``k``, ``extra``, ``metric``).
     Rows whose candidates all come from their own session are left out."""
     rows = np.arange(len(rm))
     if len(rows) > max_queries:
         rows = np.sort(np.random.default_rng(seed).choice(rows, max_queries, replace=False))
-    e = leave_one_session_out_error_vectors(rm, rows, k=k, extra=extra, metric=metric)
+    e = vectors[rows] if vectors is not None else leave_one_session_out_error_vectors(rm, rows, k=k, extra=extra, metric=metric)
     e = e[np.isfinite(e).all(axis=1)]
     return np.linalg.norm(e, axis=1)
 
 
-def fix_noise(rm: RadioMap, *, k: int = 3, metric: str = "eq9") -> FixNoise:
-    """``FixNoise`` of ``rm`` from ``leave_one_session_out_errors``."""
-    e = leave_one_session_out_errors(rm, k=k, metric=metric)
+def fix_noise(rm: RadioMap, *, k: int = 3, metric: str = "eq9", vectors: NDArray | None = None) -> FixNoise:
+    """``FixNoise`` of ``rm`` from ``leave_one_session_out_errors`` (``vectors``: see there)."""
+    e = leave_one_session_out_errors(rm, k=k, metric=metric, vectors=vectors)
     if not len(e):
         raise EstimationError("fix noise: no fingerprint could be located among other sessions")
     med = float(np.median(e))
@@ -94,12 +96,14 @@ def fix_noise(rm: RadioMap, *, k: int = 3, metric: str = "eq9") -> FixNoise:
 
 
 def fix_error_correlation(
-    rm: RadioMap, *, k: int = 3, metric: str = "eq9", max_queries: int = 3000, seed: int = 0
+    rm: RadioMap, *, k: int = 3, metric: str = "eq9", max_queries: int = 3000, seed: int = 0,
+    vectors: NDArray | None = None,
 ) -> float:
     """Correlation of consecutive kNN fix errors along a walk: the leave-one-session-out error
-    vectors (``leave_one_session_out_error_vectors``) of each session's fingerprints in time order,
-    every pair of neighbours, both axes pooled (each axis centred). Whole sessions are sampled
-    (seeded) up to about ``max_queries`` fingerprints. 0 when fewer than 3 pairs."""
+    vectors (``leave_one_session_out_error_vectors``, or those of every fingerprint in ``vectors``)
+    of each session's fingerprints in time order, every pair of neighbours, both axes pooled (each
+    axis centred). Whole sessions are sampled (seeded) up to about ``max_queries`` fingerprints.
+    0 when fewer than 3 pairs."""
     sid = np.asarray(rm.session_ids)
     sessions, counts = np.unique(sid, return_counts=True)  # one pass, not one scan of the map per session
     if len(sessions) < 2:
@@ -109,7 +113,7 @@ def fix_error_correlation(
     keep = sessions[: max(2, int(np.searchsorted(np.cumsum(sizes), max_queries, side="right")))]
     rows = np.flatnonzero(np.isin(sid, keep))
     rows = rows[np.lexsort((np.asarray(rm.t_ns)[rows], sid[rows]))]  # by session, then time
-    e = leave_one_session_out_error_vectors(rm, rows, k=k, metric=metric)
+    e = vectors[rows] if vectors is not None else leave_one_session_out_error_vectors(rm, rows, k=k, metric=metric)
     pair = (sid[rows][1:] == sid[rows][:-1]) & np.isfinite(e[1:]).all(axis=1) & np.isfinite(e[:-1]).all(axis=1)
     if pair.sum() < 3:
         return 0.0

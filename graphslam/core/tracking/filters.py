@@ -155,20 +155,20 @@ class PathLossModel:
         idx = np.asarray(idx, dtype=np.int64).ravel()
         g = self.gamma[idx]
         return PathLossRows(
-            self.ap_xy[idx, 0], self.ap_xy[idx, 1], self.p0_dbm[idx], 5.0 * g, -(10.0 / np.log(10.0)) * g,
+            self.ap_xy[idx, 0], self.ap_xy[idx, 1], self.p0_dbm[idx], (5.0 / np.log(10.0)) * g, -(10.0 / np.log(10.0)) * g,
             self.min_distance_m**2, None if self.correction is None else self.correction.rows(idx),
         )
 
 
 @dataclass(frozen=True, eq=False)
 class PathLossRows:
-    """``PathLossModel.rows``: per reading its AP's position (m), P0, 5 gamma and -10 gamma / ln 10 (the
-    law's factors), the field; positions ``x``, ``y`` of shape (..., m) give (..., m) means and gradients."""
+    """``PathLossModel.rows``: per reading its AP's position (m), P0, 5 gamma / ln 10 and -10 gamma / ln 10
+    (the law's factors), the field; positions ``x``, ``y`` of shape (..., m) give (..., m) means and gradients."""
 
     ap_x: NDArray[np.float64]
     ap_y: NDArray[np.float64]
     p0_dbm: NDArray[np.float64]
-    gamma5: NDArray[np.float64]
+    gamma5_ln: NDArray[np.float64]
     slope: NDArray[np.float64]
     d0_sq: float
     field: "FieldRows | None"
@@ -176,7 +176,7 @@ class PathLossRows:
     def mean(self, x: NDArray, y: NDArray) -> NDArray[np.float64]:
         """Mean RSS (dBm): the law plus the field."""
         dx, dy = x - self.ap_x, y - self.ap_y
-        h = self.p0_dbm - self.gamma5 * np.log10(dx * dx + dy * dy + self.d0_sq)  # 10 log10(sqrt(.)) = 5 log10(.)
+        h = self.p0_dbm - self.gamma5_ln * np.log(dx * dx + dy * dy + self.d0_sq)  # 10 log10(sqrt(.)) = 5 ln(.) / ln 10
         return h + self.field.at(x, y) if self.field is not None else h
 
     def gradient(self, x: NDArray, y: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -187,7 +187,7 @@ class PathLossRows:
 
     def take(self, rows: slice | NDArray) -> "PathLossRows":
         """The law (and field) of these readings only."""
-        return PathLossRows(self.ap_x[rows], self.ap_y[rows], self.p0_dbm[rows], self.gamma5[rows], self.slope[rows],
+        return PathLossRows(self.ap_x[rows], self.ap_y[rows], self.p0_dbm[rows], self.gamma5_ln[rows], self.slope[rows],
                             self.d0_sq, None if self.field is None else self.field.take(rows))
 
 

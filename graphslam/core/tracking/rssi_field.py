@@ -170,7 +170,7 @@ def fit_residual_field(
 ) -> FieldFit:
     """The field from readings of AP ``ap[i]`` at ``xy[i]`` (m) whose residual around the law is
     ``residual[i]`` (dB); ``group[i]``: the map walk of the reading (left out together when the
-    noise is measured; ``leave_out`` False: not measured, NaN). ``shrink``: pseudo-readings of residual 0
+    noise is measured; ``leave_out`` False: neither noise is measured, NaN). ``shrink``: pseudo-readings of residual 0
     at every place (module docstring)."""
     if not (bandwidth_m > 0 and shrink > 0 and cell_m > 0 and bandwidth_m >= cell_m):
         raise EstimationError(f"RSSI field: need bandwidth_m >= cell_m > 0 and shrink > 0, got {bandwidth_m}, {cell_m}, {shrink}")
@@ -196,12 +196,13 @@ def fit_residual_field(
         n = (np.ceil((p.max(axis=0) + margin - lo) / cell_m).astype(np.int64) + 1)  # nx, ny
         c = np.rint((p - lo) / cell_m).astype(np.int64)
         lin = c[:, 1] * n[0] + c[:, 0]
-        S = gaussian_filter(np.bincount(lin, weights=r, minlength=n[0] * n[1]).reshape(n[1], n[0]), s, mode="constant")
-        W = gaussian_filter(np.bincount(lin, minlength=n[0] * n[1]).astype(float).reshape(n[1], n[0]), s, mode="constant")
+        m = n[0] * n[1]
+        sums = np.bincount(np.r_[lin, lin + m], weights=np.r_[r, np.ones(len(r))], minlength=2 * m)
+        S, W = gaussian_filter(sums.reshape(2, n[1], n[0]), (0.0, s, s), mode="constant")  # both at once
         grids.append((S * norm / (W * norm + shrink)).ravel())
         origin[a], shape[a] = lo, (n[1], n[0])
-        sigma_law[a] = _mad(r)
         if leave_out:
+            sigma_law[a] = _mad(r)
             sigma[a] = _mad(r - _left_out_correction(p, r, g, bandwidth_m, shrink))
     offset = np.concatenate([[0], np.cumsum([len(v) for v in grids])])[:-1] if grids else np.zeros(0, np.int64)
     off = np.zeros(n_aps, np.int64)

@@ -187,6 +187,7 @@ class WindowProblem:
                (2 * Mv + Mr + 2 * Mf, self.rows - self.head - Mr - 2 * Mf, 2, 1)]
         self._segments = [(a, a + m, e, per, _tril(e)) for a, m, e, per in seg if m]
         self._gsegments = [(a, a + m, e) for a, m, e, _ in seg if m]
+        self._cache: dict = {}
 
     # --- residuals and costs -------------------------------------------------------------------
     def residual(self, X: NDArray, hs: NDArray | None = None) -> NDArray[np.float64]:
@@ -231,8 +232,9 @@ class WindowProblem:
         """Per hypothesis: sum of squares, Huber's 2 k |r| - k^2 beyond k on the map rows."""
         if self.huber_k is None:
             return np.einsum("br,br->b", r, r)
-        k, hd, a = self.huber_k, r[:, : self.head], np.abs(r[:, self.head:])
-        return np.einsum("br,br->b", hd, hd) + np.where(a <= k, a * a, 2.0 * k * a - k * k).sum(axis=1)
+        hd, a = r[:, : self.head], np.abs(r[:, self.head:])
+        m = np.minimum(a, self.huber_k)
+        return np.einsum("br,br->b", hd, hd) + np.einsum("br,br->b", m, a + a - m)  # a^2 up to k, 2 k a - k^2 beyond
 
     def first_epoch_cost(self, r: NDArray) -> NDArray[np.float64]:
         """Per hypothesis: the cost of the rows that touch the first epoch (its prior, the process
@@ -304,7 +306,9 @@ class WindowProblem:
         h = slice(None) if hs is None else hs
         n, B, kd1 = self.n, len(r), self.kd + 1
         J = self.jacobian_rows(X, hs)
-        WJ = J * self.weights(r)[..., None]
+        WJ = J.copy()
+        if self.huber_k is not None:
+            WJ[:, self.head - self.meas :] *= self.weights(r)[:, self.head - self.meas :, None]
         vals = [self._prior_vals[h]]
         for a, b, e, per, (ii, jj) in self._segments:
             if per == 1:
@@ -313,19 +317,26 @@ class WindowProblem:
                 Ws, Js = WJ[:, a:b, :e].reshape(B, -1, per, e), J[:, a:b, :e].reshape(B, -1, per, e)
                 vals.append(np.einsum("bmrp,bmrp->bmp", Ws[..., ii], Js[..., jj]).reshape(B, -1))
         nb = self.size * kd1
-        band = np.bincount((np.arange(B)[:, None] * nb + self._pos).ravel(), np.concatenate(vals, axis=1).ravel(),
-                           minlength=B * nb)
+        band = np.bincount(self._offsets(B, nb, self._pos), np.concatenate(vals, axis=1).ravel(), minlength=B * nb)
         band = band.reshape(B, self.size, kd1) + self._band_const
         gr = WJ * r[:, self.meas :, None]
         gv = [np.matmul(r[:, None, :n], self.W0[h])[:, 0]]  # W0^T r of the prior rows
         gv += [gr[:, a:b, :e].reshape(B, -1) for a, b, e in self._gsegments]
-        g = np.bincount((np.arange(B)[:, None] * self.size + self._gpos).ravel(), np.concatenate(gv, axis=1).ravel(),
+        g = np.bincount(self._offsets(B, self.size, self._gpos), np.concatenate(gv, axis=1).ravel(),
                         minlength=B * self.size).reshape(B, self.size)
         if self.N > 1:
             p = r[:, n : self.meas].reshape(B, self.N - 1, n)
             g[:, n:] += (p * self.inv_sq).reshape(B, -1)
             g[:, :-n] += np.einsum("kij,bki->bkj", self._Bk, p).reshape(B, -1)
         return band, g
+
+    def _offsets(self, B: int, stride: int, pos: NDArray) -> NDArray[np.int64]:
+        """``pos`` for each of B hypotheses, hypothesis b's shifted by b stride (flat)."""
+        key = (B, stride, id(pos))
+        out = self._cache.get(key)
+        if out is None:
+            out = self._cache[key] = (np.arange(B)[:, None] * stride + pos).ravel()
+        return out
 
     def dense(self, band: NDArray) -> NDArray[np.float64]:
         """(B', size, size) symmetric matrices of bands (B', size, kd + 1)."""
@@ -431,33 +442,41 @@ def levenberg_marquardt_bank(
     fresh = np.zeros(B, bool)  # the band and gradient are at the current x
     band = np.zeros((B, p.size, p.kd + 1))
     g = np.zeros((B, p.size))
-    while not done.all():
-        lin = np.flatnonzero(~done & ~fresh)
+    while True:
+        a = np.flatnonzero(~done)
+        if not len(a):
+            break
+        lin = a[~fresh[a]]
         if len(lin):
             it[lin] += 1
-            band[lin], g[lin] = p.normal_equations(x[lin], r[lin], lin)
+            band[lin], g[lin] = p.normal_equations(x[lin], r[lin], None if len(lin) == B else lin)
             fresh[lin] = True
-        a = np.flatnonzero(~done)
-        d0 = band[a, :, 0]
-        dx, ok = banded_solve(band[a], -g[a], lam[a])
+        every = len(a) == B
+        hs = None if every else a
+        ba, ga, la = (band, g, lam) if every else (band[a], g[a], lam[a])
+        dx, ok = banded_solve(ba, -ga, la)
         # predicted decrease of the quadratic model: -2 g.dx - dx.H dx with (H + lam D) dx = -g
-        pred = -np.einsum("bi,bi->b", g[a], dx) + lam[a] * np.einsum("bi,bi->b", d0, dx * dx)
+        pred = la * np.einsum("bi,bi->b", ba[..., 0], dx * dx) - np.einsum("bi,bi->b", ga, dx)
+        ca = cost[a]
         # the undamped step's decrease is at most pred (1 + lam)^2 (exact for a diagonal H)
-        last = ok & (pred * (1.0 + lam[a]) ** 2 <= rel_tol * cost[a])
-        c_new = np.full(len(a), np.inf)
-        r_new = np.zeros((len(a), p.rows))
-        if ok.any():
-            r_new[ok] = p.residual(x[a[ok]] + dx[ok], a[ok])
-            fin = np.isfinite(r_new[ok]).all(axis=1)
-            c_new[ok] = np.where(fin, p.cost(np.where(fin[:, None], r_new[ok], 0.0)), np.inf)
-        acc = c_new < cost[a]
+        last = ok & (pred * (1.0 + la) ** 2 <= rel_tol * ca)
+        xa = (x if every else x[a]) + dx
+        if ok.all():
+            r_new = p.residual(xa, hs)
+            c_new = p.cost(r_new)  # NaN (a non-finite residual) is never accepted
+        else:  # not positive definite even when damped: a failed try
+            r_new, c_new = np.zeros((len(a), p.rows)), np.full(len(a), np.inf)
+            if ok.any():
+                r_new[ok] = p.residual(xa[ok], a[ok])
+                c_new[ok] = p.cost(r_new[ok])
+        acc = c_new < ca
         rej = a[~acc]
         lam[rej] *= 10.0
         done[rej[lam[rej] > max_damping]] = True
-        ac = a[acc]
-        if len(ac):
-            drop = cost[ac] - c_new[acc]
-            x[ac] += dx[acc]
+        if acc.any():
+            ac = a[acc]
+            drop = ca[acc] - c_new[acc]
+            x[ac] = xa[acc]
             r[ac] = r_new[acc]
             cost[ac] = c_new[acc]
             lam[ac] = np.maximum(lam[ac] / 10.0, 1e-12)
