@@ -208,3 +208,15 @@ def test_an_indefinite_damped_system_fails_alone():
     assert ok.tolist() == [True, False, True] and np.isnan(dx[1]).all()
     for b in (0, 2):
         np.testing.assert_allclose(dx[b], sla.solve(p.dense(band[b : b + 1])[0], -g[b]), rtol=1e-8, atol=1e-10)
+
+
+def test_dead_reckoning_restarts_go_through_the_reference_lm_and_back_into_the_bank():
+    # Every few epochs each hypothesis's window is also solved (by the reference LM on its
+    # MapProblem) from dead-reckoning starts, the lower cost kept: the bank takes those states on.
+    m, e = _model(theta=True), _epochs()
+    x0, P0 = _priors(m, 2)
+    cfg = dict(lag_s=2.0, window_s=6.0, huber_k=1.0, prune_cost=None, adaptive_rssi=False, report="best")
+    plain = fixed_lag_smooth(m, list(x0), P0[0], e, FixedLagConfig(**cfg))
+    again = fixed_lag_smooth(m, list(x0), P0[0], e, FixedLagConfig(**cfg, restart_every=4))
+    assert np.isfinite(again.x).all() and np.isfinite(again.P).all() and np.isfinite(again.cost).all()
+    assert again.solves == plain.solves
