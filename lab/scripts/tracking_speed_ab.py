@@ -58,7 +58,8 @@ cal = tracker.calibration
 print(json.dumps({
     "steps": steps, "track_cpu_ms_per_step": (c4 - c3) / steps * 1e3, "track_wall_ms_per_step": (t4 - t3) / steps * 1e3,
     "calibration_cpu_s": (c1 - c0) - (c2 - c1), "calibration_wall_s": (t1 - t0) - (t2 - t1),
-    "calibration": None if cal is None else [cal.rssi_variance_factor, cal.fix_sigma_floor_m, cal.covariance_scale, cal.bank_temper],
+    "calibration": None if cal is None else [
+        cal.rssi_variance_factor, cal.fix_sigma_floor_m, cal.covariance_scale, cal.bank_temper],
 }))
 """
 

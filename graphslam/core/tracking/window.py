@@ -19,7 +19,6 @@ Frames and units as the filters (m, m/s, rad, dBm, s).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
