@@ -74,7 +74,7 @@ class FixedLagConfig:
     max_iter: int = 10
     restart_every: int = 0  # every this many epochs also solve from dead-reckoning starts (0: never)
     rel_tol: float = 1e-6  # LM stops when a step lowers the window cost by less than this share
-    max_damping: float = 1  # ... or when its damping has to grow beyond this (steps that small change nothing)
+    max_damping: float = 1.0  # ... or when its damping would grow beyond this (steps that damped change nothing)
     prune_cost: float | None = DEFAULTS.fixed_lag.prune_cost
     adaptive_rssi: bool = DEFAULTS.rssi.adaptive  # scale an epoch's RSSI std by its innovations' NIS per reading (> 1)
     prior_count: float = 4.0  # pseudo-fixes of NIS 2 in the variance factor
@@ -87,8 +87,8 @@ class FixedLagConfig:
             raise EstimationError(f"fixed-lag: need 0 <= lag_s <= window_s, got lag {self.lag_s}, window {self.window_s}")
         if self.huber_k is not None and self.huber_k <= 0:
             raise EstimationError(f"fixed-lag: huber_k must be > 0, got {self.huber_k}")
-        if self.max_iter < 1 or (self.prune_cost is not None and self.prune_cost <= 0):
-            raise EstimationError("fixed-lag: max_iter >= 1 and prune_cost > 0 required")
+        if self.max_iter < 1 or (self.prune_cost is not None and self.prune_cost <= 0) or not self.max_damping > 0:
+            raise EstimationError("fixed-lag: max_iter >= 1, prune_cost > 0 and max_damping > 0 required")
         if not (math.isfinite(self.temper) and self.temper >= 1.0):
             raise EstimationError(f"fixed-lag: temper must be a finite number >= 1, got {self.temper}")
         if self.report not in ("best", "mixture"):
