@@ -209,9 +209,9 @@ def test_the_tracker_locates_and_self_calibrates_its_fixes_with_the_configured_m
     seen: list[str] = []
     real = calibration.fix_noise
 
-    def spy(rm, *, k=3, metric="eq9"):
+    def spy(rm, *, k=3, metric="eq9", **kw):
         seen.append(metric)
-        return real(rm, k=k, metric=metric)
+        return real(rm, k=k, metric=metric, **kw)
 
     monkeypatch.setattr(calibration, "fix_noise", spy)
     names = [f"ap{j}" for j in range(len(APS))]

@@ -74,23 +74,33 @@ class WalkAxes:
 
     def residual(self, v: NDArray) -> NDArray[np.float64]:
         """(M,) whitened residuals of map-frame velocities ``v`` (M, 2)."""
-        u = self._rotate(v)
-        return u[:, 0] * u[:, 1] / np.sqrt((u * u).sum(1) + self.v0_mps**2) / self.sigma_mps
+        v = np.asarray(v, float).reshape(-1, 2)
+        return self.residual_xy(v[:, 0], v[:, 1])
 
     def jacobian(self, v: NDArray) -> NDArray[np.float64]:
         """(M, 2) d residual / d v at ``v`` (M, 2)."""
-        u = self._rotate(v)
-        ux, uy = u[:, 0], u[:, 1]
-        s2 = ux * ux + uy * uy + self.v0_mps**2
-        d = np.stack([uy * (uy * uy + self.v0_mps**2), ux * (ux * ux + self.v0_mps**2)], 1) / (s2 ** 1.5)[:, None]
+        v = np.asarray(v, float).reshape(-1, 2)
+        return np.stack(self.jacobian_xy(v[:, 0], v[:, 1]), 1)
+
+    def residual_xy(self, vx: NDArray, vy: NDArray) -> NDArray[np.float64]:
+        """``residual`` of velocities given by their components (arrays of one shape)."""
+        ux, uy = self._rotate(vx, vy)
+        return ux * uy / np.sqrt(ux * ux + uy * uy + self.v0_mps**2) / self.sigma_mps
+
+    def jacobian_xy(self, vx: NDArray, vy: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``jacobian`` of velocities given by their components: d residual / d vx, d residual / d vy."""
+        ux, uy = self._rotate(vx, vy)
+        v0 = self.v0_mps**2
+        s2 = ux * ux + uy * uy + v0
+        q = 1.0 / (s2 * np.sqrt(s2) * self.sigma_mps)
+        dx, dy = uy * (uy * uy + v0) * q, ux * (ux * ux + v0) * q
         c, sn = math.cos(self.angle_rad), math.sin(self.angle_rad)
         # u = R(-a) v, so d r / d v = R(-a)^T d r / d u = R(a) d r / d u
-        return np.stack([c * d[:, 0] - sn * d[:, 1], sn * d[:, 0] + c * d[:, 1]], 1) / self.sigma_mps
+        return c * dx - sn * dy, sn * dx + c * dy
 
-    def _rotate(self, v: NDArray) -> NDArray[np.float64]:
-        v = np.asarray(v, float).reshape(-1, 2)
+    def _rotate(self, vx: NDArray, vy: NDArray) -> tuple[NDArray, NDArray]:
         c, s = math.cos(self.angle_rad), math.sin(self.angle_rad)
-        return np.stack([c * v[:, 0] + s * v[:, 1], -s * v[:, 0] + c * v[:, 1]], 1)
+        return c * vx + s * vy, c * vy - s * vx
 
 
 def axis_statistics(

@@ -72,22 +72,24 @@ def leave_one_session_out_error_vectors(
 
 
 def leave_one_session_out_errors(
-    rm: RadioMap, *, k: int = 3, extra: int = 30, max_queries: int = 3000, seed: int = 0, metric: str = DEFAULT_METRIC
+    rm: RadioMap, *, k: int = 3, extra: int = 30, max_queries: int = 3000, seed: int = 0, metric: str = DEFAULT_METRIC,
+    vectors: NDArray | None = None,
 ) -> NDArray[np.float64]:
     """kNN error (m) of (up to ``max_queries``, seeded sample of) the map's fingerprints, each
-    located among the other sessions' fingerprints (``leave_one_session_out_error_vectors``).
+    located among the other sessions' fingerprints (``leave_one_session_out_error_vectors``; or
+    taken from ``vectors``, those of every fingerprint with these ``k``, ``extra``, ``metric``).
     Rows whose candidates all come from their own session are left out."""
     rows = np.arange(len(rm))
     if len(rows) > max_queries:
         rows = np.sort(np.random.default_rng(seed).choice(rows, max_queries, replace=False))
-    e = leave_one_session_out_error_vectors(rm, rows, k=k, extra=extra, metric=metric)
+    e = vectors[rows] if vectors is not None else leave_one_session_out_error_vectors(rm, rows, k=k, extra=extra, metric=metric)
     e = e[np.isfinite(e).all(axis=1)]
     return np.linalg.norm(e, axis=1)
 
 
-def fix_noise(rm: RadioMap, *, k: int = 3, metric: str = DEFAULT_METRIC) -> FixNoise:
-    """``FixNoise`` of ``rm`` from ``leave_one_session_out_errors``."""
-    e = leave_one_session_out_errors(rm, k=k, metric=metric)
+def fix_noise(rm: RadioMap, *, k: int = 3, metric: str = DEFAULT_METRIC, vectors: NDArray | None = None) -> FixNoise:
+    """``FixNoise`` of ``rm`` from ``leave_one_session_out_errors`` (``vectors``: see there)."""
+    e = leave_one_session_out_errors(rm, k=k, metric=metric, vectors=vectors)
     if not len(e):
         raise EstimationError("fix noise: no fingerprint could be located among other sessions")
     med = float(np.median(e))
@@ -95,12 +97,14 @@ def fix_noise(rm: RadioMap, *, k: int = 3, metric: str = DEFAULT_METRIC) -> FixN
 
 
 def fix_error_correlation(
-    rm: RadioMap, *, k: int = 3, metric: str = DEFAULT_METRIC, max_queries: int = 3000, seed: int = 0
+    rm: RadioMap, *, k: int = 3, metric: str = DEFAULT_METRIC, max_queries: int = 3000, seed: int = 0,
+    vectors: NDArray | None = None,
 ) -> float:
     """Correlation of consecutive kNN fix errors along a walk: the leave-one-session-out error
-    vectors (``leave_one_session_out_error_vectors``) of each session's fingerprints in time order,
-    every pair of neighbours, both axes pooled (each axis centred). Whole sessions are sampled
-    (seeded) up to about ``max_queries`` fingerprints. 0 when fewer than 3 pairs."""
+    vectors (``leave_one_session_out_error_vectors``, or those of every fingerprint in ``vectors``)
+    of each session's fingerprints in time order, every pair of neighbours, both axes pooled (each
+    axis centred). Whole sessions are sampled (seeded) up to about ``max_queries`` fingerprints.
+    0 when fewer than 3 pairs."""
     sid = np.asarray(rm.session_ids)
     sessions, counts = np.unique(sid, return_counts=True)  # one pass, not one scan of the map per session
     if len(sessions) < 2:
@@ -110,7 +114,7 @@ def fix_error_correlation(
     keep = sessions[: max(2, int(np.searchsorted(np.cumsum(sizes), max_queries, side="right")))]
     rows = np.flatnonzero(np.isin(sid, keep))
     rows = rows[np.lexsort((np.asarray(rm.t_ns)[rows], sid[rows]))]  # by session, then time
-    e = leave_one_session_out_error_vectors(rm, rows, k=k, metric=metric)
+    e = vectors[rows] if vectors is not None else leave_one_session_out_error_vectors(rm, rows, k=k, metric=metric)
     pair = (sid[rows][1:] == sid[rows][:-1]) & np.isfinite(e[1:]).all(axis=1) & np.isfinite(e[:-1]).all(axis=1)
     if pair.sum() < 3:
         return 0.0
@@ -144,34 +148,44 @@ def rssi_variance_factor(
     (docs/tracking.md). Uses only the map and its AP models."""
     pl = models.path_loss()
     index = {b: i for i, b in enumerate(pl.bssids)}
-    cols = np.array([index.get(b, -1) for b in rm.bssids])
+    cols = np.array([index.get(b, -1) for b in rm.bssids], np.int64)
     v = rm.fingerprints.values.tocsr()
     rows = np.arange(len(rm))
     if len(rows) > max_queries:
         rows = np.sort(np.random.default_rng(seed).choice(rows, max_queries, replace=False))
-    d2 = []
-    for r in rows.tolist():
-        j = v.indices[v.indptr[r] : v.indptr[r + 1]]
-        a = cols[j]
-        keep = a >= 0
-        if keep.sum() < 3:
-            continue
-        a, y = a[keep], v.data[v.indptr[r] : v.indptr[r + 1]][keep] + rm.missing_dbm
-        w = 1.0 / np.asarray(sigma_db, float)[a] ** 2
-        p = rm.xy[r].copy()
-        for _ in range(iterations):
-            h, g = pl.rss_pairs(np.tile(p, (len(a), 1)), a)
-            A = (g * w[:, None]).T @ g
-            try:
-                p = p + np.linalg.solve(A, (g * w[:, None]).T @ (y - h))
-            except np.linalg.LinAlgError:
-                break
-        else:
-            g = pl.rss_gradient(np.tile(p, (len(a), 1)), a)
-            A = (g * w[:, None]).T @ g
-            e = p - rm.xy[r]
-            d2.append(float(e @ A @ e))
-    if not d2:
+    # every query's readings of modelled APs at once: fingerprint f, AP a, RSS y (queries with >= 3 only)
+    sub = v[rows]
+    f = np.repeat(np.arange(len(rows)), np.diff(sub.indptr))
+    a = cols[sub.indices] if sub.nnz else np.zeros(0, np.int64)
+    keep = a >= 0
+    f, a, y = f[keep], a[keep], sub.data[keep] + rm.missing_dbm
+    enough = np.bincount(f, minlength=len(rows)) >= 3
+    keep = enough[f]
+    f, a, y = np.unique(f[keep], return_inverse=True)[1], a[keep], y[keep]
+    q = rows[enough]
+    if not len(q):
+        return 1.0
+    F = len(q)
+    w = 1.0 / np.asarray(sigma_db, float)[a] ** 2
+    law = pl.rows(a)
+    p = rm.xy[q].astype(float)
+    ok = np.ones(F, bool)  # Gauss-Newton has not met a singular system
+    for _ in range(iterations + 1):
+        gx, gy = law.gradient(p[f, 0], p[f, 1])
+        A = np.stack([np.bincount(f, w * gx * gx, F), np.bincount(f, w * gx * gy, F), np.bincount(f, w * gy * gy, F)], 1)
+        det = A[:, 0] * A[:, 2] - A[:, 1] * A[:, 1]
+        if _ == iterations:
+            break
+        ok &= det != 0
+        r = w * (y - law.mean(p[f, 0], p[f, 1]))
+        bx, by = np.bincount(f, gx * r, F), np.bincount(f, gy * r, F)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = np.stack([A[:, 2] * bx - A[:, 1] * by, A[:, 0] * by - A[:, 1] * bx], 1) / det[:, None]
+        p = np.where(ok[:, None], p + step, p)
+    e = p - rm.xy[q]
+    d2 = A[:, 0] * e[:, 0] ** 2 + 2.0 * A[:, 1] * e[:, 0] * e[:, 1] + A[:, 2] * e[:, 1] ** 2
+    d2 = d2[ok]
+    if not len(d2):
         return 1.0
     return max(1.0, float(np.median(d2)) / CHI2_2DOF_MEDIAN)
 

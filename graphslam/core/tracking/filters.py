@@ -46,7 +46,7 @@ from typing import Literal, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.tracking.rssi_field import ResidualField
+from graphslam.core.tracking.rssi_field import FieldRows, ResidualField
 from graphslam.errors import EstimationError
 
 log = logging.getLogger(__name__)
@@ -142,17 +142,53 @@ class PathLossModel:
 
     def rss_mean(self, xy: NDArray, idx: NDArray) -> NDArray[np.float64]:
         """``rss_pairs``' mean alone (m,) dBm: what a residual needs, without the gradient."""
-        idx = np.asarray(idx, dtype=np.int64)
-        d = np.asarray(xy, float).reshape(-1, 2) - self.ap_xy[idx]
-        h = self.p0_dbm[idx] - 5.0 * self.gamma[idx] * np.log10(np.einsum("ak,ak->a", d, d) + self.min_distance_m**2)
-        return h + self.correction.at(xy, idx) if self.correction is not None else h
+        xy = np.asarray(xy, float).reshape(-1, 2)
+        return self.rows(idx).mean(xy[:, 0], xy[:, 1])
 
     def rss_gradient(self, xy: NDArray, idx: NDArray) -> NDArray[np.float64]:
         """``rss_pairs``' gradient alone (m, 2), dB/m: what a Jacobian needs, without the mean."""
-        idx = np.asarray(idx, dtype=np.int64)
-        d = np.asarray(xy, float).reshape(-1, 2) - self.ap_xy[idx]
-        d2 = np.einsum("ak,ak->a", d, d) + self.min_distance_m**2
-        return -(10.0 / np.log(10.0)) * self.gamma[idx, None] * d / d2[:, None]
+        xy = np.asarray(xy, float).reshape(-1, 2)
+        return np.stack(self.rows(idx).gradient(xy[:, 0], xy[:, 1]), axis=1)
+
+    def rows(self, idx: NDArray) -> "PathLossRows":
+        """The law (and field) of AP ``idx[j]`` per reading ``j``, gathered once for many positions."""
+        idx = np.asarray(idx, dtype=np.int64).ravel()
+        g = self.gamma[idx]
+        return PathLossRows(
+            self.ap_xy[idx, 0], self.ap_xy[idx, 1], self.p0_dbm[idx], (5.0 / np.log(10.0)) * g, -(10.0 / np.log(10.0)) * g,
+            self.min_distance_m**2, None if self.correction is None else self.correction.rows(idx),
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class PathLossRows:
+    """``PathLossModel.rows``: per reading its AP's position (m), P0, 5 gamma / ln 10 and -10 gamma / ln 10
+    (the law's factors), the field; positions ``x``, ``y`` of shape (..., m) give (..., m) means and gradients."""
+
+    ap_x: NDArray[np.float64]
+    ap_y: NDArray[np.float64]
+    p0_dbm: NDArray[np.float64]
+    gamma5_ln: NDArray[np.float64]
+    slope: NDArray[np.float64]
+    d0_sq: float
+    field: "FieldRows | None"
+
+    def mean(self, x: NDArray, y: NDArray) -> NDArray[np.float64]:
+        """Mean RSS (dBm): the law plus the field."""
+        dx, dy = x - self.ap_x, y - self.ap_y
+        h = self.p0_dbm - self.gamma5_ln * np.log(dx * dx + dy * dy + self.d0_sq)  # 10 log10(sqrt(.)) = 5 ln(.) / ln 10
+        return h + self.field.at(x, y) if self.field is not None else h
+
+    def gradient(self, x: NDArray, y: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The law's d mean / d x and d mean / d y (dB/m; the field's gradient is noise, ``correction``)."""
+        dx, dy = x - self.ap_x, y - self.ap_y
+        f = self.slope / (dx * dx + dy * dy + self.d0_sq)
+        return f * dx, f * dy
+
+    def take(self, rows: slice | NDArray) -> "PathLossRows":
+        """The law (and field) of these readings only."""
+        return PathLossRows(self.ap_x[rows], self.ap_y[rows], self.p0_dbm[rows], self.gamma5_ln[rows], self.slope[rows],
+                            self.d0_sq, None if self.field is None else self.field.take(rows))
 
 
 _PAPER_APS = np.array([[0.0, 0.0], [0.0, 14.6], [8.2, 14.6], [8.2, 0.0]])

@@ -71,23 +71,18 @@ class ResidualField:
         """Correction (m,) dB of AP ``idx[j]`` at ``xy[j]`` (m, 2): bilinear between cell centres,
         0 off the AP's grid. In the trackers' inner loop: a few array operations, no Python per pair."""
         xy = np.asarray(xy, float).reshape(-1, 2)
-        v = self.values
-        if not v.size:
-            return np.zeros(len(xy))
-        g = self._table[np.asarray(idx, dtype=np.int64).ravel()]  # (m, 6): one gather per call
-        u = (xy - g[:, 0:2]) * (1.0 / self.cell_m)  # (m, 2) in cells: x, y
-        top = g[:, 2:4]  # last cell centre (negative: no grid)
-        inside = ((u >= 0.0) & (u <= top)).all(axis=1)
-        u = np.minimum(np.maximum(u, 0.0), np.maximum(top - 1e-9, 0.0))
-        i0 = u.astype(np.int64)  # floor: u >= 0
-        fx, fy = u[:, 0] - i0[:, 0], u[:, 1] - i0[:, 1]
-        nx = g[:, 4].astype(np.int64)
-        last = v.size - 1
-        base = np.minimum(g[:, 5].astype(np.int64) + i0[:, 1] * nx + i0[:, 0], last)
-        up = np.minimum(base + nx, last)
-        val = (v[base] * (1 - fx) + v[np.minimum(base + 1, last)] * fx) * (1 - fy) \
-            + (v[up] * (1 - fx) + v[np.minimum(up + 1, last)] * fx) * fy
-        return np.where(inside, val, 0.0)
+        return self.rows(np.asarray(idx, dtype=np.int64).ravel()).at(xy[:, 0], xy[:, 1])
+
+    def rows(self, idx: NDArray) -> "FieldRows":
+        """The grids of APs ``idx`` (m,) gathered once, for reading them at many positions."""
+        g = self._table[np.asarray(idx, dtype=np.int64)]  # (m, 6)
+        top = g[:, 2:4]  # last cell centre in cells (negative: no grid)
+        full = (top >= 0.0).all(axis=1)
+        hi = np.maximum(top - 1e-9, 0.0)
+        # a reading without a grid is never inside: its cells are read at 0, 1 (in range, discarded)
+        return FieldRows(1.0 / self.cell_m, g[:, 0], g[:, 1], top[:, 0], top[:, 1], hi[:, 0], hi[:, 1],
+                         np.where(full, g[:, 4], 0).astype(np.int64), np.where(full, g[:, 5], 0).astype(np.int64),
+                         self.values)
 
     @property
     def _table(self) -> NDArray[np.float64]:
@@ -99,6 +94,46 @@ class ResidualField:
             t = np.column_stack([self.origin, np.where(full, self.shape[:, ::-1] - 1.0, -1.0), self.shape[:, 1], self.offset])
             object.__setattr__(self, "_table_cache", t)
         return t
+
+
+@dataclass(frozen=True, eq=False)
+class FieldRows:
+    """The field of one AP per reading (``ResidualField.rows``): per reading its grid's origin (m), last
+    cell centre (cells; negative: no grid, never inside), the clamp inside it, row length and offset."""
+
+    inv_cell: float
+    ox: NDArray[np.float64]
+    oy: NDArray[np.float64]
+    top_x: NDArray[np.float64]
+    top_y: NDArray[np.float64]
+    hi_x: NDArray[np.float64]
+    hi_y: NDArray[np.float64]
+    nx: NDArray[np.int64]
+    offset: NDArray[np.int64]
+    values: NDArray[np.float32]
+
+    def at(self, x: NDArray, y: NDArray) -> NDArray[np.float64]:
+        """Correction (dB) of each reading's AP at positions ``x``, ``y`` (m; shape (..., m))."""
+        v = self.values
+        if v.size < 2:  # no grid of 2 x 2 cells: never inside one
+            return np.zeros(np.broadcast_shapes(np.shape(x), self.ox.shape))
+        ux = (x - self.ox) * self.inv_cell  # in cells
+        uy = (y - self.oy) * self.inv_cell
+        inside = (ux >= 0.0) & (uy >= 0.0) & (ux <= self.top_x) & (uy <= self.top_y)
+        ux = np.minimum(np.maximum(ux, 0.0), self.hi_x)
+        uy = np.minimum(np.maximum(uy, 0.0), self.hi_y)
+        ix, iy = ux.astype(np.int64), uy.astype(np.int64)  # floor: u >= 0; the cell and its neighbours are in the grid
+        fx, fy = ux - ix, uy - iy
+        gx = 1 - fx
+        base = self.offset + iy * self.nx + ix
+        up = base + self.nx
+        val = (v[base] * gx + v[base + 1] * fx) * (1 - fy) + (v[up] * gx + v[up + 1] * fx) * fy
+        return np.where(inside, val, 0.0)
+
+    def take(self, rows: slice | NDArray) -> "FieldRows":
+        """The field of these readings only."""
+        return FieldRows(self.inv_cell, self.ox[rows], self.oy[rows], self.top_x[rows], self.top_y[rows], self.hi_x[rows],
+                         self.hi_y[rows], self.nx[rows], self.offset[rows], self.values)
 
 
 @dataclass(frozen=True)
@@ -135,7 +170,7 @@ def fit_residual_field(
 ) -> FieldFit:
     """The field from readings of AP ``ap[i]`` at ``xy[i]`` (m) whose residual around the law is
     ``residual[i]`` (dB); ``group[i]``: the map walk of the reading (left out together when the
-    noise is measured; ``leave_out`` False: not measured, NaN). ``shrink``: pseudo-readings of residual 0
+    noise is measured; ``leave_out`` False: neither noise is measured, NaN). ``shrink``: pseudo-readings of residual 0
     at every place (module docstring)."""
     if not (bandwidth_m > 0 and shrink > 0 and cell_m > 0 and bandwidth_m >= cell_m):
         raise EstimationError(f"RSSI field: need bandwidth_m >= cell_m > 0 and shrink > 0, got {bandwidth_m}, {cell_m}, {shrink}")
@@ -161,12 +196,13 @@ def fit_residual_field(
         n = (np.ceil((p.max(axis=0) + margin - lo) / cell_m).astype(np.int64) + 1)  # nx, ny
         c = np.rint((p - lo) / cell_m).astype(np.int64)
         lin = c[:, 1] * n[0] + c[:, 0]
-        S = gaussian_filter(np.bincount(lin, weights=r, minlength=n[0] * n[1]).reshape(n[1], n[0]), s, mode="constant")
-        W = gaussian_filter(np.bincount(lin, minlength=n[0] * n[1]).astype(float).reshape(n[1], n[0]), s, mode="constant")
+        m = n[0] * n[1]
+        sums = np.bincount(np.r_[lin, lin + m], weights=np.r_[r, np.ones(len(r))], minlength=2 * m)
+        S, W = gaussian_filter(sums.reshape(2, n[1], n[0]), (0.0, s, s), mode="constant")  # both at once
         grids.append((S * norm / (W * norm + shrink)).ravel())
         origin[a], shape[a] = lo, (n[1], n[0])
-        sigma_law[a] = _mad(r)
         if leave_out:
+            sigma_law[a] = _mad(r)
             sigma[a] = _mad(r - _left_out_correction(p, r, g, bandwidth_m, shrink))
     offset = np.concatenate([[0], np.cumsum([len(v) for v in grids])])[:-1] if grids else np.zeros(0, np.int64)
     off = np.zeros(n_aps, np.int64)

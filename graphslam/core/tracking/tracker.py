@@ -483,14 +483,20 @@ class SelfCalibration:
         under those two (and the walkable ``area`` the tracker will use): noise levels measured on the
         map, not chosen per building. With ``cfg.fixed_lag.bank_temper`` None also the heading bank's temper from
         the correlation of consecutive fix errors along the map's walks (``calibration.bank_temper``)."""
-        from graphslam.core.tracking.calibration import bank_temper, fix_error_correlation, fix_noise, rssi_variance_factor
+        from graphslam.core.tracking.calibration import (
+            bank_temper, fix_error_correlation, fix_noise, leave_one_session_out_error_vectors, rssi_variance_factor,
+        )
 
         # four parts; the replay (the longest) reports its own segments
         with Task("track: self-calibration", total=4, unit="parts", info="RSSI variance") as task:
             kappa = rssi_variance_factor(rm, models, np.sqrt(model.r_rssi)) if len(models.fitted) else 1.0
             task.advance(info="kNN fix noise")
+            knn = dict(k=cfg.knn_fixes.k, metric=knn_config(cfg).metric)
+            vectors = None
+            if len(rm) <= 3000 and len(set(rm.session_ids.tolist())) >= 2:  # both statistics below locate every fingerprint: once
+                vectors = leave_one_session_out_error_vectors(rm, **knn)
             try:
-                floor = max(cfg.knn_fixes.sigma_floor_m, fix_noise(rm, k=cfg.knn_fixes.k, metric=knn_config(cfg).metric).sigma_m)
+                floor = max(cfg.knn_fixes.sigma_floor_m, fix_noise(rm, **knn, vectors=vectors).sigma_m)
             except EstimationError as e:  # a one-session map: keep the configured floor
                 log.info("track: no leave-one-session-out fix noise (%s)", e)
                 floor = cfg.knn_fixes.sigma_floor_m
@@ -498,7 +504,7 @@ class SelfCalibration:
             temper = 1.0
             if cfg.fixed_lag.bank_temper is None and cfg.filter.kind == "fixed-lag":  # only the fixed-lag tracker runs a weighted bank
                 try:
-                    temper = bank_temper(fix_error_correlation(rm, k=cfg.knn_fixes.k, metric=knn_config(cfg).metric))
+                    temper = bank_temper(fix_error_correlation(rm, **knn, vectors=vectors))
                 except EstimationError as e:  # a one-session map: the bank's costs as they are
                     log.info("track: no fix error correlation (%s)", e)
             task.advance(info="replaying the map's walks")
