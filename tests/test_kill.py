@@ -148,8 +148,8 @@ def foreign_and_live(parent: Path, name: str) -> tuple[set[str], subprocess.Pope
     (parent / f".{name}.stage-alsonot.lock").write_text("another program's lock\n")
     holder = subprocess.Popen(
         [sys.executable, "-c", "import sys; from graphslam.io.atomic import FolderStage; "
-         "from graphslam.app.survey import OUTPUT_FILES as O, DERIVED_FILES as D; "
-         "s = FolderStage.create(sys.argv[1], {*O.values(), *D}); print(s.path.name, flush=True); sys.stdin.read()",
+         "from graphslam.app.survey import OWNED_FILES; "
+         "s = FolderStage.create(sys.argv[1], OWNED_FILES); print(s.path.name, flush=True); sys.stdin.read()",
          str(parent / name)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     assert holder.stdout is not None
     live = holder.stdout.readline().strip()
