@@ -42,6 +42,7 @@ _EXPORTS: dict[str, str] = {
     # radio map, positioning, access points
     "RadioMap": "graphslam.core.radiomap.radiomap",
     **{n: "graphslam.core.radiomap.knn" for n in ("KnnConfig", "KnnLocator", "KnnResult")},
+    **{n: "graphslam.core.radiomap.uncertainty" for n in ("KnnUncertainty", "calibrate_uncertainty")},
     **{n: "graphslam.core.tracking.apmodel" for n in ("ApFitConfig", "ApModel", "ApModels", "UnfittedAp")},
     # filters, smoothers, tracking
     **{n: "graphslam.core.tracking.filters" for n in (
@@ -149,6 +150,7 @@ if TYPE_CHECKING:  # static analysers see the real objects
         Epochs, FilterRun, FusionModel, GaussianState, PathLossModel, Shadowing, make_filter, run_epochs,
     )
     from graphslam.core.radiomap.knn import KnnConfig, KnnLocator, KnnResult
+    from graphslam.core.radiomap.uncertainty import KnnUncertainty, calibrate_uncertainty
     from graphslam.core.radiomap.radiomap import RadioMap
     from graphslam.core.tracking.smoother import MapProblem, SmoothedRun, map_smooth, rts_smooth, smooth
     from graphslam.core.types import LandmarkMark, PoseTrack, Scan, Session, Survey, UwbRanges

@@ -322,7 +322,6 @@ def test_track_keeps_its_self_calibration_in_the_cache_folder(tiny_case, tmp_pat
     folder ($XDG_CACHE_HOME/graphslam, one file per key; never beside the map: the survey's folder
     is the survey's) and reused (same tracks); another configuration, a damaged or tampered file
     mean measuring again (logged, never an error)."""
-    import dataclasses
     import json
     import logging
     import shutil

@@ -11,7 +11,7 @@ from test_align import CFG, loop, session
 from graphslam.config import load_config
 from graphslam.core.radiomap.similarity import Matches
 from graphslam.core.survey import solver as S
-from graphslam.core.survey.align import align, build_problem, initialization, pose_graph, solve
+from graphslam.core.survey.align import align, build_problem, initialization, solve
 from graphslam.core.survey.components import place_components
 from graphslam.core.survey.control import control_ties, tie_walks
 from graphslam.core.survey.heading import robust_circular_mean, walk_headings

@@ -22,7 +22,6 @@ from graphslam.sim import (
     SimulatedSurvey,
     build_building,
     phone_heading,
-    route_of,
     simulate,
     walk_offset,
     with_overrides,

@@ -13,13 +13,15 @@ from numpy.typing import NDArray
 
 from graphslam.core.progress import Task
 from graphslam.core.radiomap.knn import KnnConfig, KnnLocator, SurveyPositions, locate_survey
+from graphslam.core.radiomap.uncertainty import KnnUncertainty, map_uncertainty
 from graphslam.io.atomic import atomic_open
 from graphslam.names import DEFAULT_INDEX, DEFAULT_K, DEFAULT_METRIC
 
 log = logging.getLogger(__name__)
 
 POSITIONS_HEADER = (
-    "session_id", "t_ns", "x", "y", "score", "spread", "n_neighbours", "n_known_aps", "floor", "building", "status",
+    "session_id", "t_ns", "x", "y", "score", "spread", "sigma_m", "n_neighbours", "n_known_aps", "floor", "building",
+    "status",
 )
 
 
@@ -33,6 +35,7 @@ class LocateRun:
     n_scans: int
     n_located: int
     radio_map_frame: str = ""  # the frame of the answers
+    uncertainty: KnnUncertainty | None = None  # of the answers' sigma_m (None: a map of one walk)
 
     def as_dict(self) -> dict[str, object]:
         return {
@@ -41,6 +44,10 @@ class LocateRun:
             "scans": self.n_scans,
             "located": self.n_located,
             "unlocated": self.n_scans - self.n_located,
+            "uncertainty": None if self.uncertainty is None else {
+                "scale": round(self.uncertainty.scale, 4), "floor_m": self.uncertainty.floor_m,
+                "map_coverage_95": round(self.uncertainty.coverage, 4), "measured_on": self.uncertainty.n,
+            },
         }
 
 
@@ -48,27 +55,30 @@ def _fmt(v: float, digits: int) -> str:
     return "" if not math.isfinite(v) else f"{v:.{digits}f}"
 
 
-def position_rows(p: SurveyPositions) -> Iterator[tuple[object, ...]]:
+def position_rows(p: SurveyPositions, uncertainty: KnnUncertainty | None = None) -> Iterator[tuple[object, ...]]:
     r = p.result
     floor = r.floor.tolist() if r.floor is not None else [""] * len(p)
     building = r.building.tolist() if r.building is not None else [""] * len(p)
-    for sid, t, (x, y), s, sp, nn, nk, f, b, st in zip(
-        p.session_ids.tolist(), p.t_ns.tolist(), r.xy.tolist(), r.score.tolist(), r.spread.tolist(),
+    sigma = uncertainty.sigma(r.spread).tolist() if uncertainty is not None else [math.nan] * len(p)
+    for sid, t, (x, y), s, sp, sg, nn, nk, f, b, st in zip(
+        p.session_ids.tolist(), p.t_ns.tolist(), r.xy.tolist(), r.score.tolist(), r.spread.tolist(), sigma,
         r.n_neighbours.tolist(), r.n_known_aps.tolist(), floor, building, r.status.tolist(),
     ):
-        yield (sid, t, _fmt(x, 4), _fmt(y, 4), _fmt(s, 4), _fmt(sp, 4), nn, nk, f, b, st)
+        yield (sid, t, _fmt(x, 4), _fmt(y, 4), _fmt(s, 4), _fmt(sp, 4), _fmt(sg, 3), nn, nk, f, b, st)
 
 
-def write_positions_csv(p: SurveyPositions, path: str | Path) -> Path:
-    """CSV ``session_id,t_ns,x,y,score,spread,n_neighbours,n_known_aps,floor,building,status``,
-    written atomically. Unlocated scans keep their row with empty x/y/score/spread."""
+def write_positions_csv(p: SurveyPositions, path: str | Path, uncertainty: KnnUncertainty | None = None) -> Path:
+    """CSV ``session_id,t_ns,x,y,score,spread,sigma_m,n_neighbours,n_known_aps,floor,building,status``,
+    written atomically. ``sigma_m``: the answer's calibrated uncertainty (``uncertainty``; the 95 %
+    circle has radius 2.448 sigma_m), empty without one. Unlocated scans keep their row with empty
+    x/y/score/spread/sigma_m."""
     import csv
 
     path = Path(path)
     with atomic_open(path, "w", encoding="utf-8", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(POSITIONS_HEADER)
-        w.writerows(position_rows(p))
+        w.writerows(position_rows(p, uncertainty))
     return path
 
 
@@ -90,14 +100,16 @@ def locate_files(
 
     rm = read_radio_map(radio_map_path)
     survey = read_survey(list(query_paths))
-    locator = KnnLocator(rm, KnnConfig(k=k, weighted=weighted, min_common=min_common, index=index, metric=metric))  # type: ignore[arg-type]
+    config = KnnConfig(k=k, weighted=weighted, min_common=min_common, index=index, metric=metric)  # type: ignore[arg-type]
+    locator = KnnLocator(rm, config)
+    locator.uncertainty = map_uncertainty(rm, config)
     with Task("locate", total=survey.n_scans, unit="scans") as task:
         positions = locate_survey(locator, survey)
         task.advance(len(positions))
-    written = write_positions_csv(positions, out) if out is not None else None
+    written = write_positions_csv(positions, out, locator.uncertainty) if out is not None else None
     n_ok = int(positions.result.valid.sum())
     log.info("located %d of %d scans from %d sessions", n_ok, len(positions), len(survey))
-    return LocateRun(positions, written, len(survey), len(positions), n_ok, rm.frame)
+    return LocateRun(positions, written, len(survey), len(positions), n_ok, rm.frame, locator.uncertainty)
 
 
 def answers_by_session(p: SurveyPositions) -> dict[str, tuple[NDArray[np.int64], NDArray[np.float64]]]:

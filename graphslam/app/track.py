@@ -19,7 +19,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterable
 
-from graphslam.core.progress import Task
 from graphslam.core.tracking.apmodel import ApModels
 from graphslam.core.tracking.tracker import SelfCalibration, SessionTrack, Tracker
 from graphslam.errors import ConfigError, OutputError
@@ -297,7 +296,6 @@ def _read_calibration(path: Path, key: str) -> SelfCalibration | None:
 
 
 def _write_calibration(path: Path, key: str, cal: SelfCalibration) -> None:
-    from graphslam.errors import OutputError
     from graphslam.io.atomic import atomic_write_json
 
     try:

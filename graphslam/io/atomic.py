@@ -103,7 +103,6 @@ def atomic_open(path: str | Path, mode: str = "wb", **kwargs: object) -> Iterato
 
     The file gets the permissions a plain ``open`` would give (mkstemp's are 0600).
     """
-    from graphslam.errors import OutputError
 
     path = Path(path)
     try:

@@ -55,6 +55,7 @@ from graphslam.service.models import (  # re-exported: the service's public mode
 from graphslam.service.coalesce import Coalescer
 from graphslam.service.parsing import flat_scans, is_json_content_type, validated_scans
 from graphslam.service.pool import BatchTooLargeError, SearchPool, SearchUnavailableError
+from graphslam.core.radiomap.uncertainty import map_uncertainty
 from graphslam.service.render import position_dicts, response_json
 
 log = logging.getLogger(__name__)
@@ -220,6 +221,8 @@ def create_app(
     ivf = {"ivf_clusters": ivf_clusters} | ({"ivf_probes": ivf_probes} if ivf_probes is not None else {})
     config = KnnConfig(k=k, weighted=weighted, min_common=min_common, index=index, metric=metric, **ivf)  # type: ignore[arg-type]
     locator = KnnLocator(radio_map, config, threads=threads)
+    # every answer's sigma_m: the calibration the map records for this kNN, else measured now
+    locator.uncertainty = map_uncertainty(radio_map, config)
     # After the locator: the workers fork a complete copy of it (copy-on-write).
     pool = SearchPool(locator, search_processes)
     summary = radio_map.summary().as_dict()
@@ -308,13 +311,13 @@ def create_app(
         res = await coalescer.locate(flat.scans)
         if not res.valid.all():
             return None  # the route searches again and answers 422 with the bad indices
-        return orjson.dumps({**head, "positions": position_dicts(res)})
+        return orjson.dumps({**head, "positions": position_dicts(res, locator.uncertainty)})
 
     def respond(res: KnnResult) -> Response:
         # Serialised here (the shape is LocateResponse, documented in OpenAPI): FastAPI's
         # response-model validation would add a second pass over every position. Every value is
         # finite (strict=True above), so orjson's NaN -> null never applies.
-        return Response(orjson.dumps({**head, "positions": position_dicts(res)}), media_type="application/json")
+        return Response(orjson.dumps({**head, "positions": position_dicts(res, locator.uncertainty)}), media_type="application/json")
 
     @app.post(
         "/v1/locate",

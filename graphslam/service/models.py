@@ -62,6 +62,10 @@ class Position(BaseModel):
         description="mean fingerprint distance of the neighbours used (metric eq9: dB; sorensen: 0-1; see GET /v1/radio-map); lower = closer match"
     )
     spread: float = Field(description="weighted RMS distance (m) of the neighbours' positions to the estimate")
+    sigma_m: float | None = Field(
+        None, description="the answer's uncertainty: sigma (m) of an isotropic 2-D Gaussian, calibrated on the map "
+        "(its walks left out one at a time); the 95 % circle has radius 2.448 sigma_m; null for a map of one walk",
+    )
     n_neighbours: int
     floor: str | None = None
     building: str | None = None

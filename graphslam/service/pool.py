@@ -260,7 +260,7 @@ def _locate_body(
         rows = np.arange(b[part], b[part + 1], dtype=np.int64)
     res = loc.locate(enc.encode(flat, rows))
     # Rendered only if every row is valid: otherwise the server answers 422 and never uses them.
-    json_rows = position_rows(res) if render and res.valid.all() else None
+    json_rows = position_rows(res, loc.uncertainty) if render and res.valid.all() else None
     return rows, tuple(getattr(res, f) for f in _FIELDS), json_rows
 
 
@@ -618,7 +618,7 @@ class SearchPool:
         (``render.position_rows``, in request order; for ``render.response_json``)."""
         got = self._body(body, max_batch, strict, render=True)
         if got is None or got[1] is None:  # the latter only if a share had invalid rows, and strict is off
-            return None if got is None else (got[0], position_rows(got[0]))
+            return None if got is None else (got[0], position_rows(got[0], self.locator.uncertainty))
         return got[0], got[1]
 
     def _body(

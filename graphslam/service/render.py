@@ -15,6 +15,7 @@ from typing import Any
 import orjson
 
 from graphslam.core.radiomap.knn import KnnResult
+from graphslam.core.radiomap.uncertainty import KnnUncertainty
 
 # Every position object starts with its first key, and orjson escapes '"' inside strings: this
 # separator occurs between two objects of a serialised list and nowhere else.
@@ -22,22 +23,25 @@ _ROW_START = b'{"x":'
 _ROW_SEP = b"," + _ROW_START
 
 
-def position_dicts(res: KnnResult) -> list[dict[str, Any]]:
-    """One ``Position`` object per row of ``res`` (finite values: callers locate with ``strict=True``)."""
+def position_dicts(res: KnnResult, uncertainty: KnnUncertainty | None = None) -> list[dict[str, Any]]:
+    """One ``Position`` object per row of ``res`` (finite values: callers locate with ``strict=True``);
+    ``sigma_m`` from ``uncertainty`` (None: null)."""
     n = len(res)
     floor = res.floor.tolist() if res.floor is not None else [""] * n
     building = res.building.tolist() if res.building is not None else [""] * n
+    sigma = uncertainty.sigma(res.spread).tolist() if uncertainty is not None else [None] * n
     return [
-        {"x": p[0], "y": p[1], "score": s, "spread": sp, "n_neighbours": nn, "floor": f or None, "building": b or None}
-        for p, s, sp, nn, f, b in zip(
-            res.xy.tolist(), res.score.tolist(), res.spread.tolist(), res.n_neighbours.tolist(), floor, building
+        {"x": p[0], "y": p[1], "score": s, "spread": sp, "sigma_m": sg, "n_neighbours": nn, "floor": f or None,
+         "building": b or None}
+        for p, s, sp, sg, nn, f, b in zip(
+            res.xy.tolist(), res.score.tolist(), res.spread.tolist(), sigma, res.n_neighbours.tolist(), floor, building
         )
     ]
 
 
-def position_rows(res: KnnResult) -> list[bytes]:
+def position_rows(res: KnnResult, uncertainty: KnnUncertainty | None = None) -> list[bytes]:
     """Each row's position object as JSON: one ``orjson.dumps`` of the list, cut between objects."""
-    out = orjson.dumps(position_dicts(res))[1:-1]
+    out = orjson.dumps(position_dicts(res, uncertainty))[1:-1]
     if not out:
         return []
     rows = out.split(_ROW_SEP)

@@ -25,7 +25,7 @@ import logging
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Literal, Mapping, Sequence
+from typing import TYPE_CHECKING, Literal, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,6 +37,9 @@ from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.types import Survey
 from graphslam.errors import ConfigError, QueryError
 from graphslam.names import DEFAULT_INDEX, DEFAULT_K, DEFAULT_METRIC, INDEXES, METRICS
+
+if TYPE_CHECKING:
+    from graphslam.core.radiomap.uncertainty import KnnUncertainty
 
 log = logging.getLogger(__name__)
 
@@ -347,6 +350,8 @@ class KnnLocator:
         self.threads = max(1, threads if threads is not None else min(2, os.cpu_count() or 1))
         self._floors = _Labels(radio_map.floors) if radio_map.floors is not None else None
         self._buildings = _Labels(radio_map.buildings) if radio_map.buildings is not None else None
+        # the answers' calibrated uncertainty (``graphslam.core.radiomap.uncertainty``), set by those who report it
+        self.uncertainty: KnnUncertainty | None = None
 
     def distances(self, q: FingerprintMatrix) -> NDArray[np.float64]:
         """(len(q), len(map)) distances (``KnnConfig.metric``); ``inf`` for pairs sharing <

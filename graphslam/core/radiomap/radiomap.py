@@ -168,6 +168,12 @@ class RadioMap:
         if empty:
             log.info("radio map: %d of %d fingerprints hear no access point", empty, n)
 
+    def with_metadata(self, **extra: Any) -> "RadioMap":
+        """The same map with ``extra`` keys added to (or replacing those of) its metadata."""
+        import dataclasses
+
+        return dataclasses.replace(self, metadata={**dict(self.metadata), **extra})
+
     # ---- constructors -------------------------------------------------------------
 
     @classmethod

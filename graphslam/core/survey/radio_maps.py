@@ -12,6 +12,7 @@ from graphslam.core.survey.align import Alignment
 from graphslam.core.common.geometry import interpolate_xy, se2_apply
 from graphslam.core.survey.factors import edge_state
 from graphslam.core.radiomap.radiomap import RadioMap
+from graphslam.core.radiomap.uncertainty import with_uncertainty
 from graphslam.core.types import Survey
 from graphslam.errors import SolverError
 
@@ -49,7 +50,8 @@ def crowdsourced_radio_map(
     if site_from_aligned is not None:
         xy = se2_apply(np.asarray(site_from_aligned, float), xy)
         frame = "site"
-    return _build(survey, al, xy, frame, cfg, {"kind": "crowdsourced"})
+    # the default kNN's uncertainty, measured on the map (leave one walk out), rides along
+    return with_uncertainty(_build(survey, al, xy, frame, cfg, {"kind": "crowdsourced"}))
 
 
 def surveyed_radio_map(survey: Survey, al: Alignment, cfg: GraphSlamConfig) -> RadioMap:

@@ -22,7 +22,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.radiomap.knn import WEIGHT_EPS_DB, KnnConfig, KnnLocator
+from graphslam.core.radiomap.knn import KnnConfig
+from graphslam.core.radiomap.uncertainty import leave_one_session_out
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import EstimationError
 from graphslam.names import DEFAULT_METRIC
@@ -56,19 +57,7 @@ def leave_one_session_out_error_vectors(
     as ``KnnLocator`` (``metric``: ``KnnConfig.metric``). NaN rows: every candidate came from the fingerprint's own session."""
     if len(rm) < 2 or len(set(rm.session_ids.tolist())) < 2:
         raise EstimationError("fix noise: the radio map needs fingerprints of at least 2 sessions")
-    rows = np.arange(len(rm)) if rows is None else np.asarray(rows, np.int64)
-    cfg = KnnConfig(k=min(k + extra, len(rm)), metric=metric, index="exact")  # type: ignore[arg-type]
-    res = KnnLocator(rm, cfg).locate(rm.fingerprints.rows(rows))
-    idx, dist = res.neighbours, res.distances
-    other = (idx >= 0) & (rm.session_ids[np.maximum(idx, 0)] != rm.session_ids[rows][:, None])
-    rank = np.cumsum(other, axis=1)
-    use = other & (rank <= k)
-    w = np.where(use, 1.0 / (np.where(use, dist, 0.0) + WEIGHT_EPS_DB), 0.0)
-    wsum = w.sum(axis=1)
-    ok = wsum > 0
-    e = np.full((len(rows), 2), np.nan)
-    e[ok] = (w[ok, :, None] * rm.xy[np.maximum(idx[ok], 0)]).sum(axis=1) / wsum[ok, None] - rm.xy[rows[ok]]
-    return e
+    return leave_one_session_out(rm, rows, config=KnnConfig(k=k, metric=metric), extra=extra)[0]  # type: ignore[arg-type]
 
 
 def leave_one_session_out_errors(
