@@ -194,3 +194,21 @@ def test_killed_between_the_two_renames_the_next_run_puts_the_previous_set_back(
     assert run_cli(["survey", str(sites / "F0"), "--update", str(out), "--out", str(out), *BASE]) == 0
     assert json.loads((out / "report.json").read_text())["update"]["mode"] == "incremental"
     assert sorted(p.name for p in parent.iterdir()) == ["out"] and set(raw(out)) == set(before)
+
+
+def test_killed_before_its_lock_file_is_marked_the_next_run_removes_it(sites: Path, tmp_path: Path) -> None:
+    """A run killed between creating its stage's lock file and writing our marker into it leaves an
+    empty lock file and nothing else: the next run into that folder removes it (and an empty lock
+    file beside a stage folder, which is not how we leave them, is left alone)."""
+    parent = tmp_path / "o"
+    out = parent / "out"
+    env = dict(os.environ, GRAPHSLAM_TEST_KILL_AT="stage.unmarked")
+    done = subprocess.run([sys.executable, "-m", "graphslam", "survey", str(sites / "F0"), "--out", str(out), *BASE],
+                          env=env, capture_output=True)
+    assert done.returncode == -9, done.stderr[-2000:]
+    left = [p for p in parent.iterdir()]
+    assert len(left) == 1 and left[0].name.startswith(".out.stage-") and left[0].stat().st_size == 0
+    (parent / ".out.stage-foreign").mkdir()
+    (parent / ".out.stage-foreign.lock").write_bytes(b"")
+    assert run_cli(["survey", str(sites / "F0"), "--out", str(out), *BASE]) == 0
+    assert sorted(p.name for p in parent.iterdir()) == [".out.stage-foreign", ".out.stage-foreign.lock", "out"]

@@ -300,9 +300,16 @@ def clean_stale(target: str | Path) -> list[Path]:
         try:
             if not _lock_now(fd):
                 continue  # a live run's stage
-            if os.pread(fd, len(STAGE_MARKER), 0) != STAGE_MARKER.encode():
-                continue  # not ours (or its writer died before marking it, when it had made nothing else)
             stage, old = parent / f"{prefix}{key}", parent / f".{name}{OLD_TAG}{key}"
+            head = os.pread(fd, len(STAGE_MARKER), 0)
+            if head == b"" and not os.path.lexists(stage):
+                # ours, its writer killed between creating and marking it (it had made nothing
+                # else); a live writer that loses it here sees it unlinked and makes another
+                os.unlink(lock)
+                done.append(lock)
+                continue
+            if head != STAGE_MARKER.encode():
+                continue  # not ours
             if old.is_dir() and not old.is_symlink():
                 if not os.path.lexists(target):
                     os.rename(old, target)  # the previous set, complete: killed between the two renames
@@ -351,8 +358,14 @@ class FolderStage:
         try:
             target.parent.mkdir(parents=True, exist_ok=True)
             clean_stale(target)
-            fd, lock = tempfile.mkstemp(prefix=prefix, suffix=LOCK_SUFFIX, dir=target.parent)
-            fcntl.flock(fd, fcntl.LOCK_EX)  # (a cleaner that took it first found no marker, and left it)
+            while True:
+                fd, lock = tempfile.mkstemp(prefix=prefix, suffix=LOCK_SUFFIX, dir=target.parent)
+                fcntl.flock(fd, fcntl.LOCK_EX)
+                if os.fstat(fd).st_nlink:
+                    break
+                os.close(fd)  # a cleaner took the empty file for a killed writer's first: another
+                fd = None
+            kill_point("stage.unmarked")
             os.write(fd, f"{STAGE_MARKER}pid {os.getpid()}\n".encode())
             path = target.parent / Path(lock).name[: -len(LOCK_SUFFIX)]
             os.mkdir(path, 0o777)  # (less the umask)

@@ -6,13 +6,15 @@ answers' 95 % circles (2.448 sigma_m).
 python -m lab.issue41.coverage FLOOR [FLOOR ...] [folds=5]"""
 from __future__ import annotations
 
+import math
 import sys
 
 import numpy as np
 
 import graphslam as gs
-from graphslam import KnnConfig, KnnLocator, oracle_radio_map
-from graphslam.core.radiomap.uncertainty import R95, calibrate_uncertainty
+from graphslam import KnnConfig, KnnLocator, calibrate_uncertainty, oracle_radio_map
+
+R95 = math.sqrt(-2.0 * math.log(0.05))  # the 95 % circle's radius / sigma
 
 kw = dict(a.split("=") for a in sys.argv[1:] if "=" in a)
 FOLDS = int(kw.get("folds", 5))
