@@ -27,6 +27,7 @@ from typing import Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from graphslam.core.radiomap.knn import KnnConfig
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.radiomap.uncertainty import METADATA_KEY, AccuracyCells, KnnUncertainty, expected_accuracy
 from graphslam.core.common.geometry import se2_apply
@@ -40,7 +41,8 @@ TOP_APS = 5
 MAX_APS = 10  # 12 panels at most (coverage, accuracy, APs): beyond that nothing is readable
 ACCURACY_CELL_M = 2.0
 ACCURACY_RANGE_M = (0.0, 15.0)  # fixed colour scale: floors compare; beyond 15 m the map does not localise
-ACCURACY_ROWS = 5000  # fingerprints located at most (seeded sample): the panel's cost stays ~1 s
+ACCURACY_ROWS = 5000  # fingerprints located at most (a seeded sample, even over the cells) ...
+ACCURACY_PAIRS = 20_000_000  # ... and fewer on big maps: at most ~this many distances (a few seconds)
 NOT_LOCATED = (200, 200, 200)
 MIN_WEIGHT = 0.05  # kernel weight (in fingerprints) below which a cell is "not surveyed"
 RSS_RANGE_DBM = (-100.0, -30.0)  # fixed colour scale, the same in every panel (and as Rerun's)
@@ -158,16 +160,20 @@ def _accuracy_panel(
     """Panel: the expected accuracy per cell (module docstring), on cells aligned with ``grid``."""
     stored = rm.metadata.get(METADATA_KEY)
     u = KnnUncertainty.from_dict(stored) if isinstance(stored, Mapping) else None
+    if u is not None and not u.matches(KnnConfig()):
+        u = None  # measured with another kNN than the one located with here
     cell = max(ACCURACY_CELL_M, grid.cell)
-    acc = expected_accuracy(rm, cell_m=cell, xy=xy, origin=grid.lo, uncertainty=u, max_rows=ACCURACY_ROWS)
+    rows = min(ACCURACY_ROWS, max(500, ACCURACY_PAIRS // len(rm)))
+    acc = expected_accuracy(rm, cell_m=cell, xy=xy, origin=grid.lo, uncertainty=u, max_rows=rows)
     x0, x1, y0, y1 = grid.extent
     n = np.ceil(np.array([x1 - x0, y1 - y0]) / cell - 1e-9).astype(int)
     rgba = np.zeros((n[0], n[1], 4), np.uint8)  # (nx, ny): x along the first axis
     measured = np.isfinite(acc.error_m)
+    sampled = acc.n_sampled > 0  # all cells but on the biggest maps: more cells than fingerprints located
     i, j = np.clip(acc.ij[:, 0], 0, n[0] - 1), np.clip(acc.ij[:, 1], 0, n[1] - 1)
     rgba[i, j, :3] = np.where(measured[:, None], colour_map(np.nan_to_num(acc.error_m), *ACCURACY_RANGE_M, RDYLGN_R),
                               np.array(NOT_LOCATED, np.uint8))
-    rgba[i, j, 3] = 235
+    rgba[i, j, 3] = np.where(sampled, 235, 0)
     panel = pic.panel(box, (x0, y0, x1, y1))
     if plan is not None:
         panel.floor_plan(plan)
@@ -176,7 +182,7 @@ def _accuracy_panel(
     pic.colourbar((box[2] + 10, box[1], box[2] + 26, box[3]), RDYLGN_R, *ACCURACY_RANGE_M, "error (m)")
     if measured.any():
         r95 = f", 95 % radius {np.nanmedian(acc.r95_m):.1f} m" if np.isfinite(acc.r95_m).any() else ""
-        grey = f"; grey: {int((~measured).sum())} cells, 1 walk" if not measured.all() else ""
+        grey = f"; grey: {int((sampled & ~measured).sum())} cells, 1 walk" if (sampled & ~measured).any() else ""
         text = (f"expected accuracy: located among other walks, {cell:g} m cells\n"
                 f"median error {np.median(acc.error_m[measured]):.1f} m{r95}{grey}")
     else:

@@ -153,8 +153,9 @@ class AccuracyCells:
     error_m: NDArray[np.float64]  # (M,) median leave-one-walk-out error norm; NaN: none located
     r95_m: NDArray[np.float64]  # (M,) median calibrated 95 % radius; NaN: none located, or no calibration
     n_fingerprints: NDArray[np.int64]  # (M,) all of the map's fingerprints in the cell
+    n_sampled: NDArray[np.int64]  # (M,) of them, located (all, or the sample of a big map)
     n_located: NDArray[np.int64]  # (M,) of the sampled ones, located among the other walks
-    n_rows: int  # fingerprints sampled (at most ``max_rows``)
+    n_rows: int  # fingerprints sampled in all
 
 
 def expected_accuracy(
@@ -168,9 +169,11 @@ def expected_accuracy(
 
     ``xy``: the fingerprints' positions to grid (default the map's; e.g. moved into a floor plan's
     site frame by a rigid transform, which leaves the error norms unchanged); ``origin``: the grid's
-    lower-left corner (default the positions' minimum). Big maps: a seeded sample of ``max_rows``
-    fingerprints is located (cost ~ ``max_rows`` kNN queries); the coverage counts every fingerprint.
-    A map of one walk has nothing to compare: every ``error_m`` is NaN.
+    lower-left corner (default the positions' minimum). Maps of more than ``max_rows`` fingerprints:
+    a seeded sample of at most ``max_rows`` is located (cost ~ ``max_rows`` x map size Sørensen
+    distances), spread evenly over the cells (up to q per cell, the largest q that fits; at least
+    one per cell even beyond ``max_rows``); the coverage counts every fingerprint. A map of one walk
+    has nothing to compare: every ``error_m`` is NaN.
     """
     if cell_m <= 0 or not math.isfinite(cell_m):
         raise ConfigError(f"expected accuracy: cell size must be a positive number of metres, got {cell_m}")
@@ -178,9 +181,12 @@ def expected_accuracy(
     if pos.shape != (len(rm), 2):
         raise ConfigError(f"expected accuracy: xy must be ({len(rm)}, 2) positions, got {pos.shape}")
     lo = pos.min(axis=0) if origin is None else np.asarray(origin, float).reshape(2)
+    ij_all = np.floor((pos - lo) / cell_m).astype(np.int64)
+    cells, inverse, counts = np.unique(ij_all, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
     rows = np.arange(len(rm))
     if len(rows) > max_rows:
-        rows = np.sort(np.random.default_rng(seed).choice(len(rm), max_rows, replace=False))
+        rows = _even_sample(inverse, counts, max_rows, seed)
     err = np.full(len(rows), np.nan)
     r95 = np.full(len(rows), np.nan)
     if len(rows) and len(np.unique(rm.session_ids)) > 1:
@@ -188,14 +194,25 @@ def expected_accuracy(
         err = np.linalg.norm(e, axis=1)
         if uncertainty is not None:
             r95 = R95 * uncertainty.sigma(spread)
-    ij_all = np.floor((pos - lo) / cell_m).astype(np.int64)
-    cells, inverse, counts = np.unique(ij_all, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
+    g = inverse[rows]
     return AccuracyCells(
-        float(cell_m), lo, cells, lo + (cells + 0.5) * cell_m, _group_median(inverse[rows], err, len(cells)),
-        _group_median(inverse[rows], r95, len(cells)), counts.astype(np.int64),
-        np.bincount(inverse[rows][np.isfinite(err)], minlength=len(cells)).astype(np.int64), len(rows),
+        float(cell_m), lo, cells, lo + (cells + 0.5) * cell_m, _group_median(g, err, len(cells)),
+        _group_median(g, r95, len(cells)), counts.astype(np.int64), np.bincount(g, minlength=len(cells)),
+        np.bincount(g[np.isfinite(err)], minlength=len(cells)).astype(np.int64), len(rows),
     )
+
+
+def _even_sample(cell: NDArray[np.int64], counts: NDArray[np.int64], n: int, seed: int) -> NDArray[np.int64]:
+    """Sorted rows: a seeded random q of each cell's rows (all of a smaller cell), q the largest with
+    at most ``n`` rows in all (at least 1)."""
+    rng = np.random.default_rng(seed)
+    order = np.lexsort((rng.random(len(cell)), cell))  # by cell, random within
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    rank = np.empty(len(cell), np.int64)
+    rank[order] = np.arange(len(cell)) - np.repeat(start, counts)
+    taken = np.array([np.minimum(counts, q).sum() for q in range(1, int(counts.max()) + 1)])
+    q = max(1, int(np.searchsorted(taken, n, side="right")))
+    return np.flatnonzero(rank < q)
 
 
 def _group_median(group: NDArray[np.int64], values: NDArray[np.float64], n: int) -> NDArray[np.float64]:
