@@ -153,7 +153,7 @@ class AccuracyCells:
     error_m: NDArray[np.float64]  # (M,) median leave-one-walk-out error norm; NaN: none located
     r95_m: NDArray[np.float64]  # (M,) median calibrated 95 % radius; NaN: none located, or no calibration
     n_fingerprints: NDArray[np.int64]  # (M,) all of the map's fingerprints in the cell
-    n_sampled: NDArray[np.int64]  # (M,) of them, located (all, or the sample of a big map)
+    n_sampled: NDArray[np.int64]  # (M,) of them, searched for (all, but on a map of over max_rows)
     n_located: NDArray[np.int64]  # (M,) of the sampled ones, located among the other walks
     n_rows: int  # fingerprints sampled in all
 
@@ -177,6 +177,8 @@ def expected_accuracy(
     """
     if cell_m <= 0 or not math.isfinite(cell_m):
         raise ConfigError(f"expected accuracy: cell size must be a positive number of metres, got {cell_m}")
+    if not len(rm):
+        raise ConfigError("expected accuracy: the radio map has no fingerprint")
     pos = np.asarray(rm.xy if xy is None else xy, float)
     if pos.shape != (len(rm), 2):
         raise ConfigError(f"expected accuracy: xy must be ({len(rm)}, 2) positions, got {pos.shape}")
