@@ -151,8 +151,13 @@ def test_expected_accuracy_is_worse_where_walks_disagree_and_empty_where_none_wa
     assert few.n_rows <= 30 and np.all(few.n_sampled == 1) and few.n_fingerprints.sum() == len(rm)
     assert np.median(few.error_m[disagree]) > 3 * np.median(few.error_m[agree]) + 3
     assert np.isnan(few.r95_m).all()  # no calibration given
+    more = expected_accuracy(rm, cell_m=2.0, max_rows=60)  # the same number q of every cell, all of a smaller one
+    q = int(more.n_sampled.max())
+    assert q >= 2 and more.n_rows <= 60 and np.array_equal(more.n_sampled, np.minimum(more.n_fingerprints, q))
     # one walk: covered, nothing to compare
     one = expected_accuracy(_line_map(only="a1"), cell_m=2.0)
     assert len(one.ij) > 0 and np.isnan(one.error_m).all() and not one.n_located.any()
     with pytest.raises(ConfigError, match="cell size"):
         expected_accuracy(rm, cell_m=0.0)
+    with pytest.raises(ConfigError, match="xy must be"):
+        expected_accuracy(rm, xy=np.zeros((3, 2)))
