@@ -207,3 +207,29 @@ def test_wifi_edges_file_ties_radio_map_rows(corridor_run: tuple, tmp_path: Path
     (tmp_path / "bad.parquet").write_bytes(b"PAR1 not really")
     with pytest.raises(InputError, match="cannot read WiFi edges"):
         read_wifi_edges(tmp_path / "bad.parquet")
+
+
+def test_radio_map_picture_has_the_expected_accuracy_panel(corridor_run: tuple, tmp_path: Path) -> None:
+    from graphslam.core.radiomap.radiomap import RadioMap
+    from graphslam.io.radiomap_io import read_radio_map
+
+    _, out, _ = corridor_run
+    rm = read_radio_map(out / "radio_map.parquet")
+    one = np.flatnonzero(rm.session_ids == rm.session_ids[0])
+    lone = RadioMap.from_fingerprints(rm.fingerprints.rows(one), rm.xy[one], session_ids=rm.session_ids[one],
+                                      t_ns=rm.t_ns[one], frame=rm.frame, min_rssi_dbm=rm.min_rssi_dbm)
+
+    def accuracy_panel(m: RadioMap, name: str) -> np.ndarray:
+        pic = radiomap_picture.radio_map_picture(m, aps=[m.bssids[0]])
+        # coverage, expected accuracy, the AP: each with its colour bar
+        assert len(pic.panels) == 3 and [c[4] for c in pic.colourbars] == ["fingerprints / m²", "error (m)", "RSS (dBm)"]
+        pic.save(tmp_path / name)
+        x0, y0, x1, y1 = pic.panels[1].box
+        return _rgb(tmp_path / name)[y0:y1, x0:x1]
+
+    colourful = lambda img: int((img.max(axis=2) - img.min(axis=2) > 60).sum())  # noqa: E731
+    grey = lambda img: int((np.abs(img - radiomap_picture.NOT_LOCATED[0] - 4) <= 3).all(axis=2).sum())  # noqa: E731
+    walks = accuracy_panel(rm, "walks.png")  # cells coloured by their error, none grey: every walk has others
+    assert colourful(walks) > 200 and grey(walks) < 20
+    alone = accuracy_panel(lone, "alone.png")  # one walk: its cells grey, nothing to compare
+    assert colourful(alone) == 0 and grey(alone) > 200

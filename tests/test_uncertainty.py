@@ -13,14 +13,17 @@ import pytest
 
 from graphslam.app.tracking_bench import oracle_radio_map
 from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
+from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.radiomap.uncertainty import (
     METADATA_KEY,
     R95,
     KnnUncertainty,
     calibrate_uncertainty,
+    expected_accuracy,
     map_uncertainty,
     with_uncertainty,
 )
+from graphslam.errors import ConfigError
 from graphslam.sim import simulate
 
 
@@ -108,3 +111,53 @@ def test_the_survey_radio_map_carries_the_calibration(tmp_path: Path) -> None:
     u = KnnUncertainty.from_dict(meta[METADATA_KEY])
     assert u is not None and u.matches(KnnConfig()) and u.n > 0
     json.dumps(dict(meta))  # JSON all the way
+
+
+def _line_map(only: str | None = None) -> RadioMap:
+    """Walks along y = 0 under 11 APs every 10 m (log-distance RSS): on x 0..20 two walks agree; on
+    x 60..80 two walks disagree (the second's scans placed mirrored, as a wrongly aligned walk)."""
+    aps = np.arange(0.0, 101.0, 10.0)
+
+    def scan(x: float) -> dict[str, float]:
+        rss = -30.0 - 25.0 * np.log10(1.0 + np.abs(x - aps))
+        return {f"ap{j:02d}": float(r) for j, r in enumerate(rss) if r > -90}
+
+    xa, xb = np.arange(0.0, 20.5, 1.0), np.arange(60.0, 80.5, 1.0)
+    walks = [("a1", xa, xa), ("a2", xa + 0.5, xa + 0.5), ("b1", xb, xb), ("b2", xb, 140.0 - xb)]
+    walks = [w for w in walks if only in (None, w[0])]
+    scans = [scan(x) for _, rss_x, _ in walks for x in rss_x]
+    x = np.concatenate([at for *_, at in walks])
+    sid = [w for w, rss_x, _ in walks for _ in rss_x]
+    return RadioMap.from_scans(scans, np.column_stack([x, np.zeros_like(x)]), session_ids=sid,
+                               t_ns=np.arange(len(scans)), frame="site")
+
+
+def test_expected_accuracy_is_worse_where_walks_disagree_and_empty_where_none_walked() -> None:
+    rm = _line_map()
+    u = KnnUncertainty("sorensen", 3, True, 1.0, 2.0, 1)
+    acc = expected_accuracy(rm, cell_m=2.0, uncertainty=u)
+    cx = acc.centres[:, 0]
+    agree, disagree = cx < 30, cx > 50
+    # cells without fingerprints are not there: none between the two stretches
+    assert agree.sum() + disagree.sum() == len(cx) and acc.n_fingerprints.sum() == len(rm) == acc.n_rows
+    assert np.all(acc.n_located == acc.n_fingerprints) and np.all(acc.n_sampled == acc.n_fingerprints)
+    assert np.isfinite(acc.error_m).all()
+    assert np.median(acc.error_m[agree]) < 1.5
+    assert np.median(acc.error_m[disagree]) > 3 * np.median(acc.error_m[agree]) + 3
+    assert np.isfinite(acc.r95_m).all() and np.all(acc.r95_m >= R95 * 2.0 - 1e-9)  # sigma >= floor
+    np.testing.assert_allclose(acc.centres, acc.origin + (acc.ij + 0.5) * 2.0)
+    # a sample of the fingerprints is located; the coverage still counts them all
+    few = expected_accuracy(rm, cell_m=2.0, max_rows=30)  # ~4 fingerprints per cell: one of each
+    assert few.n_rows <= 30 and np.all(few.n_sampled == 1) and few.n_fingerprints.sum() == len(rm)
+    assert np.median(few.error_m[disagree]) > 3 * np.median(few.error_m[agree]) + 3
+    assert np.isnan(few.r95_m).all()  # no calibration given
+    more = expected_accuracy(rm, cell_m=2.0, max_rows=60)  # the same number q of every cell, all of a smaller one
+    q = int(more.n_sampled.max())
+    assert q >= 2 and more.n_rows <= 60 and np.array_equal(more.n_sampled, np.minimum(more.n_fingerprints, q))
+    # one walk: covered, nothing to compare
+    one = expected_accuracy(_line_map(only="a1"), cell_m=2.0)
+    assert len(one.ij) > 0 and np.isnan(one.error_m).all() and not one.n_located.any()
+    with pytest.raises(ConfigError, match="cell size"):
+        expected_accuracy(rm, cell_m=0.0)
+    with pytest.raises(ConfigError, match="xy must be"):
+        expected_accuracy(rm, xy=np.zeros((3, 2)))

@@ -40,6 +40,9 @@ VIRIDIS = np.array([[68, 1, 84], [71, 44, 122], [59, 81, 139], [44, 113, 142], [
                     [39, 173, 129], [92, 200, 99], [170, 220, 50], [253, 231, 37]], float)
 MAGMA_R = np.array([[252, 253, 191], [254, 202, 141], [253, 150, 104], [241, 96, 93], [205, 64, 113],
                     [158, 47, 127], [114, 31, 129], [68, 15, 118], [0, 0, 4]], float)
+# matplotlib's RdYlGn reversed: green small (errors), red large
+RDYLGN_R = np.array([[0, 104, 55], [45, 161, 85], [135, 203, 103], [205, 234, 131], [255, 254, 190],
+                     [254, 210, 127], [248, 140, 81], [221, 61, 45], [165, 0, 38]], float)
 
 
 def colour_map(values: NDArray, lo: float, hi: float, table: NDArray = VIRIDIS) -> NDArray[np.uint8]:

@@ -1,6 +1,11 @@
 """``radio_map.png``: is the survey good enough? What Anyplace users look at (``graphslam.viz.canvas``).
 
-Panel 1, coverage: fingerprints per m^2 on a grid of ``cell_m`` cells. Then one panel per
+Panel 1, coverage: fingerprints per m^2 on a grid of ``cell_m`` cells. Panel 2, expected accuracy
+(``graphslam.core.radiomap.uncertainty.expected_accuracy``): per cell of ``ACCURACY_CELL_M`` (or the
+grid's cell, if coarser), the median error of the map's fingerprints located among the other walks'
+fingerprints with the default kNN (a seeded sample of ``ACCURACY_ROWS`` on big maps), on a fixed
+``ACCURACY_RANGE_M`` scale; grey cells hold fingerprints that could not be located among other walks
+(a map of one walk: all of them); cells without fingerprints are blank. Then one panel per
 access point (``aps``, else the ``top`` most-heard, stronger mean RSS first on ties): its
 RSS interpolated over the surveyed area, with the AP's fitted position (``fit-aps``'
 ap_models.json) marked when there is one, and the fingerprints that heard it as dots.
@@ -22,16 +27,23 @@ from typing import Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from graphslam.core.radiomap.knn import KnnConfig
 from graphslam.core.radiomap.radiomap import RadioMap
+from graphslam.core.radiomap.uncertainty import METADATA_KEY, AccuracyCells, KnnUncertainty, expected_accuracy
 from graphslam.core.common.geometry import se2_apply
 from graphslam.core.tracking.apmodel import ApModels
 from graphslam.errors import ConfigError
-from graphslam.viz.canvas import MAGMA_R, VIRIDIS, Panel, Picture, colour_map
+from graphslam.viz.canvas import MAGMA_R, RDYLGN_R, VIRIDIS, Panel, Picture, colour_map
 from graphslam.viz.common import FloorPlan, top_access_points
 
 SIZE_PX = (1600, 1000)
 TOP_APS = 5
-MAX_APS = 11  # 12 panels at most: beyond that nothing is readable
+MAX_APS = 10  # 12 panels at most (coverage, accuracy, APs): beyond that nothing is readable
+ACCURACY_CELL_M = 2.0
+ACCURACY_RANGE_M = (0.0, 15.0)  # fixed colour scale: floors compare; beyond 15 m the map does not localise
+ACCURACY_ROWS = 5000  # fingerprints located at most (a seeded sample, even over the cells) ...
+ACCURACY_PAIRS = 20_000_000  # ... and fewer on big maps: at most ~this many distances (a few seconds)
+NOT_LOCATED = (200, 200, 200)
 MIN_WEIGHT = 0.05  # kernel weight (in fingerprints) below which a cell is "not surveyed"
 RSS_RANGE_DBM = (-100.0, -30.0)  # fixed colour scale, the same in every panel (and as Rerun's)
 
@@ -59,8 +71,27 @@ def draw_radio_map(
     size_px: tuple[int, int] = SIZE_PX,
     text: Mapping[str, str] | None = None,
 ) -> Path:
-    """Render the radio map picture to ``path`` (PNG of ``size_px``, written atomically; ``text``:
-    PNG text chunks, e.g. the options it was drawn with).
+    """Render the radio map picture (``radio_map_picture``) to ``path`` (PNG of ``size_px``, written
+    atomically; ``text``: PNG text chunks, e.g. the options it was drawn with)."""
+    pic = radio_map_picture(rm, aps=aps, top=top, ap_models=ap_models, floor_plan=floor_plan,
+                            site_from_map=site_from_map, cell_m=cell_m, bandwidth_m=bandwidth_m, size_px=size_px)
+    return pic.save(path, text)
+
+
+def radio_map_picture(
+    rm: RadioMap,
+    *,
+    aps: Sequence[str] = (),
+    top: int = TOP_APS,
+    ap_models: ApModels | None = None,
+    floor_plan: FloorPlan | None = None,
+    site_from_map: NDArray | None = None,
+    cell_m: float | None = None,
+    bandwidth_m: float | None = None,
+    size_px: tuple[int, int] = SIZE_PX,
+) -> Picture:
+    """The radio map picture: coverage, expected accuracy, then one panel per AP of ``aps`` (else the
+    ``top`` most heard).
 
     ``site_from_map`` (x, y, theta) draws a map in the aligned frame over a ``floor_plan`` in
     the site frame (e.g. report.json's landmark fit); without it the plan is drawn as is.
@@ -89,7 +120,7 @@ def draw_radio_map(
         f"radio map: {len(rm):,} fingerprints, {rm.fingerprints.n_aps:,} APs, {len(set(rm.session_ids.tolist()))} walks; "
         f"{frame}; {cell:g} m cells, Gaussian kernel {h:g} m; an AP not heard counts as {floor:g} dBm"
     ])
-    boxes = _layout(1 + len(cols), size_px, top=36)
+    boxes = _layout(2 + len(cols), size_px, top=36)
     extent = grid.extent
 
     density = weight / cell**2  # kernel density: fingerprints per m^2
@@ -98,11 +129,12 @@ def draw_radio_map(
     area = float((~outside).sum()) * cell**2
     pic.caption((boxes[0][0], boxes[0][1] - 34), f"coverage: {len(rm):,} fingerprints over ~{area:,.0f} m²\n"
                 f"median {np.median(density[~outside]) if (~outside).any() else 0:.2f} / m² where surveyed", 12)
+    _accuracy_panel(pic, boxes[1], grid, rm, xy, floor_plan)
 
     values = rm.fingerprints.values.tocsc()
     fitted = {a.bssid: a for a in ap_models.fitted} if ap_models is not None else {}
     unfitted = {u.bssid: u.reason for u in ap_models.unfitted} if ap_models is not None else {}
-    for box, c in zip(boxes[1:], cols):
+    for box, c in zip(boxes[2:], cols):
         rows = values.indices[values.indptr[c] : values.indptr[c + 1]]
         rss = np.full(len(xy), floor)
         rss[rows] = values.data[values.indptr[c] : values.indptr[c + 1]] + rm.missing_dbm
@@ -119,7 +151,44 @@ def draw_radio_map(
         elif bssid in unfitted:
             note = f"AP not fitted: {unfitted[bssid].split(' (')[0]}"
         pic.caption((box[0], box[1] - 34), f"{bssid}, heard by {len(rows):,} fingerprints\n{note}", 12)
-    return pic.save(path, text)
+    return pic
+
+
+def _accuracy_panel(
+    pic: Picture, box: tuple[int, int, int, int], grid: "_Grid", rm: RadioMap, xy: NDArray, plan: FloorPlan | None
+) -> AccuracyCells:
+    """Panel: the expected accuracy per cell (module docstring), on cells aligned with ``grid``."""
+    stored = rm.metadata.get(METADATA_KEY)
+    u = KnnUncertainty.from_dict(stored) if isinstance(stored, Mapping) else None
+    if u is not None and not u.matches(KnnConfig()):
+        u = None  # measured with another kNN than the one located with here
+    cell = max(ACCURACY_CELL_M, grid.cell)
+    rows = min(ACCURACY_ROWS, max(500, ACCURACY_PAIRS // len(rm)))
+    acc = expected_accuracy(rm, cell_m=cell, xy=xy, origin=grid.lo, uncertainty=u, max_rows=rows)
+    x0, x1, y0, y1 = grid.extent
+    n = np.ceil(np.array([x1 - x0, y1 - y0]) / cell - 1e-9).astype(int)
+    rgba = np.zeros((n[0], n[1], 4), np.uint8)  # (nx, ny): x along the first axis
+    measured = np.isfinite(acc.error_m)
+    sampled = acc.n_sampled > 0  # all cells but on the biggest maps: more cells than fingerprints located
+    i, j = np.clip(acc.ij[:, 0], 0, n[0] - 1), np.clip(acc.ij[:, 1], 0, n[1] - 1)
+    rgba[i, j, :3] = np.where(measured[:, None], colour_map(np.nan_to_num(acc.error_m), *ACCURACY_RANGE_M, RDYLGN_R),
+                              np.array(NOT_LOCATED, np.uint8))
+    rgba[i, j, 3] = np.where(sampled, 235, 0)
+    panel = pic.panel(box, (x0, y0, x1, y1))
+    if plan is not None:
+        panel.floor_plan(plan)
+    panel.raster(np.transpose(rgba, (1, 0, 2))[::-1], (x0, x0 + n[0] * cell, y0, y0 + n[1] * cell))
+    panel.scale_bar()
+    pic.colourbar((box[2] + 10, box[1], box[2] + 26, box[3]), RDYLGN_R, *ACCURACY_RANGE_M, "error (m)")
+    if measured.any():
+        r95 = f", 95 % radius {np.nanmedian(acc.r95_m):.1f} m" if np.isfinite(acc.r95_m).any() else ""
+        grey = f"; grey: {int((sampled & ~measured).sum())} cells, 1 walk" if (sampled & ~measured).any() else ""
+        text = (f"expected accuracy: located among other walks, {cell:g} m cells\n"
+                f"median error {np.median(acc.error_m[measured]):.1f} m{r95}{grey}")
+    else:
+        text = "expected accuracy: one walk, nothing to compare (grey)\nsurvey more walks to measure it"
+    pic.caption((box[0], box[1] - 34), text, 12)
+    return acc
 
 
 def _layout(n: int, size_px: tuple[int, int], top: int) -> list[tuple[int, int, int, int]]:

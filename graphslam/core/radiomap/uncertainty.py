@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 
 from graphslam.core.radiomap.knn import WEIGHT_EPS_DB, KnnConfig, KnnLocator
 from graphslam.core.radiomap.radiomap import RadioMap
+from graphslam.errors import ConfigError
 
 R95 = math.sqrt(-2.0 * math.log(0.05))  # radius / sigma of a 2-D Gaussian's 95 % circle
 DEFAULT_FLOOR_M = 2.0
@@ -137,6 +138,100 @@ def calibrate_uncertainty(
     return KnnUncertainty(cfg.metric, cfg.k, cfg.weighted, scale, floor_m, len(e), coverage)
 
 
+@dataclass(frozen=True)
+class AccuracyCells:
+    """The map's expected accuracy on square cells: the cells holding at least one fingerprint.
+
+    Frame and units: those of the positions gridded (``expected_accuracy``'s ``xy``), metres.
+    Cell ``(i, j)`` covers ``origin + [i, i+1) x [j, j+1) * cell_m``.
+    """
+
+    cell_m: float
+    origin: NDArray[np.float64]  # (2,) lower-left corner of cell (0, 0)
+    ij: NDArray[np.int64]  # (M, 2) cell indices
+    centres: NDArray[np.float64]  # (M, 2)
+    error_m: NDArray[np.float64]  # (M,) median leave-one-walk-out error norm; NaN: none located
+    r95_m: NDArray[np.float64]  # (M,) median calibrated 95 % radius; NaN: none located, or no calibration
+    n_fingerprints: NDArray[np.int64]  # (M,) all of the map's fingerprints in the cell
+    n_sampled: NDArray[np.int64]  # (M,) of them, searched for (all, but on a map of over max_rows)
+    n_located: NDArray[np.int64]  # (M,) of the sampled ones, located among the other walks
+    n_rows: int  # fingerprints sampled in all
+
+
+def expected_accuracy(
+    rm: RadioMap, *, cell_m: float = 2.0, config: KnnConfig | None = None, xy: NDArray | None = None,
+    origin: NDArray | None = None, uncertainty: KnnUncertainty | None = None, max_rows: int = 5000, seed: int = 0,
+) -> AccuracyCells:
+    """Where the map localises well: per cell of ``cell_m`` m, the median error of its fingerprints
+    located among the *other* walks' fingerprints (``leave_one_session_out``: what a new walk's scan
+    there would get, measured without ground truth), and, with ``uncertainty``, the median calibrated
+    95 % radius ``R95 * sigma`` of those answers.
+
+    ``xy``: the fingerprints' positions to grid (default the map's; e.g. moved into a floor plan's
+    site frame by a rigid transform, which leaves the error norms unchanged); ``origin``: the grid's
+    lower-left corner (default the positions' minimum). Maps of more than ``max_rows`` fingerprints:
+    a seeded sample of at most ``max_rows`` is located (cost ~ ``max_rows`` x map size Sørensen
+    distances), spread evenly over the cells (up to q per cell, the largest q that fits; at least
+    one per cell even beyond ``max_rows``); the coverage counts every fingerprint. A map of one walk
+    has nothing to compare: every ``error_m`` is NaN.
+    """
+    if cell_m <= 0 or not math.isfinite(cell_m):
+        raise ConfigError(f"expected accuracy: cell size must be a positive number of metres, got {cell_m}")
+    if not len(rm):
+        raise ConfigError("expected accuracy: the radio map has no fingerprint")
+    pos = np.asarray(rm.xy if xy is None else xy, float)
+    if pos.shape != (len(rm), 2):
+        raise ConfigError(f"expected accuracy: xy must be ({len(rm)}, 2) positions, got {pos.shape}")
+    lo = pos.min(axis=0) if origin is None else np.asarray(origin, float).reshape(2)
+    ij_all = np.floor((pos - lo) / cell_m).astype(np.int64)
+    cells, inverse, counts = np.unique(ij_all, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    rows = np.arange(len(rm))
+    if len(rows) > max_rows:
+        rows = _even_sample(inverse, counts, max_rows, seed)
+    err = np.full(len(rows), np.nan)
+    r95 = np.full(len(rows), np.nan)
+    if len(rows) and len(np.unique(rm.session_ids)) > 1:
+        e, spread = leave_one_session_out(rm, rows, config=config)
+        err = np.linalg.norm(e, axis=1)
+        if uncertainty is not None:
+            r95 = R95 * uncertainty.sigma(spread)
+    g = inverse[rows]
+    return AccuracyCells(
+        float(cell_m), lo, cells, lo + (cells + 0.5) * cell_m, _group_median(g, err, len(cells)),
+        _group_median(g, r95, len(cells)), counts.astype(np.int64), np.bincount(g, minlength=len(cells)),
+        np.bincount(g[np.isfinite(err)], minlength=len(cells)).astype(np.int64), len(rows),
+    )
+
+
+def _even_sample(cell: NDArray[np.int64], counts: NDArray[np.int64], n: int, seed: int) -> NDArray[np.int64]:
+    """Sorted rows: a seeded random q of each cell's rows (all of a smaller cell), q the largest with
+    at most ``n`` rows in all (at least 1)."""
+    rng = np.random.default_rng(seed)
+    order = np.lexsort((rng.random(len(cell)), cell))  # by cell, random within
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    rank = np.empty(len(cell), np.int64)
+    rank[order] = np.arange(len(cell)) - np.repeat(start, counts)
+    taken = np.array([np.minimum(counts, q).sum() for q in range(1, int(counts.max()) + 1)])
+    q = max(1, int(np.searchsorted(taken, n, side="right")))
+    return np.flatnonzero(rank < q)
+
+
+def _group_median(group: NDArray[np.int64], values: NDArray[np.float64], n: int) -> NDArray[np.float64]:
+    """Median of the finite ``values`` per group ``0..n-1`` (NaN for a group with none), sorted once."""
+    ok = np.isfinite(values)
+    g, v = group[ok], values[ok]
+    order = np.lexsort((v, g))
+    g, v = g[order], v[order]
+    counts = np.bincount(g, minlength=n)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    out = np.full(n, np.nan)
+    has = counts > 0
+    lo_i, hi_i = start[has] + (counts[has] - 1) // 2, start[has] + counts[has] // 2
+    out[has] = 0.5 * (v[lo_i] + v[hi_i])
+    return out
+
+
 METADATA_KEY = "knn_uncertainty"  # the radio map's metadata: the calibration of the default kNN
 
 
@@ -159,6 +254,6 @@ def map_uncertainty(rm: RadioMap, config: KnnConfig) -> KnnUncertainty | None:
 
 
 __all__ = [
-    "KnnUncertainty", "METADATA_KEY", "R95", "calibrate_uncertainty", "leave_one_session_out", "map_uncertainty",
-    "with_uncertainty",
+    "AccuracyCells", "KnnUncertainty", "METADATA_KEY", "R95", "calibrate_uncertainty", "expected_accuracy",
+    "leave_one_session_out", "map_uncertainty", "with_uncertainty",
 ]
