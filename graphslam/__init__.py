@@ -81,6 +81,8 @@ _EXPORTS: dict[str, str] = {
     **{n: "graphslam.core.radiomap.fingerprints" for n in ("DEFAULT_MIN_RSSI_DBM", "DEFAULT_MISSING_DBM", "DistanceEngine", "FingerprintMatrix")},
     "limit_blas_threads": "graphslam.core.radiomap.ivf",
     "WEIGHT_EPS_DB": "graphslam.core.radiomap.knn",
+    "with_uncertainty": "graphslam.core.radiomap.uncertainty",
+    "draw_radio_map": "graphslam.viz.radiomap_picture",
     **{n: "graphslam.core.survey.align" for n in ("Problem", "build_problem")},
     **{n: "graphslam.core.survey.graph" for n in ("lm_params", "native_graph", "pose_graph", "dead_reckoned_nodes", "values_to_xyh")},
     "solve_problem": "graphslam.core.survey.align:solve",

@@ -64,8 +64,7 @@ def ipin_accuracy(work: Path) -> dict[str, Path]:
     walks with >= 2 landmarks, each placed by a rigid fit to its own landmarks (truth places the map,
     for the picture only; the accuracy itself is measured without it)."""
     import graphslam
-    from graphslam.core.radiomap.uncertainty import with_uncertainty
-    from graphslam.viz.radiomap_picture import draw_radio_map
+    from graphslam import draw_radio_map, with_uncertainty
 
     floor = DATA / "ipin2023" / "b100_f-2"
     print(f"+ python: draw_radio_map(with_uncertainty(oracle_radio_map(walks of {floor} with >= 2 landmarks)), "
