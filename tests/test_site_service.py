@@ -6,10 +6,13 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import signal
+import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 import httpx
 import numpy as np
@@ -141,3 +144,66 @@ def test_a_bad_site_folder_is_one_line_and_exit_2(tmp_path: Path, floors: dict, 
     assert len(lines) == 1 and lines[0].startswith("error: "), p.stderr
     want = site / "floor_1" / "radio_map.parquet" if case == "unreadable" else site
     assert str(want) in lines[0]
+
+
+def test_the_site_keeps_the_service_options(tmp_path: Path, floors: dict) -> None:
+    site = _site(tmp_path / "site", floors)
+    app = served_app(site, None, search_processes=0, token="s3cret", max_batch=2)
+    with start_background_server(app) as srv, httpx.Client(base_url=srv.url, timeout=30.0) as c:
+        q = {"readings": floors["floor_0"][1][0]}
+        assert c.post("/v1/locate", json=q).status_code == 401
+        assert c.get("/v1/radio-map").status_code == 401
+        auth = {"authorization": "Bearer s3cret"}
+        assert c.post("/v1/locate", json=q, headers=auth).json()["positions"][0]["floor"] == "floor_0"
+        assert c.post("/v1/locate", json={"fingerprints": [q] * 3}, headers=auth).status_code == 413
+        assert c.get("/healthz").status_code == 200
+        schema = c.get("/openapi.json").json()
+        body = schema["paths"]["/v1/locate"]["post"]["requestBody"]["content"]["application/json"]["schema"]
+        assert body == {"$ref": "#/components/schemas/LocateRequest"} and "LocateRequest" in schema["components"]["schemas"]
+        assert "SiteLocateResponse" in schema["components"]["schemas"]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_serve_of_a_site_reloads_every_floor_on_sighup(tmp_path: Path, floors: dict) -> None:
+    site = _site(tmp_path / "site", floors)
+    port = _free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "graphslam", "serve", "--radio-map", str(site), "--port", str(port)],
+        stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
+    )
+    url = f"http://127.0.0.1:{port}"
+    rm1, queries, _ = floors["floor_1"]
+
+    def x() -> float:
+        return httpx.post(url + "/v1/locate", json={"readings": queries[0]}, timeout=10).json()["positions"][0]["x"]
+
+    def wait_for(cond: Callable[[], bool], what: str) -> None:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            try:
+                if cond():
+                    return
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.05)
+        raise AssertionError(what)
+
+    try:
+        wait_for(lambda: x() < 2 * SHIFT, "server did not start")
+        new = site / "floor_1" / "radio_map.parquet.new"
+        write_radio_map(dataclasses.replace(rm1, xy=rm1.xy + [SHIFT, 0.0]), new)
+        os.replace(new, site / "floor_1" / "radio_map.parquet")
+        proc.send_signal(signal.SIGHUP)
+        wait_for(lambda: x() >= 2 * SHIFT, "SIGHUP did not swap in floor_1's new map")
+        gens = {f["name"]: f["generation"] for f in httpx.get(url + "/v1/radio-map", timeout=10).json()["floors"]}
+        assert gens["floor_1"] == 1 and proc.poll() is None
+    finally:
+        proc.terminate()
+        _, err = proc.communicate(timeout=30)
+    assert f"radio map {site / 'floor_1' / 'radio_map.parquet'} reloaded (generation 1" in err
+    assert "Traceback" not in err

@@ -38,10 +38,13 @@ from pydantic import BaseModel, Field
 from graphslam.errors import InputError, QueryError
 from graphslam.service.app import (
     INLINE_MAX,
+    LOCATE_REQUEST_BODY,
+    PARSE_INLINE_MAX_BYTES,
     BearerToken,
     BodyLimit,
     _problem,
     _validation_message,
+    with_request_model,
 )
 from graphslam.service.config import DEFAULT_MAX_BATCH, DEFAULT_MAX_BODY_BYTES
 from graphslam.service.models import Health, Position, RadioMapInfo
@@ -208,10 +211,15 @@ def create_site_app(
             422: {"description": "malformed request, or a fingerprint with no access point known to any floor"},
             503: {"description": "a search worker process died while answering (retry)"},
         },
+        openapi_extra=LOCATE_REQUEST_BODY,
     )
     async def locate(request: Request) -> Any:
         body = await request.body()
-        scans = await run_in_threadpool(validated_scans, body, request.headers.get("content-type"))
+        content_type = request.headers.get("content-type")
+        if len(body) > PARSE_INLINE_MAX_BYTES:
+            scans = await run_in_threadpool(validated_scans, body, content_type)
+        else:
+            scans = validated_scans(body, content_type)
         if len(scans) > max_batch:
             return _problem(413, f"batch of {len(scans)} fingerprints, at most {max_batch} per request")
         with ExitStack() as held:  # every floor's current app, kept open until answered
@@ -222,6 +230,7 @@ def create_site_app(
                 done = await run_in_threadpool(answer, apps, scans)
         return Response(done, media_type="application/json")
 
+    with_request_model(app, token)
     app.add_middleware(BodyLimit, max_bytes=max_body_bytes)
     if token:
         app.add_middleware(BearerToken, token=token)
