@@ -73,7 +73,10 @@ def locate(
 
 @app.command()
 def serve(
-    radio_map: Path = typer.Option(..., "--radio-map", help="Radio map (.parquet)."),
+    radio_map: Path = typer.Option(
+        ..., "--radio-map", help="Radio map (.parquet), or a site: a folder of floor folders each holding "
+        "radio_map.parquet (survey-batch --out); then every answer names its floor.",
+    ),
     host: Optional[str] = typer.Option(None, "--host", help="Bind address (default: loopback, 127.0.0.1)."),
     port: Optional[int] = typer.Option(None, "--port", min=0, max=65535, help="TCP port (default 8077)."),
     k: Optional[int] = typer.Option(None, "--neighbours", "-k", min=1, help=f"{K_HELP} Default: {names.DEFAULT_K}."),
@@ -107,7 +110,8 @@ def serve(
     metric: Optional[Metric] = typer.Option(None, "--metric", help=f"{METRIC_HELP} Default: {names.DEFAULT_METRIC}."),
 ) -> None:
     """Serve kNN positioning over HTTP (POST /v1/locate, GET /v1/radio-map, GET /healthz, /openapi.json, /docs).
-    A port already in use is one line and exit code 2."""
+    A site (a folder of floor maps) is answered floor by floor: the best-matching floor gives the position.
+    A port already in use, or a site folder without a readable floor map, is one line and exit code 2."""
     from graphslam.service.config import DEFAULT_WATCH_S, ServeConfig
     from graphslam.service.server import serve as serve_map
 

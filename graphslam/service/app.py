@@ -194,6 +194,42 @@ def _validation_message(exc: RequestValidationError) -> tuple[str, list[dict[str
     return "invalid request: " + "; ".join(parts) + more, errors
 
 
+# POST /v1/locate's body in OpenAPI (see with_request_model)
+LOCATE_REQUEST_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {"application/json": {"schema": {"$ref": "#/components/schemas/LocateRequest"}}},
+    }
+}
+
+
+def with_request_model(app: FastAPI, token: str | None) -> None:
+    """``app``'s OpenAPI description with ``LocateRequest`` as ``POST /v1/locate``'s body (the route
+    reads its body itself, so FastAPI does not see it) and, with a ``token``, the bearer scheme."""
+    default_openapi = app.openapi
+
+    def openapi_with_request_model() -> dict[str, Any]:
+        # /v1/locate reads its body itself (fast path), so FastAPI does not see LocateRequest:
+        # add it (and its nested models) to the components the route's requestBody refers to.
+        if app.openapi_schema:
+            return app.openapi_schema
+        schema = default_openapi()
+        comps = schema.setdefault("components", {}).setdefault("schemas", {})
+        req = LocateRequest.model_json_schema(ref_template="#/components/schemas/{model}")
+        for name, definition in req.pop("$defs", {}).items():
+            comps.setdefault(name, definition)
+        comps["LocateRequest"] = req
+        if token:  # Swagger UI's "Authorize" button, and the requirement on /v1/ operations
+            schema["components"].setdefault("securitySchemes", {})["bearer"] = {"type": "http", "scheme": "bearer"}
+            for path, ops in schema.get("paths", {}).items():
+                if path.startswith("/v1/"):
+                    for op in ops.values():
+                        op["security"] = [{"bearer": []}]
+        return schema
+
+    app.openapi = openapi_with_request_model  # type: ignore[method-assign]
+
+
 def create_app(
     radio_map: RadioMap,
     *,
@@ -246,28 +282,7 @@ def create_app(
     # Concurrent small requests share one search (service/coalesce.py); unlocatable rows are
     # checked per request below.
     coalescer = Coalescer(lambda scans: locator.locate(scans))
-    default_openapi = app.openapi
-
-    def openapi_with_request_model() -> dict[str, Any]:
-        # /v1/locate reads its body itself (fast path), so FastAPI does not see LocateRequest:
-        # add it (and its nested models) to the components the route's requestBody refers to.
-        if app.openapi_schema:
-            return app.openapi_schema
-        schema = default_openapi()
-        comps = schema.setdefault("components", {}).setdefault("schemas", {})
-        req = LocateRequest.model_json_schema(ref_template="#/components/schemas/{model}")
-        for name, definition in req.pop("$defs", {}).items():
-            comps.setdefault(name, definition)
-        comps["LocateRequest"] = req
-        if token:  # Swagger UI's "Authorize" button, and the requirement on /v1/ operations
-            schema["components"].setdefault("securitySchemes", {})["bearer"] = {"type": "http", "scheme": "bearer"}
-            for path, ops in schema.get("paths", {}).items():
-                if path.startswith("/v1/"):
-                    for op in ops.values():
-                        op["security"] = [{"bearer": []}]
-        return schema
-
-    app.openapi = openapi_with_request_model  # type: ignore[method-assign]
+    with_request_model(app, token)
 
     @app.exception_handler(RequestValidationError)
     async def _on_invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -327,12 +342,7 @@ def create_app(
             422: {"description": "malformed request, or a fingerprint with no access point known to the map"},
             503: {"description": "a search worker process died while answering (retry)"},
         },
-        openapi_extra={
-            "requestBody": {
-                "required": True,
-                "content": {"application/json": {"schema": {"$ref": "#/components/schemas/LocateRequest"}}},
-            }
-        },
+        openapi_extra=LOCATE_REQUEST_BODY,
     )
     async def locate(request: Request) -> Any:
         # Parsed here, not by FastAPI: orjson + a vectorised check, with LocateRequest's exact

@@ -19,12 +19,13 @@ and the map summary together; swapping the app keeps them consistent without tou
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import gc
 import logging
 import signal
 import threading
 from pathlib import Path
-from typing import Any, Callable, MutableMapping
+from typing import Any, Callable, Iterator, MutableMapping
 
 from fastapi import FastAPI
 
@@ -107,34 +108,48 @@ class ReloadingApp:
         if scope["type"] == "lifespan":
             await self._lifespan(receive, send)
             return
-        app = self.current  # taken once: the whole request is answered by this map
+        with self.hold() as app:  # taken once: the whole request is answered by this map
+            await app(scope, receive, send)
+
+    @contextlib.contextmanager
+    def hold(self) -> Iterator[FastAPI]:
+        """The current app, kept open (not closed by a swap) until the block ends. On the event loop."""
+        app = self.current
         key = id(app)
         self._inflight[key] = self._inflight.get(key, 0) + 1
         try:
-            await app(scope, receive, send)
+            yield app
         finally:
             self._inflight[key] -= 1
             if self._inflight[key] == 0 and key in self._retired:
                 self._close_later(self._retired.pop(key))
 
+    def start(self) -> None:
+        """Start watching (and SIGHUP) on the running event loop: the lifespan's startup."""
+        self._loop = asyncio.get_running_loop()
+        if self.watch_interval is not None:
+            self._tasks.append(asyncio.create_task(self._watch()))
+        if self.sighup and threading.current_thread() is threading.main_thread():
+            self._loop.add_signal_handler(signal.SIGHUP, self.reload_now)
+
+    def stop(self) -> None:
+        """Stop watching and close every app (their search processes): the lifespan's shutdown."""
+        for t in self._tasks:
+            t.cancel()
+        if self.sighup and threading.current_thread() is threading.main_thread() and self._loop:
+            self._loop.remove_signal_handler(signal.SIGHUP)
+        for app in [self.current, *self._retired.values()]:
+            app.state.search_pool.close()
+        self._retired.clear()
+
     async def _lifespan(self, receive: Callable, send: Callable) -> None:
         while True:
             message = await receive()
             if message["type"] == "lifespan.startup":
-                self._loop = asyncio.get_running_loop()
-                if self.watch_interval is not None:
-                    self._tasks.append(asyncio.create_task(self._watch()))
-                if self.sighup and threading.current_thread() is threading.main_thread():
-                    self._loop.add_signal_handler(signal.SIGHUP, self.reload_now)
+                self.start()
                 await send({"type": "lifespan.startup.complete"})
             elif message["type"] == "lifespan.shutdown":
-                for t in self._tasks:
-                    t.cancel()
-                if self.sighup and threading.current_thread() is threading.main_thread() and self._loop:
-                    self._loop.remove_signal_handler(signal.SIGHUP)
-                for app in [self.current, *self._retired.values()]:
-                    app.state.search_pool.close()
-                self._retired.clear()
+                self.stop()
                 await send({"type": "lifespan.shutdown.complete"})
                 return
 

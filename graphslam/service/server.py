@@ -62,10 +62,20 @@ def reloading_app(radio_map_path: str | Path, watch: float | None, **app_kwargs:
     return ReloadingApp(build(), build, radio_map_path, watch_interval=watch)
 
 
-def worker_app() -> "ReloadingApp":
+def served_app(radio_map_path: str | Path, watch: float | None, **app_kwargs: object) -> "ReloadingApp | FastAPI":
+    """What ``serve`` serves: ``reloading_app`` of a radio map file, or the site app of a folder of
+    floor maps (``graphslam.service.site``: every floor reloads on its own)."""
+    from graphslam.service.site import is_site, site_app
+
+    if not is_site(radio_map_path):
+        return reloading_app(radio_map_path, watch, **app_kwargs)
+    return site_app(radio_map_path, lambda path: _build_app(path, **app_kwargs), watch, **app_kwargs)
+
+
+def worker_app() -> "ReloadingApp | FastAPI":
     """App factory for uvicorn worker processes (``serve(workers=N)``)."""
     cfg = json.loads(os.environ[_WORKER_CONFIG_ENV])
-    return reloading_app(cfg.pop("radio_map_path"), cfg.pop("watch"), **cfg)
+    return served_app(cfg.pop("radio_map_path"), cfg.pop("watch"), **cfg)
 
 
 
@@ -94,6 +104,8 @@ def serve(radio_map_path: str | Path, cfg: ServeConfig | None = None) -> None:
     of ``LOG_LEVELS`` (``warning`` drops the access line per request). ``token``: bearer token
     required on ``/v1/`` (a warning when ``host`` is not loopback and there is none).
     SIGHUP reloads the map (in every worker); ``watch_s``: also poll the file every so many seconds.
+    ``radio_map_path`` a folder: a site, one map per floor (``graphslam.service.site``; search in
+    the server process unless ``search_processes`` is given, then that many per floor).
     The socket is bound first: an address that cannot be (taken, not this machine's) is a
     ``ServiceError``, before the map is read."""
     cfg = cfg or ServeConfig()
@@ -117,9 +129,16 @@ def _serve(radio_map_path: str | Path, cfg: ServeConfig) -> None:
             "serving on %s without a bearer token: anyone who can reach this address can query the radio map "
             "(set --token or GRAPHSLAM_SERVE_TOKEN)", host,
         )
+    from graphslam.service.site import is_site
+
+    site = is_site(radio_map_path)
+    if site:
+        from graphslam.service.site import find_floor_maps
+
+        find_floor_maps(radio_map_path)  # a folder without floor maps: one line, before the socket
     search_processes = cfg.search_processes
-    if search_processes is None:
-        search_processes = default_search_processes() if workers <= 1 else 0
+    if search_processes is None:  # a site's floors: each would fork its own
+        search_processes = default_search_processes() if workers <= 1 and not site else 0
     kwargs: dict[str, object] = {**cfg.app_options(), "search_processes": search_processes}
     sock = listen(host, port)  # before the map loads: a taken port is one line, not uvicorn's start-up failure
     log.info(
@@ -128,7 +147,7 @@ def _serve(radio_map_path: str | Path, cfg: ServeConfig) -> None:
     )
     if workers <= 1:
         try:
-            app = reloading_app(radio_map_path, watch, **kwargs)
+            app = served_app(radio_map_path, watch, **kwargs)
         except BaseException:
             sock.close()
             raise

@@ -1,0 +1,257 @@
+"""A building served whole: ``graphslam serve --radio-map SITE_DIR``, one radio map per floor.
+
+``SITE_DIR`` is a folder of survey outputs, as ``graphslam survey-batch --out`` writes them:
+every folder under it (itself included, hidden ones skipped: they are a survey's stages) that
+holds ``radio_map.parquet`` is one floor, named by its path relative to ``SITE_DIR``
+(``summary.json``'s ``floor``; the folder's own name when ``SITE_DIR`` itself is the floor).
+
+Every floor is served by its own service app (``create_app``: locator, uncertainty, search
+pool) behind its own ``ReloadingApp``: a floor whose file changes (``--watch``) or every floor
+(SIGHUP) is reloaded and swapped atomically as a single map is, a broken one refused while the
+others go on. A query is located on every floor and answered by the floor whose kNN answer has
+the lowest score (the closest fingerprint match; Sørensen scores are 0-1 on every map). The
+position is in that floor's frame (each survey has its own): ``floor`` and ``frame`` say which.
+``floor_scores`` gives every floor's score (null where the floor knows none of the query's
+access points). A fingerprint that no floor can locate (none of its access points is known to
+any floor) refuses the request with 422 and its index, as a single map does.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import signal
+import threading
+from contextlib import ExitStack, asynccontextmanager
+from pathlib import Path
+from typing import Any, AsyncIterator, Callable, Sequence
+
+import numpy as np
+import orjson
+from fastapi import FastAPI, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from fastapi.exceptions import RequestValidationError
+from fastapi_offline import FastAPIOffline
+from pydantic import BaseModel, Field
+
+from graphslam.errors import InputError, QueryError
+from graphslam.service.app import (
+    INLINE_MAX,
+    LOCATE_REQUEST_BODY,
+    PARSE_INLINE_MAX_BYTES,
+    BearerToken,
+    BodyLimit,
+    _problem,
+    _validation_message,
+    with_request_model,
+)
+from graphslam.service.config import DEFAULT_MAX_BATCH, DEFAULT_MAX_BODY_BYTES
+from graphslam.service.models import Health, Position, RadioMapInfo
+from graphslam.service.parsing import validated_scans
+from graphslam.service.pool import SearchUnavailableError
+from graphslam.service.reload import ReloadingApp
+from graphslam.service.render import position_dicts
+
+log = logging.getLogger(__name__)
+
+FLOOR_MAP_FILE = "radio_map.parquet"  # a survey's radio map (graphslam.app.survey's output set)
+
+
+class SitePosition(Position):
+    frame: str = Field(description="the answering floor's frame: x, y are in it")
+    floor_scores: dict[str, float | None] = Field(
+        description="every floor's kNN score for this fingerprint (null: the floor knows none of its access points)"
+    )
+
+
+class SiteLocateResponse(BaseModel):
+    site: str
+    k: int
+    weighted: bool
+    positions: list[SitePosition]
+
+
+class FloorInfo(RadioMapInfo):
+    name: str
+    path: str
+    generation: int = Field(description="reloads of this floor's map since the start")
+
+
+class SiteInfo(BaseModel):
+    site: str
+    floors: list[FloorInfo]
+
+
+def is_site(path: str | Path) -> bool:
+    """Whether ``serve`` is given a site (a folder), not one radio map file."""
+    return Path(path).is_dir()
+
+
+def find_floor_maps(site: str | Path) -> dict[str, Path]:
+    """Floor name -> its ``radio_map.parquet``, sorted by name; ``InputError`` when there is none."""
+    root = Path(site)
+    if not root.is_dir():
+        raise InputError(root, "not a folder (expected a site: one folder per floor, each holding radio_map.parquet)")
+    floors: dict[str, Path] = {}
+    for f in sorted(root.rglob(FLOOR_MAP_FILE)):
+        rel = f.parent.relative_to(root)
+        if any(part.startswith(".") for part in rel.parts) or not f.is_file():
+            continue  # a survey's stage or old set (graphslam.io.atomic.FolderStage)
+        floors[rel.as_posix() if rel.parts else root.resolve().name] = f
+    if not floors:
+        raise InputError(root, f"no floor folder under it holds {FLOOR_MAP_FILE} (expected survey-batch --out's layout)")
+    return dict(sorted(floors.items()))
+
+
+def _choose(results: Sequence[Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Per row: the index of the floor with the lowest score among those that located it (-1: none),
+    and the (floors, rows) score matrix (NaN where a floor did not locate the row)."""
+    scores = np.vstack([np.where(r.valid, r.score, np.nan) for r in results])
+    located = np.isfinite(scores).any(axis=0)
+    best = np.where(located, np.argmin(np.where(np.isfinite(scores), scores, np.inf), axis=0), -1)
+    return best, scores
+
+
+def create_site_app(
+    floors: dict[str, ReloadingApp],
+    *,
+    site: str,
+    k: int = 3,
+    weighted: bool = True,
+    min_common: int = 1,
+    max_batch: int = DEFAULT_MAX_BATCH,
+    max_body_bytes: int = DEFAULT_MAX_BODY_BYTES,
+    token: str | None = None,
+    sighup: bool = True,
+) -> FastAPI:
+    """The service of a site: ``floors`` (name -> that floor's reloading service app, made with
+    ``sighup=False``) behind one ``POST /v1/locate`` / ``GET /v1/radio-map``. Its lifespan starts
+    and stops the floors' reloaders; ``sighup``: SIGHUP reloads every floor (main thread only)."""
+    names = list(floors)
+    reloaders = [floors[n] for n in names]
+
+    @asynccontextmanager
+    async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+        for r in reloaders:
+            r.start()
+        main = sighup and threading.current_thread() is threading.main_thread()
+        loop = asyncio.get_running_loop()
+        if main:
+            loop.add_signal_handler(signal.SIGHUP, lambda: [r.reload_now() for r in reloaders])
+        try:
+            yield
+        finally:
+            if main:
+                loop.remove_signal_handler(signal.SIGHUP)
+            for r in reloaders:
+                r.stop()
+
+    app = FastAPIOffline(
+        title="graphslam site service",
+        version="1",
+        summary="kNN WiFi fingerprint positioning against one radio map per floor: floor and position",
+        lifespan=lifespan,
+    )
+    app.state.floors = floors
+
+    @app.exception_handler(RequestValidationError)
+    async def _on_invalid(request: Request, exc: RequestValidationError) -> Response:
+        detail, errors = _validation_message(exc)
+        return _problem(422, detail, errors=errors)
+
+    @app.exception_handler(QueryError)
+    async def _on_query_error(request: Request, exc: QueryError) -> Response:
+        return _problem(422, str(exc))
+
+    @app.exception_handler(SearchUnavailableError)
+    async def _on_search_unavailable(request: Request, exc: SearchUnavailableError) -> Response:
+        return _problem(503, str(exc))
+
+    @app.get("/healthz", response_model=Health)
+    def healthz() -> dict[str, str]:
+        return {"status": "ok"}
+
+    @app.get("/v1/radio-map", response_model=SiteInfo)
+    def site_info() -> dict[str, Any]:
+        out = []
+        for name, r in zip(names, reloaders):
+            locator = r.current.state.locator
+            info = {**locator.radio_map.summary().as_dict(), "k": k, "weighted": weighted, "min_common": min_common,
+                    "index": locator.index_kind, "metric": locator.config.metric}
+            out.append({**info, "name": name, "path": str(r.path), "generation": r.generation})
+        return {"site": site, "floors": out}
+
+    def answer(apps: list[FastAPI], scans: list[Any]) -> bytes:
+        results = [a.state.search_pool.locate(scans) for a in apps]
+        best, scores = _choose(results)
+        bad = np.flatnonzero(best < 0)
+        if len(bad):
+            detail = ", ".join(f"#{i}" for i in bad[:5]) + (" ..." if len(bad) > 5 else "")
+            raise QueryError(
+                f"{len(bad)} of {len(scans)} queries cannot be located on any floor ({detail}); a query needs an "
+                f"access point heard by one floor's radio map" + (f" (>= {min_common} shared APs)" if min_common > 1 else "")
+            )
+        rows = [position_dicts(r, a.state.locator.uncertainty) for r, a in zip(results, apps)]
+        frames = [a.state.locator.radio_map.frame for a in apps]
+        positions = []
+        for i, f in enumerate(best.tolist()):
+            p = rows[f][i]
+            p["floor"] = names[f]
+            p["frame"] = frames[f]
+            p["floor_scores"] = {n: (None if math.isnan(s) else s) for n, s in zip(names, scores[:, i].tolist())}
+            positions.append(p)
+        return orjson.dumps({"site": site, "k": k, "weighted": weighted, "positions": positions})
+
+    @app.post(
+        "/v1/locate",
+        response_model=SiteLocateResponse,
+        responses={
+            413: {"description": "body or batch too large"},
+            422: {"description": "malformed request, or a fingerprint with no access point known to any floor"},
+            503: {"description": "a search worker process died while answering (retry)"},
+        },
+        openapi_extra=LOCATE_REQUEST_BODY,
+    )
+    async def locate(request: Request) -> Any:
+        body = await request.body()
+        content_type = request.headers.get("content-type")
+        if len(body) > PARSE_INLINE_MAX_BYTES:
+            scans = await run_in_threadpool(validated_scans, body, content_type)
+        else:
+            scans = validated_scans(body, content_type)
+        if len(scans) > max_batch:
+            return _problem(413, f"batch of {len(scans)} fingerprints, at most {max_batch} per request")
+        with ExitStack() as held:  # every floor's current app, kept open until answered
+            apps = [held.enter_context(r.hold()) for r in reloaders]
+            if len(scans) <= INLINE_MAX:
+                done = answer(apps, scans)
+            else:
+                done = await run_in_threadpool(answer, apps, scans)
+        return Response(done, media_type="application/json")
+
+    with_request_model(app, token)
+    app.add_middleware(BodyLimit, max_bytes=max_body_bytes)
+    if token:
+        app.add_middleware(BearerToken, token=token)
+    return app
+
+
+def site_app(
+    site: str | Path, build_floor: Callable[[Path], FastAPI], watch: float | None, **app_kwargs: Any
+) -> FastAPI:
+    """``create_site_app`` over every floor of ``site``; ``build_floor(path)``: a floor's service app.
+    A floor that does not load is an error naming its file (the others' search pools are closed)."""
+    maps = find_floor_maps(site)
+    floors: dict[str, ReloadingApp] = {}
+    try:
+        for name, path in maps.items():
+            floors[name] = ReloadingApp(build_floor(path), lambda p=path: build_floor(p), path,
+                                        watch_interval=watch, sighup=False)
+    except BaseException:
+        for r in floors.values():
+            r.current.state.search_pool.close()
+        raise
+    site_kwargs = {k: app_kwargs[k] for k in ("k", "weighted", "min_common", "max_batch", "max_body_bytes", "token")
+                   if k in app_kwargs}
+    return create_site_app(floors, site=Path(site).resolve().name, **site_kwargs)
