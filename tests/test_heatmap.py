@@ -1,0 +1,137 @@
+"""Per-AP heatmaps with their uncertainty (issue 41): the field and its standard error
+(graphslam.core.radiomap.field), the faded AP panels of radio_map.png, and the service's
+``GET /v1/heatmap/{bssid}.png`` over real HTTP."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from graphslam.core.radiomap.field import FieldGrid, rss_field
+from graphslam.core.radiomap.radiomap import RadioMap
+from graphslam.errors import ConfigError
+from graphslam.io.heatmap import MAX_STD_ERROR_DB, faded, heatmap_png, heatmap_rgba
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _line_map() -> RadioMap:
+    """AP "a" along y = 0: x 0..20 dense readings that agree (-60 +- 1 dB, 5 per m), x 40..60 sparse
+    ones as noisy (one per 2 m), x 80..100 dense ones that disagree (-35 / -85 in turn); AP "b"
+    heard everywhere at -70. Nothing between the stretches."""
+    rng = np.random.default_rng(3)
+    xa, xb, xd = np.arange(0.0, 20.0, 0.2), np.arange(40.0, 60.1, 2.0), np.arange(80.0, 100.0, 0.2)
+    ra = -60.0 + rng.normal(0.0, 1.0, len(xa))
+    rb = -60.0 + rng.normal(0.0, 1.0, len(xb))
+    rd = np.where(np.arange(len(xd)) % 2 == 0, -35.0, -85.0)
+    x = np.concatenate([xa, xb, xd])
+    rss = np.concatenate([ra, rb, rd])
+    scans = [{"a": float(r), "b": -70.0} for r in rss]
+    return RadioMap.from_scans(scans, np.column_stack([x, np.zeros_like(x)]), session_ids="s",
+                               t_ns=np.arange(len(x)), frame="site")
+
+
+def _cells(f, x0: float, x1: float) -> np.ndarray:
+    """Cells of the row y = 0 whose centre x lies in [x0, x1]."""
+    cx = f.origin[0] + (np.arange(f.mean_dbm.shape[0]) + 0.5) * f.cell_m
+    j = int((0.0 - f.origin[1]) // f.cell_m)
+    return (cx >= x0) & (cx <= x1), j
+
+
+def test_standard_error_shrinks_where_more_readings_agree_and_is_nan_outside() -> None:
+    rm = _line_map()
+    f = rss_field(rm, "a", cell_m=1.0, bandwidth_m=1.5)
+    assert f.mean_dbm.shape == f.std_error_db.shape == f.weight.shape and f.n_heard == len(rm)
+    (dense, j), (sparse, _), (disagree, _), (gap, _) = (_cells(f, 3, 17), _cells(f, 43, 57), _cells(f, 83, 97),
+                                                       _cells(f, 28, 32))
+    se = f.std_error_db[:, j]
+    assert np.isfinite(se[dense]).all() and np.isfinite(f.mean_dbm[dense, j]).all()
+    assert np.abs(f.mean_dbm[dense, j] + 60.0).max() < 1.0
+    assert np.nanmedian(se[dense]) < 0.5 < MAX_STD_ERROR_DB
+    # sparse, as noisy: fewer effective readings, a larger error (NaN where fewer than 2)
+    assert np.nanmedian(se[sparse]) > 1.5 * np.median(se[dense])
+    assert (f.n_eff[sparse, j].max() < f.n_eff[dense, j].min())
+    # dense but disagreeing: the mean is their average, the error far larger than where they agree
+    assert np.abs(np.median(f.mean_dbm[disagree, j]) + 60.0) < 2.0
+    assert np.median(se[disagree]) > 5 * np.median(se[dense]) and np.median(se[disagree]) > MAX_STD_ERROR_DB
+    # no fingerprint near: outside, NaN (and outside the grid's rows far from y = 0)
+    assert gap.any() and np.isnan(f.mean_dbm[gap, j]).all() and np.isnan(f.std_error_db[gap, j]).all()
+    assert f.outside[gap, j].all() and not f.outside[dense, j].any()
+    # an AP heard the same everywhere: the mean is exact, the error 0
+    b = rss_field(rm, "b", cell_m=1.0, bandwidth_m=1.5)
+    inside = ~b.outside
+    np.testing.assert_allclose(b.mean_dbm[inside], -70.0, atol=1e-9)
+    assert np.nanmax(b.std_error_db) < 1e-6
+
+
+def test_field_matches_the_kernel_sums_written_out() -> None:
+    # one cell by brute force: the binned positions, the normalised truncated kernel, its weights
+    rm = _line_map()
+    f = rss_field(rm, "a", cell_m=1.0, bandwidth_m=1.5)
+    grid = FieldGrid(rm.xy, 1.0)
+    k = grid.kernel(1.5)
+    r = len(k) // 2
+    ij = np.clip(((rm.xy - grid.lo) / 1.0).astype(int), 0, grid.n - 1)
+    rss = np.asarray(rm.fingerprints.values.tocsc()[:, rm.bssids.index("a")].toarray()).ravel() + rm.missing_dbm
+    for cx in (10.0, 50.0, 90.0):
+        c = ((np.array([cx, 0.0]) - grid.lo) / 1.0).astype(int)
+        d = np.abs(ij - c)
+        near = (d <= r).all(axis=1)
+        w = np.where(near, k[np.minimum(d[:, 0], r) + r] * k[np.minimum(d[:, 1], r) + r], 0.0)
+        W = w.sum()
+        m = (w * rss).sum() / W
+        n_eff = W**2 / (w**2).sum()
+        se = np.sqrt((w * (rss - m) ** 2).sum() / W / (n_eff - 1))
+        assert f.weight[c[0], c[1]] == pytest.approx(W)
+        assert f.mean_dbm[c[0], c[1]] == pytest.approx(m)
+        assert f.n_eff[c[0], c[1]] == pytest.approx(n_eff)
+        assert f.std_error_db[c[0], c[1]] == pytest.approx(se, rel=1e-6, abs=1e-9)
+
+
+def test_field_errors() -> None:
+    rm = _line_map()
+    with pytest.raises(ConfigError, match="no fingerprint of the radio map heard access point zz"):
+        rss_field(rm, "zz")
+    with pytest.raises(ConfigError, match="xy must be"):
+        rss_field(rm, "a", xy=np.zeros((3, 2)))
+    with pytest.raises(ConfigError, match="bandwidth"):
+        rss_field(rm, "a", bandwidth_m=-1.0)
+
+
+def test_heatmap_fades_uncertain_cells_and_writes_a_located_png() -> None:
+    rm = _line_map()
+    f = rss_field(rm, "a", cell_m=1.0, bandwidth_m=1.5)
+    rgba = heatmap_rgba(f)
+    fade = faded(f)
+    (dense, j), (disagree, _) = _cells(f, 3, 17), _cells(f, 83, 97)
+    assert not fade[dense, j].any() and fade[disagree, j].all()
+    assert (rgba[f.outside, 3] == 0).all() and (rgba[~f.outside, 3] > 0).all()
+    # faded: lighter than the same RSS unfaded
+    plain = heatmap_rgba(f, max_std_error_db=np.inf)  # fades only the cells of unknown error (n_eff < 2)
+    known = fade & np.isfinite(f.std_error_db)
+    assert known.sum() >= 10 and not faded(f, np.inf)[known].any()
+    assert (rgba[known][:, :3].astype(int).sum(axis=1) > plain[known][:, :3].astype(int).sum(axis=1)).all()
+    data = heatmap_png(f, frame="site")
+    assert data.startswith(PNG_SIGNATURE)
+    with Image.open(io.BytesIO(data)) as im:
+        nx, ny = f.mean_dbm.shape
+        s = int(im.text["px_per_cell"])
+        assert im.size == (nx * s, ny * s) and im.text["bssid"] == "a" and im.text["frame"] == "site"
+        x0, x1, y0, y1 = (float(v) for v in im.text["extent_m"].split())
+        assert (x0, x1, y0, y1) == pytest.approx(f.extent, abs=1e-3)
+        assert str(MAX_STD_ERROR_DB).rstrip("0").rstrip(".") in im.text["faded"]
+
+
+def test_radio_map_picture_fades_uncertain_ap_cells(tmp_path: Path) -> None:
+    from graphslam.viz import radiomap_picture
+
+    rm = _line_map()
+    pic = radiomap_picture.radio_map_picture(rm, aps=["a"], cell_m=1.0, bandwidth_m=1.5)
+    assert any(f"faded: s.e. > {MAX_STD_ERROR_DB:g} dB" in text for _, text, _ in pic.captions)
+    path = pic.save(tmp_path / "rm.png")
+    with Image.open(path) as im:
+        assert im.size == radiomap_picture.SIZE_PX
