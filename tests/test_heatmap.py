@@ -17,11 +17,12 @@ from graphslam.errors import ConfigError
 from graphslam.io.heatmap import MAX_STD_ERROR_DB, faded, heatmap_png, heatmap_rgba
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+B = "02:00:00:00:00:0b"  # a BSSID as the service sees them (colons in the URL path)
 
 
 def _line_map() -> RadioMap:
     """AP "a" along y = 0: x 0..20 dense readings that agree (-60 +- 1 dB, 5 per m), x 40..60 sparse
-    ones as noisy (one per 2 m), x 80..100 dense ones that disagree (-35 / -85 in turn); AP "b"
+    ones as noisy (one per 2 m), x 80..100 dense ones that disagree (-35 / -85 in turn); AP ``B``
     heard everywhere at -70. Nothing between the stretches."""
     rng = np.random.default_rng(3)
     xa, xb, xd = np.arange(0.0, 20.0, 0.2), np.arange(40.0, 60.1, 2.0), np.arange(80.0, 100.0, 0.2)
@@ -30,7 +31,7 @@ def _line_map() -> RadioMap:
     rd = np.where(np.arange(len(xd)) % 2 == 0, -35.0, -85.0)
     x = np.concatenate([xa, xb, xd])
     rss = np.concatenate([ra, rb, rd])
-    scans = [{"a": float(r), "b": -70.0} for r in rss]
+    scans = [{"a": float(r), B: -70.0} for r in rss]
     return RadioMap.from_scans(scans, np.column_stack([x, np.zeros_like(x)]), session_ids="s",
                                t_ns=np.arange(len(x)), frame="site")
 
@@ -62,7 +63,7 @@ def test_standard_error_shrinks_where_more_readings_agree_and_is_nan_outside() -
     assert gap.any() and np.isnan(f.mean_dbm[gap, j]).all() and np.isnan(f.std_error_db[gap, j]).all()
     assert f.outside[gap, j].all() and not f.outside[dense, j].any()
     # an AP heard the same everywhere: the mean is exact, the error 0
-    b = rss_field(rm, "b", cell_m=1.0, bandwidth_m=1.5)
+    b = rss_field(rm, B, cell_m=1.0, bandwidth_m=1.5)
     inside = ~b.outside
     np.testing.assert_allclose(b.mean_dbm[inside], -70.0, atol=1e-9)
     assert np.nanmax(b.std_error_db) < 1e-6
@@ -135,3 +136,45 @@ def test_radio_map_picture_fades_uncertain_ap_cells(tmp_path: Path) -> None:
     path = pic.save(tmp_path / "rm.png")
     with Image.open(path) as im:
         assert im.size == radiomap_picture.SIZE_PX
+
+
+def test_service_serves_an_aps_heatmap_png_per_map_generation(tmp_path: Path) -> None:
+    import time
+
+    import httpx
+
+    from graphslam.io.radiomap_io import write_radio_map
+    from graphslam.service.server import reloading_app, start_background_server
+
+    rm = _line_map()
+    path = tmp_path / "map.parquet"
+    write_radio_map(rm, path)
+    app = reloading_app(path, None, k=3, search_processes=0, token="s3cret")
+    auth = {"Authorization": "Bearer s3cret"}
+    with start_background_server(app) as srv, httpx.Client(base_url=srv.url, timeout=30.0) as c:
+        assert c.get("/v1/heatmap/a.png").status_code == 401  # the token, as on every /v1 route
+        a = c.get("/v1/heatmap/a.png", headers=auth)
+        assert a.status_code == 200 and a.headers["content-type"] == "image/png"
+        assert a.content.startswith(PNG_SIGNATURE) and a.content == heatmap_png(rss_field(rm, "a"), frame="site")
+        with Image.open(io.BytesIO(a.content)) as im:
+            nx, ny = rss_field(rm, "a").mean_dbm.shape
+            s = int(im.text["px_per_cell"])
+            assert im.format == "PNG" and im.size == (nx * s, ny * s) and im.text["bssid"] == "a"
+        r = c.get(f"/v1/heatmap/{B}.png", headers=auth)
+        assert r.status_code == 200 and Image.open(io.BytesIO(r.content)).text["bssid"] == B
+        missing = c.get("/v1/heatmap/ff:ff:ff:ff:ff:ff.png", headers=auth)
+        assert missing.status_code == 404 and "ff:ff:ff:ff:ff:ff" in missing.json()["detail"]
+        # cached per AP for this map; a reload brings a new map and a new cache
+        first = app.current.state.heatmaps
+        assert set(first._pngs) == {"a", B} and first._pngs["a"] == a.content
+        assert c.get("/v1/heatmap/a.png", headers=auth).content == a.content
+        moved = RadioMap.from_scans([{"a": -50.0, B: -60.0}] * 3, [[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]],
+                                    session_ids="s", t_ns=np.arange(3), frame="site")
+        write_radio_map(moved, path)
+        app.reload_now()
+        deadline = time.monotonic() + 30
+        while app.generation < 1 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert app.generation == 1 and app.current.state.heatmaps is not first
+        again = c.get("/v1/heatmap/a.png", headers=auth)
+        assert again.status_code == 200 and again.content == heatmap_png(rss_field(moved, "a"), frame="site")
