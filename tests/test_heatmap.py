@@ -178,3 +178,30 @@ def test_service_serves_an_aps_heatmap_png_per_map_generation(tmp_path: Path) ->
         assert app.generation == 1 and app.current.state.heatmaps is not first
         again = c.get("/v1/heatmap/a.png", headers=auth)
         assert again.status_code == 200 and again.content == heatmap_png(rss_field(moved, "a"), frame="site")
+
+
+def test_site_service_serves_a_floors_heatmap(tmp_path: Path) -> None:
+    import httpx
+
+    from graphslam.io.radiomap_io import write_radio_map
+    from graphslam.service.server import served_app, start_background_server
+
+    rm = _line_map()
+    other = RadioMap.from_scans([{"c": -50.0}] * 3, [[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]], session_ids="s",
+                                t_ns=np.arange(3), frame="site-b")
+    for name, m in (("bldg/F1", rm), ("bldg/F2", other)):
+        (tmp_path / "site" / name).mkdir(parents=True)
+        write_radio_map(m, tmp_path / "site" / name / "radio_map.parquet")
+    app = served_app(tmp_path / "site", None, search_processes=0, token="t")
+    auth = {"Authorization": "Bearer t"}
+    with start_background_server(app) as srv, httpx.Client(base_url=srv.url, timeout=30.0) as c:
+        assert c.get(f"/v1/maps/bldg/F1/heatmap/{B}.png").status_code == 401
+        r = c.get(f"/v1/maps/bldg/F1/heatmap/{B}.png", headers=auth)
+        assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+        assert r.content == heatmap_png(rss_field(rm, B), frame="site")
+        r = c.get("/v1/maps/bldg/F2/heatmap/c.png", headers=auth)
+        assert r.status_code == 200 and Image.open(io.BytesIO(r.content)).text["frame"] == "site-b"
+        nope = c.get("/v1/maps/bldg/F2/heatmap/a.png", headers=auth)  # an AP of another floor
+        assert nope.status_code == 404 and "floor 'bldg/F2'" in nope.json()["detail"]
+        nope = c.get("/v1/maps/F9/heatmap/a.png", headers=auth)
+        assert nope.status_code == 404 and "no floor 'F9'" in nope.json()["detail"]
