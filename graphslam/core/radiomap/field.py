@@ -137,14 +137,38 @@ def rss_field(
     min_weight: float = MIN_WEIGHT,
 ) -> RssField:
     """``bssid``'s RSS field over ``rm`` (module docstring). ``xy``: the fingerprints' positions to
-    use (default ``rm.xy``; e.g. moved into a floor plan's frame); ``grid``: the grid (default one of
-    ``cell_m``, else ``grid_cell_m``); ``bandwidth_m``: the kernel's std (default 2 cells)."""
+    use (default ``rm.xy``; e.g. moved into a floor plan's frame); ``grid``: the grid, built on these
+    positions (default one of ``cell_m``, else ``grid_cell_m``); ``bandwidth_m``: the kernel's std (default 2 cells)."""
     if not len(rm):
         raise ConfigError("RSS field: the radio map has no fingerprint")
-    xy = np.asarray(rm.xy if xy is None else xy, float)
-    if xy.shape != (len(rm), 2):
-        raise ConfigError(f"RSS field: xy must be ({len(rm)}, 2), got {xy.shape}")
     rss, heard = ap_readings(rm, bssid)
+    return readings_field(rm.xy if xy is None else xy, rss, bssid, float(rm.min_rssi_dbm), n_heard=len(heard),
+                          grid=grid, cell_m=cell_m, bandwidth_m=bandwidth_m, min_weight=min_weight)
+
+
+def readings_field(
+    xy: NDArray,
+    rss: NDArray,
+    bssid: str,
+    floor_dbm: float,
+    *,
+    n_heard: int | None = None,
+    grid: FieldGrid | None = None,
+    cell_m: float | None = None,
+    bandwidth_m: float | None = None,
+    min_weight: float = MIN_WEIGHT,
+) -> RssField:
+    """The field of one reading per point: ``rss`` (N,) dBm at ``xy`` (N, 2), ``floor_dbm`` where the
+    AP was not heard (``n_heard``: points that heard it; default: those above ``floor_dbm``); the
+    other arguments as ``rss_field``'s."""
+    rss = np.asarray(rss, float).ravel()
+    xy = np.asarray(xy, float)
+    if xy.shape != (len(rss), 2):
+        raise ConfigError(f"RSS field: xy must be ({len(rss)}, 2), got {xy.shape}")
+    if not len(rss):
+        raise ConfigError("RSS field: no fingerprint")
+    if not np.isfinite(rss).all() or not np.isfinite(xy).all():
+        raise ConfigError("RSS field: positions and readings must be finite")
     if grid is None:
         grid = FieldGrid(xy, float(cell_m or grid_cell_m(xy)))
     h = float(bandwidth_m or 2.0 * grid.cell)
@@ -161,5 +185,6 @@ def rss_field(
         var = np.maximum(S2 / W - m * m, 0.0)  # kernel-weighted variance of the readings
         n_eff = np.where(W2 > 0, W * W / W2, 0.0)
         se = np.where(inside & (n_eff >= 2.0), np.sqrt(var / (n_eff - 1.0)), np.nan)
-    return RssField(bssid, np.asarray(grid.lo, float).copy(), grid.cell, h, float(rm.min_rssi_dbm), m + ref, se, W,
-                    n_eff, len(heard))
+    heard = int(np.count_nonzero(rss > floor_dbm)) if n_heard is None else int(n_heard)
+    return RssField(bssid, np.asarray(grid.lo, float).copy(), grid.cell, h, float(floor_dbm), m + ref, se, W, n_eff,
+                    heard)
