@@ -115,7 +115,7 @@ class RssField:
 def ap_readings(rm: RadioMap, bssid: str) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
     """Every fingerprint's RSS of ``bssid`` (dBm; ``rm.min_rssi_dbm`` where it was not heard), and
     the rows that heard it."""
-    col = rm._index.get(bssid)
+    col = rm.column(bssid)
     if col is None:
         raise ConfigError(f"RSS field: no fingerprint of the radio map heard access point {bssid}")
     values = rm.fingerprints.values.tocsc()
