@@ -132,7 +132,9 @@ def test_radio_map_picture_fades_uncertain_ap_cells(tmp_path: Path) -> None:
 
     rm = _line_map()
     pic = radiomap_picture.radio_map_picture(rm, aps=["a"], cell_m=1.0, bandwidth_m=1.5)
-    assert any(f"faded: s.e. > {MAX_STD_ERROR_DB:g} dB" in text for _, text, _ in pic.captions)
+    assert any(f"faded: standard error > {MAX_STD_ERROR_DB:g} dB" in text for _, text, _ in pic.captions)
+    crowded = radiomap_picture.radio_map_picture(rm, aps=["a", B], cell_m=1.0, size_px=(600, 400))
+    assert sum(f"faded: s.e. > {MAX_STD_ERROR_DB:g} dB" in text for _, text, _ in crowded.captions) == 2
     path = pic.save(tmp_path / "rm.png")
     with Image.open(path) as im:
         assert im.size == radiomap_picture.SIZE_PX

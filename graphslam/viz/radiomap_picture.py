@@ -38,7 +38,7 @@ from graphslam.core.common.geometry import se2_apply
 from graphslam.core.tracking.apmodel import ApModels
 from graphslam.errors import ConfigError
 from graphslam.io.heatmap import MAX_STD_ERROR_DB, RSS_RANGE_DBM, heatmap_rgba
-from graphslam.viz.canvas import MAGMA_R, RDYLGN_R, VIRIDIS, Panel, Picture, colour_map
+from graphslam.viz.canvas import MAGMA_R, RDYLGN_R, VIRIDIS, Panel, Picture, colour_map, font
 from graphslam.viz.common import FloorPlan, top_access_points
 
 SIZE_PX = (1600, 1000)
@@ -142,7 +142,10 @@ def radio_map_picture(
             note = f"fitted AP (red star): P0 {a.p0_dbm:.0f} dBm, γ {a.gamma:.1f}, ±{a.position_std_m:.1f} m"
         elif bssid in unfitted:
             note = f"AP not fitted: {unfitted[bssid].split(' (')[0]}"
-        pic.caption((box[0], box[1] - 34), f"{bssid}, heard by {len(rows):,}; faded: s.e. > {MAX_STD_ERROR_DB:g} dB\n{note}", 12)
+        head = f"{bssid}, heard by {len(rows):,}; faded: standard error > {MAX_STD_ERROR_DB:g} dB"
+        if font(12).getlength(head) > box[2] - box[0] + 80:  # beyond the colour bar: abbreviated
+            head = f"{bssid}, heard by {len(rows):,}; faded: s.e. > {MAX_STD_ERROR_DB:g} dB"
+        pic.caption((box[0], box[1] - 34), f"{head}\n{note}", 12)
     return pic
 
 
