@@ -43,6 +43,7 @@ _EXPORTS: dict[str, str] = {
     "RadioMap": "graphslam.core.radiomap.radiomap",
     **{n: "graphslam.core.radiomap.knn" for n in ("KnnConfig", "KnnLocator", "KnnResult")},
     **{n: "graphslam.core.radiomap.uncertainty" for n in ("KnnUncertainty", "calibrate_uncertainty")},
+    **{n: "graphslam.core.radiomap.field" for n in ("RssField", "rss_field")},
     **{n: "graphslam.core.tracking.apmodel" for n in ("ApFitConfig", "ApModel", "ApModels", "UnfittedAp")},
     # filters, smoothers, tracking
     **{n: "graphslam.core.tracking.filters" for n in (

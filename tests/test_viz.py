@@ -166,6 +166,12 @@ def test_radio_map(corridor: tuple, logged: tuple) -> None:
         assert rrd.n_static(e, "Points2D:colors") == rrd.n_static(e, "Points2D:positions") == rrd.n_static(e, "rssi_dbm")
         rssi = np.array(rrd.static[e]["rssi_dbm"][0])
         assert (rssi < 0).all() and (rssi > -120).all()
+    # one heatmap image per AP, same rank and name, placed in metres by its transform
+    heat = rrd.under("/" + rl.HEATMAPS)
+    assert [e.rsplit("/", 1)[1] for e in heat] == [e.rsplit("/", 1)[1] for e in aps]
+    for e in heat:
+        cols = rrd.static[e]
+        assert any(c.startswith("Image:buffer") for c in cols) and any(c.startswith("Transform3D:scale") for c in cols)
 
 
 def test_optimiser_timeline_and_convergence(corridor: tuple, logged: tuple) -> None:

@@ -5,6 +5,11 @@ Endpoints (OpenAPI at ``/openapi.json``, docs at ``/docs``):
 - ``POST /v1/locate``: one fingerprint ``{"readings": {bssid: dBm}}`` or a batch
   ``{"fingerprints": [{"readings": {...}}, ...]}`` -> ``{"positions": [...]}``;
 - ``GET /v1/radio-map``: summary of the loaded map;
+- ``GET /v1/heatmap/{bssid}.png``: one access point's RSS heatmap over the map, cells faded where
+  the standard error of the mean exceeds ``graphslam.io.heatmap.MAX_STD_ERROR_DB``
+  (``graphslam.io.heatmap.heatmap_png``: its tEXt chunks say where it lies); 404 for an access
+  point the map does not know. Rendered once per access point and map (a reload builds a new app,
+  with an empty cache; at most ``HEATMAP_CACHE`` kept);
 - ``GET /healthz``: liveness.
 
 ``/docs`` (Swagger UI) and ``/redoc`` are served from assets packaged with
@@ -25,6 +30,7 @@ from __future__ import annotations
 
 import hmac
 import logging
+import threading
 from contextlib import asynccontextmanager
 from typing import Any, AsyncIterator, Awaitable, Callable, MutableMapping
 
@@ -38,6 +44,7 @@ from fastapi_offline import FastAPIOffline
 from graphslam.core.radiomap.knn import IndexKind, KnnConfig, KnnLocator, KnnResult, strict_error
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import QueryError
+from graphslam.io.heatmap import radio_map_heatmap_png
 from graphslam.names import DEFAULT_INDEX, DEFAULT_METRIC
 from graphslam.service.config import DEFAULT_MAX_BATCH, DEFAULT_MAX_BODY_BYTES
 from graphslam.service.models import (  # re-exported: the service's public models
@@ -64,6 +71,11 @@ INLINE_MAX = 8  # batches up to this size are answered on the event loop (see lo
 PARSE_INLINE_MAX_BYTES = 64 * 1024  # bigger bodies (~100+ fingerprints) are parsed off the event loop
 # With search processes, bodies from this size (~50+ fingerprints) are parsed and searched on them.
 POOL_MIN_BODY_BYTES = 16 * 1024
+HEATMAP_CACHE = 64  # heatmap PNGs kept per map (~10-100 kB each), the oldest dropped first
+HEATMAP_RESPONSES: dict[int | str, dict[str, Any]] = {
+    200: {"content": {"image/png": {}}, "description": "the access point's heatmap (PNG)"},
+    404: {"description": "an access point the radio map does not know"},
+}
 __all__ = [
     "BSSID_MAX_CHARS", "MAX_READINGS", "RSSI_MAX_DBM", "RSSI_MIN_DBM", "Fingerprint", "Health",
     "LocateRequest", "LocateResponse", "Position", "RadioMapInfo", "create_app",
@@ -72,6 +84,37 @@ __all__ = [
 
 def _problem(status: int, detail: str, **extra: Any) -> JSONResponse:
     return JSONResponse({"detail": detail, **extra}, status_code=status)
+
+
+class HeatmapCache:
+    """The heatmap PNGs of one radio map, rendered on first request (``radio_map_heatmap_png``)."""
+
+    def __init__(self, radio_map: RadioMap, size: int = HEATMAP_CACHE) -> None:
+        self.radio_map, self.size = radio_map, size
+        self.known = frozenset(radio_map.bssids)
+        self._pngs: dict[str, bytes] = {}
+        self._lock = threading.Lock()
+
+    def png(self, bssid: str) -> bytes | None:
+        """``bssid``'s heatmap PNG; None for an access point the map does not know."""
+        if bssid not in self.known:
+            return None
+        with self._lock:
+            got = self._pngs.get(bssid)
+        if got is None:
+            got = radio_map_heatmap_png(self.radio_map, bssid)
+            with self._lock:
+                self._pngs[bssid] = got
+                while len(self._pngs) > self.size:
+                    self._pngs.pop(next(iter(self._pngs)))
+        return got
+
+    async def response(self, bssid: str, where: str = "the radio map") -> Response:
+        """The route's answer: the PNG, or 404 with a problem JSON."""
+        data = await run_in_threadpool(self.png, bssid)
+        if data is None:
+            return _problem(404, f"access point {bssid!r} is not in {where} (no fingerprint heard it)")
+        return Response(data, media_type="image/png")
 
 
 class BodyLimit:
@@ -305,6 +348,13 @@ def create_app(
     def radio_map_info() -> dict[str, Any]:
         return {**summary, "k": k, "weighted": weighted, "min_common": min_common, "index": locator.index_kind,
                 "metric": config.metric}
+
+    heatmaps = HeatmapCache(radio_map)
+    app.state.heatmaps = heatmaps
+
+    @app.get("/v1/heatmap/{bssid}.png", response_class=Response, responses=HEATMAP_RESPONSES)
+    async def heatmap(bssid: str) -> Response:
+        return await heatmaps.response(bssid)
 
     def answer(scans: list[Any]) -> Response:
         return respond(pool.locate(scans, strict=True))  # QueryError -> 422 with the bad indices

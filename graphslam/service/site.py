@@ -12,7 +12,9 @@ others go on. A query is located on every floor and answered by the floor whose 
 the lowest score (the closest fingerprint match; Sørensen scores are 0-1 on every map). The
 position is in that floor's frame (each survey has its own): ``floor`` and ``frame`` say which.
 ``floor_scores`` gives every floor's score (null where the floor knows none of the query's
-access points). A fingerprint that no floor can locate (none of its access points is known to
+access points). ``GET /v1/maps/{floor}/heatmap/{bssid}.png``: one access point's heatmap on one
+floor (the single map's ``/v1/heatmap/{bssid}.png``; 404 for an unknown floor or access point).
+A fingerprint that no floor can locate (none of its access points is known to
 any floor) refuses the request with 422 and its index, as a single map does.
 """
 
@@ -37,6 +39,7 @@ from pydantic import BaseModel, Field
 
 from graphslam.errors import InputError, QueryError
 from graphslam.service.app import (
+    HEATMAP_RESPONSES,
     INLINE_MAX,
     LOCATE_REQUEST_BODY,
     PARSE_INLINE_MAX_BYTES,
@@ -181,6 +184,14 @@ def create_site_app(
                     "index": locator.index_kind, "metric": locator.config.metric}
             out.append({**info, "name": name, "path": str(r.path), "generation": r.generation})
         return {"site": site, "floors": out}
+
+    @app.get("/v1/maps/{floor:path}/heatmap/{bssid}.png", response_class=Response, responses=HEATMAP_RESPONSES)
+    async def floor_heatmap(floor: str, bssid: str) -> Response:
+        r = floors.get(floor)
+        if r is None:
+            return _problem(404, f"no floor {floor!r} in site {site} (floors: {', '.join(names)})")
+        with r.hold() as current:  # this floor's map, cached per map generation
+            return await current.state.heatmaps.response(bssid, f"floor {floor!r}")
 
     def answer(apps: list[FastAPI], scans: list[Any]) -> bytes:
         results = [a.state.search_pool.locate(scans) for a in apps]

@@ -10,12 +10,15 @@ access point (``aps``, else the ``top`` most-heard, stronger mean RSS first on t
 RSS interpolated over the surveyed area, with the AP's fitted position (``fit-aps``'
 ap_models.json) marked when there is one, and the fingerprints that heard it as dots.
 
-Interpolation: a Gaussian kernel average (Nadaraya-Watson, std ``bandwidth_m``) of every
-fingerprint's reading, where a fingerprint that did not hear the AP counts as the map's
-``min_rssi_dbm`` (the reading floor: it was weaker than that). Binned on the grid and
-filtered (``scipy.ndimage.gaussian_filter``), so the cost is that of the grid, not of the
-fingerprints x cells. Cells where the kernel weight of all fingerprints is below
-``MIN_WEIGHT`` are outside the surveyed area and left blank (the same mask in every panel).
+Interpolation (``graphslam.core.radiomap.field.rss_field``): a Gaussian kernel average
+(Nadaraya-Watson, std ``bandwidth_m``) of every fingerprint's reading, where a fingerprint that
+did not hear the AP counts as the map's ``min_rssi_dbm`` (the reading floor: it was weaker than
+that), with its standard error (the kernel-weighted spread of the readings over the effective
+number of readings). Cells whose standard error exceeds ``MAX_STD_ERROR_DB`` (or is unknown:
+fewer than 2 effective readings) are faded toward white (``graphslam.io.heatmap``). Binned on the
+grid and filtered, so the cost is that of the grid, not of the fingerprints x cells. Cells where
+the kernel weight of all fingerprints is below ``MIN_WEIGHT`` are outside the surveyed area and
+left blank (the same mask in every panel).
 """
 
 from __future__ import annotations
@@ -27,13 +30,15 @@ from typing import Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from graphslam.core.radiomap.field import MIN_WEIGHT, FieldGrid, ap_readings, grid_cell_m, rss_field
 from graphslam.core.radiomap.knn import KnnConfig
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.radiomap.uncertainty import METADATA_KEY, AccuracyCells, KnnUncertainty, expected_accuracy
 from graphslam.core.common.geometry import se2_apply
 from graphslam.core.tracking.apmodel import ApModels
 from graphslam.errors import ConfigError
-from graphslam.viz.canvas import MAGMA_R, RDYLGN_R, VIRIDIS, Panel, Picture, colour_map
+from graphslam.io.heatmap import MAX_STD_ERROR_DB, RSS_RANGE_DBM, heatmap_rgba
+from graphslam.viz.canvas import MAGMA_R, RDYLGN_R, VIRIDIS, Panel, Picture, colour_map, font
 from graphslam.viz.common import FloorPlan, top_access_points
 
 SIZE_PX = (1600, 1000)
@@ -44,17 +49,6 @@ ACCURACY_RANGE_M = (0.0, 15.0)  # fixed colour scale: floors compare; beyond 15 
 ACCURACY_ROWS = 5000  # fingerprints located at most (a seeded sample, even over the cells) ...
 ACCURACY_PAIRS = 20_000_000  # ... and fewer on big maps: at most ~this many distances (a few seconds)
 NOT_LOCATED = (200, 200, 200)
-MIN_WEIGHT = 0.05  # kernel weight (in fingerprints) below which a cell is "not surveyed"
-RSS_RANGE_DBM = (-100.0, -30.0)  # fixed colour scale, the same in every panel (and as Rerun's)
-
-
-def grid_cell_m(xy: NDArray) -> float:
-    """A round cell size (0.5, 1, 2, 2.5, 5 m x 10^k) giving about 150 cells along the longer side,
-    never finer than 0.5 m."""
-    span = float(np.ptp(xy, axis=0).max()) if len(xy) else 0.0
-    target = max(0.5, span / 150.0)
-    p = 10.0 ** math.floor(math.log10(target))
-    return min(m * p for m in (1.0, 2.0, 2.5, 5.0, 10.0) if m * p >= target - 1e-9)
 
 
 def draw_radio_map(
@@ -108,7 +102,7 @@ def radio_map_picture(
     xy = place(np.asarray(rm.xy, float))
     cell = float(cell_m or grid_cell_m(xy))
     h = float(bandwidth_m or 2.0 * cell)
-    grid = _Grid(xy, cell)
+    grid = FieldGrid(xy, cell)
     weight = grid.smooth(grid.bin(np.ones(len(xy))), h)
     outside = weight < MIN_WEIGHT
     floor = rm.min_rssi_dbm
@@ -131,15 +125,13 @@ def radio_map_picture(
                 f"median {np.median(density[~outside]) if (~outside).any() else 0:.2f} / m² where surveyed", 12)
     _accuracy_panel(pic, boxes[1], grid, rm, xy, floor_plan)
 
-    values = rm.fingerprints.values.tocsc()
     fitted = {a.bssid: a for a in ap_models.fitted} if ap_models is not None else {}
     unfitted = {u.bssid: u.reason for u in ap_models.unfitted} if ap_models is not None else {}
     for box, c in zip(boxes[2:], cols):
-        rows = values.indices[values.indptr[c] : values.indptr[c + 1]]
-        rss = np.full(len(xy), floor)
-        rss[rows] = values.data[values.indptr[c] : values.indptr[c + 1]] + rm.missing_dbm
-        field = grid.smooth(grid.bin(rss), h) / np.maximum(weight, 1e-12)
-        panel = _heat_panel(pic, box, extent, field, outside, *RSS_RANGE_DBM, VIRIDIS, floor_plan, "RSS (dBm)")
+        field = rss_field(rm, rm.bssids[c], xy=xy, grid=grid, bandwidth_m=h)
+        _, rows = ap_readings(rm, rm.bssids[c])
+        panel = _heat_panel(pic, box, extent, field.mean_dbm, outside, *RSS_RANGE_DBM, VIRIDIS, floor_plan, "RSS (dBm)",
+                            rgba=heatmap_rgba(field))
         panel.dots(xy[rows], (30, 30, 30), size=1)
         bssid = rm.bssids[c]
         note = "no AP models (run fit-aps)" if ap_models is None else "no AP model"
@@ -150,12 +142,15 @@ def radio_map_picture(
             note = f"fitted AP (red star): P0 {a.p0_dbm:.0f} dBm, γ {a.gamma:.1f}, ±{a.position_std_m:.1f} m"
         elif bssid in unfitted:
             note = f"AP not fitted: {unfitted[bssid].split(' (')[0]}"
-        pic.caption((box[0], box[1] - 34), f"{bssid}, heard by {len(rows):,} fingerprints\n{note}", 12)
+        head = f"{bssid}, heard by {len(rows):,}; faded: standard error > {MAX_STD_ERROR_DB:g} dB"
+        if font(12).getlength(head) > box[2] - box[0] + 80:  # beyond the colour bar: abbreviated
+            head = f"{bssid}, heard by {len(rows):,}; faded: s.e. > {MAX_STD_ERROR_DB:g} dB"
+        pic.caption((box[0], box[1] - 34), f"{head}\n{note}", 12)
     return pic
 
 
 def _accuracy_panel(
-    pic: Picture, box: tuple[int, int, int, int], grid: "_Grid", rm: RadioMap, xy: NDArray, plan: FloorPlan | None
+    pic: Picture, box: tuple[int, int, int, int], grid: FieldGrid, rm: RadioMap, xy: NDArray, plan: FloorPlan | None
 ) -> AccuracyCells:
     """Panel: the expected accuracy per cell (module docstring), on cells aligned with ``grid``."""
     stored = rm.metadata.get(METADATA_KEY)
@@ -207,14 +202,18 @@ def _layout(n: int, size_px: tuple[int, int], top: int) -> list[tuple[int, int, 
 def _heat_panel(
     pic: Picture, box: tuple[int, int, int, int], extent: tuple[float, float, float, float], field: NDArray,
     outside: NDArray, lo: float, hi: float, table: NDArray, plan: FloorPlan | None, label: str,
+    rgba: NDArray | None = None,
 ) -> Panel:
+    """A panel of ``field`` (nx, ny) coloured on ``table`` from ``lo`` to ``hi``, blank ``outside``;
+    ``rgba``: the cells' colours, already made (e.g. faded)."""
     x0, x1, y0, y1 = extent
     panel = pic.panel(box, (x0, y0, x1, y1))
     if plan is not None:
         panel.floor_plan(plan)
-    rgba = np.zeros(field.shape + (4,), np.uint8)  # (nx, ny): x along the first axis
-    rgba[..., :3] = colour_map(field, lo, hi, table)
-    rgba[..., 3] = np.where(outside, 0, 235)
+    if rgba is None:
+        rgba = np.zeros(field.shape + (4,), np.uint8)  # (nx, ny): x along the first axis
+        rgba[..., :3] = colour_map(field, lo, hi, table)
+        rgba[..., 3] = np.where(outside, 0, 235)
     panel.raster(np.transpose(rgba, (1, 0, 2))[::-1], extent, smooth=True)  # rows from the top
     panel.scale_bar()
     pic.colourbar((box[2] + 10, box[1], box[2] + 26, box[3]), table, lo, hi, label)
@@ -234,25 +233,3 @@ def ap_columns(rm: RadioMap, aps: Sequence[str], top: int) -> list[int]:
     if len(cols) > MAX_APS:
         raise ConfigError(f"radio map picture: {len(cols)} access points asked for, at most {MAX_APS} fit")
     return cols
-
-
-class _Grid:
-    """Square cells of ``cell`` m covering ``xy`` with a margin of a few cells."""
-
-    def __init__(self, xy: NDArray, cell: float) -> None:
-        lo, hi = xy.min(axis=0) - 3 * cell, xy.max(axis=0) + 3 * cell
-        self.cell = cell
-        self.n = np.maximum(np.ceil((hi - lo) / cell).astype(int), 1)
-        self.lo = lo
-        self.extent = (lo[0], lo[0] + self.n[0] * cell, lo[1], lo[1] + self.n[1] * cell)
-        self._ij = np.clip(((xy - lo) / cell).astype(int), 0, self.n - 1)
-
-    def bin(self, w: NDArray) -> NDArray:
-        """Sum of ``w`` per cell, shape (nx, ny)."""
-        flat = np.bincount(self._ij[:, 0] * self.n[1] + self._ij[:, 1], weights=w, minlength=int(self.n.prod()))
-        return flat.reshape(self.n[0], self.n[1])
-
-    def smooth(self, g: NDArray, bandwidth_m: float) -> NDArray:
-        from scipy.ndimage import gaussian_filter
-
-        return gaussian_filter(g, bandwidth_m / self.cell, mode="constant")

@@ -14,6 +14,7 @@ docs/rerun.md for what each shows)::
     /world/aligned/wifi_edges/{inactive,ramp,saturated}   WiFi-vicinity edges by final state
     /world/aligned/radio_map/fingerprints    fingerprint positions
     /world/aligned/radio_map/ap/<rank>_<bssid>            RSSI of the most-heard APs (colour-mapped)
+    /world/aligned/radio_map/heatmap/<rank>_<bssid>       their RSS heatmaps (image), uncertain cells faded
     /world/aligned/convergence/<session>     walks at the initial guess and after each LM stage (timed)
     /world/aligned/locate/estimate, /world/locate/{truth,error}   kNN answers (``log_locate_results``)
     /raw/<session>                           each walk in its own dead-reckoning frame, laid on a grid
@@ -44,10 +45,12 @@ from numpy.typing import NDArray
 from graphslam.config import GraphSlamConfig
 from graphslam.core.survey.align import Alignment, IterationRecord
 from graphslam.core.survey.factors import edge_state
-from graphslam.core.radiomap.fingerprints import FingerprintMatrix
+from graphslam.core.radiomap.field import readings_field
+from graphslam.core.radiomap.fingerprints import DEFAULT_MIN_RSSI_DBM, FingerprintMatrix
 from graphslam.core.common.geometry import se2_apply
 from graphslam.core.types import PoseTrack, Survey
 from graphslam.errors import ConfigError, GraphSlamError, VisualizationError, require_extra
+from graphslam.io.heatmap import MAX_STD_ERROR_DB, heatmap_rgba
 from graphslam.viz.common import (
     FloorPlan, landmark_marks, load_floor_plan, session_colours, survey_folder_tracks, top_access_points,
 )
@@ -74,6 +77,7 @@ REFERENCE = "world/aligned/reference_pose"
 EDGES = "world/aligned/wifi_edges"
 FINGERPRINTS = "world/aligned/radio_map/fingerprints"
 APS = "world/aligned/radio_map/ap"
+HEATMAPS = "world/aligned/radio_map/heatmap"
 CONVERGENCE = "world/aligned/convergence"
 LOCATE_ESTIMATE = "world/aligned/locate/estimate"
 LOCATE = "world/locate"
@@ -87,6 +91,7 @@ EDGE_COLOURS = np.array([[70, 170, 90, 110], [255, 160, 0, 160], [220, 40, 40, 2
 
 # draw order: larger is drawn on top; the floor plan stays under everything
 _Z_PLAN, _Z_EDGES, _Z_FP, _Z_TRACK, _Z_AP, _Z_LMK, _Z_REF = -100.0, 5.0, 8.0, 10.0, 12.0, 20.0, 30.0
+_Z_HEAT = 1.0  # AP heatmaps: over the floor plan, under everything else
 
 # viridis at 0, .25, .5, .75, 1 (enough for a readable RSSI ramp; avoids importing matplotlib)
 _VIRIDIS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], float)
@@ -175,7 +180,7 @@ def log_survey(
         _reference_layer(lg, ref_xyh, alignment.reference)
     _edge_layers(lg, alignment, cfg, max_edges)
     fm = alignment.fingerprints.fingerprints
-    _radio_layers(lg, alignment.fingerprint_xy(), fm, top_aps)
+    _radio_layers(lg, alignment.fingerprint_xy(), fm, top_aps, cfg.fingerprint.min_rssi_dbm)
     _optimiser_layers(lg, alignment.iterations)
     _convergence_layers(lg, alignment, colours)
     lg.notes[:0] = _survey_summary(survey, alignment)
@@ -273,7 +278,7 @@ def write_survey_view(
 
         try:
             rm = read_radio_map(rm_path)
-            _radio_layers(lg, np.asarray(rm.xy), rm.fingerprints, top_aps)
+            _radio_layers(lg, np.asarray(rm.xy), rm.fingerprints, top_aps, rm.min_rssi_dbm)
         except GraphSlamError as e:  # optional file: show the rest, say why the map is missing
             problems.append(f"radio_map.parquet not shown: {e}")
     cfg_path = d / "config.yaml"
@@ -414,8 +419,10 @@ def _edge_layers(lg: _Log, al: Alignment, cfg: GraphSlamConfig, max_edges: int) 
     )
 
 
-def _radio_layers(lg: _Log, xy: NDArray, fm: FingerprintMatrix, top_aps: int) -> None:
-    """Fingerprint positions and, per most-heard AP, its RSSI at every fingerprint that heard it."""
+def _radio_layers(lg: _Log, xy: NDArray, fm: FingerprintMatrix, top_aps: int,
+                  min_rssi_dbm: float = DEFAULT_MIN_RSSI_DBM) -> None:
+    """Fingerprint positions and, per most-heard AP, its RSSI at every fingerprint that heard it and
+    its heatmap (``graphslam.core.radiomap.field``: an image in metres, uncertain cells faded)."""
     rows = np.flatnonzero(np.isfinite(xy).all(axis=1))
     lg.static(FINGERPRINTS, len(rows), _points(xy[rows], [90, 90, 90], 1.5, _Z_FP, None))
     if not len(rows) or fm.n_aps == 0:
@@ -427,18 +434,32 @@ def _radio_layers(lg: _Log, xy: NDArray, fm: FingerprintMatrix, top_aps: int) ->
         sl = slice(sub.indptr[c], sub.indptr[c + 1])
         heard_rows, rssi = sub.indices[sl], sub.data[sl] + fm.missing_dbm
         bssid = fm.bssids[c]
-        path = f"{APS}/{rank:02d}_{lg.part(bssid)}"
+        part = f"{rank:02d}_{lg.part(bssid)}"
+        path = f"{APS}/{part}"
         pts = rr.Points2D(xy[rows][heard_rows], colors=rssi_colours(rssi), radii=rr.components.Radius.ui_points(3.0),
                           draw_order=_Z_AP)
         lg.static(path, len(heard_rows), pts, rr.AnyValues(rssi_dbm=rssi.astype(np.float64)))
-        names.append((path, bssid, len(heard_rows), float(np.median(rssi))))
+        full = np.full(len(rows), float(min_rssi_dbm))
+        full[heard_rows] = rssi
+        heat = readings_field(xy[rows], full, bssid, float(min_rssi_dbm), n_heard=len(heard_rows))
+        rgba = heatmap_rgba(heat)
+        img = np.ascontiguousarray(np.transpose(rgba, (1, 0, 2))[::-1])  # rows from the top: y decreasing
+        x0, _, _, y1 = heat.extent
+        # pixel (u, v), v down -> (x0 + u cell, y1 - v cell) of the aligned frame
+        tf = rr.Transform3D(translation=[x0, y1, 0.0], scale=[heat.cell_m, -heat.cell_m, 1.0])
+        lg.static(f"{HEATMAPS}/{part}", 1, tf, rr.Image(img, color_model="RGBA", draw_order=_Z_HEAT))
+        names.append((path, f"{HEATMAPS}/{part}", bssid, len(heard_rows), float(np.median(rssi)), heat.cell_m))
     lg.views["aps"] = [p for p, *_ in names]
-    lg.views["ap_titles"] = [f"AP {r}: {b}" for r, (_, b, _, _) in enumerate(names, start=1)]
-    listing = "; ".join(f"{b} heard {n}x, median {m:.0f} dBm" for _, b, n, m in names)
+    lg.views["heatmaps"] = [h for _, h, *_ in names]
+    lg.views["ap_titles"] = [f"AP {r}: {b}" for r, (_, _, b, *_) in enumerate(names, start=1)]
+    listing = "; ".join(f"{b} heard {n}x, median {m:.0f} dBm" for _, _, b, n, m, _ in names)
     lg.notes.append(
         f"- radio map: {len(rows):,} fingerprints (grey), {fm.n_aps:,} APs. Top {len(names)} most-heard APs under "
         f"/{APS}: colour = RSSI, viridis from {RSSI_RANGE_DBM[0]:g} dBm (dark blue) to {RSSI_RANGE_DBM[1]:g} dBm "
-        f"(yellow); values in the selection panel (rssi_dbm). {listing}."
+        f"(yellow); values in the selection panel (rssi_dbm). Their heatmaps under /{HEATMAPS} (one tab per AP): "
+        f"a Gaussian kernel average of every fingerprint's reading (not heard = {min_rssi_dbm:g} dBm) on "
+        f"{names[0][5] if names else 0:g} m cells, faded toward white where its standard error exceeds "
+        f"{MAX_STD_ERROR_DB:g} dB (docs/pictures.md). {listing}."
     )
 
 
@@ -555,7 +576,7 @@ def _read_report(path: Path) -> tuple[dict, list[str]]:
 
 def _blueprint(lg: _Log) -> rrb.Blueprint:
     has = lambda prefix: any(e == prefix or e.startswith(prefix + "/") for e in lg.counts)  # noqa: E731
-    main_contents = ["+ /world/**", f"- /{CONVERGENCE}/**", f"- /{APS}/**"]
+    main_contents = ["+ /world/**", f"- /{CONVERGENCE}/**", f"- /{APS}/**", f"- /{HEATMAPS}/**"]
     main = rrb.Spatial2DView(name="Aligned survey", origin="/", contents=main_contents)
     side: list[rrb.Container | rrb.View] = []
     if has(RAW):
@@ -583,8 +604,9 @@ def _blueprint(lg: _Log) -> rrb.Blueprint:
     aps = lg.views.get("aps", [])
     if aps:
         views = [
-            rrb.Spatial2DView(name=title, origin="/", contents=[f"+ /{FLOOR_PLAN}", f"+ /{FINGERPRINTS}", f"+ /{p}"])
-            for p, title in zip(aps, lg.views["ap_titles"])
+            rrb.Spatial2DView(name=title, origin="/",
+                              contents=[f"+ /{FLOOR_PLAN}", f"+ /{h}", f"+ /{FINGERPRINTS}", f"+ /{p}"])
+            for p, h, title in zip(aps, lg.views["heatmaps"], lg.views["ap_titles"])
         ]
         tabs.append(rrb.Tabs(*views, name="Radio map (per AP)"))
     time_panel = rrb.TimePanel(timeline=TIMELINE_ITERATION, state="collapsed") if has(OPTIMIZER) else rrb.TimePanel(state="collapsed")

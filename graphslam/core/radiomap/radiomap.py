@@ -245,6 +245,10 @@ class RadioMap:
     def missing_dbm(self) -> float:
         return self.fingerprints.missing_dbm
 
+    def column(self, bssid: str) -> int | None:
+        """``bssid``'s column in ``fingerprints`` (None: no fingerprint heard it)."""
+        return self._index.get(bssid)
+
     def encode(self, scans: Sequence[Mapping[str, float]]) -> FingerprintMatrix:
         """Query scans as fingerprints over this map's AP index (unknown APs go to ``extra_*``),
         with the map's ``missing_dbm`` and ``min_rssi_dbm``. Same result as
