@@ -12,6 +12,7 @@ import typer
 from graphslam import names
 from graphslam.cli.base import app
 from graphslam.cli.options import choices, config_from_options, plain, require_plots, require_rerun
+from graphslam.io.paths import expand_paths
 
 Scenario = choices("Scenario", names.SCENARIOS)
 ExportFormat = choices("ExportFormat", names.EXPORT_FORMATS)
@@ -24,6 +25,7 @@ def inspect(
     as_json: bool = typer.Option(False, "--json", help="One JSON object per session, then the totals."),
 ) -> None:
     """Print per-session statistics: steps, scans, distinct APs, duration, walked length, landmarks."""
+    expand_paths(paths)  # a missing input: one line before numpy & co. are imported
     from graphslam.core.summary import SurveySummary, plural
     from graphslam.io.mcap_reader import read_survey
 
@@ -79,10 +81,11 @@ def survey(
     """Align every walk into one frame; write trajectories.csv, aligned.mcap, radio_map.parquet,
     wifi_edges.parquet, report.json, survey_state.npz, the effective config.yaml and survey.png into OUT.
     Walks the data does not link to the main map form components of their own (report.json)."""
-    from graphslam.app.survey import run_survey
-
     require_rerun(rerun)
     cfg = config_from_options(config, set_)
+    expand_paths(paths)  # a missing input: one line before the survey's libraries are imported
+    from graphslam.app.survey import run_survey
+
     if not progress:
         from graphslam.app.progress import show_progress
 
