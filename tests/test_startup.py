@@ -48,3 +48,28 @@ def test_argument_errors_import_nothing_heavy(tmp_path: Path, argv: list[str]) -
     assert p.stderr.startswith("error: ")
     assert p.stdout.splitlines() == ["[]"]
     assert not (tmp_path / "out").exists()
+
+
+def test_a_survey_imports_only_what_it_uses(tmp_path: Path) -> None:
+    """A WiFi survey (no UWB, no --rerun, default solver): no GTSAM, web service, Rerun, scikit-learn or
+    matplotlib; numpy's extras (f2py, testing, polynomial) registered but never executed."""
+    from graphslam.io.mcap_writer import write_session
+    from graphslam.sim import simulate
+
+    sim = simulate("paper", seed=0, size=0.5)
+    assert len(sim.survey) >= 2  # walks placed against each other: the whole survey path
+    for s in sim.survey:
+        write_session(s, tmp_path / "rec" / f"{s.session_id}.mcap")
+    code = f"""
+        import atexit, sys
+        unused = ("gtsam", "fastapi", "uvicorn", "rerun", "sklearn", "matplotlib", "graphslam.core.uwb.survey",
+                  "numpy.f2py.crackfortran", "charset_normalizer", "numpy.testing._private", "numpy.polynomial.polynomial")
+        atexit.register(lambda: print(sorted(m for m in unused if m in sys.modules)))
+        sys.argv = ["graphslam", "survey", {str(tmp_path / "rec")!r}, "--out", {str(tmp_path / "out")!r}, "--no-progress"]
+        from graphslam.cli import entry
+        entry()
+    """
+    p = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.startswith("aligned ") and (tmp_path / "out" / "survey.png").is_file()
+    assert p.stdout.splitlines()[-1] == "[]"
