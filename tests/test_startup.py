@@ -40,6 +40,8 @@ def test_help_imports_nothing_heavy(argv: list[str]) -> None:
     ["survey", "{missing}"],  # --out missing: click's error
     ["survey", "{missing}", "--out", "{out}", "--set", "wifi.no_such_key=1"],
     ["no-such-command"],
+    ["serve", "--radio-map", "{missing}"],
+    ["view", "{missing}"],  # none of --save, --serve, --spawn
 ])
 def test_argument_errors_import_nothing_heavy(tmp_path: Path, argv: list[str]) -> None:
     args = [a.format(missing=tmp_path / "missing", out=tmp_path / "out") for a in argv]

@@ -351,12 +351,12 @@ def view(
     import tempfile
 
     from graphslam.errors import ConfigError
+    if not (save or serve or spawn):  # before Rerun's and the pictures' imports
+        raise ConfigError("choose at least one of --save FILE.rrd, --serve, --spawn")
     require_rerun()
     from graphslam.viz.rerun_log import write_survey_view
     from graphslam.viz.rerun_viewer import require_display, serve_rrd, spawn_viewer
 
-    if not (save or serve or spawn):
-        raise ConfigError("choose at least one of --save FILE.rrd, --serve, --spawn")
     if spawn:
         require_display()
     target = save or Path(tempfile.mkdtemp(prefix="graphslam-view-")) / "survey.rrd"
