@@ -42,6 +42,7 @@ def test_help_imports_nothing_heavy(argv: list[str]) -> None:
     ["no-such-command"],
     ["serve", "--radio-map", "{missing}"],
     ["view", "{missing}"],  # none of --save, --serve, --spawn
+    ["survey-batch", "{missing}", "--out", "{out}"],
 ])
 def test_argument_errors_import_nothing_heavy(tmp_path: Path, argv: list[str]) -> None:
     args = [a.format(missing=tmp_path / "missing", out=tmp_path / "out") for a in argv]

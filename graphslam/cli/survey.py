@@ -150,11 +150,12 @@ def survey_batch(
     partial); 1: some failed (their error in summary.json); 2: bad arguments."""
     from tqdm import tqdm
 
-    from graphslam.app.batch import run_batch
-    from graphslam.core.summary import plural
+    from graphslam.app.batch import check_sites_root, run_batch  # app.batch: no numpy, no Dask at import
     from graphslam.errors import require_extra
 
+    check_sites_root(sites_root)  # a missing input: one line before Dask (half a second) is imported
     require_extra("distributed", "survey-batch (Dask)")
+    from graphslam.core.summary import plural
 
     cfg = config_from_options(config, set_)
     bar = tqdm(desc="floors", unit="floor", disable=not (progress and sys.stderr.isatty()), file=sys.stderr)
