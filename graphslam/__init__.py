@@ -17,13 +17,7 @@ conventions. Every library failure is a ``GraphSlamError`` subclass.
 from __future__ import annotations
 
 import importlib
-from importlib.metadata import PackageNotFoundError, version
 from typing import TYPE_CHECKING, Any
-
-try:
-    __version__ = version("graphslam")
-except PackageNotFoundError:  # running from a source tree that was not installed
-    __version__ = "0+unknown"
 
 _EXPORTS: dict[str, str] = {
     # errors
@@ -128,7 +122,20 @@ _EXPORTS: dict[str, str] = {
 __all__ = sorted(_EXPORTS) + ["__version__"]
 
 
+def _version() -> str:
+    """The installed distribution's version (importlib.metadata: looked up on first use, not at import)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("graphslam")
+    except PackageNotFoundError:  # running from a source tree that was not installed
+        return "0+unknown"
+
+
 def __getattr__(name: str) -> Any:
+    if name == "__version__":
+        globals()[name] = value = _version()
+        return value
     target = _EXPORTS.get(name)
     if target is None:
         raise AttributeError(f"module 'graphslam' has no attribute {name!r}")

@@ -73,11 +73,16 @@ class FloorRow:
     warning: str | None = None  # why the floor is partial
 
 
+def check_sites_root(sites_root: Path) -> None:
+    """``InputError`` unless ``sites_root`` is a folder (the command checks it before importing Dask)."""
+    if not sites_root.is_dir():
+        raise InputError(sites_root, "not a folder (expected SITES_ROOT with one folder of .mcap recordings per floor)")
+
+
 def find_floors(sites_root: Path, out_root: Path) -> list[Path]:
     """Folders under ``sites_root`` (itself included) that hold ``.mcap`` files directly, sorted;
     nothing inside ``out_root`` (its aligned.mcap files are outputs, not floors)."""
-    if not sites_root.is_dir():
-        raise InputError(sites_root, "not a folder (expected SITES_ROOT with one folder of .mcap recordings per floor)")
+    check_sites_root(sites_root)
     out = out_root.resolve()
     floors = []
     for d, dirs, files in os.walk(sites_root):

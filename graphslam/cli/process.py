@@ -10,29 +10,36 @@ import sys
 _DEFERRED_NUMPY_MODULES = ("numpy.f2py", "numpy.ctypeslib", "numpy.polynomial", "numpy.testing")
 
 
+class _LazyNumpyExtras:
+    """A ``sys.meta_path`` finder: the deferred numpy submodules, found as usual (``PathFinder``) but
+    loaded through the standard library's ``importlib.util.LazyLoader``, i.e. executed on first
+    attribute access."""
+
+    @staticmethod
+    def find_spec(name: str, path: object = None, target: object = None) -> object:
+        if name not in _DEFERRED_NUMPY_MODULES:
+            return None
+        import importlib.machinery
+        import importlib.util
+
+        spec = importlib.machinery.PathFinder.find_spec(name, path)  # type: ignore[arg-type]
+        if spec is None or spec.loader is None or not hasattr(spec.loader, "exec_module"):
+            return None  # the usual import, then
+        spec.loader = importlib.util.LazyLoader(spec.loader)
+        return spec
+
+
 def _defer_numpy_extras() -> None:
     """scipy's array-API layer (``scipy._lib.array_api_compat.numpy``, imported with scipy.sparse)
-    does ``from numpy import *``, which imports every submodule numpy keeps lazy — f2py (and,
-    through it, charset_normalizer), ctypeslib, polynomial, testing: a fifth of a survey's
-    start-up. Registered first as lazy modules (the
-    standard library's ``importlib.util.LazyLoader``) they are executed on first attribute access
-    instead, which no survey makes. Console process only (library users and tests are untouched),
-    and only for modules not yet imported."""
-    import importlib.util
-
-    import numpy
-
-    for name in _DEFERRED_NUMPY_MODULES:
-        if name in sys.modules:
-            continue
-        spec = importlib.util.find_spec(name)
-        if spec is None or spec.loader is None:
-            continue
-        spec.loader = importlib.util.LazyLoader(spec.loader)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-        setattr(numpy, name.rpartition(".")[2], module)  # else numpy's __getattr__ imports it again
+    clones numpy's namespace: ``hasattr(numpy, n)`` for every name of ``dir(numpy)``, which lists the
+    submodules numpy keeps lazy, so it imports them all — f2py (and, through it, charset_normalizer),
+    ctypeslib, polynomial, testing: a fifth of a survey's start-up. No scipy setting avoids it
+    (``SCIPY_ARRAY_API`` does not). A finder put first on ``sys.meta_path`` loads them lazily instead:
+    executed on first attribute access, which no survey makes. numpy itself is not imported here
+    (``--help`` and argument errors need none of it). Console process only (library users and tests
+    are untouched), and only for modules not yet imported."""
+    if not any(isinstance(f, _LazyNumpyExtras) for f in sys.meta_path):
+        sys.meta_path.insert(0, _LazyNumpyExtras())
 
 
 def _exit_now(code: object) -> None:

@@ -112,6 +112,10 @@ def serve(
     """Serve kNN positioning over HTTP (POST /v1/locate, GET /v1/radio-map, GET /healthz, /openapi.json, /docs).
     A site (a folder of floor maps) is answered floor by floor: the best-matching floor gives the position.
     A port already in use, or a site folder without a readable floor map, is one line and exit code 2."""
+    if not radio_map.exists():  # one line before the web service's libraries are imported
+        from graphslam.errors import RadioMapError
+
+        raise RadioMapError(f"{radio_map}: no such file")
     from graphslam.service.config import DEFAULT_WATCH_S, ServeConfig
     from graphslam.service.server import serve as serve_map
 

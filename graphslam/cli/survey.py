@@ -12,6 +12,7 @@ import typer
 from graphslam import names
 from graphslam.cli.base import app
 from graphslam.cli.options import choices, config_from_options, plain, require_plots, require_rerun
+from graphslam.io.paths import expand_paths
 
 Scenario = choices("Scenario", names.SCENARIOS)
 ExportFormat = choices("ExportFormat", names.EXPORT_FORMATS)
@@ -24,6 +25,7 @@ def inspect(
     as_json: bool = typer.Option(False, "--json", help="One JSON object per session, then the totals."),
 ) -> None:
     """Print per-session statistics: steps, scans, distinct APs, duration, walked length, landmarks."""
+    expand_paths(paths)  # a missing input: one line before numpy & co. are imported
     from graphslam.core.summary import SurveySummary, plural
     from graphslam.io.mcap_reader import read_survey
 
@@ -79,10 +81,11 @@ def survey(
     """Align every walk into one frame; write trajectories.csv, aligned.mcap, radio_map.parquet,
     wifi_edges.parquet, report.json, survey_state.npz, the effective config.yaml and survey.png into OUT.
     Walks the data does not link to the main map form components of their own (report.json)."""
-    from graphslam.app.survey import run_survey
-
     require_rerun(rerun)
     cfg = config_from_options(config, set_)
+    expand_paths(paths)  # a missing input: one line before the survey's libraries are imported
+    from graphslam.app.survey import run_survey
+
     if not progress:
         from graphslam.app.progress import show_progress
 
@@ -147,11 +150,12 @@ def survey_batch(
     partial); 1: some failed (their error in summary.json); 2: bad arguments."""
     from tqdm import tqdm
 
-    from graphslam.app.batch import run_batch
-    from graphslam.core.summary import plural
+    from graphslam.app.batch import check_sites_root, run_batch  # app.batch: no numpy, no Dask at import
     from graphslam.errors import require_extra
 
+    check_sites_root(sites_root)  # a missing input: one line before Dask (half a second) is imported
     require_extra("distributed", "survey-batch (Dask)")
+    from graphslam.core.summary import plural
 
     cfg = config_from_options(config, set_)
     bar = tqdm(desc="floors", unit="floor", disable=not (progress and sys.stderr.isatty()), file=sys.stderr)
@@ -348,12 +352,12 @@ def view(
     import tempfile
 
     from graphslam.errors import ConfigError
+    if not (save or serve or spawn):  # before Rerun's and the pictures' imports
+        raise ConfigError("choose at least one of --save FILE.rrd, --serve, --spawn")
     require_rerun()
     from graphslam.viz.rerun_log import write_survey_view
     from graphslam.viz.rerun_viewer import require_display, serve_rrd, spawn_viewer
 
-    if not (save or serve or spawn):
-        raise ConfigError("choose at least one of --save FILE.rrd, --serve, --spawn")
     if spawn:
         require_display()
     target = save or Path(tempfile.mkdtemp(prefix="graphslam-view-")) / "survey.rrd"

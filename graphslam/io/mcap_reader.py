@@ -28,6 +28,7 @@ from graphslam.core.types import HeadingTrack, LandmarkMark, PoseTrack, Scan, Se
 from graphslam.errors import InputError
 from graphslam.io.mcap_container import DamagedMcap, McapContents, TopicMessages, read_mcap
 from graphslam.io import uwb_io
+from graphslam.io.paths import expand_paths
 from graphslam.io.schemas import (
     MCAP_MAGIC,
     SESSION_METADATA,
@@ -46,33 +47,6 @@ log = logging.getLogger(__name__)
 QUATERNION_NORM_TOL = 1e-3
 NSEC_PER_SEC = 1_000_000_000
 MAX_SEC = (2**63 - 1) // NSEC_PER_SEC - 1  # sec * 1e9 + nsec must fit in int64
-
-
-def expand_paths(paths: Iterable[str | Path]) -> list[Path]:
-    """Files as given; a folder means the ``*.mcap`` files directly in it (not its sub-folders:
-    a simulator's held-out ``test/`` walks or another floor must not join a survey by accident).
-    Sorted, de-duplicated."""
-    out: list[Path] = []
-    for p in map(Path, paths):
-        if p.is_dir():
-            found = sorted(p.glob("*.mcap"))
-            if not found:
-                raise InputError(p, "folder contains no .mcap recordings")
-            out.extend(found)
-        elif p.exists():
-            out.append(p)
-        else:
-            raise InputError(p, "no such file or folder")
-    seen: set[Path] = set()
-    unique = []
-    for p in out:
-        r = p.resolve()
-        if r not in seen:
-            seen.add(r)
-            unique.append(p)
-    if not unique:
-        raise InputError(", ".join(map(str, paths)) or "<none>", "no recordings given")
-    return unique
 
 
 def floor_folders(site_dir: str | Path, floors: Iterable[str] | None = None) -> list[Path]:

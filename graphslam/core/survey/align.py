@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Mapping
+from typing import TYPE_CHECKING, Callable, Mapping
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,8 +43,10 @@ from graphslam.core.survey.graph import (
 )
 from graphslam.core.survey.initialise import Placement, connected_to, register_walks, se2_apply_poses
 from graphslam.core.types import PoseTrack, Survey
-from graphslam.core.uwb.survey import UwbSummary, UwbTerms, uwb_terms
 from graphslam.errors import SolverError
+
+if TYPE_CHECKING:
+    from graphslam.core.uwb.survey import UwbSummary, UwbTerms
 
 log = logging.getLogger(__name__)
 
@@ -352,7 +354,11 @@ def build_problem(
             unaligned[survey.sessions[s].session_id] = "no WiFi edge path to the reference walk"
     # --- UWB hook (graphslam.core.uwb.survey): range factors; with anchors the site
     # frame, the inclusion and the placement come from the ranges
-    uwb = uwb_terms(survey, cfg, fp.offsets, ea, eb, included, transforms, unaligned)
+    uwb = None
+    if cfg.uwb.enabled and any(s.uwb_ranges is not None and len(s.uwb_ranges) for s in survey):
+        from graphslam.core.uwb.survey import uwb_terms  # the UWB modules: for surveys with ranges only
+
+        uwb = uwb_terms(survey, cfg, fp.offsets, ea, eb, included, transforms, unaligned)
     if uwb is not None:
         included, unaligned = uwb.included, dict(uwb.unaligned)
     # ---
