@@ -99,7 +99,7 @@ def leave_one_session_out(
 
 
 def calibrate_uncertainty(
-    rm: RadioMap, config: KnnConfig | None = None, *, floor_m: float = DEFAULT_FLOOR_M, max_queries: int = 600,
+    rm: RadioMap, config: KnnConfig | None = None, *, floor_m: float = DEFAULT_FLOOR_M, max_queries: int = 300,
     max_sessions: int = 12, seed: int = 0,
 ) -> KnnUncertainty | None:
     """``KnnUncertainty`` of ``config`` on ``rm`` (module docstring): up to ``max_sessions`` walks
