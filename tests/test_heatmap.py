@@ -125,6 +125,9 @@ def test_heatmap_fades_uncertain_cells_and_writes_a_located_png() -> None:
         x0, x1, y0, y1 = (float(v) for v in im.text["extent_m"].split())
         assert (x0, x1, y0, y1) == pytest.approx(f.extent, abs=1e-3)
         assert str(MAX_STD_ERROR_DB).rstrip("0").rstrip(".") in im.text["faded"]
+    # a frame name beyond Latin-1 (tEXt's alphabet) is written as UTF-8 text, not a failure
+    with Image.open(io.BytesIO(heatmap_png(f, frame="楼 €"))) as im:
+        assert im.text["frame"] == "楼 €" and im.text["bssid"] == "a"
 
 
 def test_radio_map_picture_fades_uncertain_ap_cells(tmp_path: Path) -> None:

@@ -207,3 +207,23 @@ def test_serve_of_a_site_reloads_every_floor_on_sighup(tmp_path: Path, floors: d
         _, err = proc.communicate(timeout=30)
     assert f"radio map {site / 'floor_1' / 'radio_map.parquet'} reloaded (generation 1" in err
     assert "Traceback" not in err
+
+
+def test_a_floor_that_knows_one_weak_access_point_of_the_query_does_not_answer(tmp_path: Path, floors: dict) -> None:
+    """Scores over all the query's access points: a floor whose fingerprints hear only one weak AP of
+    the query would win on its own Sørensen score (that AP alone matches perfectly)."""
+    rm0, queries, _ = floors["floor_0"]
+    q = dict(queries[3])
+    weak = min(q, key=q.get)
+    leak = RadioMap.from_scans([{weak: q[weak]}] * 4, np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]),
+                               session_ids=np.array(["x", "x", "y", "y"]), t_ns=np.arange(4), frame="leak")
+    site = _site(tmp_path / "site", {"floor_0": floors["floor_0"], "leak": (leak, [], np.zeros((0, 2)))})
+    from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
+
+    own = [KnnLocator(m, KnnConfig()).locate([q]).score[0] for m in (rm0, leak)]
+    assert own[1] < own[0]  # on their own scores the leak floor would answer
+    app = served_app(site, None, search_processes=0)
+    with start_background_server(app) as srv, httpx.Client(base_url=srv.url, timeout=30.0) as c:
+        p = c.post("/v1/locate", json={"readings": q}).json()["positions"][0]
+    assert p["floor"] == "floor_0" and p["floor_scores"]["leak"] > p["floor_scores"]["floor_0"]
+    assert p["floor_scores"]["floor_0"] == pytest.approx(own[0])  # a floor that knows every AP: unchanged

@@ -151,6 +151,8 @@ def test_expected_accuracy_is_worse_where_walks_disagree_and_empty_where_none_wa
     assert few.n_rows <= 30 and np.all(few.n_sampled == 1) and few.n_fingerprints.sum() == len(rm)
     assert np.median(few.error_m[disagree]) > 3 * np.median(few.error_m[agree]) + 3
     assert np.isnan(few.r95_m).all()  # no calibration given
+    fewer = expected_accuracy(rm, cell_m=2.0, max_rows=5)  # fewer rows than cells: whole cells left out
+    assert fewer.n_rows == 5 and np.sum(fewer.n_sampled) == 5 and set(fewer.n_sampled.tolist()) == {0, 1}
     more = expected_accuracy(rm, cell_m=2.0, max_rows=60)  # the same number q of every cell, all of a smaller one
     q = int(more.n_sampled.max())
     assert q >= 2 and more.n_rows <= 60 and np.array_equal(more.n_sampled, np.minimum(more.n_fingerprints, q))

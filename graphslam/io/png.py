@@ -48,6 +48,12 @@ def png_bytes(rgb: NDArray[np.uint8], level: int = PNG_COMPRESS_LEVEL, text: Map
         return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
 
     ihdr = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)  # 8 bits, colour type 2 (RGB), no interlace
-    notes = b"".join(chunk(b"tEXt", k.encode("ascii") + b"\0" + v.encode("latin-1")) for k, v in (text or {}).items())
+    def note(k: str, v: str) -> bytes:
+        try:
+            return chunk(b"tEXt", k.encode("ascii") + b"\0" + v.encode("latin-1"))
+        except UnicodeEncodeError:  # (a BSSID, a frame name) beyond Latin-1: the UTF-8 text chunk
+            return chunk(b"iTXt", k.encode("ascii") + b"\0\0\0\0\0" + v.encode("utf-8"))
+
+    notes = b"".join(note(k, v) for k, v in (text or {}).items())
     return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + notes + chunk(b"IDAT", zlib.compress(rows.tobytes(), level))
             + chunk(b"IEND", b""))

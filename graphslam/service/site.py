@@ -9,10 +9,10 @@ Every floor is served by its own service app (``create_app``: locator, uncertain
 pool) behind its own ``ReloadingApp``: a floor whose file changes (``--watch``) or every floor
 (SIGHUP) is reloaded and swapped atomically as a single map is, a broken one refused while the
 others go on. A query is located on every floor and answered by the floor whose kNN answer has
-the lowest score (the closest fingerprint match; Sørensen scores are 0-1 on every map). The
+the lowest score over all the query's access points (``KnnLocator.scores_over_query``: a
+floor's own Sørensen score ignores the access points it does not know). The
 position is in that floor's frame (each survey has its own): ``floor`` and ``frame`` say which.
-``floor_scores`` gives every floor's score (null where the floor knows none of the query's
-access points). ``GET /v1/maps/{floor}/heatmap/{bssid}.png``: one access point's heatmap on one
+``floor_scores`` gives those scores (null where the floor could not locate the query). ``GET /v1/maps/{floor}/heatmap/{bssid}.png``: one access point's heatmap on one
 floor (the single map's ``/v1/heatmap/{bssid}.png``; 404 for an unknown floor or access point).
 A fingerprint that no floor can locate (none of its access points is known to
 any floor) refuses the request with 422 and its index, as a single map does.
@@ -64,7 +64,8 @@ FLOOR_MAP_FILE = "radio_map.parquet"  # a survey's radio map (graphslam.app.surv
 class SitePosition(Position):
     frame: str = Field(description="the answering floor's frame: x, y are in it")
     floor_scores: dict[str, float | None] = Field(
-        description="every floor's kNN score for this fingerprint (null: the floor knows none of its access points)"
+        description="every floor's kNN score over all of this fingerprint's access points, the lowest answers "
+        "(null: the floor could not locate it)"
     )
 
 
@@ -101,19 +102,20 @@ def find_floor_maps(site: str | Path) -> dict[str, Path]:
         rel = f.parent.relative_to(root)
         if any(part.startswith(".") for part in rel.parts) or not f.is_file():
             continue  # a survey's stage or old set (graphslam.io.atomic.FolderStage)
-        floors[rel.as_posix() if rel.parts else root.resolve().name] = f
+        name = rel.as_posix() if rel.parts else root.resolve().name
+        if name in floors:  # the folder's own map and a sub-folder of its name
+            raise InputError(f, f"a second floor named {name!r} (rename one of the two folders)")
+        floors[name] = f
     if not floors:
         raise InputError(root, f"no floor folder under it holds {FLOOR_MAP_FILE} (expected survey-batch --out's layout)")
     return dict(sorted(floors.items()))
 
 
-def _choose(results: Sequence[Any]) -> tuple[np.ndarray, np.ndarray]:
-    """Per row: the index of the floor with the lowest score among those that located it (-1: none),
-    and the (floors, rows) score matrix (NaN where a floor did not locate the row)."""
-    scores = np.vstack([np.where(r.valid, r.score, np.nan) for r in results])
+def _choose(scores: np.ndarray) -> np.ndarray:
+    """Per row of the (floors, rows) score matrix (NaN where a floor did not locate the row): the
+    index of the floor with the lowest score (-1: none located it)."""
     located = np.isfinite(scores).any(axis=0)
-    best = np.where(located, np.argmin(np.where(np.isfinite(scores), scores, np.inf), axis=0), -1)
-    return best, scores
+    return np.where(located, np.argmin(np.where(np.isfinite(scores), scores, np.inf), axis=0), -1)
 
 
 def create_site_app(
@@ -195,7 +197,9 @@ def create_site_app(
 
     def answer(apps: list[FastAPI], scans: list[Any]) -> bytes:
         results = [a.state.search_pool.locate(scans) for a in apps]
-        best, scores = _choose(results)
+        # over every AP of the query: a floor's own score ignores the APs it does not know
+        scores = np.vstack([a.state.locator.scores_over_query(scans, r) for r, a in zip(results, apps)])
+        best = _choose(scores)
         bad = np.flatnonzero(best < 0)
         if len(bad):
             detail = ", ".join(f"#{i}" for i in bad[:5]) + (" ..." if len(bad) > 5 else "")

@@ -164,7 +164,7 @@ def _accuracy_panel(
     n = np.ceil(np.array([x1 - x0, y1 - y0]) / cell - 1e-9).astype(int)
     rgba = np.zeros((n[0], n[1], 4), np.uint8)  # (nx, ny): x along the first axis
     measured = np.isfinite(acc.error_m)
-    sampled = acc.n_sampled > 0  # all cells but on the biggest maps: more cells than fingerprints located
+    sampled = acc.n_sampled > 0  # all cells but on maps of more cells than fingerprints located
     i, j = np.clip(acc.ij[:, 0], 0, n[0] - 1), np.clip(acc.ij[:, 1], 0, n[1] - 1)
     rgba[i, j, :3] = np.where(measured[:, None], colour_map(np.nan_to_num(acc.error_m), *ACCURACY_RANGE_M, RDYLGN_R),
                               np.array(NOT_LOCATED, np.uint8))

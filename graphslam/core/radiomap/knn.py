@@ -419,6 +419,33 @@ class KnnLocator:
             raise err
         return res
 
+    def scores_over_query(self, scans: Sequence[Mapping[str, float]], res: KnnResult) -> NDArray[np.float64]:
+        """Per query: ``res.score`` (this locator's answers to ``scans``) as if every AP of the query
+        were in the map, the ones it does not know heard by no reference: comparable between maps
+        of different AP sets (a building's floors). Sørensen drops unknown APs from the distance,
+        so a map that knows one weak AP of a query would score near 0 on it alone; here each
+        neighbour's distance ``num / den`` becomes ``(num + u) / (den + u)``, ``u`` the powed
+        strength of the query's unknown APs. Eq. 9 already charges them (``extra_sq``): its scores
+        are returned as they are. NaN where ``res`` has no answer."""
+        if self._sorensen is None:
+            return np.asarray(res.score, float).copy()
+        rm = self.radio_map
+        fm = rm.encode(scans)
+        known = np.asarray(self._sorensen.powed(fm).sum(axis=1), float).ravel()
+        floor = max(rm.min_rssi_dbm, rm.missing_dbm + 1e-6)
+        unknown = np.array([
+            float(self._sorensen.powed_values(np.array(
+                [v - rm.missing_dbm for b, v in sc.items() if rm.column(b) is None and v >= floor], float)).sum())
+            for sc in scans
+        ])
+        ok = (res.neighbours >= 0) & np.isfinite(res.distances)
+        den = known[:, None] + self._sorensen.sum[np.where(ok, res.neighbours, 0)]
+        d = (res.distances * den + unknown[:, None]) / (den + unknown[:, None])
+        with np.errstate(invalid="ignore"):
+            out = np.where(ok, d, 0.0).sum(axis=1) / ok.sum(axis=1)
+        out[~np.asarray(res.valid)] = np.nan
+        return out
+
     def _aggregate(self, idx: NDArray[np.int64], dist: NDArray[np.float64], n_known: NDArray[np.int64]) -> KnnResult:
         ok = idx >= 0
         safe = np.where(ok, idx, 0)

@@ -42,11 +42,12 @@ class KnnUncertainty:
     weighted: bool
     scale: float
     floor_m: float
-    n: int  # map fingerprints it was measured on
+    n: int  # scans located in the calibration
     coverage: float = 0.95  # share of those errors inside the 95 % circle (by construction ~0.95)
 
     def matches(self, config: KnnConfig) -> bool:
-        """Measured with this kNN (metric, k, weights)?"""
+        """Measured with this kNN (metric, k, weights)? (Not ``min_common``: the calibration uses 1,
+        and a larger one, which only excludes weakly overlapping references, reuses it.)"""
         return (self.metric, self.k, self.weighted) == (config.metric, config.k, config.weighted)
 
     def sigma(self, spread: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -105,6 +106,8 @@ def calibrate_uncertainty(
     """``KnnUncertainty`` of ``config`` on ``rm`` (module docstring): up to ``max_sessions`` walks
     (a seeded sample), each located on the map of the other walks (up to ``max_queries`` scans in
     all); None for a map of one walk, or when no scan can be located among the others."""
+    if not (math.isfinite(floor_m) and floor_m > 0):
+        raise ConfigError(f"kNN uncertainty: floor_m must be a positive number of metres, got {floor_m}")
     cfg = KnnConfig(k=(config or KnnConfig()).k, weighted=(config or KnnConfig()).weighted,
                     metric=(config or KnnConfig()).metric, index="exact")
     sessions = np.unique(rm.session_ids)
@@ -171,9 +174,10 @@ def expected_accuracy(
     site frame by a rigid transform, which leaves the error norms unchanged); ``origin``: the grid's
     lower-left corner (default the positions' minimum). Maps of more than ``max_rows`` fingerprints:
     a seeded sample of at most ``max_rows`` is located (cost ~ ``max_rows`` x map size Sørensen
-    distances), spread evenly over the cells (up to q per cell, the largest q that fits; at least
-    one per cell even beyond ``max_rows``); the coverage counts every fingerprint. A map of one walk
-    has nothing to compare: every ``error_m`` is NaN.
+    distances), spread evenly over the cells (up to q per cell, the largest q that fits; with more
+    cells than ``max_rows``, one fingerprint of each of ``max_rows`` random cells, the others not
+    sampled); the coverage counts every fingerprint. A map of one walk has nothing to compare:
+    every ``error_m`` is NaN.
     """
     if cell_m <= 0 or not math.isfinite(cell_m):
         raise ConfigError(f"expected accuracy: cell size must be a positive number of metres, got {cell_m}")
@@ -205,15 +209,20 @@ def expected_accuracy(
 
 
 def _even_sample(cell: NDArray[np.int64], counts: NDArray[np.int64], n: int, seed: int) -> NDArray[np.int64]:
-    """Sorted rows: a seeded random q of each cell's rows (all of a smaller cell), q the largest with
-    at most ``n`` rows in all (at least 1)."""
+    """Sorted rows, at most ``n``: a seeded random q of each cell's rows (all of a smaller cell), q
+    the largest that fits; with more cells than ``n``, one row of each of ``n`` random cells."""
     rng = np.random.default_rng(seed)
     order = np.lexsort((rng.random(len(cell)), cell))  # by cell, random within
     start = np.concatenate([[0], np.cumsum(counts)[:-1]])
     rank = np.empty(len(cell), np.int64)
     rank[order] = np.arange(len(cell)) - np.repeat(start, counts)
     taken = np.array([np.minimum(counts, q).sum() for q in range(1, int(counts.max()) + 1)])
-    q = max(1, int(np.searchsorted(taken, n, side="right")))
+    q = int(np.searchsorted(taken, n, side="right"))
+    if q == 0:  # more cells than rows to locate: whole cells are left out
+        cells = rng.choice(len(counts), n, replace=False)
+        keep = np.zeros(len(counts), bool)
+        keep[cells] = True
+        return np.flatnonzero((rank == 0) & keep[cell])
     return np.flatnonzero(rank < q)
 
 
