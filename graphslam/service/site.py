@@ -259,9 +259,15 @@ def site_app(
     A floor that does not load is an error naming its file (the others' search pools are closed)."""
     maps = find_floor_maps(site)
     floors: dict[str, ReloadingApp] = {}
+    one_at_a_time = threading.Lock()  # reloads (SIGHUP: every floor) build one floor after another
+
+    def rebuild(path: Path) -> FastAPI:
+        with one_at_a_time:  # peak memory: the served floors plus one new one
+            return build_floor(path)
+
     try:
         for name, path in maps.items():
-            floors[name] = ReloadingApp(build_floor(path), lambda p=path: build_floor(p), path,
+            floors[name] = ReloadingApp(build_floor(path), lambda p=path: rebuild(p), path,
                                         watch_interval=watch, sighup=False)
     except BaseException:
         for r in floors.values():
