@@ -273,6 +273,28 @@ def with_request_model(app: FastAPI, token: str | None) -> None:
     app.openapi = openapi_with_request_model  # type: ignore[method-assign]
 
 
+def with_problem_handlers(app: FastAPI) -> None:
+    """The errors every graphslam service answers as problem JSON (invalid request, unlocatable
+    query: 422; a search worker lost: 503), and ``GET /healthz``."""
+
+    @app.exception_handler(RequestValidationError)
+    async def _on_invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+        detail, errors = _validation_message(exc)
+        return _problem(422, detail, errors=errors)
+
+    @app.exception_handler(QueryError)
+    async def _on_query_error(request: Request, exc: QueryError) -> JSONResponse:
+        return _problem(422, str(exc))
+
+    @app.exception_handler(SearchUnavailableError)
+    async def _on_search_unavailable(request: Request, exc: SearchUnavailableError) -> JSONResponse:
+        return _problem(503, str(exc))
+
+    @app.get("/healthz", response_model=Health)
+    def healthz() -> dict[str, str]:
+        return {"status": "ok"}
+
+
 def create_app(
     radio_map: RadioMap,
     *,
@@ -327,22 +349,7 @@ def create_app(
     coalescer = Coalescer(lambda scans: locator.locate(scans))
     with_request_model(app, token)
 
-    @app.exception_handler(RequestValidationError)
-    async def _on_invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
-        detail, errors = _validation_message(exc)
-        return _problem(422, detail, errors=errors)
-
-    @app.exception_handler(QueryError)
-    async def _on_query_error(request: Request, exc: QueryError) -> JSONResponse:
-        return _problem(422, str(exc))
-
-    @app.exception_handler(SearchUnavailableError)
-    async def _on_search_unavailable(request: Request, exc: SearchUnavailableError) -> JSONResponse:
-        return _problem(503, str(exc))
-
-    @app.get("/healthz", response_model=Health)
-    def healthz() -> dict[str, str]:
-        return {"status": "ok"}
+    with_problem_handlers(app)
 
     @app.get("/v1/radio-map", response_model=RadioMapInfo)
     def radio_map_info() -> dict[str, Any]:

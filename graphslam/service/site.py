@@ -27,13 +27,12 @@ import signal
 import threading
 from contextlib import ExitStack, asynccontextmanager
 from pathlib import Path
-from typing import Any, AsyncIterator, Callable, Sequence
+from typing import Any, AsyncIterator, Callable
 
 import numpy as np
 import orjson
 from fastapi import FastAPI, Request, Response
 from fastapi.concurrency import run_in_threadpool
-from fastapi.exceptions import RequestValidationError
 from fastapi_offline import FastAPIOffline
 from pydantic import BaseModel, Field
 
@@ -46,13 +45,12 @@ from graphslam.service.app import (
     BearerToken,
     BodyLimit,
     _problem,
-    _validation_message,
+    with_problem_handlers,
     with_request_model,
 )
 from graphslam.service.config import DEFAULT_MAX_BATCH, DEFAULT_MAX_BODY_BYTES
-from graphslam.service.models import Health, Position, RadioMapInfo
+from graphslam.service.models import Position, RadioMapInfo
 from graphslam.service.parsing import validated_scans
-from graphslam.service.pool import SearchUnavailableError
 from graphslam.service.reload import ReloadingApp
 from graphslam.service.render import position_dicts
 
@@ -160,22 +158,7 @@ def create_site_app(
     )
     app.state.floors = floors
 
-    @app.exception_handler(RequestValidationError)
-    async def _on_invalid(request: Request, exc: RequestValidationError) -> Response:
-        detail, errors = _validation_message(exc)
-        return _problem(422, detail, errors=errors)
-
-    @app.exception_handler(QueryError)
-    async def _on_query_error(request: Request, exc: QueryError) -> Response:
-        return _problem(422, str(exc))
-
-    @app.exception_handler(SearchUnavailableError)
-    async def _on_search_unavailable(request: Request, exc: SearchUnavailableError) -> Response:
-        return _problem(503, str(exc))
-
-    @app.get("/healthz", response_model=Health)
-    def healthz() -> dict[str, str]:
-        return {"status": "ok"}
+    with_problem_handlers(app)
 
     @app.get("/v1/radio-map", response_model=SiteInfo)
     def site_info() -> dict[str, Any]:
