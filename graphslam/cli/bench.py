@@ -1,6 +1,6 @@
 """``graphslam bench``: what a user runs on their own recordings with ground truth: ``real`` (the
-survey per variant, scored per component) and ``tracking-real`` (held-out walks tracked on a map of
-the others); and ``soak``, the HTTP service on a user's own map under load for a set time. The
+survey per variant, scored per component), ``locate-real`` (held-out walks' scans located on a map of
+the others) and ``tracking-real`` (held-out walks tracked on a map of the others); and ``soak``, the HTTP service on a user's own map under load for a set time. The
 simulator and public-data benchmarks are the lab's (``python -m lab.bench``)."""
 
 from __future__ import annotations
@@ -47,6 +47,23 @@ def bench_real(
         typer.echo(json.dumps(row))
     for line in real_summary(rows):
         typer.echo(json.dumps(line))
+
+
+@bench_app.command("locate-real")
+def bench_locate_real(
+    folders: List[Path] = typer.Argument(..., help="Floor folders of real recordings with /landmarks."),
+    metrics: str = typer.Option("sorensen,eq9", help="kNN distances to compare, the first one scored for sigma_m too (sorensen, eq9)."),
+    folds: Optional[int] = typer.Option(None, help="Seeded random folds (default: leave one route out when file names name routes, else 5)."),
+    seed: int = typer.Option(0, help="Seed of the random folds."),
+) -> None:
+    """kNN positioning of held-out walks on the radio map of the other walks of their floor (placed
+    by their landmarks: ground truth builds the map and scores): per metric mean / median / p90
+    error, and the share of errors inside the answers' 95 % circles (sigma_m). One JSON line per floor."""
+    from graphslam.app.locate_bench import locate_real_rows
+
+    for row in locate_real_rows(folders, metrics=[m.strip() for m in metrics.split(",") if m.strip()],
+                                folds=folds, seed=seed):
+        typer.echo(json.dumps(row))
 
 
 @bench_app.command("tracking-real")
