@@ -87,6 +87,7 @@ def test_serve_builds_one_config_object_from_the_options_given(monkeypatch, caps
 
     seen: list = []
     monkeypatch.setattr(server, "serve", lambda path, cfg: seen.append((path, cfg)))
+    (tmp_path / "m.parquet").write_bytes(b"")  # serve refuses a missing map before anything else
     main(["serve", "--radio-map", str(tmp_path / "m.parquet"), "--port", "9001", "--watch", "--log-level", "WARNING"])
     (path, cfg), = seen
     assert path == tmp_path / "m.parquet"
