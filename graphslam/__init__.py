@@ -40,8 +40,9 @@ _EXPORTS: dict[str, str] = {
     **{n: "graphslam.core.radiomap.field" for n in ("RssField", "rss_field")},
     **{n: "graphslam.core.tracking.apmodel" for n in ("ApFitConfig", "ApModel", "ApModels", "UnfittedAp")},
     # filters, smoothers, tracking
+    "PathLossModel": "graphslam.core.tracking.pathloss",
     **{n: "graphslam.core.tracking.filters" for n in (
-        "PathLossModel", "FusionModel", "Shadowing", "GaussianState", "Epochs", "FilterRun", "make_filter", "run_epochs",
+        "FusionModel", "Shadowing", "GaussianState", "Epochs", "FilterRun", "make_filter", "run_epochs",
     )},
     **{n: "graphslam.core.tracking.smoother" for n in ("SmoothedRun", "smooth", "rts_smooth", "map_smooth", "MapProblem")},
     **{n: "graphslam.tracking_config" for n in ("TrackConfig", "load_track_config")},
@@ -157,8 +158,9 @@ if TYPE_CHECKING:  # static analysers see the real objects
     from graphslam.core.tracking.apmodel import ApFitConfig, ApModel, ApModels, UnfittedAp
     from graphslam.core.survey.evaluate import ErrorStats, Evaluation, evaluate
     from graphslam.core.tracking.filters import (
-        Epochs, FilterRun, FusionModel, GaussianState, PathLossModel, Shadowing, make_filter, run_epochs,
+        Epochs, FilterRun, FusionModel, GaussianState, Shadowing, make_filter, run_epochs,
     )
+    from graphslam.core.tracking.pathloss import PathLossModel
     from graphslam.core.radiomap.knn import KnnConfig, KnnLocator, KnnResult
     from graphslam.core.radiomap.uncertainty import KnnUncertainty, calibrate_uncertainty
     from graphslam.core.radiomap.radiomap import RadioMap

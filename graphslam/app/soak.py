@@ -1,6 +1,6 @@
 """``graphslam bench soak``: a long loopback load on a real ``graphslam serve --watch``.
 
-Issue 42: does a service that runs for hours stay flat (latency, memory) under steady traffic
+Does a service that runs for hours stay flat (latency, memory) under steady traffic
 and a map reload every minute? The steps:
 
 1. A copy of ``--radio-map`` (A) and the same map moved by ``SHIFT`` metres in x (B) are written
