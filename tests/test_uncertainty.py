@@ -163,3 +163,51 @@ def test_expected_accuracy_is_worse_where_walks_disagree_and_empty_where_none_wa
         expected_accuracy(rm, cell_m=0.0)
     with pytest.raises(ConfigError, match="xy must be"):
         expected_accuracy(rm, xy=np.zeros((3, 2)))
+
+
+def test_the_calibration_equals_locating_each_walk_on_a_map_of_the_others(walks: list) -> None:
+    """One locator with the walk masked out (and the APs only it heard moved outside the index) is
+    what a map built of the other walks answers: the same scale, both metrics."""
+    from graphslam.core.radiomap.radiomap import RadioMap
+
+    rm = oracle_radio_map(walks)
+    rm = RadioMap.from_scans(  # an AP only the first walk hears, loud: counted against it on eq. 9
+        [dict(r, **({"solo": -40.0} if s == rm.session_ids[0] else {})) for r, s in
+         zip(_readings(rm), rm.session_ids)], rm.xy, session_ids=rm.session_ids, t_ns=rm.t_ns, frame=rm.frame,
+    )
+    for cfg in (KnnConfig(), KnnConfig(metric="eq9", k=5, weighted=False)):
+        e, sp = [], []
+        for sid in np.unique(rm.session_ids):
+            keep = rm.session_ids != sid
+            others = RadioMap.from_scans([r for r, k in zip(_readings(rm), keep) if k], rm.xy[keep],
+                                         session_ids=rm.session_ids[keep], t_ns=rm.t_ns[keep], frame=rm.frame)
+            res = KnnLocator(others, cfg).locate([r for r, k in zip(_readings(rm), keep) if not k])
+            e.append(np.linalg.norm(res.xy - rm.xy[~keep], axis=1))
+            sp.append(res.spread)
+        base = np.sqrt(np.concatenate(sp) ** 2 + 2.0**2)
+        want = np.quantile(np.concatenate(e) / (R95 * base), 0.95)
+        u = calibrate_uncertainty(rm, cfg, max_queries=10**6, max_sessions=10**6)
+        assert u is not None and u.n == len(rm) and u.scale == pytest.approx(want, rel=1e-9)
+
+
+def _readings(rm) -> list[dict[str, float]]:
+    v = rm.fingerprints.values
+    return [{rm.bssids[j]: float(x + rm.missing_dbm) for j, x in zip(v.indices[v.indptr[i]:v.indptr[i + 1]],
+                                                                    v.data[v.indptr[i]:v.indptr[i + 1]])}
+            for i in range(len(rm))]
+
+
+def test_a_walks_own_aps_leave_the_index_as_on_a_map_without_it() -> None:
+    from graphslam.core.radiomap.radiomap import RadioMap
+    from graphslam.core.radiomap.uncertainty import _sole_session, _without_columns
+
+    scans = [{"a": -50.0, "solo": -40.0}, {"a": -60.0, "b": -70.0}, {"b": -65.0}, {"a": -55.0, "b": -75.0}]
+    rm = RadioMap.from_scans(scans, np.zeros((4, 2)), session_ids=["w1", "w1", "w2", "w2"], t_ns=np.arange(4),
+                             frame="f")
+    owner = _sole_session(rm)
+    assert {rm.bssids[j]: int(o) for j, o in enumerate(owner)} == {"a": -1, "b": -1, "solo": 0}
+    q = _without_columns(rm.fingerprints.rows(np.array([0, 1])), owner == 0)
+    others = RadioMap.from_scans(scans[2:], np.zeros((2, 2)), session_ids=["w2", "w2"], t_ns=np.arange(2), frame="f")
+    want = others.reindex(rm.fingerprints.rows(np.array([0, 1])))
+    assert np.allclose(q.extra_sq, want.extra_sq) and np.array_equal(q.extra_n, want.extra_n) and q.extra_n[0] == 1
+    assert np.array_equal(q.values.toarray()[:, [rm.column("a"), rm.column("b")]], want.values.toarray())

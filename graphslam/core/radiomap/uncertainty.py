@@ -24,8 +24,10 @@ from typing import Any, Mapping
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import sparse
 
-from graphslam.core.radiomap.knn import WEIGHT_EPS_DB, KnnConfig, KnnLocator
+from graphslam.core.radiomap.fingerprints import FingerprintMatrix
+from graphslam.core.radiomap.knn import WEIGHT_EPS_DB, KnnConfig, KnnLocator, _nearest
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import ConfigError
 
@@ -117,18 +119,23 @@ def calibrate_uncertainty(
     if len(sessions) > max_sessions:
         sessions = np.sort(rng.choice(sessions, max_sessions, replace=False))
     per = max(1, max_queries // len(sessions))
+    # One locator on the whole map; each walk's scans searched with its own fingerprints masked
+    # out and the APs only it heard moved outside the index: what a map of the other walks gives
+    # (``RadioMap.reindex``), without building one per walk.
+    loc = KnnLocator(rm, cfg, threads=1)
+    owner = _sole_session(rm)
+    codes = np.searchsorted(np.unique(rm.session_ids), rm.session_ids)
     err, spread = [], []
     for sid in sessions:
         own = rm.session_ids == sid
         rows = np.flatnonzero(own)
         if len(rows) > per:
             rows = np.sort(rng.choice(rows, per, replace=False))
-        keep = np.flatnonzero(~own)
-        others = RadioMap.from_fingerprints(
-            rm.fingerprints.rows(keep), rm.xy[keep], session_ids=rm.session_ids[keep], t_ns=rm.t_ns[keep],
-            frame=rm.frame, min_rssi_dbm=rm.min_rssi_dbm,
-        )
-        res = KnnLocator(others, cfg, threads=1).locate(others.reindex(rm.fingerprints.rows(rows)))
+        q = _without_columns(rm.fingerprints.rows(rows), owner == codes[rows[0]])
+        d = loc.distances(q)
+        d[:, own] = np.inf
+        idx, dist = _nearest(d, cfg.k)
+        res = loc._aggregate(idx, dist, np.diff(q.values.indptr).astype(np.int64))
         ok = res.valid
         err.append(np.linalg.norm(res.xy[ok] - rm.xy[rows[ok]], axis=1))
         spread.append(res.spread[ok])
@@ -139,6 +146,31 @@ def calibrate_uncertainty(
     scale = max(float(np.quantile(e / (R95 * base), 0.95)), 1e-3)
     coverage = float(np.mean(e <= R95 * scale * base))
     return KnnUncertainty(cfg.metric, cfg.k, cfg.weighted, scale, floor_m, len(e), coverage)
+
+
+def _sole_session(rm: RadioMap) -> NDArray[np.int64]:
+    """Per AP column: the code (index in the sorted session ids) of the one session that heard it,
+    -1 for an AP heard by several."""
+    coo = rm.fingerprints.values.tocoo()
+    codes = np.searchsorted(np.unique(rm.session_ids), rm.session_ids)
+    pairs = np.unique(np.stack([coo.col, codes[coo.row]], axis=1), axis=0)
+    n_sessions = np.bincount(pairs[:, 0], minlength=rm.fingerprints.n_aps)
+    owner = np.full(rm.fingerprints.n_aps, -1, np.int64)
+    sole = pairs[n_sessions[pairs[:, 0]] == 1]
+    owner[sole[:, 0]] = sole[:, 1]
+    return owner
+
+
+def _without_columns(q: FingerprintMatrix, drop: NDArray[np.bool_]) -> FingerprintMatrix:
+    """``q`` with the readings of the AP columns ``drop`` moved outside the index (``extra_*``), as
+    ``RadioMap.reindex`` does for APs a map does not know."""
+    v = q.values.tocoo()
+    out = drop[v.col]
+    n = len(q)
+    extra_sq = q.extra_sq + np.bincount(v.row[out], weights=v.data[out] ** 2, minlength=n)
+    extra_n = q.extra_n + np.bincount(v.row[out], minlength=n).astype(np.int64)
+    kept = sparse.csr_matrix((v.data[~out], (v.row[~out], v.col[~out])), shape=v.shape)
+    return FingerprintMatrix(q.bssids, kept, q.missing_dbm, extra_sq, extra_n)
 
 
 @dataclass(frozen=True)
