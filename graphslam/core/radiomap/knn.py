@@ -226,6 +226,127 @@ def _gather_block(eng: DistanceEngine, q: FingerprintMatrix, min_common: int) ->
 
 # Below this many queries per block, gathering postings beats sparse products.
 GATHER_MAX_ROWS = 16
+# Up to this many scans, ``locate`` takes the few-query path (``_Few``): scans encoded to plain
+# arrays, distances evaluated on candidate references only. Why: one query's cost was mostly fixed
+# costs (a scipy matrix per call, temporaries and a top-k over every reference).
+FEW_MAX_QUERIES = GATHER_MAX_ROWS
+
+
+class _Few:
+    """A few query scans over the map's AP index as the arrays of ``RadioMap.encode``'s csr matrix
+    (per row, APs in ascending column order: same values, same summation orders)."""
+
+    def __init__(self, rm: RadioMap, scans: Sequence[Mapping[str, float]]) -> None:
+        rows, cols, vals, self.extra_sq, self.extra_n = rm.scan_arrays(scans)
+        self.n, self.n_aps = len(scans), rm.fingerprints.n_aps
+        o = np.argsort(rows * self.n_aps + cols, kind="stable")
+        self.indices, self.data = cols[o], vals[o]
+        self.counts = np.bincount(rows, minlength=self.n)
+        self.indptr = np.zeros(self.n + 1, np.int64)
+        np.cumsum(self.counts, out=self.indptr[1:])
+
+    def row_sums(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Per row, the sum of ``x`` (one value per stored entry) as scipy's ``csr.sum(axis=1)``
+        adds it (``np.add.reduceat`` over the non-empty rows): bit-identical to the matrix path."""
+        out = np.zeros(self.n)
+        nz = self.counts > 0
+        if nz.any():
+            out[nz] = np.add.reduceat(x, self.indptr[:-1][nz])
+        return out
+
+    def matrix(self, rm: RadioMap) -> FingerprintMatrix:
+        """The same queries as ``rm.encode`` returns them (paths that need the matrix: IVF, dense)."""
+        v = sparse.csr_matrix((self.data, self.indices, self.indptr), shape=(self.n, self.n_aps))
+        return FingerprintMatrix(rm.bssids, v, rm.missing_dbm, self.extra_sq, self.extra_n)
+
+
+def _candidate_cells(key: NDArray[np.int64], b: int, n: int, need: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Shared-AP counts per (query, reference) cell and the cells with at least ``need``: ascending,
+    i.e. by query, then reference (the order ``_nearest`` breaks ties by)."""
+    common = np.bincount(key, minlength=b * n)
+    return common, np.flatnonzero(common >= need)
+
+
+def _nearest_cells(cells: NDArray[np.int64], d: NDArray[np.float64], b: int, n: int, k: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """``_nearest`` of the (b, n) block that is ``d`` at ``cells`` (ascending flat indices) and
+    ``inf`` elsewhere, without the block: per query, its candidates are a contiguous run in
+    reference order, so the k smallest with ties by position are the k smallest with ties by
+    reference. A loop over the few queries: cheaper than packing them into a padded block."""
+    idx = np.full((b, k), -1, np.int64)
+    dist = np.full((b, k), np.inf)
+    bounds = np.searchsorted(cells, np.arange(b + 1) * n).tolist()
+    refs = cells - np.repeat(np.arange(b) * n, np.diff(bounds)) if b > 1 else cells
+    for r in range(b):
+        lo, hi = bounds[r], bounds[r + 1]
+        seg = d[lo:hi]
+        kk = min(k, hi - lo)
+        if kk == 0:
+            continue
+        if kk < hi - lo:
+            sel = np.argpartition(seg, kk - 1)[:kk]
+            tau = seg[sel].max()
+            # argpartition picks any of several candidates tied at the k-th distance: take the
+            # first ones (lowest references), as _nearest does
+            if np.isfinite(tau) and np.count_nonzero(seg <= tau) > kk:
+                below = np.flatnonzero(seg < tau)
+                sel = np.concatenate([below, np.flatnonzero(seg == tau)[: kk - len(below)]])
+        else:
+            sel = np.arange(kk)
+        sd = seg[sel]
+        o = np.lexsort((sel, sd))
+        sel, sd = sel[o], sd[o]
+        ok = np.isfinite(sd)
+        idx[r, :kk] = np.where(ok, refs[lo:hi][sel], -1)
+        dist[r, :kk] = np.where(ok, sd, np.inf)
+    return idx, dist
+
+
+def _sorensen_few(refs: "SorensenRefs", q: _Few, min_common: int, k: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """``_nearest(_sorensen_block(...), k)`` for a ``_Few``: the same sums in the same order, the
+    distance evaluated on candidate cells only (a reference sharing no AP is ``inf`` anyway)."""
+    qp = refs.powed_values(q.data)
+    b, n = q.n, len(refs.sum)
+    key, qval, rval = _few_postings(q, qp, refs.pT)
+    common, cells = _candidate_cells(key, b, n, max(1, min_common))
+    both = np.bincount(key, weights=np.minimum(qval, rval), minlength=b * n)[cells]
+    r, c = np.divmod(cells, n)
+    d = np.maximum(1.0 - 2.0 * both / (q.row_sums(qp)[r] + refs.sum[c]), 0.0)
+    return _nearest_cells(cells, d, b, n, k)
+
+
+def _eq9_few(eng: DistanceEngine, q: _Few, min_common: int, k: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """``_nearest(_gather_block(...), k)`` (sparse engine) for a ``_Few``, on candidate cells only."""
+    b, n = q.n, eng.ref_sq.shape[0]
+    key, qval, rval = _few_postings(q, q.data, eng.ref_vT)
+    common, cells = _candidate_cells(key, b, n, max(1, min_common))
+    dot = np.bincount(key, weights=qval * rval, minlength=b * n)[cells]
+    r, c = np.divmod(cells, n)
+    sq = q.row_sums(q.data * q.data) + q.extra_sq
+    heard = (q.counts + q.extra_n).astype(np.float64)
+    num = sq[r] + eng.ref_sq[c] - 2.0 * dot
+    den = heard[r] + eng.ref_n[c] - common[cells]
+    d = np.sqrt(np.maximum(num, 0.0) / den)
+    return _nearest_cells(cells, d, b, n, k)
+
+
+def _few_postings(
+    q: _Few, qdata: NDArray[np.float64], ref_by_ap: sparse.csr_matrix
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+    """``_postings`` of a ``_Few`` (values ``qdata``): the same arrays, in the same order, with
+    each AP's postings copied as one slice (a loop over the few queries' APs: fewer passes over
+    the postings than ``_postings``' index arithmetic)."""
+    n = ref_by_ap.shape[1]
+    ip = ref_by_ap.indptr
+    aps = q.indices
+    lo, hi = ip[aps].tolist(), ip[aps + 1].tolist()
+    ind, dat = ref_by_ap.indices, ref_by_ap.data
+    lens = ip[aps + 1] - ip[aps]
+    ref = np.concatenate([ind[a:e] for a, e in zip(lo, hi)]) if len(aps) else np.zeros(0, ind.dtype)
+    rval = np.concatenate([dat[a:e] for a, e in zip(lo, hi)]) if len(aps) else np.zeros(0)
+    key = ref.astype(np.int64)
+    if q.n > 1:
+        key += np.repeat(np.repeat(np.arange(q.n) * n, q.counts), lens)
+    return key, np.repeat(qdata, lens), rval
 
 
 class SorensenRefs:
@@ -398,6 +519,8 @@ class KnnLocator:
         map's AP index). ``strict``: raise ``QueryError`` if any query cannot be answered,
         instead of flagging it (``KnnResult.valid``/``status``)."""
         rm = self.radio_map
+        if not isinstance(queries, FingerprintMatrix) and 0 < len(queries) <= FEW_MAX_QUERIES and len(rm):
+            return self._locate_few(queries, strict)
         q = queries if isinstance(queries, FingerprintMatrix) else rm.encode(queries)
         if q.bssids is not rm.bssids and q.bssids != rm.bssids:
             q = rm.reindex(q)
@@ -415,6 +538,22 @@ class KnnLocator:
         n_known = np.diff(q.values.indptr).astype(np.int64)
         res = self._aggregate(idx, dist, n_known)
         err = strict_error(res, self.config.min_common) if strict else None
+        if err is not None:
+            raise err
+        return res
+
+    def _locate_few(self, scans: Sequence[Mapping[str, float]], strict: bool) -> KnnResult:
+        """``locate`` of a few scans (``_Few``): the same answers, bit for bit, for less fixed cost."""
+        q = _Few(self.radio_map, scans)
+        cfg = self.config
+        if self.ivf is None and self._sorensen is not None:
+            idx, dist = _sorensen_few(self._sorensen, q, cfg.min_common, cfg.k)
+        elif self.ivf is None and not self.engine.dense:
+            idx, dist = _eq9_few(self.engine, q, cfg.min_common, cfg.k)
+        else:
+            idx, dist = self._block(q.matrix(self.radio_map))
+        res = self._aggregate(idx, dist, q.counts.astype(np.int64))
+        err = strict_error(res, cfg.min_common) if strict else None
         if err is not None:
             raise err
         return res
