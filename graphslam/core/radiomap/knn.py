@@ -254,6 +254,23 @@ class _Few:
             out[nz] = np.add.reduceat(x, self.indptr[:-1][nz])
         return out
 
+    def dense(self) -> NDArray[np.float64]:
+        """(n, A) shifted RSS: ``toarray()`` of the matrix."""
+        out = np.zeros((self.n, self.n_aps))
+        out[np.repeat(np.arange(self.n), self.counts), self.indices] = self.data
+        return out
+
+    def times(self, m: NDArray[np.float32]) -> NDArray[np.float32]:
+        """(float32 queries) @ ``m`` (A, C), as scipy's csr @ dense adds it: per query, the rows of
+        its APs scaled and added in column order (probe scores bit for bit: a different order could
+        pick another cluster on a near-tie)."""
+        out = np.zeros((self.n, m.shape[1]), np.float32)
+        v = self.data.astype(np.float32)
+        for r, (lo, hi) in enumerate(zip(self.indptr[:-1].tolist(), self.indptr[1:].tolist())):
+            if hi > lo:
+                out[r] = (v[lo:hi, None] * m[self.indices[lo:hi]]).sum(axis=0)
+        return out
+
     def matrix(self, rm: RadioMap) -> FingerprintMatrix:
         """The same queries as ``rm.encode`` returns them (paths that need the matrix: IVF, dense)."""
         v = sparse.csr_matrix((self.data, self.indices, self.indptr), shape=(self.n, self.n_aps))
@@ -550,6 +567,8 @@ class KnnLocator:
             idx, dist = _sorensen_few(self._sorensen, q, cfg.min_common, cfg.k)
         elif self.ivf is None and not self.engine.dense:
             idx, dist = _eq9_few(self.engine, q, cfg.min_common, cfg.k)
+        elif self.ivf is not None:
+            idx, dist = self._ivf_few(q)
         else:
             idx, dist = self._block(q.matrix(self.radio_map))
         res = self._aggregate(idx, dist, q.counts.astype(np.int64))
@@ -557,6 +576,23 @@ class KnnLocator:
         if err is not None:
             raise err
         return res
+
+    def _ivf_few(self, q: _Few) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """``_block`` with the IVF index for a ``_Few``: its arrays passed as they are (no matrix)."""
+        ivf, k = self.ivf, self.config.k
+        assert ivf is not None
+        p = min(self.config.ivf_probes, ivf.n_clusters)
+        if p >= ivf.n_clusters:
+            probe = np.broadcast_to(np.arange(ivf.n_clusters), (q.n, ivf.n_clusters)).copy()
+        else:
+            probe = ivf.probe_scores(q.times(ivf.centroids_T), p)
+        q_sq = q.row_sums(q.data * q.data) + q.extra_sq
+        idx, dist = ivf.search_dense(q.dense(), q_sq, (q.counts + q.extra_n).astype(np.float64), probe, k=k,
+                                     min_common=self.config.min_common)
+        short = np.flatnonzero(idx[:, min(k, len(self.radio_map)) - 1] < 0)  # as in _block
+        if len(short):
+            idx[short], dist[short] = _nearest(self.distances(q.matrix(self.radio_map).rows(short)), k)
+        return idx, dist
 
     def scores_over_query(self, scans: Sequence[Mapping[str, float]], res: KnnResult) -> NDArray[np.float64]:
         """Per query: ``res.score`` (this locator's answers to ``scans``) as if every AP of the query
