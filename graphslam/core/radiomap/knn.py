@@ -8,11 +8,13 @@ that share at least one AP are ever candidates (``min_common >= 1``), so eq. 9 i
 evaluated on those pairs only and the rest of the block stays ``inf``. On
 UJIIndoorLoc that is ~1.8x faster than ``DistanceEngine.iter_blocks`` + top-k, with
 bit-identical distances (tested). Blocks of a few queries gather postings instead
-(``_gather_block``): scipy's per-product overhead would dominate.
+(``_gather_block``): scipy's per-product overhead would dominate. ``locate`` of at most
+``FEW_MAX_QUERIES`` scans (the service's requests) goes further (``_Few``): no sparse matrix at
+all, distances on candidate cells only, the same answers bit for bit.
 
 Per query block: one ``argpartition`` for the k nearest, then vectorised
 inverse-distance (or uniform) weighting, neighbour spread and label votes. There is
-no Python loop per reference or per query.
+no Python loop per reference; the few-query path loops over its (<= 16) queries for the top-k.
 
 A query is *invalid* (flagged, or ``QueryError`` with ``strict=True``) when no
 reference fingerprint shares ``min_common`` APs with it; in particular when none of
