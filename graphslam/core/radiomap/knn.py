@@ -27,7 +27,7 @@ import logging
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal, Mapping, Sequence
+from typing import TYPE_CHECKING, Callable, Literal, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -279,93 +279,89 @@ class _Few:
         return FingerprintMatrix(rm.bssids, v, rm.missing_dbm, self.extra_sq, self.extra_n)
 
 
-def _candidate_cells(key: NDArray[np.int64], b: int, n: int, need: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """Shared-AP counts per (query, reference) cell and the cells with at least ``need``: ascending,
-    i.e. by query, then reference (the order ``_nearest`` breaks ties by)."""
-    common = np.bincount(key, minlength=b * n)
-    return common, np.flatnonzero(common >= need)
+def _top_k(refs: NDArray[np.int64], d: NDArray[np.float64], k: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """One query's row of ``_nearest`` from its candidates only (``refs`` ascending, distances
+    ``d``; every other reference ``inf``): the k smallest, ties by reference, -1 / inf padded."""
+    idx = np.full(k, -1, np.int64)
+    dist = np.full(k, np.inf)
+    kk = min(k, len(d))
+    if kk == 0:
+        return idx, dist
+    if kk < len(d):
+        sel = np.argpartition(d, kk - 1)[:kk]
+        tau = d[sel].max()
+        # argpartition picks any of several candidates tied at the k-th distance: take the
+        # first ones (lowest references), as _nearest does
+        if np.isfinite(tau) and np.count_nonzero(d <= tau) > kk:
+            below = np.flatnonzero(d < tau)
+            sel = np.concatenate([below, np.flatnonzero(d == tau)[: kk - len(below)]])
+    else:
+        sel = np.arange(kk)
+    sd = d[sel]
+    o = np.lexsort((sel, sd))
+    sel, sd = sel[o], sd[o]
+    ok = np.isfinite(sd)
+    idx[:kk] = np.where(ok, refs[sel], -1)
+    dist[:kk] = np.where(ok, sd, np.inf)
+    return idx, dist
 
 
-def _nearest_cells(cells: NDArray[np.int64], d: NDArray[np.float64], b: int, n: int, k: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-    """``_nearest`` of the (b, n) block that is ``d`` at ``cells`` (ascending flat indices) and
-    ``inf`` elsewhere, without the block: per query, its candidates are a contiguous run in
-    reference order, so the k smallest with ties by position are the k smallest with ties by
-    reference. A loop over the few queries: cheaper than packing them into a padded block."""
-    idx = np.full((b, k), -1, np.int64)
-    dist = np.full((b, k), np.inf)
-    bounds = np.searchsorted(cells, np.arange(b + 1) * n).tolist()
-    refs = cells - np.repeat(np.arange(b) * n, np.diff(bounds)) if b > 1 else cells
-    for r in range(b):
-        lo, hi = bounds[r], bounds[r + 1]
-        seg = d[lo:hi]
-        kk = min(k, hi - lo)
-        if kk == 0:
-            continue
-        if kk < hi - lo:
-            sel = np.argpartition(seg, kk - 1)[:kk]
-            tau = seg[sel].max()
-            # argpartition picks any of several candidates tied at the k-th distance: take the
-            # first ones (lowest references), as _nearest does
-            if np.isfinite(tau) and np.count_nonzero(seg <= tau) > kk:
-                below = np.flatnonzero(seg < tau)
-                sel = np.concatenate([below, np.flatnonzero(seg == tau)[: kk - len(below)]])
-        else:
-            sel = np.arange(kk)
-        sd = seg[sel]
-        o = np.lexsort((sel, sd))
-        sel, sd = sel[o], sd[o]
-        ok = np.isfinite(sd)
-        idx[r, :kk] = np.where(ok, refs[lo:hi][sel], -1)
-        dist[r, :kk] = np.where(ok, sd, np.inf)
+def _few_nearest(
+    q: _Few, qdata: NDArray[np.float64], ref_by_ap: sparse.csr_matrix, min_common: int, k: int,
+    combine: Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]],
+    distance: Callable[[int, NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]], NDArray[np.float64]],
+) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """``_nearest`` of a postings block (``_sorensen_block``, ``_gather_block``) for a ``_Few``, one
+    query at a time (a loop over <= 16 queries: no (query, reference) key arithmetic, and its
+    bincounts are one query wide). Per query: its APs' postings (``ref_by_ap``: (A, N) csr) copied
+    as one slice per AP, in the same order as ``_postings``, so ``bincount`` adds the same terms in
+    the same order (bit-identical sums); ``combine(query values, reference values)`` per posting,
+    summed per reference; ``distance(query, candidates, sums, shared APs)`` evaluated on the
+    references sharing ``max(1, min_common)`` APs only (every other one is ``inf``)."""
+    n = ref_by_ap.shape[1]
+    ip, ind, dat = ref_by_ap.indptr, ref_by_ap.indices, ref_by_ap.data
+    starts, ends = ip[q.indices], ip[q.indices + 1]
+    lens = ends - starts
+    starts_l, ends_l, bounds = starts.tolist(), ends.tolist(), q.indptr.tolist()
+    need = max(1, min_common)
+    idx = np.full((q.n, k), -1, np.int64)
+    dist = np.full((q.n, k), np.inf)
+    for r in range(q.n):
+        a, e = bounds[r], bounds[r + 1]
+        if a == e:
+            continue  # no known AP: no candidate
+        spans = list(zip(starts_l[a:e], ends_l[a:e]))
+        ref = np.concatenate([ind[s:t] for s, t in spans])
+        terms = combine(np.repeat(qdata[a:e], lens[a:e]), np.concatenate([dat[s:t] for s, t in spans]))
+        common = np.bincount(ref, minlength=n)
+        cand = np.flatnonzero(common >= need)
+        sums = np.bincount(ref, weights=terms, minlength=n)[cand]
+        idx[r], dist[r] = _top_k(cand, distance(r, cand, sums, common[cand]), k)
     return idx, dist
 
 
 def _sorensen_few(refs: "SorensenRefs", q: _Few, min_common: int, k: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-    """``_nearest(_sorensen_block(...), k)`` for a ``_Few``: the same sums in the same order, the
-    distance evaluated on candidate cells only (a reference sharing no AP is ``inf`` anyway)."""
+    """``_nearest(_sorensen_block(...), k)`` for a ``_Few``: the same sums in the same order."""
     qp = refs.powed_values(q.data)
-    b, n = q.n, len(refs.sum)
-    key, qval, rval = _few_postings(q, qp, refs.pT)
-    common, cells = _candidate_cells(key, b, n, max(1, min_common))
-    both = np.bincount(key, weights=np.minimum(qval, rval), minlength=b * n)[cells]
-    r, c = np.divmod(cells, n)
-    d = np.maximum(1.0 - 2.0 * both / (q.row_sums(qp)[r] + refs.sum[c]), 0.0)
-    return _nearest_cells(cells, d, b, n, k)
+    qsum = q.row_sums(qp)
+
+    def distance(r: int, c: NDArray[np.int64], both: NDArray[np.float64], _: NDArray[np.int64]) -> NDArray[np.float64]:
+        return np.maximum(1.0 - 2.0 * both / (qsum[r] + refs.sum[c]), 0.0)
+
+    return _few_nearest(q, qp, refs.pT, min_common, k, np.minimum, distance)
 
 
 def _eq9_few(eng: DistanceEngine, q: _Few, min_common: int, k: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-    """``_nearest(_gather_block(...), k)`` (sparse engine) for a ``_Few``, on candidate cells only."""
-    b, n = q.n, eng.ref_sq.shape[0]
-    key, qval, rval = _few_postings(q, q.data, eng.ref_vT)
-    common, cells = _candidate_cells(key, b, n, max(1, min_common))
-    dot = np.bincount(key, weights=qval * rval, minlength=b * n)[cells]
-    r, c = np.divmod(cells, n)
+    """``_nearest(_gather_block(...), k)`` (sparse engine) for a ``_Few``: the same sums in the same order."""
     sq = q.row_sums(q.data * q.data) + q.extra_sq
     heard = (q.counts + q.extra_n).astype(np.float64)
-    num = sq[r] + eng.ref_sq[c] - 2.0 * dot
-    den = heard[r] + eng.ref_n[c] - common[cells]
-    d = np.sqrt(np.maximum(num, 0.0) / den)
-    return _nearest_cells(cells, d, b, n, k)
 
+    def distance(r: int, c: NDArray[np.int64], dot: NDArray[np.float64], common: NDArray[np.int64]) -> NDArray[np.float64]:
+        num = sq[r] + eng.ref_sq[c] - 2.0 * dot
+        den = heard[r] + eng.ref_n[c] - common
+        return np.sqrt(np.maximum(num, 0.0) / den)
 
-def _few_postings(
-    q: _Few, qdata: NDArray[np.float64], ref_by_ap: sparse.csr_matrix
-) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
-    """``_postings`` of a ``_Few`` (values ``qdata``): the same arrays, in the same order, with
-    each AP's postings copied as one slice (a loop over the few queries' APs: fewer passes over
-    the postings than ``_postings``' index arithmetic)."""
-    n = ref_by_ap.shape[1]
-    ip = ref_by_ap.indptr
-    aps = q.indices
-    lo, hi = ip[aps].tolist(), ip[aps + 1].tolist()
-    ind, dat = ref_by_ap.indices, ref_by_ap.data
-    lens = ip[aps + 1] - ip[aps]
-    ref = np.concatenate([ind[a:e] for a, e in zip(lo, hi)]) if len(aps) else np.zeros(0, ind.dtype)
-    rval = np.concatenate([dat[a:e] for a, e in zip(lo, hi)]) if len(aps) else np.zeros(0)
-    key = ref.astype(np.int64)
-    if q.n > 1:
-        key += np.repeat(np.repeat(np.arange(q.n) * n, q.counts), lens)
-    return key, np.repeat(qdata, lens), rval
+    return _few_nearest(q, q.data, eng.ref_vT, min_common, k, np.multiply, distance)
 
 
 class SorensenRefs:
