@@ -14,7 +14,7 @@ all, distances on candidate cells only, the same answers bit for bit.
 
 Per query block: one ``argpartition`` for the k nearest, then vectorised
 inverse-distance (or uniform) weighting, neighbour spread and label votes. There is
-no Python loop per reference; the few-query path loops over its (<= 16) queries for the top-k.
+no Python loop per reference; the few-query path loops over its (<= 16) queries.
 
 A query is *invalid* (flagged, or ``QueryError`` with ``strict=True``) when no
 reference fingerprint shares ``min_common`` APs with it; in particular when none of
