@@ -281,3 +281,48 @@ def test_sorensen_config_and_index() -> None:
     assert KnnLocator(rm, KnnConfig(index="auto", metric="sorensen")).index_kind == "ivf"
     assert KnnLocator(rm).index_kind == "ivf" and KnnLocator(rm).config.metric == "sorensen"
     assert KnnLocator(rm, KnnConfig(index="exact")).index_kind == "exact"
+
+
+def _assert_same_answers(a, b) -> None:  # type: ignore[no-untyped-def]
+    assert np.array_equal(a.neighbours, b.neighbours)
+    assert np.array_equal(a.distances, b.distances)  # bit-identical: same sums in the same order
+    assert np.array_equal(a.xy, b.xy, equal_nan=True)
+    assert np.array_equal(a.score, b.score, equal_nan=True)
+    assert np.array_equal(a.spread, b.spread, equal_nan=True)
+    assert a.status.tolist() == b.status.tolist() and a.n_known_aps.tolist() == b.n_known_aps.tolist()
+    assert a.floor is not None and b.floor is not None and a.floor.tolist() == b.floor.tolist()
+
+
+@pytest.mark.parametrize("metric", ["sorensen", "eq9"])
+@pytest.mark.parametrize("index", ["exact", "ivf"])
+@pytest.mark.parametrize("n_aps", [400, 40])  # sparse engine; dense engine (eq. 9's matrix path)
+def test_few_query_path_equals_the_batch_path(metric: str, index: str, n_aps: int) -> None:
+    # locate(scans) of <= FEW_MAX_QUERIES scans takes the few-query path; locate(rm.encode(scans))
+    # the general one. Same neighbours, distances, positions, statuses, bit for bit.
+    rng = np.random.default_rng(5)
+    n = 400
+    refs = _random_scans(rng, n, n_aps, 8)
+    refs[::9] = [refs[1]] * len(refs[::9])  # exact duplicates: ties at the k-th distance
+    rm = RadioMap.from_scans(refs, rng.uniform(0, 50, (n, 2)), session_ids="s", t_ns=np.arange(n), frame="f",
+                             floors=rng.choice(["F1", "F2", ""], n))
+    for min_common, weighted in ((1, True), (2, False), (3, True)):
+        cfg = KnnConfig(metric=metric, k=5, index=index, min_common=min_common, weighted=weighted, ivf_clusters=12,
+                        ivf_probes=3)
+        loc = KnnLocator(rm, cfg)
+        assert (loc.ivf is None) == (index == "exact") and loc.engine.dense == (n_aps == 40)
+        for nq in (1, 2, 8, 16):
+            queries = _random_scans(rng, nq, n_aps + 30, 10)  # APs unknown to the map too
+            queries[0] = dict(refs[1])  # a query tied with many references
+            if nq > 1:
+                queries[1] = {"zz:unknown": -50.0}  # no known AP
+            if nq > 2:
+                queries[2] = {}
+            _assert_same_answers(loc.locate(queries), loc.locate(rm.encode(queries)))
+    bad = [queries[0], {"zz:unknown": -50.0}]
+    with pytest.raises(QueryError) as few:
+        loc.locate(bad, strict=True)
+    with pytest.raises(QueryError) as batch:
+        loc.locate(rm.encode(bad), strict=True)
+    assert str(few.value) == str(batch.value)
+    with pytest.raises(QueryError, match="non-finite"):
+        loc.locate([{refs[0].popitem()[0]: float("inf")}])

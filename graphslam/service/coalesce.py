@@ -1,8 +1,8 @@
 """Concurrent small requests answered by one search (on the event loop).
 
-Why: a kNN search has a fixed cost per call (sparse/dense setup, top-k, aggregation:
-~0.5 ms for one query on a 2,000-fingerprint map) that a batch shares: 8 queries in one
-call cost ~1.1x one query alone. With several clients sending single fingerprints, the
+Why: a kNN search has a fixed cost per call (encoding, top-k, aggregation: most of one query's
+~0.5 ms on a 2,000-fingerprint map) that a batch shares: 8 queries in one call cost less than 8
+calls (~2-6x one query since ``knn``'s few-query path, docs/radio_map.md). With several clients sending single fingerprints, the
 requests that reach the handler in the same event-loop pass are located together: the
 first schedules a flush for the next pass (``call_soon``), the others join it. A lone
 client's request waits one loop pass (~10 us); nothing waits for a timer.

@@ -102,19 +102,7 @@ class FingerprintMatrix:
         Flattened once (every reading in scan order), then masked: the same matrix, sums and
         counts, in the same order, as a loop over the readings (~3x faster; a survey encodes
         every scan twice)."""
-        floor = max(min_rssi_dbm, missing_dbm + 1e-6)
-        n = len(scans)
-        counts = np.fromiter((len(s) for s in scans), np.int64, n)
-        total = int(counts.sum())
-        rssi = np.fromiter(chain.from_iterable(s.values() for s in scans), np.float64, total)
-        col = np.fromiter((index.get(b, -1) for b in chain.from_iterable(scans)), np.int64, total)
-        row = np.repeat(np.arange(n), counts)
-        kept = ~(rssi < floor)  # not `>=`: a loop's `r < floor: skip` keeps what does not compare
-        known, other = kept & (col >= 0), kept & (col < 0)
-        rows, cols, vals = row[known], col[known], rssi[known] - missing_dbm
-        # bincount adds in input order, as the loop did (squares as x * x: correctly rounded)
-        extra_sq = np.bincount(row[other], weights=(rssi[other] - missing_dbm) ** 2, minlength=n).astype(np.float64)
-        extra_n = np.bincount(row[other], minlength=n).astype(np.int64)
+        rows, cols, vals, extra_sq, extra_n = scan_arrays(scans, index, missing_dbm, min_rssi_dbm)
         m = sparse.csr_matrix((vals, (rows, cols)), shape=(len(scans), len(bssids)))
         return cls(bssids, m, missing_dbm, extra_sq, extra_n)
 
@@ -139,6 +127,28 @@ class FingerprintMatrix:
         """(N, A) dBm with ``missing_dbm`` where not heard."""
         v = self.values.toarray()
         return np.where(v > 0, v + self.missing_dbm, self.missing_dbm)
+
+
+def scan_arrays(
+    scans: Sequence[Mapping[str, float]], index: Mapping[str, int], missing_dbm: float, min_rssi_dbm: float
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+    """``FingerprintMatrix.encode``'s arrays before the matrix: (rows, cols, shifted values) of the
+    readings of indexed APs, in scan order, and per scan ``extra_sq``, ``extra_n``. Also what
+    ``knn``'s few-query path encodes (no sparse matrix: its construction dominates one query)."""
+    floor = max(min_rssi_dbm, missing_dbm + 1e-6)
+    n = len(scans)
+    counts = np.fromiter((len(s) for s in scans), np.int64, n)
+    total = int(counts.sum())
+    rssi = np.fromiter(chain.from_iterable(s.values() for s in scans), np.float64, total)
+    col = np.fromiter((index.get(b, -1) for b in chain.from_iterable(scans)), np.int64, total)
+    row = np.repeat(np.arange(n), counts)
+    kept = ~(rssi < floor)  # not `>=`: a loop's `r < floor: skip` keeps what does not compare
+    known, other = kept & (col >= 0), kept & (col < 0)
+    rows, cols, vals = row[known], col[known], rssi[known] - missing_dbm
+    # bincount adds in input order, as the loop did (squares as x * x: correctly rounded)
+    extra_sq = np.bincount(row[other], weights=(rssi[other] - missing_dbm) ** 2, minlength=n).astype(np.float64)
+    extra_n = np.bincount(row[other], minlength=n).astype(np.int64)
+    return rows, cols, vals, extra_sq, extra_n
 
 
 def _sq_norms(m: FingerprintMatrix) -> NDArray[np.float64]:

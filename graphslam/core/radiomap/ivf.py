@@ -283,7 +283,10 @@ class IvfIndex:
         if p >= c:
             return np.broadcast_to(np.arange(c), (len(q), c)).copy()
         # Sparse query rows (a few dozen APs) times dense centroids: ~25x fewer flops than dense.
-        g = np.asarray(q.values.astype(np.float32) @ self.centroids_T, dtype=np.float32)
+        return self.probe_scores(np.asarray(q.values.astype(np.float32) @ self.centroids_T, dtype=np.float32), p)
+
+    def probe_scores(self, g: NDArray[np.float32], p: int) -> NDArray[np.int64]:
+        """``probe`` from ``g`` = (queries as float32) @ ``centroids_T`` (overwritten), ``p`` < clusters."""
         g *= -2.0
         g += self.centroid_sq[None, :]  # |q|^2 is the same for every centroid of a row
         return np.argpartition(g, p - 1, axis=1)[:, :p].astype(np.int64)
@@ -302,10 +305,20 @@ class IvfIndex:
     def _search(
         self, q: FingerprintMatrix, k: int, probes: int, min_common: int
     ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-        m = len(q)
         qd = q.values.toarray()
         q_sq = np.asarray(q.values.multiply(q.values).sum(axis=1)).ravel() + q.extra_sq
-        q_n = q.heard.astype(np.float64)
+        return self.search_dense(qd, q_sq, q.heard.astype(np.float64), self.probe(q, probes), k=k, min_common=min_common)
+
+    def search_dense(
+        self, qd: NDArray[np.float64], q_sq: NDArray[np.float64], q_n: NDArray[np.float64], probe: NDArray[np.int64],
+        *, k: int, min_common: int = 1,
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """``search`` from the queries' dense shifted RSS ``qd`` (Q, A), their ``|v|^2`` (with
+        extra APs), APs heard and ``probe`` (Q, P) clusters: what a caller holding the queries as
+        arrays passes instead of a ``FingerprintMatrix`` (``knn``'s few-query path)."""
+        m = len(qd)
+        if m == 0 or self.n_clusters == 0:
+            return np.full((m, k), -1, np.int64), np.full((m, k), np.inf)
         # Augmented query rows [v, |v|^2, 1] (see _Cluster.aT) and heard flags.
         qa = np.empty((m, qd.shape[1] + 2))
         qa[:, :-2] = qd
@@ -314,7 +327,6 @@ class IvfIndex:
         qb = (qd > 0).astype(np.float32)
         qp = np.where(qd > 0, self.powed(qd), 0.0) if self.powed is not None else None
         qp_sum = qp.sum(axis=1) if qp is not None else None
-        probe = self.probe(q, probes)
         p = probe.shape[1]
         width = max(1, self.max_size)
         # Candidate buffer: row q*p + s holds the distances to the members of query q's s-th probed

@@ -8,11 +8,13 @@ that share at least one AP are ever candidates (``min_common >= 1``), so eq. 9 i
 evaluated on those pairs only and the rest of the block stays ``inf``. On
 UJIIndoorLoc that is ~1.8x faster than ``DistanceEngine.iter_blocks`` + top-k, with
 bit-identical distances (tested). Blocks of a few queries gather postings instead
-(``_gather_block``): scipy's per-product overhead would dominate.
+(``_gather_block``): scipy's per-product overhead would dominate. ``locate`` of at most
+``FEW_MAX_QUERIES`` scans (the service's requests) goes further (``_Few``): no sparse matrix at
+all, distances on candidate cells only, the same answers bit for bit.
 
 Per query block: one ``argpartition`` for the k nearest, then vectorised
 inverse-distance (or uniform) weighting, neighbour spread and label votes. There is
-no Python loop per reference or per query.
+no Python loop per reference; the few-query path loops over its (<= 16) queries.
 
 A query is *invalid* (flagged, or ``QueryError`` with ``strict=True``) when no
 reference fingerprint shares ``min_common`` APs with it; in particular when none of
@@ -25,7 +27,7 @@ import logging
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal, Mapping, Sequence
+from typing import TYPE_CHECKING, Callable, Literal, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -226,6 +228,140 @@ def _gather_block(eng: DistanceEngine, q: FingerprintMatrix, min_common: int) ->
 
 # Below this many queries per block, gathering postings beats sparse products.
 GATHER_MAX_ROWS = 16
+# Up to this many scans, ``locate`` takes the few-query path (``_Few``): scans encoded to plain
+# arrays, distances evaluated on candidate references only. Why: one query's cost was mostly fixed
+# costs (a scipy matrix per call, temporaries and a top-k over every reference).
+FEW_MAX_QUERIES = GATHER_MAX_ROWS
+
+
+class _Few:
+    """A few query scans over the map's AP index as the arrays of ``RadioMap.encode``'s csr matrix
+    (per row, APs in ascending column order: same values, same summation orders)."""
+
+    def __init__(self, rm: RadioMap, scans: Sequence[Mapping[str, float]]) -> None:
+        rows, cols, vals, self.extra_sq, self.extra_n = rm.scan_arrays(scans)
+        self.n, self.n_aps = len(scans), rm.fingerprints.n_aps
+        o = np.argsort(rows * self.n_aps + cols, kind="stable")
+        self.indices, self.data = cols[o], vals[o]
+        self.counts = np.bincount(rows, minlength=self.n)
+        self.indptr = np.zeros(self.n + 1, np.int64)
+        np.cumsum(self.counts, out=self.indptr[1:])
+
+    def row_sums(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Per row, the sum of ``x`` (one value per stored entry) as scipy's ``csr.sum(axis=1)``
+        adds it (``np.add.reduceat`` over the non-empty rows): bit-identical to the matrix path."""
+        out = np.zeros(self.n)
+        nz = self.counts > 0
+        if nz.any():
+            out[nz] = np.add.reduceat(x, self.indptr[:-1][nz])
+        return out
+
+    def dense(self) -> NDArray[np.float64]:
+        """(n, A) shifted RSS: ``toarray()`` of the matrix."""
+        out = np.zeros((self.n, self.n_aps))
+        out[np.repeat(np.arange(self.n), self.counts), self.indices] = self.data
+        return out
+
+    def times(self, m: NDArray[np.float32]) -> NDArray[np.float32]:
+        """(float32 queries) @ ``m`` (A, C), as scipy's csr @ dense adds it: per query, the rows of
+        its APs scaled and added in column order (probe scores bit for bit: a different order could
+        pick another cluster on a near-tie)."""
+        out = np.zeros((self.n, m.shape[1]), np.float32)
+        v = self.data.astype(np.float32)
+        for r, (lo, hi) in enumerate(zip(self.indptr[:-1].tolist(), self.indptr[1:].tolist())):
+            if hi > lo:
+                out[r] = (v[lo:hi, None] * m[self.indices[lo:hi]]).sum(axis=0)
+        return out
+
+    def matrix(self, rm: RadioMap) -> FingerprintMatrix:
+        """The same queries as ``rm.encode`` returns them (paths that need the matrix: IVF, dense)."""
+        v = sparse.csr_matrix((self.data, self.indices, self.indptr), shape=(self.n, self.n_aps))
+        return FingerprintMatrix(rm.bssids, v, rm.missing_dbm, self.extra_sq, self.extra_n)
+
+
+def _top_k(refs: NDArray[np.int64], d: NDArray[np.float64], k: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """One query's row of ``_nearest`` from its candidates only (``refs`` ascending, distances
+    ``d``; every other reference ``inf``): the k smallest, ties by reference, -1 / inf padded."""
+    idx = np.full(k, -1, np.int64)
+    dist = np.full(k, np.inf)
+    kk = min(k, len(d))
+    if kk == 0:
+        return idx, dist
+    if kk < len(d):
+        sel = np.argpartition(d, kk - 1)[:kk]
+        tau = d[sel].max()
+        # argpartition picks any of several candidates tied at the k-th distance: take the
+        # first ones (lowest references), as _nearest does
+        if np.isfinite(tau) and np.count_nonzero(d <= tau) > kk:
+            below = np.flatnonzero(d < tau)
+            sel = np.concatenate([below, np.flatnonzero(d == tau)[: kk - len(below)]])
+    else:
+        sel = np.arange(kk)
+    sd = d[sel]
+    o = np.lexsort((sel, sd))
+    sel, sd = sel[o], sd[o]
+    ok = np.isfinite(sd)
+    idx[:kk] = np.where(ok, refs[sel], -1)
+    dist[:kk] = np.where(ok, sd, np.inf)
+    return idx, dist
+
+
+def _few_nearest(
+    q: _Few, qdata: NDArray[np.float64], ref_by_ap: sparse.csr_matrix, min_common: int, k: int,
+    combine: Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]],
+    distance: Callable[[int, NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]], NDArray[np.float64]],
+) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """``_nearest`` of a postings block (``_sorensen_block``, ``_gather_block``) for a ``_Few``, one
+    query at a time (a loop over <= 16 queries: no (query, reference) key arithmetic, and its
+    bincounts are one query wide). Per query: its APs' postings (``ref_by_ap``: (A, N) csr) copied
+    as one slice per AP, in the same order as ``_postings``, so ``bincount`` adds the same terms in
+    the same order (bit-identical sums); ``combine(query values, reference values)`` per posting,
+    summed per reference; ``distance(query, candidates, sums, shared APs)`` evaluated on the
+    references sharing ``max(1, min_common)`` APs only (every other one is ``inf``)."""
+    n = ref_by_ap.shape[1]
+    ip, ind, dat = ref_by_ap.indptr, ref_by_ap.indices, ref_by_ap.data
+    starts, ends = ip[q.indices], ip[q.indices + 1]
+    lens = ends - starts
+    starts_l, ends_l, bounds = starts.tolist(), ends.tolist(), q.indptr.tolist()
+    need = max(1, min_common)
+    idx = np.full((q.n, k), -1, np.int64)
+    dist = np.full((q.n, k), np.inf)
+    for r in range(q.n):
+        a, e = bounds[r], bounds[r + 1]
+        if a == e:
+            continue  # no known AP: no candidate
+        spans = list(zip(starts_l[a:e], ends_l[a:e]))
+        ref = np.concatenate([ind[s:t] for s, t in spans])
+        terms = combine(np.repeat(qdata[a:e], lens[a:e]), np.concatenate([dat[s:t] for s, t in spans]))
+        common = np.bincount(ref, minlength=n)
+        cand = np.flatnonzero(common >= need)
+        sums = np.bincount(ref, weights=terms, minlength=n)[cand]
+        idx[r], dist[r] = _top_k(cand, distance(r, cand, sums, common[cand]), k)
+    return idx, dist
+
+
+def _sorensen_few(refs: "SorensenRefs", q: _Few, min_common: int, k: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """``_nearest(_sorensen_block(...), k)`` for a ``_Few``: the same sums in the same order."""
+    qp = refs.powed_values(q.data)
+    qsum = q.row_sums(qp)
+
+    def distance(r: int, c: NDArray[np.int64], both: NDArray[np.float64], _: NDArray[np.int64]) -> NDArray[np.float64]:
+        return np.maximum(1.0 - 2.0 * both / (qsum[r] + refs.sum[c]), 0.0)
+
+    return _few_nearest(q, qp, refs.pT, min_common, k, np.minimum, distance)
+
+
+def _eq9_few(eng: DistanceEngine, q: _Few, min_common: int, k: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """``_nearest(_gather_block(...), k)`` (sparse engine) for a ``_Few``: the same sums in the same order."""
+    sq = q.row_sums(q.data * q.data) + q.extra_sq
+    heard = (q.counts + q.extra_n).astype(np.float64)
+
+    def distance(r: int, c: NDArray[np.int64], dot: NDArray[np.float64], common: NDArray[np.int64]) -> NDArray[np.float64]:
+        num = sq[r] + eng.ref_sq[c] - 2.0 * dot
+        den = heard[r] + eng.ref_n[c] - common
+        return np.sqrt(np.maximum(num, 0.0) / den)
+
+    return _few_nearest(q, q.data, eng.ref_vT, min_common, k, np.multiply, distance)
 
 
 class SorensenRefs:
@@ -398,6 +534,8 @@ class KnnLocator:
         map's AP index). ``strict``: raise ``QueryError`` if any query cannot be answered,
         instead of flagging it (``KnnResult.valid``/``status``)."""
         rm = self.radio_map
+        if not isinstance(queries, FingerprintMatrix) and 0 < len(queries) <= FEW_MAX_QUERIES and len(rm):
+            return self._locate_few(queries, strict)
         q = queries if isinstance(queries, FingerprintMatrix) else rm.encode(queries)
         if q.bssids is not rm.bssids and q.bssids != rm.bssids:
             q = rm.reindex(q)
@@ -418,6 +556,41 @@ class KnnLocator:
         if err is not None:
             raise err
         return res
+
+    def _locate_few(self, scans: Sequence[Mapping[str, float]], strict: bool) -> KnnResult:
+        """``locate`` of a few scans (``_Few``): the same answers, bit for bit, for less fixed cost."""
+        q = _Few(self.radio_map, scans)
+        cfg = self.config
+        if self.ivf is None and self._sorensen is not None:
+            idx, dist = _sorensen_few(self._sorensen, q, cfg.min_common, cfg.k)
+        elif self.ivf is None and not self.engine.dense:
+            idx, dist = _eq9_few(self.engine, q, cfg.min_common, cfg.k)
+        elif self.ivf is not None:
+            idx, dist = self._ivf_few(q)
+        else:
+            idx, dist = self._block(q.matrix(self.radio_map))
+        res = self._aggregate(idx, dist, q.counts.astype(np.int64))
+        err = strict_error(res, cfg.min_common) if strict else None
+        if err is not None:
+            raise err
+        return res
+
+    def _ivf_few(self, q: _Few) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """``_block`` with the IVF index for a ``_Few``: its arrays passed as they are (no matrix)."""
+        ivf, k = self.ivf, self.config.k
+        assert ivf is not None
+        p = min(self.config.ivf_probes, ivf.n_clusters)
+        if p >= ivf.n_clusters:
+            probe = np.broadcast_to(np.arange(ivf.n_clusters), (q.n, ivf.n_clusters)).copy()
+        else:
+            probe = ivf.probe_scores(q.times(ivf.centroids_T), p)
+        q_sq = q.row_sums(q.data * q.data) + q.extra_sq
+        idx, dist = ivf.search_dense(q.dense(), q_sq, (q.counts + q.extra_n).astype(np.float64), probe, k=k,
+                                     min_common=self.config.min_common)
+        short = np.flatnonzero(idx[:, min(k, len(self.radio_map)) - 1] < 0)  # as in _block
+        if len(short):
+            idx[short], dist[short] = _nearest(self.distances(q.matrix(self.radio_map).rows(short)), k)
+        return idx, dist
 
     def scores_over_query(self, scans: Sequence[Mapping[str, float]], res: KnnResult) -> NDArray[np.float64]:
         """Per query: ``res.score`` (this locator's answers to ``scans``) as if every AP of the query

@@ -27,6 +27,7 @@ from graphslam.core.radiomap.fingerprints import (
     DEFAULT_MIN_RSSI_DBM,
     DEFAULT_MISSING_DBM,
     FingerprintMatrix,
+    scan_arrays,
 )
 from graphslam.core.types import frozen_array
 from graphslam.errors import QueryError, RadioMapError
@@ -57,6 +58,11 @@ def _json_metadata(metadata: Mapping[str, Any] | None) -> Mapping[str, Any]:
     except (TypeError, ValueError) as e:
         raise RadioMapError(f"radio map: metadata is not JSON-serialisable ({e})") from None
     return MappingProxyType(json.loads(text))
+
+
+def _check_finite(values: NDArray[np.float64], extra_sq: NDArray[np.float64]) -> None:
+    if not (np.isfinite(values).all() and np.isfinite(extra_sq).all()):
+        raise QueryError("query scans hold a non-finite RSS value")
 
 
 def canonical_fingerprints(fm: FingerprintMatrix) -> FingerprintMatrix:
@@ -255,9 +261,17 @@ class RadioMap:
         ``FingerprintMatrix.from_scans(scans, bssids=self.bssids, ...)`` without rebuilding the
         BSSID index per call (it dominates single-query latency on large maps)."""
         fm = FingerprintMatrix.encode(scans, self.bssids, self._index, self.missing_dbm, self.min_rssi_dbm)
-        if not (np.isfinite(fm.values.data).all() and np.isfinite(fm.extra_sq).all()):
-            raise QueryError("query scans hold a non-finite RSS value")
+        _check_finite(fm.values.data, fm.extra_sq)
         return fm
+
+    def scan_arrays(
+        self, scans: Sequence[Mapping[str, float]]
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+        """``encode``'s content as arrays (``fingerprints.scan_arrays``: rows, cols, shifted values in
+        scan order; ``extra_sq``, ``extra_n``), same checks, no sparse matrix."""
+        a = scan_arrays(scans, self._index, self.missing_dbm, self.min_rssi_dbm)
+        _check_finite(a[2], a[3])
+        return a
 
     def reindex(self, fm: FingerprintMatrix) -> FingerprintMatrix:
         """``fm`` (any AP index, same ``missing_dbm``) re-expressed over this map's AP index,
