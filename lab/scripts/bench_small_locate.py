@@ -20,14 +20,13 @@ import sys
 import time
 from pathlib import Path
 
-UJI = Path("/work/shared/data/ujiindoorloc")
+UJI = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "ujiindoorloc"
 
 
 def _worker() -> None:  # pragma: no cover - benchmark
     import numpy as np
 
-    from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
-    from graphslam.core.radiomap.ivf import limit_blas_threads
+    from graphslam import KnnConfig, KnnLocator, limit_blas_threads
     from lab.bench.ujiindoorloc import read_ujiindoorloc
 
     limit_blas_threads(1)
@@ -40,7 +39,7 @@ def _worker() -> None:  # pragma: no cover - benchmark
     vscans = [{names[j]: float(r[j]) for j in np.flatnonzero(np.isfinite(r))} for r in va.rssi]
     maps["uji"] = (uji, vscans)
     import graphslam
-    from graphslam.sim import simulate
+    from graphslam import simulate
 
     walks = simulate("paper", seed=0).survey
     sim = graphslam.oracle_radio_map(list(walks))
