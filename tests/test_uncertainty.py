@@ -204,8 +204,10 @@ def test_a_walks_own_aps_leave_the_index_as_on_a_map_without_it() -> None:
     scans = [{"a": -50.0, "solo": -40.0}, {"a": -60.0, "b": -70.0}, {"b": -65.0}, {"a": -55.0, "b": -75.0}]
     rm = RadioMap.from_scans(scans, np.zeros((4, 2)), session_ids=["w1", "w1", "w2", "w2"], t_ns=np.arange(4),
                              frame="f")
-    owner = _sole_session(rm)
+    owner = _sole_session(rm, np.array([0, 0, 1, 1]), 2)
     assert {rm.bssids[j]: int(o) for j, o in enumerate(owner)} == {"a": -1, "b": -1, "solo": 0}
+    # "solo" heard by the second walk only: its code comes back
+    assert _sole_session(rm, np.array([1, 1, 0, 0]), 2)[rm.column("solo")] == 1
     q = _without_columns(rm.fingerprints.rows(np.array([0, 1])), owner == 0)
     others = RadioMap.from_scans(scans[2:], np.zeros((2, 2)), session_ids=["w2", "w2"], t_ns=np.arange(2), frame="f")
     want = others.reindex(rm.fingerprints.rows(np.array([0, 1])))

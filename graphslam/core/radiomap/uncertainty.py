@@ -112,10 +112,12 @@ def calibrate_uncertainty(
         raise ConfigError(f"kNN uncertainty: floor_m must be a positive number of metres, got {floor_m}")
     cfg = KnnConfig(k=(config or KnnConfig()).k, weighted=(config or KnnConfig()).weighted,
                     metric=(config or KnnConfig()).metric, index="exact")
-    sessions = np.unique(rm.session_ids)
-    if len(rm) < 2 or len(sessions) < 2:
+    names, codes = np.unique(rm.session_ids, return_inverse=True)
+    codes = codes.reshape(-1).astype(np.int64)
+    if len(rm) < 2 or len(names) < 2:
         return None
     rng = np.random.default_rng(seed)
+    sessions = np.arange(len(names))
     if len(sessions) > max_sessions:
         sessions = np.sort(rng.choice(sessions, max_sessions, replace=False))
     per = max(1, max_queries // len(sessions))
@@ -123,17 +125,17 @@ def calibrate_uncertainty(
     # out and the APs only it heard moved outside the index: what a map of the other walks gives
     # (``RadioMap.reindex``), without building one per walk.
     loc = KnnLocator(rm, cfg, threads=1)
-    owner = _sole_session(rm)
-    codes = np.searchsorted(np.unique(rm.session_ids), rm.session_ids)
+    owner = _sole_session(rm, codes, len(names))
+    order = np.argsort(codes, kind="stable")
+    first = np.searchsorted(codes[order], np.arange(len(names) + 1))
     err, spread = [], []
-    for sid in sessions:
-        own = rm.session_ids == sid
-        rows = np.flatnonzero(own)
+    for code in sessions:
+        rows = order[first[code] : first[code + 1]]  # ascending: a stable sort of the codes
         if len(rows) > per:
             rows = np.sort(rng.choice(rows, per, replace=False))
-        q = _without_columns(rm.fingerprints.rows(rows), owner == codes[rows[0]])
+        q = _without_columns(rm.fingerprints.rows(rows), owner == code)
         d = loc.distances(q)
-        d[:, own] = np.inf
+        d[:, codes == code] = np.inf
         idx, dist = _nearest(d, cfg.k)
         res = loc._aggregate(idx, dist, np.diff(q.values.indptr).astype(np.int64))
         ok = res.valid
@@ -148,16 +150,17 @@ def calibrate_uncertainty(
     return KnnUncertainty(cfg.metric, cfg.k, cfg.weighted, scale, floor_m, len(e), coverage)
 
 
-def _sole_session(rm: RadioMap) -> NDArray[np.int64]:
-    """Per AP column: the code (index in the sorted session ids) of the one session that heard it,
-    -1 for an AP heard by several."""
+def _sole_session(rm: RadioMap, codes: NDArray[np.int64], n_sessions: int) -> NDArray[np.int64]:
+    """Per AP column: the code (``codes``: each fingerprint's session, 0..n_sessions-1) of the one
+    session that heard it, -1 for an AP heard by several."""
     coo = rm.fingerprints.values.tocoo()
-    codes = np.searchsorted(np.unique(rm.session_ids), rm.session_ids)
-    pairs = np.unique(np.stack([coo.col, codes[coo.row]], axis=1), axis=0)
-    n_sessions = np.bincount(pairs[:, 0], minlength=rm.fingerprints.n_aps)
+    # distinct (AP, session) pairs as one int64 key: a 1-D unique, not a row-wise one (~20x faster)
+    key = np.unique(coo.col.astype(np.int64) * n_sessions + codes[coo.row])
+    ap, code = key // n_sessions, key % n_sessions
+    heard_by = np.bincount(ap, minlength=rm.fingerprints.n_aps)
     owner = np.full(rm.fingerprints.n_aps, -1, np.int64)
-    sole = pairs[n_sessions[pairs[:, 0]] == 1]
-    owner[sole[:, 0]] = sole[:, 1]
+    sole = heard_by[ap] == 1
+    owner[ap[sole]] = code[sole]
     return owner
 
 
