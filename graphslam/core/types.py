@@ -92,6 +92,16 @@ class Scan:
     def __len__(self) -> int:
         return len(self.readings)
 
+    @classmethod
+    def _validated(cls, t_ns: int, readings: dict[str, float]) -> "Scan":
+        """A scan whose readings a reader has already checked as ``__post_init__`` does (non-empty
+        ``str`` BSSIDs, finite ``float`` dBm; ``t_ns`` an ``int``): no second pass over every reading.
+        Why: a large survey holds hundreds of thousands of readings."""
+        scan = object.__new__(cls)
+        object.__setattr__(scan, "t_ns", t_ns)
+        object.__setattr__(scan, "readings", MappingProxyType(readings))
+        return scan
+
 
 @dataclass(frozen=True)
 class LandmarkMark:

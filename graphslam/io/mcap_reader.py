@@ -307,7 +307,8 @@ def _scans(path: Path, topic: str, msgs: TopicMessages) -> tuple[Scan, ...]:
         i = int(back[0]) + 1
         raise _Parse(path, topic, i).fail("timestamp", f"time goes backwards ({t[i]} ns after {t[i - 1]} ns)")
     _log_time_mismatch(path, topic, t, msgs)
-    return tuple(map(Scan, t.tolist(), readings))
+    # both paths above checked every BSSID (non-empty str) and RSS (finite float)
+    return tuple(map(Scan._validated, t.tolist(), readings))
 
 
 def _landmarks(path: Path, topic: str, msgs: TopicMessages) -> tuple[LandmarkMark, ...]:
