@@ -129,6 +129,38 @@ def bench_scale(
     typer.echo(markdown_table(result))
 
 
+@app.command("speed")
+def bench_speed(
+    baseline: Path = typer.Option(..., "--baseline", help="A graphslam checkout to compare with, e.g. a git worktree "
+                                  "of the main before issue 40 (6d0b028)."),
+    sizes: str = typer.Option("1,12", help="`paper` survey sizes (the last one is the large-survey row)."),
+    runs: str = typer.Option("3,3", help="Rounds per size."),
+    startup_runs: int = typer.Option(7, min=1),
+    update_runs: int = typer.Option(3, min=1),
+    update_size: float = typer.Option(4.0, min=0.1, help="`crowd` floor size of the update row (10 new walks at 4)."),
+    track_rounds: int = typer.Option(2, min=1),
+    service_rounds: int = typer.Option(2, min=1),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Also write every figure to this file."),
+) -> None:
+    """Every speed row of issue 40 (start-up, survey, solver, update, tracking, service) side by side with
+    --baseline in one run: JSON on stdout, then the markdown table."""
+    from lab.bench.speed import markdown_table, speed
+    try:
+        size_list = [float(v) for v in sizes.split(",") if v.strip()]
+        run_list = [int(v) for v in runs.split(",") if v.strip()]
+    except ValueError:
+        raise gs.ConfigError(f"--sizes / --runs: numbers separated by commas, got {sizes!r} / {runs!r}") from None
+    if not size_list or len(run_list) != len(size_list) or min(run_list) < 1 or min(size_list) <= 0:
+        raise gs.ConfigError("--runs: one count >= 1 per size; --sizes: positive numbers")
+    result = speed(baseline, sizes=size_list, runs=run_list, startup_runs=startup_runs, update_runs=update_runs, update_size=update_size,
+                   track_rounds=track_rounds, service_rounds=service_rounds,
+                   progress=lambda msg: typer.echo(f"speed: {msg}", err=True))
+    if json_out is not None:
+        json_out.write_text(json.dumps(result, indent=1))
+    typer.echo(json.dumps(result))
+    typer.echo(markdown_table(result))
+
+
 @app.command("solvers")
 def bench_solvers(
     scenario: str = typer.Argument("paper"),
