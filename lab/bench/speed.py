@@ -54,9 +54,10 @@ def _env(pythonpath: Path | None) -> dict[str, str]:
     return env
 
 
-def _python(tree: Path, baseline: bool) -> list[str]:
-    # -P: the working directory is not put on sys.path, so the baseline's PYTHONPATH decides
-    return [sys.executable, "-P"] if baseline else [sys.executable]
+def _python() -> list[str]:
+    # -P: the working directory is not put on sys.path, so PYTHONPATH (the side's checkout) decides,
+    # not an installed graphslam
+    return [sys.executable, "-P"]
 
 
 def _json_after(text: str, first: str = "{") -> Any:
@@ -79,10 +80,10 @@ def _run(cmd: Sequence[str], *, cwd: Path, env: dict[str, str], what: str) -> st
     return proc.stdout
 
 
-def startup_cpu(tree: Path, baseline: bool, args: Sequence[str], missing_ok: bool) -> float:
+def startup_cpu(tree: Path, args: Sequence[str], missing_ok: bool) -> float:
     """CPU seconds (user + sys) of one ``python -m graphslam ARGS`` process of ``tree``."""
-    cmd = [*_python(tree, baseline), "-m", "graphslam", *args]
-    proc = subprocess.Popen(cmd, cwd=tempfile.gettempdir(), env=_env(tree if baseline else None),
+    cmd = [*_python(), "-m", "graphslam", *args]
+    proc = subprocess.Popen(cmd, cwd=tempfile.gettempdir(), env=_env(tree),
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     _, status, usage = os.wait4(proc.pid, 0)
     code = os.waitstatus_to_exitcode(status)
@@ -103,7 +104,7 @@ def startup_rows(baseline: Path, runs: int, tmp: Path) -> dict[str, dict[str, fl
         for r in range(runs):
             for side in ("this", "base") if r % 2 == 0 else ("base", "this"):
                 tree = HERE if side == "this" else baseline
-                cpu[side].append(startup_cpu(tree, side == "base", args, missing_ok))
+                cpu[side].append(startup_cpu(tree, args, missing_ok))
         out[name] = {side: round(statistics.median(v), 3) for side, v in cpu.items()}
     return out
 
@@ -126,14 +127,14 @@ def speed(
         raise SolverError(f"--baseline {baseline}: not a graphslam checkout (no graphslam/ folder)")
     result: dict[str, Any] = {"baseline": str(baseline), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                               "load_before": [round(v, 2) for v in os.getloadavg()]}
-    env_this, env_base = _env(None), _env(baseline)
+    env_this, env_base = _env(HERE), _env(baseline)
     with tempfile.TemporaryDirectory(prefix="graphslam-speed-") as tmp_s:
         tmp = Path(tmp_s)
         progress("start-up")
         result["startup"] = startup_rows(baseline, startup_runs, tmp)
 
         progress(f"survey at sizes {', '.join(f'{s:g}' for s in sizes)} (lab.bench scale)")
-        text = _run([sys.executable, "-m", "lab.bench", "-q", "scale", "paper", "--sizes", ",".join(f"{s:g}" for s in sizes),
+        text = _run([*_python(), "-m", "lab.bench", "-q", "scale", "paper", "--sizes", ",".join(f"{s:g}" for s in sizes),
                      "--runs", ",".join(str(r) for r in runs), "--baseline", str(baseline)],
                     cwd=HERE, env=env_this, what="scale")
         result["survey"] = _json_after(text)
@@ -147,16 +148,16 @@ def speed(
         for side, tree, env in (("this", HERE, env_this), ("base", baseline, env_base)):
             progress(f"update ({side})")
             # the baseline's own lab.bench and graphslam: run from its folder (its sub-processes too)
-            text = _run([*_python(tree, side == "base"), "-m", "lab.bench", "-q", "update", "crowd", "--size", f"{update_size:g}",
+            text = _run([*_python(), "-m", "lab.bench", "-q", "update", "crowd", "--size", f"{update_size:g}",
                          "--new-fraction", "0.05", "--hops", "0", "--runs", str(update_runs)],
                         cwd=tree, env=env, what=f"update ({side})")
             result["update"][side] = _json_after(text)
 
         progress("tracking map: simulate paper seed 0 with 5 held-out walks, survey it")
         data, out = tmp / "paper", tmp / "paper-out"
-        _run([sys.executable, "-m", "graphslam", "simulate", "paper", "--out", str(data), "--seed", "0",
+        _run([*_python(), "-m", "graphslam", "simulate", "paper", "--out", str(data), "--seed", "0",
               "--test-walks", "5"], cwd=HERE, env=env_this, what="simulate")
-        _run([sys.executable, "-m", "graphslam", "survey", str(data), "--out", str(out), "--no-progress"],
+        _run([*_python(), "-m", "graphslam", "survey", str(data), "--out", str(out), "--no-progress"],
              cwd=HERE, env=env_this, what="survey of the tracking map")
         radio_map = out / "radio_map.parquet"
         progress("tracking (tracking_speed_ab.py)")
