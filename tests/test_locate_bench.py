@@ -32,6 +32,8 @@ def test_rows_score_each_metric_and_the_sigma(floor: Path, capsys: pytest.Captur
         assert r["located"] > 0.9 * row["scans"] and 0 < r["median_m"] <= r["p90_m"]
         assert r["mean_m"] < 10.0  # the corridor's oracle maps locate to a few metres
     assert 0.5 <= row["sorensen"]["inside_95_circle"] <= 1.0 and "inside_95_circle" not in row["eq9"]
+    # the circles' width is reported with their coverage: wider than the typical error, not absurd
+    assert row["sorensen"]["median_m"] < row["sorensen"]["median_r95_m"] < 20 * row["sorensen"]["p90_m"]
     # the first metric is the one scored for sigma_m
     only = next(locate_real_rows([floor], metrics=["eq9"], folds=3))
     assert set(only) == {"floor", "walks", "folds", "scans", "eq9"} and "inside_95_circle" in only["eq9"]

@@ -88,12 +88,13 @@ def test_locate_writes_sigma_and_the_service_answers_it(tmp_path: Path, walks: l
     assert "sigma_m" in POSITIONS_HEADER and run.as_dict()["uncertainty"]["scale"] == round(u.scale, 4)
     rows = list(csv.DictReader(open(tmp_path / "pos.csv")))
     ok = [r for r in rows if r["x"]]
-    assert ok and all(abs(float(r["sigma_m"]) - float(u.sigma(np.array([float(r["spread"])]))[0])) < 2e-3 for r in ok)
+    assert ok and all(abs(float(r["sigma_m"]) - float(u.sigma(np.array([float(r["spread"])]), np.array([float(r["score"])]))[0]))
+                      < 2e-3 for r in ok)
     readings = dict(walks[-1].scans[3].readings)
     app = reloading_app(tmp_path / "map.parquet", None, k=3, search_processes=0)
     with start_background_server(app) as srv, httpx.Client(base_url=srv.url, timeout=30.0) as c:
         pos = c.post("/v1/locate", json={"readings": readings}).json()["positions"][0]
-    assert pos["sigma_m"] == pytest.approx(float(u.sigma(np.array([pos["spread"]]))[0]))
+    assert pos["sigma_m"] == pytest.approx(float(u.sigma(np.array([pos["spread"]]), np.array([pos["score"]]))[0]))
 
 
 def test_the_survey_radio_map_carries_the_calibration(tmp_path: Path) -> None:
@@ -199,17 +200,39 @@ def _readings(rm) -> list[dict[str, float]]:
 
 def test_a_walks_own_aps_leave_the_index_as_on_a_map_without_it() -> None:
     from graphslam.core.radiomap.radiomap import RadioMap
-    from graphslam.core.radiomap.uncertainty import _sole_session, _without_columns
+    from graphslam.core.radiomap.uncertainty import _heard_only_by, _without_columns
 
     scans = [{"a": -50.0, "solo": -40.0}, {"a": -60.0, "b": -70.0}, {"b": -65.0}, {"a": -55.0, "b": -75.0}]
     rm = RadioMap.from_scans(scans, np.zeros((4, 2)), session_ids=["w1", "w1", "w2", "w2"], t_ns=np.arange(4),
                              frame="f")
-    owner = _sole_session(rm, np.array([0, 0, 1, 1]), 2)
-    assert {rm.bssids[j]: int(o) for j, o in enumerate(owner)} == {"a": -1, "b": -1, "solo": 0}
-    # "solo" heard by the second walk only: its code comes back
-    assert _sole_session(rm, np.array([1, 1, 0, 0]), 2)[rm.column("solo")] == 1
-    q = _without_columns(rm.fingerprints.rows(np.array([0, 1])), owner == 0)
+    heard = rm.fingerprints.values.tocoo()
+    alone = _heard_only_by(heard, np.array([True, True, False, False]), rm.fingerprints.n_aps)
+    assert {rm.bssids[j]: bool(o) for j, o in enumerate(alone)} == {"a": False, "b": False, "solo": True}
+    # the second walk and the first walk's second scan removed: "b" is heard by nobody left, "solo" still is
+    gone = np.array([False, True, True, True])
+    assert {rm.bssids[j] for j in np.flatnonzero(_heard_only_by(heard, gone, rm.fingerprints.n_aps))} == {"b"}
+    owner = alone
+    q = _without_columns(rm.fingerprints.rows(np.array([0, 1])), owner)
     others = RadioMap.from_scans(scans[2:], np.zeros((2, 2)), session_ids=["w2", "w2"], t_ns=np.arange(2), frame="f")
     want = others.reindex(rm.fingerprints.rows(np.array([0, 1])))
     assert np.allclose(q.extra_sq, want.extra_sq) and np.array_equal(q.extra_n, want.extra_n) and q.extra_n[0] == 1
     assert np.array_equal(q.values.toarray()[:, [rm.column("a"), rm.column("b")]], want.values.toarray())
+
+
+def test_a_worse_score_never_gets_a_narrower_circle_and_old_records_still_read(walks: list) -> None:
+    u = calibrate_uncertainty(oracle_radio_map(walks))
+    assert u is not None and len(u.scales) == len(u.score_edges) + 1 >= 2
+    assert list(u.scales) == sorted(u.scales) and list(u.score_edges) == sorted(set(u.score_edges))
+    spread = np.full(4, 1.5)
+    score = np.array([u.score_edges[0] - 0.01, u.score_edges[-1] + 0.01, np.nan, u.score_edges[0]])
+    sig = u.sigma(spread, score)
+    assert sig[0] == pytest.approx(u.scales[0] * np.sqrt(1.5**2 + u.floor_m**2))
+    assert sig[1] == pytest.approx(u.scales[-1] * np.sqrt(1.5**2 + u.floor_m**2)) and sig[1] >= sig[0]
+    assert sig[2] == pytest.approx(u.scale * np.sqrt(1.5**2 + u.floor_m**2))  # no score: the covered scale
+    assert sig[3] == pytest.approx(u.scales[1] * np.sqrt(1.5**2 + u.floor_m**2))  # an edge opens the next bin
+    assert KnnUncertainty.from_dict(u.as_dict()) == u
+    old = {k: v for k, v in u.as_dict().items() if k not in ("score_edges", "scales")}
+    assert KnnUncertainty.from_dict(old).sigma(spread, score)[1] == pytest.approx(sig[2])  # one scale for all
+    assert KnnUncertainty.from_dict({**u.as_dict(), "scales": list(u.scales)[:-1]}) is None
+    assert KnnUncertainty.from_dict({**u.as_dict(), "score_edges": list(u.score_edges)[::-1]}) is None or len(u.score_edges) == 1
+    assert calibrate_uncertainty(oracle_radio_map(walks), bins=1).scales == ()

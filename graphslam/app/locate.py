@@ -59,7 +59,7 @@ def position_rows(p: SurveyPositions, uncertainty: KnnUncertainty | None = None)
     r = p.result
     floor = r.floor.tolist() if r.floor is not None else [""] * len(p)
     building = r.building.tolist() if r.building is not None else [""] * len(p)
-    sigma = uncertainty.sigma(r.spread).tolist() if uncertainty is not None else [math.nan] * len(p)
+    sigma = uncertainty.sigma(r.spread, r.score).tolist() if uncertainty is not None else [math.nan] * len(p)
     for sid, t, (x, y), s, sp, sg, nn, nk, f, b, st in zip(
         p.session_ids.tolist(), p.t_ns.tolist(), r.xy.tolist(), r.score.tolist(), r.spread.tolist(), sigma,
         r.n_neighbours.tolist(), r.n_known_aps.tolist(), floor, building, r.status.tolist(),

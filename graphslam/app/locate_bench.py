@@ -42,6 +42,7 @@ def locate_real_rows(
             raise InputError(folder, "fewer than 2 walks with 2 or more /landmarks: nothing to hold out")
         err: dict[str, list[np.ndarray]] = {m: [] for m in metrics}
         inside: list[np.ndarray] = []
+        radius: list[np.ndarray] = []  # the answers' 95 % radii (m): how wide the circles are
         n_scans = 0
         split = held_out_folds(walks, folds, seed)
         for _, test_idx in split:
@@ -63,7 +64,9 @@ def locate_real_rows(
                     u = calibrate_uncertainty(rm, cfg)
                     if u is not None:
                         ok = res.valid
-                        inside.append(e[ok] <= R95 * u.sigma(res.spread[ok]))
+                        r95 = R95 * u.sigma(res.spread[ok], res.score[ok])
+                        inside.append(e[ok] <= r95)
+                        radius.append(r95)
         row: dict[str, Any] = {"floor": str(folder), "walks": len(walks), "folds": len(split), "scans": n_scans}
         for m in metrics:
             e = np.concatenate(err[m]) if err[m] else np.zeros(0)
@@ -76,6 +79,7 @@ def locate_real_rows(
             }
         got = np.concatenate(inside) if inside else np.zeros(0, bool)
         row[metrics[0]]["inside_95_circle"] = round(float(got.mean()), 3) if len(got) else None
+        row[metrics[0]]["median_r95_m"] = round(float(np.median(np.concatenate(radius))), 2) if radius else None
         yield row
 
 

@@ -29,7 +29,7 @@ def position_dicts(res: KnnResult, uncertainty: KnnUncertainty | None = None) ->
     n = len(res)
     floor = res.floor.tolist() if res.floor is not None else [""] * n
     building = res.building.tolist() if res.building is not None else [""] * n
-    sigma = uncertainty.sigma(res.spread).tolist() if uncertainty is not None else [None] * n
+    sigma = uncertainty.sigma(res.spread, res.score).tolist() if uncertainty is not None else [None] * n
     return [
         {"x": p[0], "y": p[1], "score": s, "spread": sp, "sigma_m": sg, "n_neighbours": nn, "floor": f or None,
          "building": b or None}

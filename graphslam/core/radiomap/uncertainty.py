@@ -2,16 +2,32 @@
 
 A kNN answer's error grows with how far apart its neighbours lie (``KnnResult.spread``: the weighted
 RMS distance of their positions to the estimate), but not one for one: neighbours can agree on a
-wrong place, and a place the map covers densely is still only resolved to a few metres. The model::
+wrong place, and a place the map covers densely is still only resolved to a few metres. It grows
+too with how poorly the best matches match (``KnnResult.score``), most where the query comes from
+a place the map has not walked. The model::
 
-    sigma = scale * sqrt(spread^2 + floor_m^2)        (isotropic, metres; per axis)
+    sigma = scale_b * sqrt(spread^2 + floor_m^2)        (isotropic, metres; per axis)
 
-with ``floor_m`` fixed and ``scale`` measured without ground truth: the map's walks (a seeded
-sample of them) are located, one at a time, on the map of the *other* walks (the same kNN: metric,
-k, weights), and each scan's error against its own map position is what a new walk's scan would
-make. ``scale`` is chosen so that 95 % of those errors fall inside the 95 % circle of a 2-D
-Gaussian, ``r95 = sqrt(-2 ln 0.05) sigma = 2.448 sigma``. A map of one walk has nothing to leave
-out: no calibration (``None``).
+with ``floor_m`` fixed and ``scale_b`` a step function of the answer's score (``score_edges``: bins
+of the score), measured without ground truth on two sets of the map's own scans (a seeded sample of
+its walks, each located with the same kNN: metric, k, weights):
+
+- *covered*: each walk located on the map of the other walks (its own fingerprints masked, the
+  access points only it heard moved out of the index): a scan where other walks have been;
+- *uncovered*: the same scans located with also every fingerprint within ``UNCOVERED_RADIUS_M`` of
+  the walk's path removed: a scan from a place the map has not walked (a new corridor, a route
+  nobody surveyed).
+
+Per score bin (quantiles of both sets' scores), ``scale_b`` puts 95 % of the bin's errors inside
+the 95 % circle of a 2-D Gaussian (``r95 = sqrt(-2 ln 0.05) sigma = 2.448 sigma``), the uncovered
+scans counted with weight ``UNCOVERED_WEIGHT`` (the share of queries from unwalked places assumed,
+relative to walked ones); the scales never fall as the score worsens. ``scale`` is the covered
+set's single scale (what maps calibrated before the bins use, and the answer for a score the bins
+cannot place). A map of one walk has nothing to leave out: no calibration (``None``).
+
+Why the second set: calibrated on covered scans alone, the 95 % circles of walks on a route absent
+from the map held 58 % of the truths (IPIN 2023 floor -2, leave one route out); docs/radio_map.md
+gives the figures per floor.
 
 Frames and units: the radio map's frame, metres.
 """
@@ -25,6 +41,7 @@ from typing import Any, Mapping
 import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
+from scipy.spatial import cKDTree
 
 from graphslam.core.radiomap.fingerprints import FingerprintMatrix
 from graphslam.core.radiomap.knn import WEIGHT_EPS_DB, KnnConfig, KnnLocator, _nearest
@@ -33,52 +50,80 @@ from graphslam.errors import ConfigError
 
 R95 = math.sqrt(-2.0 * math.log(0.05))  # radius / sigma of a 2-D Gaussian's 95 % circle
 DEFAULT_FLOOR_M = 2.0
+UNCOVERED_RADIUS_M = 5.0  # the uncovered set: map fingerprints this close to the walk's path removed
+UNCOVERED_WEIGHT = 0.4  # an uncovered scan's weight in the bins' quantiles (a covered one: 1)
+SCORE_BINS = 5  # quantile bins of the calibration scans' scores
 
 
 @dataclass(frozen=True)
 class KnnUncertainty:
-    """``sigma = scale * sqrt(spread^2 + floor_m^2)`` for answers of the kNN it was measured with."""
+    """``sigma = scale_b * sqrt(spread^2 + floor_m^2)`` for answers of the kNN it was measured with,
+    ``scale_b`` by the answer's score (module docstring)."""
 
     metric: str
     k: int
     weighted: bool
-    scale: float
+    scale: float  # the covered scans' single scale (no score bins, or a score that is NaN)
     floor_m: float
-    n: int  # scans located in the calibration
-    coverage: float = 0.95  # share of those errors inside the 95 % circle (by construction ~0.95)
+    n: int  # scans located in the calibration (both sets)
+    coverage: float = 0.95  # share of the covered scans' errors inside their 95 % circle
+    score_edges: tuple[float, ...] = ()  # inner edges of the score bins, ascending
+    scales: tuple[float, ...] = ()  # per bin (len(score_edges) + 1), non-decreasing; () = ``scale`` for all
 
     def matches(self, config: KnnConfig) -> bool:
         """Measured with this kNN (metric, k, weights)? (Not ``min_common``: the calibration uses 1,
         and a larger one, which only excludes weakly overlapping references, reuses it.)"""
         return (self.metric, self.k, self.weighted) == (config.metric, config.k, config.weighted)
 
-    def sigma(self, spread: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Per answer: sigma (m, per axis) from its neighbours' spread (NaN stays NaN)."""
+    def scale_for(self, score: NDArray[np.float64] | None) -> NDArray[np.float64] | float:
+        """The scale per answer score (``scale`` without bins, without scores, or for a NaN score)."""
+        if not self.scales or score is None:
+            return self.scale
+        sc = np.asarray(score, float)
+        edges = np.asarray(self.score_edges, float)
+        out = np.asarray(self.scales, float)[np.searchsorted(edges, np.nan_to_num(sc), side="right")]
+        return np.where(np.isfinite(sc), out, self.scale)
+
+    def sigma(self, spread: NDArray[np.float64], score: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+        """Per answer: sigma (m, per axis) from its neighbours' spread and its score (``KnnResult``'s;
+        without scores, the covered scale). NaN spread stays NaN."""
         s = np.asarray(spread, float)
-        return self.scale * np.sqrt(s * s + self.floor_m**2)
+        return self.scale_for(score) * np.sqrt(s * s + self.floor_m**2)
 
     def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        d = asdict(self)
+        d["score_edges"], d["scales"] = list(self.score_edges), list(self.scales)
+        return d
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "KnnUncertainty | None":
-        """From a radio map's metadata; None when absent or not a valid record."""
+        """From a radio map's metadata; None when absent or not a valid record (a record without
+        score bins, as written before them, gives one scale for every answer)."""
         try:
+            edges = tuple(float(v) for v in d.get("score_edges", ()))
+            scales = tuple(float(v) for v in d.get("scales", ()))
             u = cls(str(d["metric"]), int(d["k"]), bool(d["weighted"]), float(d["scale"]), float(d["floor_m"]),
-                    int(d["n"]), float(d.get("coverage", 0.95)))
+                    int(d["n"]), float(d.get("coverage", 0.95)), edges, scales)
         except (KeyError, TypeError, ValueError):
             return None
         ok = math.isfinite(u.scale) and u.scale > 0 and math.isfinite(u.floor_m) and u.floor_m > 0
+        if scales:
+            ok = ok and len(scales) == len(edges) + 1 and all(math.isfinite(v) for v in edges)
+            ok = ok and all(math.isfinite(v) and v > 0 for v in scales)
+            ok = ok and all(a < b for a, b in zip(edges, edges[1:]))
+        elif edges:
+            ok = False
         return u if ok else None
 
 
 def leave_one_session_out(
     rm: RadioMap, rows: NDArray[np.int64] | None = None, *, config: KnnConfig | None = None, extra: int = 30
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """((len(rows), 2) error vectors (estimate - map position, m), (len(rows),) spreads) of the map's
-    fingerprints ``rows`` (default all), each located among the other sessions' fingerprints: the
-    ``k`` nearest of another session among its ``k + extra`` nearest overall, weighted as
-    ``KnnLocator``. NaN rows: every candidate came from the fingerprint's own session."""
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """((len(rows), 2) error vectors (estimate - map position, m), (len(rows),) spreads, (len(rows),)
+    scores) of the map's fingerprints ``rows`` (default all), each located among the other sessions'
+    fingerprints: the ``k`` nearest of another session among its ``k + extra`` nearest overall,
+    weighted and scored as ``KnnLocator``. NaN rows: every candidate came from the fingerprint's own
+    session."""
     cfg = config or KnnConfig()
     rows = np.arange(len(rm)) if rows is None else np.asarray(rows, np.int64)
     wide = KnnConfig(k=min(cfg.k + extra, len(rm)), metric=cfg.metric, index="exact", weighted=cfg.weighted)
@@ -94,22 +139,29 @@ def leave_one_session_out(
     ok = wsum > 0
     e = np.full((len(rows), 2), np.nan)
     spread = np.full(len(rows), np.nan)
+    score = np.full(len(rows), np.nan)
+    score[ok] = np.where(use[ok], dist[ok], 0.0).sum(axis=1) / use[ok].sum(axis=1)
     nxy = rm.xy[np.maximum(idx[ok], 0)]
     est = (w[ok, :, None] * nxy).sum(axis=1) / wsum[ok, None]
     e[ok] = est - rm.xy[rows[ok]]
     spread[ok] = np.sqrt((w[ok] * ((nxy - est[:, None, :]) ** 2).sum(axis=2)).sum(axis=1) / wsum[ok])
-    return e, spread
+    return e, spread, score
 
 
 def calibrate_uncertainty(
     rm: RadioMap, config: KnnConfig | None = None, *, floor_m: float = DEFAULT_FLOOR_M, max_queries: int = 300,
-    max_sessions: int = 12, seed: int = 0,
+    max_sessions: int = 12, seed: int = 0, uncovered_radius_m: float = UNCOVERED_RADIUS_M,
+    uncovered_weight: float = UNCOVERED_WEIGHT, bins: int = SCORE_BINS,
 ) -> KnnUncertainty | None:
     """``KnnUncertainty`` of ``config`` on ``rm`` (module docstring): up to ``max_sessions`` walks
-    (a seeded sample), each located on the map of the other walks (up to ``max_queries`` scans in
-    all); None for a map of one walk, or when no scan can be located among the others."""
+    (a seeded sample), up to ``max_queries`` of their scans in all, each located on the map of the
+    other walks (covered) and again without the fingerprints within ``uncovered_radius_m`` of its
+    walk (uncovered); ``bins`` score bins (1: one scale for all, the covered set's, and no uncovered
+    set). None for a map of one walk, or when no scan can be located among the others."""
     if not (math.isfinite(floor_m) and floor_m > 0):
         raise ConfigError(f"kNN uncertainty: floor_m must be a positive number of metres, got {floor_m}")
+    if not (math.isfinite(uncovered_radius_m) and uncovered_radius_m >= 0 and uncovered_weight >= 0 and bins >= 1):
+        raise ConfigError("kNN uncertainty: uncovered_radius_m and uncovered_weight must be >= 0 and bins >= 1")
     cfg = KnnConfig(k=(config or KnnConfig()).k, weighted=(config or KnnConfig()).weighted,
                     metric=(config or KnnConfig()).metric, index="exact")
     names, codes = np.unique(rm.session_ids, return_inverse=True)
@@ -121,47 +173,78 @@ def calibrate_uncertainty(
     if len(sessions) > max_sessions:
         sessions = np.sort(rng.choice(sessions, max_sessions, replace=False))
     per = max(1, max_queries // len(sessions))
-    # One locator on the whole map; each walk's scans searched with its own fingerprints masked
-    # out and the APs only it heard moved outside the index: what a map of the other walks gives
+    # One locator on the whole map; each walk's scans searched with the removed fingerprints masked
+    # out and the APs only they heard moved outside the index: what a map without them gives
     # (``RadioMap.reindex``), without building one per walk.
     loc = KnnLocator(rm, cfg, threads=1)
-    owner = _sole_session(rm, codes, len(names))
+    heard = rm.fingerprints.values.tocoo()
     order = np.argsort(codes, kind="stable")
     first = np.searchsorted(codes[order], np.arange(len(names) + 1))
-    err, spread = [], []
+    sets: dict[bool, list[tuple[NDArray, NDArray, NDArray]]] = {False: [], True: []}
     for code in sessions:
-        rows = order[first[code] : first[code + 1]]  # ascending: a stable sort of the codes
-        if len(rows) > per:
-            rows = np.sort(rng.choice(rows, per, replace=False))
-        q = _without_columns(rm.fingerprints.rows(rows), owner == code)
-        d = loc.distances(q)
-        d[:, codes == code] = np.inf
-        idx, dist = _nearest(d, cfg.k)
-        res = loc._aggregate(idx, dist, np.diff(q.values.indptr).astype(np.int64))
-        ok = res.valid
-        err.append(np.linalg.norm(res.xy[ok] - rm.xy[rows[ok]], axis=1))
-        spread.append(res.spread[ok])
-    e, sp = np.concatenate(err), np.concatenate(spread)
-    if not len(e):
+        own_rows = order[first[code] : first[code + 1]]  # ascending: a stable sort of the codes
+        rows = np.sort(rng.choice(own_rows, per, replace=False)) if len(own_rows) > per else own_rows
+        own = codes == code
+        removed = {False: own}
+        if bins > 1 and uncovered_radius_m > 0:
+            near, _ = cKDTree(rm.xy[own_rows]).query(rm.xy, distance_upper_bound=uncovered_radius_m)
+            removed[True] = own | np.isfinite(near)
+        dropped = None
+        for uncovered, gone in removed.items():
+            drop = _heard_only_by(heard, gone, rm.fingerprints.n_aps)
+            if dropped is None or not np.array_equal(drop, dropped):  # else the same query: its distances again
+                q = _without_columns(rm.fingerprints.rows(rows), drop)
+                d_all = loc.distances(q)
+                dropped = drop
+            d = d_all.copy()
+            d[:, gone] = np.inf
+            idx, dist = _nearest(d, cfg.k)
+            res = loc._aggregate(idx, dist, np.diff(q.values.indptr).astype(np.int64))
+            ok = res.valid
+            sets[uncovered].append((np.linalg.norm(res.xy[ok] - rm.xy[rows[ok]], axis=1), res.spread[ok], res.score[ok]))
+    covered = [np.concatenate(v) for v in zip(*sets[False])]
+    if not len(covered[0]):
         return None
+    e, sp, _ = covered
     base = np.sqrt(sp**2 + floor_m**2)
     scale = max(float(np.quantile(e / (R95 * base), 0.95)), 1e-3)
     coverage = float(np.mean(e <= R95 * scale * base))
-    return KnnUncertainty(cfg.metric, cfg.k, cfg.weighted, scale, floor_m, len(e), coverage)
+    n = len(e)
+    edges: tuple[float, ...] = ()
+    scales: tuple[float, ...] = ()
+    if sets[True]:
+        uncovered_set = [np.concatenate(v) for v in zip(*sets[True])]
+        n += len(uncovered_set[0])
+        edges, scales = _score_bins(covered, uncovered_set, floor_m, uncovered_weight, bins)
+    return KnnUncertainty(cfg.metric, cfg.k, cfg.weighted, scale, floor_m, n, coverage, edges, scales)
 
 
-def _sole_session(rm: RadioMap, codes: NDArray[np.int64], n_sessions: int) -> NDArray[np.int64]:
-    """Per AP column: the code (``codes``: each fingerprint's session, 0..n_sessions-1) of the one
-    session that heard it, -1 for an AP heard by several."""
-    coo = rm.fingerprints.values.tocoo()
-    # distinct (AP, session) pairs as one int64 key: a 1-D unique, not a row-wise one (~20x faster)
-    key = np.unique(coo.col.astype(np.int64) * n_sessions + codes[coo.row])
-    ap, code = key // n_sessions, key % n_sessions
-    heard_by = np.bincount(ap, minlength=rm.fingerprints.n_aps)
-    owner = np.full(rm.fingerprints.n_aps, -1, np.int64)
-    sole = heard_by[ap] == 1
-    owner[ap[sole]] = code[sole]
-    return owner
+def _score_bins(
+    covered: list[NDArray], uncovered: list[NDArray], floor_m: float, weight: float, bins: int
+) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """(inner score edges, per-bin scales): per quantile bin of both sets' scores, the weighted 95 %
+    quantile of error / (R95 sqrt(spread^2 + floor_m^2)), made non-decreasing with the score."""
+    ratio = np.concatenate([covered[0], uncovered[0]]) / (
+        R95 * np.sqrt(np.concatenate([covered[1], uncovered[1]]) ** 2 + floor_m**2))
+    score = np.concatenate([covered[2], uncovered[2]])
+    w = np.concatenate([np.ones(len(covered[0])), np.full(len(uncovered[0]), weight)])
+    edges = np.unique(np.quantile(score, np.linspace(0.0, 1.0, bins + 1)[1:-1]))
+    b = np.searchsorted(edges, score, side="right")
+    scales = np.full(len(edges) + 1, 1e-3)
+    for k in range(len(scales)):
+        m = (b == k) & (w > 0)
+        if m.any():  # (an empty bin keeps the floor; the running maximum below lifts it)
+            o = np.argsort(ratio[m], kind="stable")
+            cum = np.cumsum(w[m][o]) / w[m].sum()
+            scales[k] = max(float(ratio[m][o][min(int(np.searchsorted(cum, 0.95)), int(m.sum()) - 1)]), 1e-3)
+    scales = np.maximum.accumulate(scales)
+    return tuple(float(v) for v in edges), tuple(float(v) for v in scales)
+
+
+def _heard_only_by(heard: sparse.coo_matrix, gone: NDArray[np.bool_], n_aps: int) -> NDArray[np.bool_]:
+    """Per AP column: no fingerprint outside ``gone`` (the removed rows) heard it (``heard``: the
+    map's fingerprints as a coo matrix)."""
+    return np.bincount(heard.col[~gone[heard.row]], minlength=n_aps) == 0
 
 
 def _without_columns(q: FingerprintMatrix, drop: NDArray[np.bool_]) -> FingerprintMatrix:
@@ -231,10 +314,10 @@ def expected_accuracy(
     err = np.full(len(rows), np.nan)
     r95 = np.full(len(rows), np.nan)
     if len(rows) and len(np.unique(rm.session_ids)) > 1:
-        e, spread = leave_one_session_out(rm, rows, config=config)
+        e, spread, score = leave_one_session_out(rm, rows, config=config)
         err = np.linalg.norm(e, axis=1)
         if uncertainty is not None:
-            r95 = R95 * uncertainty.sigma(spread)
+            r95 = R95 * uncertainty.sigma(spread, score)
     g = inverse[rows]
     return AccuracyCells(
         float(cell_m), lo, cells, lo + (cells + 0.5) * cell_m, _group_median(g, err, len(cells)),
