@@ -128,8 +128,12 @@ def fig8(
     import numpy as np
 
     from graphslam import (
-        crowdsourced_radio_map, interpolate_xy, KnnConfig, KnnLocator, simulate, surveyed_radio_map,
+        calibrate_uncertainty, crowdsourced_radio_map, interpolate_xy, KnnConfig, KnnLocator, simulate,
+        surveyed_radio_map,
     )
+    R95 = float(np.sqrt(-2.0 * np.log(0.05)))
+    default_e: dict[str, list] = {"crowdsourced": [], "surveyed": []}
+    inside: dict[str, list] = {"crowdsourced": [], "surveyed": []}
 
 
     errs: dict[str, list] = {"crowdsourced": [], "surveyed": []}
@@ -154,6 +158,14 @@ def fig8(
             errs[name].append(e)
             row[f"{name}_p_lt_10m"] = round(float(np.mean(e < 10.0)), 4)
             row[f"{name}_median_m"] = round(float(np.median(e)), 3)
+            # the product's default kNN (Sorensen) and its sigma_m, calibrated on the map without truth
+            d = KnnLocator(rm, KnnConfig(k=k, index="exact")).locate([sc.readings for sc in scans])
+            ed = np.linalg.norm(d.xy - truth, axis=1)
+            ok = np.isfinite(ed)
+            default_e[name].append(ed[ok])
+            u = calibrate_uncertainty(rm, KnnConfig(k=k))
+            if u is not None:
+                inside[name].append(ed[ok] <= R95 * u.sigma(d.spread[ok], d.score[ok]))
         per_seed.append(row)
     all_e = {n: np.concatenate(v) for n, v in errs.items()}
     out: dict[str, Any] = {
@@ -169,6 +181,9 @@ def fig8(
         out[f"{n}_mean_m"] = round(float(np.mean(e)), 3)
         out[f"{n}_median_m"] = round(float(np.median(e)), 3)
         out[f"{n}_p90_m"] = round(float(np.percentile(e, 90)), 3)
+        out[f"{n}_default_knn_mean_m"] = round(float(np.mean(np.concatenate(default_e[n]))), 3)
+        if inside[n]:
+            out[f"{n}_default_inside_95_circle"] = round(float(np.mean(np.concatenate(inside[n]))), 3)
     if plot is not None:
         from graphslam import error_cdf
 
