@@ -94,6 +94,9 @@ def update_speed(
                 "cpu_s_median": round(statistics.median(cpus[v]), 3),
                 "pipeline_s_median": round(statistics.median(r["timings_s"]["total"] for r in reports[v]), 3),
                 "optimise_s_median": round(statistics.median(r["timings_s"]["align.optimise"] for r in reports[v]), 3),
+                # every stage's median (report.json's timings_s): what an update still pays, and where
+                "stages_s": {k: round(statistics.median(r["timings_s"].get(k, 0.0) for r in reports[v]), 3)
+                             for k in reports[v][-1]["timings_s"]},
                 "lm_iterations": rep["optimizer"]["iterations"],
                 "landmark_mean_m": round(rep["evaluation"]["landmarks"]["mean_m"], 3),
                 "landmark_max_m": round(rep["evaluation"]["landmarks"]["max_m"], 3),
