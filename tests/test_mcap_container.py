@@ -98,3 +98,24 @@ def test_message_on_an_undefined_channel(tmp_path: Path) -> None:
         w.finish()
     with pytest.raises(InputError, match="channel 7, which is not defined"):
         read_session(path)
+
+
+def test_scans_read_are_what_a_validated_scan_holds(tmp_path: Path) -> None:
+    """The reader builds scans without a second validation pass (``Scan._validated``): they must be
+    what ``Scan(...)`` would hold, Python ints and floats in a read-only mapping, on both reading
+    paths (a duplicate BSSID within a scan takes the slower one)."""
+    from types import MappingProxyType
+
+    from graphslam.core.types import Scan
+
+    session = make_session("w", 40)
+    scans = list(session.scans)
+    scans[3] = Scan(scans[3].t_ns, {**scans[3].readings, "aa:bb:cc:dd:ee:ff": -61})  # an int RSS written
+    import dataclasses
+
+    got = read_session(write_session(dataclasses.replace(session, scans=tuple(scans)), tmp_path / "w.mcap"))
+    assert got.scans and all(s == Scan(s.t_ns, dict(s.readings)) for s in got.scans)
+    for s in got.scans:
+        assert type(s.t_ns) is int and isinstance(s.readings, MappingProxyType)
+        assert all(type(b) is str and b and type(v) is float for b, v in s.readings.items())
+    assert got.scans[3].readings["aa:bb:cc:dd:ee:ff"] == -61.0
