@@ -7,8 +7,7 @@ until it answers ``/healthz`` on a free port, then is stopped. Afterwards nothin
 wrote is left untracked by git, given the repository's ``.gitignore``.
 
 One test per command, in the README's order (they share the folder): a failing command names
-itself. The default tracker's command is in the README's prose with its cost (~2 min, its
-self-calibration included), not in a block: tests/test_apmodel.py runs it on a short walk."""
+itself."""
 
 from __future__ import annotations
 
