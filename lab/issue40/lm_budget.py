@@ -1,0 +1,60 @@
+#!/usr/bin/env python3
+"""The fixed-lag tracker's LM budget per window: ms per step and the tracks' departure from the
+default (rel_tol 1e-6, max_iter 10) for other stopping rules, on the same map and walks, one run.
+
+    python lab/issue40/lm_budget.py RADIO_MAP WALKS... [--variants 1e-6:10,1e-4:10,1e-6:3]
+
+Self-calibration is off (the same model for every variant); each variant tracks every walk; the
+figures: CPU ms per step, bank solves, and per variant the mean / max distance (m) of its positions
+from the default's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import time
+
+import numpy as np
+
+import graphslam.core.tracking.tracker as tracker_mod  # lab: the tracker's FixedLagConfig patched per variant
+from graphslam import ApModels, TrackConfig, Tracker, limit_blas_threads, read_radio_map, read_survey
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("radio_map")
+    ap.add_argument("walks", nargs="+")
+    ap.add_argument("--variants", default="1e-6:10,1e-5:10,1e-4:10,1e-3:10,1e-6:4,1e-6:2")
+    ap.add_argument("--rounds", type=int, default=1)
+    a = ap.parse_args()
+    limit_blas_threads(1)
+    rm = read_radio_map(a.radio_map)
+    models = ApModels.fit(rm)
+    survey = read_survey(a.walks)
+    cfg = TrackConfig().updated({"calibration.enabled": False})
+    original = tracker_mod.FixedLagConfig
+    ref: dict[str, np.ndarray] | None = None
+    for spec in a.variants.split(","):
+        tol, it = spec.split(":")
+        tracker_mod.FixedLagConfig = functools.partial(original, rel_tol=float(tol), max_iter=int(it))
+        tracker = Tracker.on_map(rm, models, cfg)
+        cpu, tracks, steps = [], {}, 0
+        for _ in range(a.rounds):
+            c0 = time.process_time()
+            for s in survey.sessions:
+                tr = tracker.track(s)
+                tracks[s.session_id] = tr.xy
+            cpu.append(time.process_time() - c0)
+        steps = sum(len(v) for v in tracks.values())
+        if ref is None:
+            ref = tracks
+        d = np.concatenate([np.linalg.norm(tracks[k] - ref[k], axis=1) for k in ref])
+        print(json.dumps({"rel_tol": float(tol), "max_iter": int(it), "cpu_ms_per_step": round(min(cpu) / steps * 1e3, 2),
+                          "diff_mean_m": round(float(d.mean()), 4), "diff_max_m": round(float(d.max()), 4)}), flush=True)
+    tracker_mod.FixedLagConfig = original
+
+
+if __name__ == "__main__":
+    main()
