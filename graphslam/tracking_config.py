@@ -48,6 +48,10 @@ class FixedLagSection(_Section):
     lag_s: float = Field(2.0, ge=0, description="a step is reported once the data up to lag_s later are in (also the particle filter's)")
     window_s: float = Field(20.0, ge=0, description="older epochs are marginalised into a prior")
     prune_cost: float | None = Field(50.0, gt=0, description="heading hypotheses this far above the best are dropped (null: keep all)")
+    merge_tol: float | None = Field(
+        0.05, gt=0, description="heading hypotheses whose window states agree to this in every entry (m, m/s, rad) become one, "
+        "their odds kept (null: never)",
+    )
     bank_temper: float | None = Field(
         None, ge=1, description="the bank's costs are divided by this in its weights and pruning; null: measured on the "
         "map by self-calibration (its fixes' error correlation along a walk), 1 without it",

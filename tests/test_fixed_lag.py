@@ -185,6 +185,30 @@ def test_a_tempered_bank_weighs_its_starts_as_if_the_costs_were_divided():
     assert 0.4 < w[0] < 0.6  # nearly even odds after tempering
 
 
+def test_hypotheses_that_became_one_are_merged_with_their_posterior_mass():
+    # Two starts that are the same hypothesis and a third 20 m away, with a temper that keeps all
+    # three weighted (undecided): merged, the pair is one live hypothesis whose cost carries the
+    # other's mass (c - 2 T ln 2), so the mixture and its odds against the far start are the
+    # unmerged bank's; without merging both copies stay alive to the end.
+    m, e = _model(), _epochs()
+    tight = np.diag([0.01, 0.01, 0.2, 0.2, 0.01, 0.01])
+    far = X0 + np.r_[20.0, 0, 0, 0, 0, 0]
+    cfg = dict(lag_s=0.0, window_s=5.0, huber_k=None, report="mixture", adaptive_rssi=False, prune_cost=None, temper=1e4)
+    kept = fixed_lag_smooth(m, [X0, X0, far], tight, e, FixedLagConfig(**cfg, merge_tol=None))
+    merged = fixed_lag_smooth(m, [X0, X0, far], tight, e, FixedLagConfig(**cfg, merge_tol=1e-9))
+    assert np.isfinite(kept.cost).all()
+    assert np.isinf(merged.cost[1]) and np.isfinite(merged.cost[[0, 2]]).all()
+    assert merged.cost[0] == pytest.approx(kept.cost[0] - 2e4 * np.log(2.0), rel=1e-12)
+    np.testing.assert_allclose(merged.x, kept.x, atol=1e-8)
+    np.testing.assert_allclose(merged.P, kept.P, atol=1e-8)
+    # starts 20 m apart never agree: nothing merged, the same run as without merging
+    apart = fixed_lag_smooth(m, [X0, far], tight, e, FixedLagConfig(**cfg, merge_tol=0.05))
+    np.testing.assert_array_equal(apart.x, fixed_lag_smooth(m, [X0, far], tight, e, FixedLagConfig(**cfg, merge_tol=None)).x)
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(EstimationError, match="merge_tol"):
+            FixedLagConfig(merge_tol=bad)
+
+
 def test_config_rejects_a_window_shorter_than_the_lag():
     with pytest.raises(EstimationError, match="lag"):
         FixedLagConfig(lag_s=3.0, window_s=1.0)

@@ -28,6 +28,9 @@ the best by ``prune_cost`` is dropped (its posterior odds are below exp(-prune_c
 ``temper`` T > 1 the costs are divided by T in both (weights exp(-cost / 2T), pruning at T
 ``prune_cost``): readings whose errors are correlated in time count T times too often in the costs,
 so the bank would decide for one hypothesis too early; each hypothesis's own estimate is unchanged.
+Starts that reach the same solution (window states within ``merge_tol`` in every entry) are
+merged into the cheapest, which takes over their posterior mass (``_Bank.merge``): the bank solves
+each distinct hypothesis once, its weights and odds as before.
 
 With ``axes`` every window also holds the walk-axes prior on its velocities
 (``graphslam.core.tracking.axes``), with ``area`` the walkable-area prior on its step positions
@@ -73,7 +76,7 @@ class FixedLagConfig:
     huber_k: float | None = DEFAULTS.filter.gate_sigma
     max_iter: int = 10
     restart_every: int = 0  # every this many epochs also solve from dead-reckoning starts (0: never)
-    rel_tol: float = 1e-6  # LM stops when a step lowers the window cost by less than this share
+    rel_tol: float = 1e-5  # LM stops when a step lowers the window cost by less than this share
     max_damping: float = 1.0  # ... or when its damping would grow beyond this (steps that damped change nothing)
     prune_cost: float | None = DEFAULTS.fixed_lag.prune_cost
     adaptive_rssi: bool = DEFAULTS.rssi.adaptive  # scale an epoch's RSSI std by its innovations' NIS per reading (> 1)
@@ -81,6 +84,7 @@ class FixedLagConfig:
     report: str = DEFAULTS.fixed_lag.bank_report  # best: the lowest-cost hypothesis | mixture: the bank's posterior mixture
     angle_index: int | None = None  # state entry that is an angle (mixture differences wrapped)
     temper: float = 1.0  # the bank's costs are divided by this in its weights and pruning (correlated readings)
+    merge_tol: float | None = 0.05  # hypotheses whose window states agree to this (m, m/s, rad; every entry) become one (None: never)
 
     def __post_init__(self) -> None:
         if not (self.lag_s >= 0 and self.window_s >= self.lag_s):
@@ -89,6 +93,8 @@ class FixedLagConfig:
             raise EstimationError(f"fixed-lag: huber_k must be > 0, got {self.huber_k}")
         if self.max_iter < 1 or (self.prune_cost is not None and self.prune_cost <= 0) or not self.max_damping > 0:
             raise EstimationError("fixed-lag: max_iter >= 1, prune_cost > 0 and max_damping > 0 required")
+        if self.merge_tol is not None and not (math.isfinite(self.merge_tol) and self.merge_tol > 0):
+            raise EstimationError(f"fixed-lag: merge_tol must be a finite number > 0 or None, got {self.merge_tol}")
         if not (math.isfinite(self.temper) and self.temper >= 1.0):
             raise EstimationError(f"fixed-lag: temper must be a finite number >= 1, got {self.temper}")
         if self.report not in ("best", "mixture"):
@@ -290,6 +296,34 @@ class _Bank:
         tc = self.total_cost
         self.alive &= ~(tc > tc[self.alive].min() + prune_cost)
 
+    def merge(self, tol: float | None, temper: float, angle_index: int | None) -> None:
+        """Hypotheses whose window states agree to ``tol`` in every entry (the angle's difference
+        wrapped) are one hypothesis reached from several starts: the cheapest is kept, its cost
+        lowered by the others' posterior mass (``-2 T log sum exp(-cost / 2 T)`` over the group), so
+        the bank's mixture weights and odds against the other hypotheses stay as they were."""
+        hs = self.live
+        if tol is None or len(hs) < 2:
+            return
+        X = self.X[hs]
+        D = X[:, None] - X[None]
+        if angle_index is not None:
+            D[..., angle_index] = np.remainder(D[..., angle_index] + math.pi, 2 * math.pi) - math.pi
+        close = np.abs(D).max(axis=(2, 3)) <= tol
+        tc = self.total_cost[hs]
+        order = np.argsort(tc, kind="stable")
+        gone = np.zeros(len(hs), bool)
+        for i in order:
+            if gone[i]:
+                continue
+            group = np.flatnonzero(close[i] & ~gone)
+            group = group[group != i]
+            if not len(group):
+                continue
+            gone[group] = True
+            u = (tc[group] - tc[i]) / (2.0 * temper)  # >= 0
+            self.const[hs[i]] -= 2.0 * temper * np.log1p(np.exp(-u).sum())
+        self.alive[hs[gone]] = False
+
 
 @dataclass(eq=False)
 class _Solved:
@@ -408,6 +442,7 @@ def fixed_lag_smooth(
         bank.solve(now, restart=cfg.restart_every > 0 and j % cfg.restart_every == 0 and j > 0)
         solves += len(bank.live)
         bank.prune(None if cfg.prune_cost is None else cfg.prune_cost * cfg.temper)
+        bank.merge(cfg.merge_tol, cfg.temper, cfg.angle_index)
         if progress is not None:
             progress(j + 1)
     report(math.inf)

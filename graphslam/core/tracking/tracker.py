@@ -370,6 +370,7 @@ def _track_fixed_lag(
         model, starts, P0, epochs,
         FixedLagConfig(
             lag_s=cfg.fixed_lag.lag_s, window_s=max(cfg.fixed_lag.window_s, cfg.fixed_lag.lag_s), huber_k=cfg.filter.gate_sigma, prune_cost=cfg.fixed_lag.prune_cost,
+            merge_tol=cfg.fixed_lag.merge_tol,
             adaptive_rssi=cfg.rssi.adaptive, report=cfg.fixed_lag.bank_report, angle_index=None if model.theta_rad is not None else 6,
             temper=1.0 if cfg.fixed_lag.bank_temper is None else cfg.fixed_lag.bank_temper,
         ),
