@@ -2,7 +2,9 @@
 """The fixed-lag tracker's LM budget per window: ms per step and the tracks' departure from the
 default (rel_tol 1e-6, max_iter 10) for other stopping rules, on the same map and walks, one run.
 
-    python lab/issue40/lm_budget.py RADIO_MAP WALKS... [--variants 1e-6:10,1e-4:10,1e-6:3]
+    python lab/issue40/lm_budget.py RADIO_MAP WALKS... [--variants 1e-6:10,1e-4:10,1e-6:3,1e-6:10:0.001]
+
+(a third field: ``FixedLagConfig.merge_tol``)
 
 Self-calibration is off (the same model for every variant); each variant tracks every walk; the
 figures: CPU ms per step, bank solves, and per variant the mean / max distance (m) of its positions
@@ -37,8 +39,9 @@ def main() -> None:
     original = tracker_mod.FixedLagConfig
     ref: dict[str, np.ndarray] | None = None
     for spec in a.variants.split(","):
-        tol, it = spec.split(":")
-        tracker_mod.FixedLagConfig = functools.partial(original, rel_tol=float(tol), max_iter=int(it))
+        tol, it, *merge = spec.split(":")
+        extra = {"merge_tol": float(merge[0])} if merge else {}
+        tracker_mod.FixedLagConfig = functools.partial(original, rel_tol=float(tol), max_iter=int(it), **extra)
         tracker = Tracker.on_map(rm, models, cfg)
         cpu, tracks, steps = [], {}, 0
         for _ in range(a.rounds):
@@ -51,7 +54,7 @@ def main() -> None:
         if ref is None:
             ref = tracks
         d = np.concatenate([np.linalg.norm(tracks[k] - ref[k], axis=1) for k in ref])
-        print(json.dumps({"rel_tol": float(tol), "max_iter": int(it), "cpu_ms_per_step": round(min(cpu) / steps * 1e3, 2),
+        print(json.dumps({"rel_tol": float(tol), "max_iter": int(it), **extra, "cpu_ms_per_step": round(min(cpu) / steps * 1e3, 2),
                           "diff_mean_m": round(float(d.mean()), 4), "diff_max_m": round(float(d.max()), 4)}), flush=True)
     tracker_mod.FixedLagConfig = original
 
