@@ -65,6 +65,7 @@ _EXPORTS: dict[str, str] = {
     "soak_loopback": "graphslam.app.soak:LOOPBACK",
     **{n: "graphslam.app.bench_real" for n in ("real_floors", "real_floor_rows")},
     "show_progress": "graphslam.app.progress",
+    "POWED_EXPONENT": "graphslam.core.radiomap.knn",
     "tracking_pipeline": "graphslam.core.tracking.tracker:",
     **{n: "graphslam.app.tracking_bench" for n in ("Variant", "floor_plan_area", "held_out_folds", "interpolate_cov", "oracle_radio_map", "score_walks", "standard_variants", "tracking_real", "walk_landmarks")},
     "load_previous": "graphslam.app.update",

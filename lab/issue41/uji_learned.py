@@ -12,7 +12,7 @@ import numpy as np
 from sklearn.ensemble import ExtraTreesRegressor, RandomForestRegressor
 from sklearn.neural_network import MLPRegressor
 
-from graphslam import KnnConfig, KnnLocator
+from graphslam import POWED_EXPONENT, KnnConfig, KnnLocator
 from lab.bench.uji import TEST_FILE, TRAIN_FILE, find_uji_file
 from lab.bench.ujiindoorloc import read_ujiindoorloc
 
@@ -22,8 +22,6 @@ D = "../shared/data/ujiindoorloc"
 def powed(rm, values):
     """Dense powed RSS ((shifted / -missing_dbm)^e, 0 unheard) of a csr matrix over the map's AP
     index, as the Sørensen kNN sees it."""
-    from graphslam.core.radiomap.knn import POWED_EXPONENT  # lab: the kNN's own exponent
-
     v = values.tocsr().copy()
     v.data = (v.data / -rm.missing_dbm) ** POWED_EXPONENT
     return v.toarray()
