@@ -111,7 +111,7 @@ class FixedLagRun:
     hypothesis: NDArray[np.int64]
     reported_at_s: NDArray[np.float64]
     variance_factor: NDArray[np.float64]  # (N,) fix-innovation variance factor at report time (>= 1)
-    cost: NDArray[np.float64]  # (H,) final total cost per hypothesis (inf: pruned)
+    cost: NDArray[np.float64]  # (H,) final total cost per hypothesis (inf: pruned, or merged into another)
     solves: int
     readings_dropped: int  # arrived after their epoch had been marginalised
 
