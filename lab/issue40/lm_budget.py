@@ -38,25 +38,27 @@ def main() -> None:
     cfg = TrackConfig().updated({"calibration.enabled": False})
     original = tracker_mod.FixedLagConfig
     ref: dict[str, np.ndarray] | None = None
-    for spec in a.variants.split(","):
-        tol, it, *merge = spec.split(":")
-        extra = {"merge_tol": float(merge[0])} if merge else {}
-        tracker_mod.FixedLagConfig = functools.partial(original, rel_tol=float(tol), max_iter=int(it))
-        tracker = Tracker.on_map(rm, models, cfg.updated({"fixed_lag.merge_tol": extra.get("merge_tol")}))
-        cpu, tracks, steps = [], {}, 0
-        for _ in range(a.rounds):
-            c0 = time.process_time()
-            for s in survey.sessions:
-                tr = tracker.track(s)
-                tracks[s.session_id] = tr.xy
-            cpu.append(time.process_time() - c0)
-        steps = sum(len(v) for v in tracks.values())
-        if ref is None:
-            ref = tracks
-        d = np.concatenate([np.linalg.norm(tracks[k] - ref[k], axis=1) for k in ref])
-        print(json.dumps({"rel_tol": float(tol), "max_iter": int(it), **extra, "cpu_ms_per_step": round(min(cpu) / steps * 1e3, 2),
-                          "diff_mean_m": round(float(d.mean()), 4), "diff_max_m": round(float(d.max()), 4)}), flush=True)
-    tracker_mod.FixedLagConfig = original
+    try:
+        for spec in a.variants.split(","):
+            tol, it, *merge = spec.split(":")
+            extra = {"merge_tol": float(merge[0])} if merge else {}
+            tracker_mod.FixedLagConfig = functools.partial(original, rel_tol=float(tol), max_iter=int(it))
+            tracker = Tracker.on_map(rm, models, cfg.updated({"fixed_lag.merge_tol": extra.get("merge_tol")}))
+            cpu, tracks = [], {}
+            for _ in range(a.rounds):
+                c0 = time.process_time()
+                for s in survey.sessions:
+                    tr = tracker.track(s)
+                    tracks[s.session_id] = tr.xy
+                cpu.append(time.process_time() - c0)
+            steps = sum(len(v) for v in tracks.values())
+            if ref is None:
+                ref = tracks
+            d = np.concatenate([np.linalg.norm(tracks[k] - ref[k], axis=1) for k in ref])
+            print(json.dumps({"rel_tol": float(tol), "max_iter": int(it), **extra, "cpu_ms_per_step": round(min(cpu) / steps * 1e3, 2),
+                              "diff_mean_m": round(float(d.mean()), 4), "diff_max_m": round(float(d.max()), 4)}), flush=True)
+    finally:
+        tracker_mod.FixedLagConfig = original
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """UJIIndoorLoc validation with learned regressors instead of kNN (a different formulation for the
 <= 5.5 m target): tree ensembles and an MLP on the powed representation (the Sørensen kNN's), alone
-and averaged with the default Sørensen kNN; per building too. Training on trainingData only; the
-validation set scores. python -m lab.issue41.uji_learned [--trees 200]"""
+and averaged with the default Sørensen kNN. Training on trainingData only; the validation set
+scores (needs scikit-learn, which graphslam does not install). python -m lab.issue41.uji_learned [--trees 200]"""
 from __future__ import annotations
 
 import argparse
@@ -9,8 +9,6 @@ import json
 import time
 
 import numpy as np
-from sklearn.ensemble import ExtraTreesRegressor, RandomForestRegressor
-from sklearn.neural_network import MLPRegressor
 
 from graphslam import POWED_EXPONENT, KnnConfig, KnnLocator
 from lab.bench.uji import TEST_FILE, TRAIN_FILE, find_uji_file
@@ -28,6 +26,9 @@ def powed(rm, values):
 
 
 def main() -> None:
+    from sklearn.ensemble import ExtraTreesRegressor, RandomForestRegressor
+    from sklearn.neural_network import MLPRegressor
+
     ap = argparse.ArgumentParser()
     ap.add_argument("--trees", type=int, default=200)
     a = ap.parse_args()
