@@ -17,7 +17,7 @@ from graphslam.errors import EstimationError
 
 X0 = np.array([1.0, 2.0, 0.1, -0.2, 0.0, 0.0])
 P0 = np.diag([0.5, 0.5, 0.2, 0.2, 0.01, 0.01])
-TIGHT = dict(huber_k=None, rel_tol=1e-12, max_iter=30, prune_cost=None, adaptive_rssi=False, report="best")  # exact solves, Gaussian loss
+TIGHT = dict(huber_k=None, rel_tol=1e-20, stall_tol=None, max_iter=30, prune_cost=None, adaptive_rssi=False, report="best")  # exact solves, Gaussian loss
 
 
 def _model() -> FusionModel:

@@ -125,6 +125,29 @@ def test_the_banks_levenberg_marquardt_reaches_the_reference_solutions(case):
     np.testing.assert_allclose(r, p.residual(X), atol=0)
 
 
+@pytest.mark.parametrize("stall_tol", [None, 1e-3])
+def test_the_banks_levenberg_marquardt_returns_the_system_at_its_final_states(stall_tol):
+    # The tracker's tolerances: the LM stops without taking a step that promises too little (or,
+    # with stall_tol, after one that failed); residuals, costs and the normal equations flagged
+    # fresh are those of the returned states (the marginals and the marginalisation use them).
+    m, e, axes, area, huber = _case(theta=True, axes=True)
+    B = 4
+    x0, P0 = _priors(m, B)
+    p = _window(m, e, x0, P0, np.ones((B, len(e.rss_k))), huber_k=huber, axes=axes, area=area)
+    X0 = x0[:, None, :] + np.random.default_rng(5).normal(0.0, 0.3, (B, len(e), m.n))
+    X, cost, r, band, g, fresh = levenberg_marquardt_bank(p, X0, 10, rel_tol=1e-5, max_damping=1.0, stall_tol=stall_tol)
+    np.testing.assert_array_equal(r, p.residual(X))
+    np.testing.assert_array_equal(cost, p.cost(r))
+    assert fresh.any()
+    k = np.flatnonzero(fresh)
+    b2, g2 = p.normal_equations(X[k], r[k], k)
+    np.testing.assert_allclose(band[k], b2, rtol=1e-13, atol=1e-12)
+    np.testing.assert_allclose(g[k], g2, rtol=1e-13, atol=1e-12)
+    assert (cost <= p.cost(p.residual(X0))).all()
+    tight, tc, _, _, _, _ = levenberg_marquardt_bank(p, X0, 60, rel_tol=1e-20, max_damping=1e10)
+    assert (cost <= tc * (1 + 1e-3)).all()  # what the stops leave is below 0.1 % of the cost
+
+
 def test_marginal_covariances_of_the_stacked_factor_are_blocks_of_the_inverses():
     m, e, axes, area, huber = _case(theta=True, axes=True)
     B = 3
@@ -187,7 +210,7 @@ def test_a_window_that_keeps_every_epoch_ends_at_the_whole_run_map():
     # grown, warm-started window is the whole-run MAP solved from scratch (nonlinear, robust).
     m, e = _model(theta=True), _epochs()
     x0, P0 = _priors(m, 1)
-    cfg = FixedLagConfig(lag_s=1e9, window_s=1e9, huber_k=1.0, rel_tol=1e-13, max_iter=60, prune_cost=None,
+    cfg = FixedLagConfig(lag_s=1e9, window_s=1e9, huber_k=1.0, rel_tol=1e-20, stall_tol=None, max_iter=60, prune_cost=None,
                          adaptive_rssi=False, report="best")
     fl = fixed_lag_smooth(m, [x0[0]], P0[0], e, cfg)
     whole = map_smooth(MapProblem(m, x0[0], P0[0], e, huber_k=1.0), [fl.x], max_iter=100)

@@ -78,6 +78,7 @@ class FixedLagConfig:
     restart_every: int = 0  # every this many epochs also solve from dead-reckoning starts (0: never)
     rel_tol: float = 1e-5  # LM stops when a step lowers the window cost by less than this share
     max_damping: float = 1.0  # ... or when its damping would grow beyond this (steps that damped change nothing)
+    stall_tol: float | None = 1e-3  # ... or when a step promising less than this share of the cost raises it (None: retry damped)
     prune_cost: float | None = DEFAULTS.fixed_lag.prune_cost
     adaptive_rssi: bool = DEFAULTS.rssi.adaptive  # scale an epoch's RSSI std by its innovations' NIS per reading (> 1)
     prior_count: float = 4.0  # pseudo-fixes of NIS 2 in the variance factor
@@ -93,6 +94,9 @@ class FixedLagConfig:
             raise EstimationError(f"fixed-lag: huber_k must be > 0, got {self.huber_k}")
         if self.max_iter < 1 or (self.prune_cost is not None and self.prune_cost <= 0) or not self.max_damping > 0:
             raise EstimationError("fixed-lag: max_iter >= 1, prune_cost > 0 and max_damping > 0 required")
+        if not (math.isfinite(self.rel_tol) and self.rel_tol >= 0) or (
+                self.stall_tol is not None and not (math.isfinite(self.stall_tol) and self.stall_tol >= 0)):
+            raise EstimationError(f"fixed-lag: rel_tol and stall_tol must be finite numbers >= 0, got {self.rel_tol}, {self.stall_tol}")
         if self.merge_tol is not None and not (math.isfinite(self.merge_tol) and self.merge_tol > 0):
             raise EstimationError(f"fixed-lag: merge_tol must be a finite number > 0 or None, got {self.merge_tol}")
         if not (math.isfinite(self.temper) and self.temper >= 1.0):
@@ -219,7 +223,7 @@ class _Bank:
         hs, cfg = self.live, self.s.cfg
         p = self.s.run.window(self.lo, self.hi, now, self.prior_x[hs], self.prior_info[hs], self.rss_scale[hs])
         X, cost, r, band, g, fresh = levenberg_marquardt_bank(
-            p, self.X[hs], cfg.max_iter, rel_tol=cfg.rel_tol, max_damping=cfg.max_damping)
+            p, self.X[hs], cfg.max_iter, rel_tol=cfg.rel_tol, max_damping=cfg.max_damping, stall_tol=cfg.stall_tol)
         if restart:
             prior_P = self.prior_P
             for b, h in enumerate(hs):

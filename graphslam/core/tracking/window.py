@@ -420,15 +420,20 @@ def marginal_covariances(c: NDArray, B: int, size: int, n: int, i: int) -> NDArr
 
 
 def levenberg_marquardt_bank(
-    p: WindowProblem, X0: NDArray, max_iter: int, *, rel_tol: float = 1e-8, max_damping: float = 1e10
+    p: WindowProblem, X0: NDArray, max_iter: int, *, rel_tol: float = 1e-8, max_damping: float = 1e10,
+    stall_tol: float | None = None,
 ) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray, NDArray[np.bool_]]:
     """``smoother.levenberg_marquardt`` for every hypothesis of ``p`` at once, each with its own damping
-    and stop; one more stop: after an iteration whose first step (damped at most as much as the
-    first try) promises less than ``rel_tol`` of the cost, taken if it lowers the cost. At the
-    optimum such a step often fails to lower the cost by rounding, and the damping would retry it
-    ten times over before giving up, with nothing to gain. Returns the states
-    (B, N, n), costs (B,), the final residuals, the last normal equations (bands and gradients)
-    and which of them are at the final states."""
+    and stop; two more stops, both where the quadratic model has nothing left to give. A step that
+    promises less than ``rel_tol`` of the cost (undamped, at most ``(1 + lambda)^2`` times the damped
+    step's promise) is not taken: at the optimum it often fails to lower the cost by rounding, and
+    the damping would retry it ten times over; stopping at the linearisation point also leaves the
+    normal equations at the final states (no linearisation more for the marginals). With
+    ``stall_tol``: a step promising less than ``stall_tol`` of the cost that raises it ends the
+    iterations too. The RSSI rows' Jacobian leaves out the residual field's gradient (noise at the
+    cell scale), so near the optimum the model and the cost part at that level and damped retries
+    gain nothing. Returns the states (B, N, n), costs (B,), the final residuals, the last normal
+    equations (bands and gradients) and which of them are at the final states."""
     B = len(p.x0)
     x = np.asarray(X0, float).reshape(B, p.size).copy()
     if not np.isfinite(x).all():
@@ -459,6 +464,13 @@ def levenberg_marquardt_bank(
         ca = cost[a]
         # the undamped step's decrease is at most pred (1 + lam)^2 (exact for a diagonal H)
         last = ok & (pred * (1.0 + la) ** 2 <= rel_tol * ca)
+        if last.any():
+            done[a[last]] = True
+            keep = ~last
+            a, dx, ok, pred, ca = a[keep], dx[keep], ok[keep], pred[keep], ca[keep]
+            if not len(a):
+                continue
+            every, hs = False, a
         xa = (x if every else x[a]) + dx
         if ok.all():
             r_new = p.residual(xa, hs)
@@ -472,6 +484,8 @@ def levenberg_marquardt_bank(
         rej = a[~acc]
         lam[rej] *= 10.0
         done[rej[lam[rej] > max_damping]] = True
+        if stall_tol is not None:
+            done[rej[pred[~acc] <= stall_tol * ca[~acc]]] = True
         if acc.any():
             ac = a[acc]
             drop = ca[acc] - c_new[acc]
@@ -482,5 +496,4 @@ def levenberg_marquardt_bank(
             fresh[ac] = False
             stop = (drop <= rel_tol * cost[ac]) | (np.abs(dx[acc]).max(axis=1) < 1e-10) | (it[ac] >= max_iter)
             done[ac[stop]] = True
-        done[a[last]] = True  # taken if it lowered the cost; nothing left to gain either way
     return x.reshape(B, p.N, p.n), cost, r, band, g, fresh
