@@ -254,6 +254,33 @@ def test_sorensen_distances_and_neighbours_equal_their_definition(min_common: in
             assert res.neighbours[i].tolist() == [int(j) if np.isfinite(expect[i, j]) else -1 for j in order]
 
 
+@pytest.mark.parametrize("min_common", [1, 3])
+def test_sorensen_dense_blocks_equal_the_postings_bit_for_bit(min_common: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    # A block is summed dense, AP by AP, or from its postings (knn.SORENSEN_DENSE_MIN_FILL): the
+    # same sums in the same order, so the same distances, neighbours and ties, bit for bit.
+    from graphslam.core.radiomap import knn
+
+    rng = np.random.default_rng(8)
+    n = 300
+    refs = _random_scans(rng, n, 30, 12)
+    refs[::7] = [refs[2]] * len(refs[::7])  # ties at the k-th distance
+    rm = RadioMap.from_scans(refs, rng.uniform(0, 50, (n, 2)), session_ids="s", t_ns=np.arange(n), frame="f",
+                             floors=rng.choice(["F1", "F2"], n))
+    queries = rm.encode(_random_scans(rng, 60, 40, 9) + [dict(refs[2]), {}])
+    loc = KnnLocator(rm, KnnConfig(k=5, index="exact", min_common=min_common), block_cells=20 * n, threads=1)
+    calls: list[int] = []
+    dense = knn._sorensen_dense_sums
+    monkeypatch.setattr(knn, "_sorensen_dense_sums", lambda *a: calls.append(1) or dense(*a))
+    monkeypatch.setattr(knn, "SORENSEN_DENSE_MIN_FILL", 0.0)
+    a = loc.locate(queries)
+    assert len(calls) == 4  # every block of 20 queries (the last one's 2)
+    monkeypatch.setattr(knn, "SORENSEN_DENSE_MIN_FILL", float("inf"))
+    b = loc.locate(queries)
+    assert len(calls) == 4
+    assert np.array_equal(loc.distances(queries), knn._sorensen_block(loc._sorensen, queries, min_common))
+    _assert_same_answers(a, b)
+
+
 def test_sorensen_weighs_a_reading_by_its_strength_where_eq9_charges_a_fixed_gap() -> None:
     # The query matches A on its one strong AP and misses two weak readings A lacks; B hears the weak
     # ones exactly but the strong AP 15 dB lower. Eq. 9 charges each missing reading as -110 dBm

@@ -115,6 +115,18 @@ class Field:
         return np.full(len(z), self.const[a])
 
     def at(self, aps):
+        """(C, k) mean and sigma of APs ``aps`` at every mapped cell, cached per AP (same values as
+        field_locate.py's, computed once per AP and fold)."""
+        if not hasattr(self, "_cache"):
+            self._cache = {}
+        miss = [a for a in aps if a not in self._cache]
+        if miss:
+            mu, sig = self._at(np.array(miss))
+            for j, a in enumerate(miss):
+                self._cache[a] = (mu[:, j], sig[:, j])
+        return (np.column_stack([self._cache[a][0] for a in aps]), np.column_stack([self._cache[a][1] for a in aps]))
+
+    def _at(self, aps):
         mu_in = self.MU[:, aps].toarray()
         n_in = self.N[:, aps].toarray()
         inside = n_in > 0
