@@ -185,11 +185,12 @@ def run_floor(folder: str) -> dict:
         rm = oracle_radio_map(train)
         truth = oracle_radio_map(test).xy
         queries = [dict(sc.readings) for w in test for sc in w.scans]
+        qwalk = [w.session_id for w in test for sc in w.scans]
         outs = {}
         for m in ("eq9", "sorensen"):
             outs[m] = KnnLocator(rm, KnnConfig(metric=m)).locate(queries)
             allknn[f"knn_{m}"].append(np.linalg.norm(outs[m].xy - truth, axis=1))
-        chunks.append((rm, truth, queries, outs))
+        chunks.append((rm, truth, queries, outs, qwalk))
     total = sum(len(c[2]) for c in chunks)
     # seeded subsample of the held-out scans, spread over the folds in proportion
     if MAX_Q and total > MAX_Q:
@@ -197,7 +198,8 @@ def run_floor(folder: str) -> dict:
     else:
         pick = np.arange(total)
     start = 0
-    for rm, truth, queries, outs in chunks:
+    walk_of = []
+    for rm, truth, queries, outs, qwalk in chunks:
         sel = pick[(pick >= start) & (pick < start + len(queries))] - start
         start += len(queries)
         if not len(sel):
@@ -253,11 +255,15 @@ def run_floor(folder: str) -> dict:
             n_q += 1
             for n in names:
                 err[n].append(e[n])
+            walk_of.append(qwalk[qi])
         print(f"  fold done: {len(sel)} queries, field build {t_build:.1f}s, {time.time()-t_floor:.0f}s so far", flush=True)
     row = {"floor": folder, "walks": len(walks), "folds": len(split), "scans": total, "queries": n_q,
            "ms_per_query_loglik": round(1e3 * t_field / max(n_q, 1), 2),
            "ms_per_query_one_fusion_posterior": round(1e3 * t_fuse / max(n_q, 1), 3),
            "seconds": round(time.time() - t_floor, 1), "mean_heard_aps": round(float(np.mean(n_heard)), 1), "all_scans": {}, "subsample": {}}
+    if OUT:  # per-query errors and walks, for paired walk-bootstrap intervals
+        np.savez_compressed(OUT.replace(".json", "") + "_" + folder.rstrip("/").split("/")[-1] + ".npz",
+                            walk=np.array(walk_of), names=np.array(names), err=np.array([err[n] for n in names], float))
     for k, v in allknn.items():
         a = np.concatenate(v)
         row["all_scans"][k] = {"located": int(np.isfinite(a).sum()), "mean": round(float(np.nanmean(a)), 3), "median": round(float(np.nanmedian(a)), 3)}
