@@ -206,9 +206,11 @@ class _Bank:
             self.n_fix[hs] += 1
         if len(rss):
             ap, B = e.rss_ap[rss], len(hs)
+            law = s.run.law.take(rss)  # these readings' AP laws and field, gathered once per run
+            x, y = xl[:, 0:1], xl[:, 1:2]  # (B, 1) against the readings' (R,)
             Hm = np.zeros((B, len(rss), m.n))
-            Hm[..., 0:2] = m.path_loss.rss_gradient(np.repeat(xl[:, 0:2], len(rss), axis=0), np.tile(ap, B)).reshape(B, -1, 2)
-            pred = m.path_loss.mean_rss(xl[:, 0:2], ap)
+            Hm[..., 0], Hm[..., 1] = law.gradient(x, y)
+            pred = law.mean(x, y)
             if m.shadowing is not None:
                 Hm[:, np.arange(len(rss)), m.shadow_state(ap)] = 1.0
                 pred = pred + xl[:, m.shadow_state(ap)]
