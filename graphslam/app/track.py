@@ -5,7 +5,7 @@ folder, which ``graphslam survey`` owns), write the tracks (CSV) and, beside the
 configuration (``<out>.config.yaml``).
 
 ``prepare_track`` reads everything and says what the work will cost (``TrackJob.expected``: the
-default fixed-lag tracker takes ~6 ms a step), ``TrackJob.run`` tracks; ``track_files`` is both.
+default fixed-lag tracker takes ~4 ms a step), ``TrackJob.run`` tracks; ``track_files`` is both.
 """
 
 from __future__ import annotations
@@ -80,7 +80,7 @@ def write_track_csv(tracks: Iterable[SessionTrack], path: str | Path) -> Path:
 
 # Seconds per tracked step on one core (default settings, measured 2026-12-04 on `paper`'s held-out
 # walks, docs/tracking.md "Speed"): what ``TrackJob.expected`` says before the work. Rough by design.
-SECONDS_PER_STEP = {"fixed-lag": 0.007, "ekf": 0.005, "ukf": 0.012, "particle": 0.01}
+SECONDS_PER_STEP = {"fixed-lag": 0.005, "ekf": 0.005, "ukf": 0.012, "particle": 0.01}
 # the self-calibration's kNN passes over the map (leave-one-walk-out fixes, their correlation): ~N^2
 SECONDS_PER_MAP_PAIR = 6e-7
 # a run expected to take this long is announced (``TrackJob.notice``)

@@ -118,8 +118,8 @@ def track(
     picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: the tracks (and truth)."),
 ) -> None:
     """Track walks on a radio map: fusion of step velocity, WiFi RSSI and kNN fixes (fixed-lag MAP, or EKF/UKF).
-    The default fixed-lag tracker takes ~6 ms a step (the EKF ~5 ms), plus a self-calibration
-    on a map the first time (~10 s, kept in --cache-dir): a long run is announced before it starts."""
+    The default fixed-lag tracker takes ~4 ms a step (the EKF ~5 ms), plus a self-calibration
+    on a map the first time (~5 s on a small map, kept in --cache-dir): a long run is announced before it starts."""
     from graphslam.app.progress import progress_shown
     from graphslam.app.track import prepare_track
     from graphslam.core.radiomap.ivf import limit_blas_threads
