@@ -428,7 +428,7 @@ def levenberg_marquardt_bank(
     promises less than ``rel_tol`` of the cost (undamped, at most ``(1 + lambda)^2`` times the damped
     step's promise) is not taken: at the optimum it often fails to lower the cost by rounding, and
     the damping would retry it ten times over; stopping at the linearisation point also leaves the
-    normal equations at the final states (no linearisation more for the marginals). With
+    normal equations at the final states (the marginals need no further linearisation). With
     ``stall_tol``: a step promising less than ``stall_tol`` of the cost that raises it ends the
     iterations too. The RSSI rows' Jacobian leaves out the residual field's gradient (noise at the
     cell scale), so near the optimum the model and the cost part at that level and damped retries
