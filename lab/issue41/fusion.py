@@ -225,30 +225,25 @@ def run_floor(folder: str) -> dict:
                     e[n] = e["knn_sorensen"] if n.startswith(("fuse", "blend")) else np.nan
             else:
                 d2 = ((cells - knn) ** 2).sum(1) if kv else None
+                def score(label: str, T: float) -> None:  # every variant at temperature T, named by label
+                    fmean = post_mean(ll / T, cells)
+                    e[f"field {label}"] = np.linalg.norm(fmean - truth[qi])
+                    for s in SS:
+                        est = post_mean(ll / T - 0.5 * d2 / s**2, cells) if kv else fmean
+                        e[f"fuse {label} s={s:g}"] = np.linalg.norm(est - truth[qi])
+                    for c in CS:
+                        s = max(c * spread, SPREAD_FLOOR) if kv else np.nan
+                        est = post_mean(ll / T - 0.5 * d2 / s**2, cells) if kv else fmean
+                        e[f"fuse {label} s={c:g}*spread"] = np.linalg.norm(est - truth[qi])
+                    if label.startswith("T="):
+                        for w in WS:
+                            est = w * knn + (1 - w) * fmean if kv else fmean
+                            e[f"blend w={w:g} {label}"] = np.linalg.norm(est - truth[qi])
+
                 for T in TS:
-                    fmean = post_mean(ll / T, cells)
-                    e[f"field T={T:g}"] = np.linalg.norm(fmean - truth[qi])
-                    for s in SS:
-                        est = post_mean(ll / T - 0.5 * d2 / s**2, cells) if kv else fmean
-                        e[f"fuse T={T:g} s={s:g}"] = np.linalg.norm(est - truth[qi])
-                    for c in CS:
-                        s = max(c * spread, SPREAD_FLOOR) if kv else np.nan
-                        est = post_mean(ll / T - 0.5 * d2 / s**2, cells) if kv else fmean
-                        e[f"fuse T={T:g} s={c:g}*spread"] = np.linalg.norm(est - truth[qi])
-                    for w in WS:
-                        est = w * knn + (1 - w) * fmean if kv else fmean
-                        e[f"blend w={w:g} T={T:g}"] = np.linalg.norm(est - truth[qi])
+                    score(f"T={T:g}", T)
                 for K in KS:
-                    T = max(1.0, nh / K)
-                    fmean = post_mean(ll / T, cells)
-                    e[f"field Tn={K:g}"] = np.linalg.norm(fmean - truth[qi])
-                    for s in SS:
-                        est = post_mean(ll / T - 0.5 * d2 / s**2, cells) if kv else fmean
-                        e[f"fuse Tn={K:g} s={s:g}"] = np.linalg.norm(est - truth[qi])
-                    for c in CS:
-                        s = max(c * spread, SPREAD_FLOOR) if kv else np.nan
-                        est = post_mean(ll / T - 0.5 * d2 / s**2, cells) if kv else fmean
-                        e[f"fuse Tn={K:g} s={c:g}*spread"] = np.linalg.norm(est - truth[qi])
+                    score(f"Tn={K:g}", max(1.0, nh / K))
             t3 = time.time()
             t_field += t2 - t1
             t_fuse += (t3 - t2) / ((len(TS) + len(KS)) * (len(SS) + len(CS) + 1))  # one posterior's share
