@@ -214,6 +214,14 @@ def test_config_rejects_a_window_shorter_than_the_lag():
         FixedLagConfig(lag_s=3.0, window_s=1.0)
 
 
+@pytest.mark.parametrize("field, bad", [("rel_tol", -1e-5), ("rel_tol", float("nan")), ("stall_tol", -1.0),
+                                        ("stall_tol", float("inf"))])
+def test_config_rejects_bad_lm_tolerances(field: str, bad: float):
+    with pytest.raises(EstimationError, match=field):
+        FixedLagConfig(**{field: bad})
+    FixedLagConfig(stall_tol=None)  # None: a failed step is retried damped, as the reference LM does
+
+
 def test_normal_equations_and_one_epoch_marginal_match_the_sparse_algebra():
     # The fixed-lag path assembles J^T W J without a sparse matrix and takes one epoch's marginal
     # by a banded solve: both must equal the plain sparse products (robust weights on, RSSI rows in).
