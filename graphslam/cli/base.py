@@ -9,13 +9,15 @@ import typer
 
 # no_args_is_help stays off: typer prints the whole help while raising that error; without it,
 # `graphslam` / `graphslam bench` alone is a usage error ("Missing command"), one line like all others.
+# rich_markup_mode=None: click's plain-text help; rich's rendering imports ~0.14 s of modules.
 app = typer.Typer(
     add_completion=False,
+    rich_markup_mode=None,
     help="Factor-graph SLAM for crowdsourced indoor WiFi site survey (foot-mounted IMU + WiFi).",
 )
 
 
-bench_app = typer.Typer(help="Evaluate on your own recordings with ground truth (the simulator benchmarks: python -m lab.bench).")
+bench_app = typer.Typer(rich_markup_mode=None, help="Evaluate on your own recordings with ground truth (the simulator benchmarks: python -m lab.bench).")
 app.add_typer(bench_app, name="bench")
 
 
