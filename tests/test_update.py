@@ -5,6 +5,7 @@ A simulated crowd floor: 11 walks surveyed first, a 12th walk arrives later.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shutil
 from dataclasses import replace
@@ -17,7 +18,7 @@ from conftest import run_cli as _run
 from graphslam.config import GraphSlamConfig
 from graphslam.core.survey import incremental as inc
 from graphslam.core.survey.align import build_problem, solve
-from graphslam.core.types import Survey
+from graphslam.core.types import HeadingTrack, Survey
 from graphslam.io.csv_io import read_trajectories
 from graphslam.io.mcap_writer import write_session
 from graphslam.io.survey_state import STATE_FILE, read_survey_state
@@ -208,6 +209,56 @@ def test_an_update_with_headings_keeps_the_components_apart(tmp_path: Path) -> N
     assert upd["update"]["resolved"]["nodes"] < upd["update"]["resolved"]["of_nodes"]
     assert sum(t_prev[k] == t_upd[k] for k in t_prev) > 0
 
+    # an old walk whose phone headings changed (its steps and scans did not) is solved again, in full
+    s0 = sim.survey.sessions[0]
+    shutil.copytree(tmp_path / "all", tmp_path / "turned")
+    write_session(replace(s0, heading=HeadingTrack(s0.heading.t_ns, s0.heading.yaw + 0.5)),
+                  tmp_path / "turned" / f"{s0.session_id}.mcap")
+    assert _run(["survey", str(tmp_path / "turned"), "--out", str(tmp_path / "t"), "--update", str(tmp_path / "prev"),
+                 "--no-progress"]) == 0
+    u = json.loads((tmp_path / "t" / "report.json").read_text())["update"]
+    assert u["mode"] == "full" and s0.session_id in u["reason"] and "changed" in u["reason"], u
+    # a state of format 2 digested steps and scans only: its walks' headings are unknown, so in full
+    old_state = tmp_path / "prev2"
+    shutil.copytree(tmp_path / "prev", old_state)
+    with np.load(old_state / STATE_FILE) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["format_version"] = np.int64(2)
+    np.savez(old_state / STATE_FILE, **arrays)
+    assert _run(["survey", str(tmp_path / "all"), "--out", str(tmp_path / "f2"), "--update", str(old_state),
+                 "--no-progress"]) == 0
+    u = json.loads((tmp_path / "f2" / "report.json").read_text())["update"]
+    assert u["mode"] == "full" and "format 2" in u["reason"], u
+
+
+def test_session_digest_covers_every_solver_input() -> None:
+    s = simulate("museum", seed=0, size=0.25).survey.sessions[0]
+    assert s.heading is not None and s.landmarks
+    d = inc.session_digest(s)
+    m0 = s.landmarks[0]
+    changed = [
+        replace(s, heading=HeadingTrack(s.heading.t_ns, s.heading.yaw + 1e-6)),
+        replace(s, heading=None),
+        replace(s, landmarks=(replace(m0, t_ns=m0.t_ns + 1), *s.landmarks[1:])),
+        replace(s, landmarks=(replace(m0, landmark_id=m0.landmark_id + "x"), *s.landmarks[1:])),
+        replace(s, uwb_id="tag7"),
+    ]
+    assert all(inc.session_digest(c) != d for c in changed)
+    # what never reaches the solver: the marks' surveyed positions, the ground truth
+    same = [replace(s, landmarks=(replace(m0, x=m0.x + 1.0), *s.landmarks[1:])), replace(s, ground_truth=None)]
+    assert all(inc.session_digest(c) == d for c in same)
+    # a walk with none of the optional inputs keeps the digest earlier states recorded (id, steps, scans)
+    bare = replace(s, heading=None, landmarks=())
+    h = hashlib.sha256()
+    h.update(bare.session_id.encode())
+    for a in (bare.steps.t_ns, bare.steps.xy, bare.steps.heading):
+        h.update(np.ascontiguousarray(a).tobytes())
+    h.update(np.array([sc.t_ns for sc in bare.scans], np.int64).tobytes())
+    h.update(np.array([len(sc.readings) for sc in bare.scans], np.int64).tobytes())
+    h.update("\n".join([b for sc in bare.scans for b in sc.readings]).encode())
+    h.update(np.array([r for sc in bare.scans for r in sc.readings.values()], np.float64).tobytes())
+    assert inc.session_digest(bare) == h.hexdigest()
+
 
 def _rows(path: Path) -> list[tuple[str, ...]]:
     """trajectories.csv rows as (session, t, x, y, ...) text tuples, keyed by session and time."""
@@ -240,7 +291,8 @@ def test_a_state_without_components_or_with_other_control_points_means_a_full_re
     old["format_version"] = np.int64(1)
     v1 = tmp_path / "v1.npz"
     np.savez(v1, **old)
-    assert "no components" in mismatch(read_survey_state(v1), survey, cfg)
+    # (its digests also predate the walks' headings: that is said first)
+    assert "format 1" in mismatch(read_survey_state(v1), survey, cfg)
     # a format-2 state missing one of its arrays is refused, naming it
     bad = {**old, "format_version": np.int64(2)}
     np.savez(tmp_path / "v2bad.npz", **bad)

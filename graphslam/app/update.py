@@ -56,11 +56,17 @@ def mismatch(
         return "configuration differs from the previous run's: " + "; ".join(diff[:3]) + (
             f" (+{len(diff) - 3} more)" if len(diff) > 3 else "")
     current = {s.session_id: s for s in survey}
+    if previous.format_version < 3 and any(
+        s.heading is not None or s.landmarks or s.uwb_id or s.uwb_ranges is not None
+        for s in (current.get(sid) for sid in previous.session_ids) if s is not None
+    ):
+        return (f"the previous survey state (format {previous.format_version}) does not record its walks' headings, "
+                "landmark marks or UWB rangings, which this survey's walks carry")
     for sid, digest in zip(previous.session_ids, previous.digests):
         if sid not in current:
             return f"walk {sid!r} of the previous survey is not among the recordings"
         if session_digest(current[sid]) != digest:
-            return f"walk {sid!r} changed since the previous survey (its steps or scans differ)"
+            return f"walk {sid!r} changed since the previous survey (its steps, scans, headings, marks or UWB differ)"
     if previous.registration_reliable is False and cfg.optimizer.unreliable_registration == "unalign":
         return "the previous survey's registration was unreliable: which walks it aligns depends on all of them"
     if control_points_digest(control_points) != previous.control_digest:

@@ -1,12 +1,14 @@
 """``survey_state.npz``: what a survey output keeps for a later ``graphslam survey --update``.
 
-A NumPy ``.npz`` archive (no pickles), format version 2 (version 1, without the last three
-arrays, is still read: its walks have no components, so a survey with headings re-solves in full):
+A NumPy ``.npz`` archive (no pickles), format version 3. Older states are still read: version 1,
+without the last four arrays, has no components (a survey with headings re-solves in full);
+versions 1 and 2 digested each walk's id, steps and scans only (an update whose walks carry
+headings, landmark marks or UWB re-solves in full, once):
 
 ==================  ===========  ==================================================
 array               dtype        meaning
 ==================  ===========  ==================================================
-format_version      int64 ()     1
+format_version      int64 ()     3
 session_ids         str (S,)     every walk of the survey, in survey order
 digests             str (S,)     SHA-256 of each walk's solver inputs (``incremental.session_digest``)
 aligned             bool (S,)    walk was aligned
@@ -40,8 +42,8 @@ from graphslam.errors import InputError
 from graphslam.io.atomic import atomic_open
 
 STATE_FILE = "survey_state.npz"
-STATE_FORMAT_VERSION = 2
-READABLE_VERSIONS = (1, 2)
+STATE_FORMAT_VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
 
 
 def write_survey_state(path: str | Path, survey: Survey, al: Alignment, cfg: GraphSlamConfig) -> Path:
@@ -144,4 +146,5 @@ def read_survey_state(path: str | Path) -> PreviousSolution:
         frame=str(data["frame"]) if version >= 2 else "aligned",
         control_digest=str(data["control_digest"]) if version >= 2 else "",
         edge_used=data["edge_used"].astype(bool) if version >= 2 else None,
+        format_version=version,
     )

@@ -54,10 +54,11 @@ def control_points_digest(control_points: Mapping[str, tuple[float, float]] | No
 
 
 def session_digest(session: Session) -> str:
-    """SHA-256 of what the solver reads from a walk (id, steps, scans): equal digests, equal walk.
-
-    Landmarks and ground truth are left out on purpose: they never reach the solver.
-    """
+    """SHA-256 of what the solver reads from a walk: equal digests, equal walk. Its id, steps and
+    scans; when present (each hashed only then: a walk without them keeps the digest it had before
+    they were), the phone's headings, the landmark marks' ids and times (the ids a user names as
+    control points tie the walk to the site) and its UWB id, anchors and rangings. Left out: ground
+    truth and the marks' surveyed positions, which never reach the solver."""
     h = hashlib.sha256()
     h.update(session.session_id.encode())
     st = session.steps
@@ -68,6 +69,25 @@ def session_digest(session: Session) -> str:
     h.update(np.array([len(sc.readings) for sc in scans], np.int64).tobytes())
     h.update("\n".join([b for sc in scans for b in sc.readings]).encode())
     h.update(np.array([r for sc in scans for r in sc.readings.values()], np.float64).tobytes())
+    if session.heading is not None:
+        h.update(b"\0heading")
+        h.update(np.ascontiguousarray(session.heading.t_ns, np.int64).tobytes())
+        h.update(np.ascontiguousarray(session.heading.yaw, np.float64).tobytes())
+    if session.landmarks:
+        h.update(b"\0landmarks")
+        h.update(np.array([m.t_ns for m in session.landmarks], np.int64).tobytes())
+        h.update("\n".join(m.landmark_id for m in session.landmarks).encode())
+    if session.uwb_id or session.uwb_anchors or session.uwb_ranges is not None:
+        h.update(b"\0uwb")
+        h.update(session.uwb_id.encode())
+        for aid in sorted(session.uwb_anchors):
+            h.update(f"\n{aid}\0".encode() + np.array(session.uwb_anchors[aid], np.float64).tobytes())
+        u = session.uwb_ranges
+        if u is not None:
+            h.update(np.ascontiguousarray(u.t_ns, np.int64).tobytes())
+            h.update("\n".join(u.responder_id).encode())
+            h.update(np.ascontiguousarray(u.is_anchor, np.bool_).tobytes())
+            h.update(np.ascontiguousarray(u.range_m, np.float64).tobytes())
     return h.hexdigest()
 
 
@@ -95,6 +115,8 @@ class PreviousSolution:
     frame: str = "aligned"  # component 0's frame (``Alignment.frame``)
     control_digest: str = ""  # ``control_points_digest`` of the control points used ("" none)
     edge_used: NDArray[np.bool_] | None = None  # (E,) the edge entered the optimiser (None: all did)
+    # the state's format (``graphslam.io.survey_state``): before 3 the digests covered ids, steps and scans only
+    format_version: int = 3
 
     def walk_xyh(self, session_id: str) -> NDArray[np.float64]:
         s = self.session_ids.index(session_id)
