@@ -298,3 +298,24 @@ def test_a_state_without_components_or_with_other_control_points_means_a_full_re
     np.savez(tmp_path / "v2bad.npz", **bad)
     with pytest.raises(Exception, match="component"):
         read_survey_state(tmp_path / "v2bad.npz")
+
+
+def test_the_same_walk_exclusion_looks_at_the_rows_own_walk_only() -> None:
+    # update_edges clears near pairs of one walk from its own walk's columns only (fingerprints are
+    # grouped by walk): the same mask as the whole-block rule, and that rule when they are not grouped
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(0)
+    n = 400
+    t_s, path = rng.random(n) * 100.0, rng.random(n) * 50.0
+    cfg = SimpleNamespace(exclude_same_session_s=20.0, exclude_same_session_m=10.0)
+    rows = np.sort(rng.choice(n, 60, replace=False))
+    ok0 = rng.random((len(rows), n)) < 0.5
+    for walk in (np.sort(rng.integers(0, 7, n)), rng.integers(0, 7, n)):
+        fp = SimpleNamespace(session=walk, path_m=path)
+        ok = ok0.copy()
+        inc._exclude_same_walk(ok, rows, fp, t_s, cfg)
+        same = walk[rows][:, None] == walk[None, :]
+        near = (np.abs(t_s[rows][:, None] - t_s[None, :]) < 20.0) | (np.abs(path[rows][:, None] - path[None, :]) < 10.0)
+        assert np.array_equal(ok, ok0 & ~(same & near))
+        assert (ok != ok0).any()

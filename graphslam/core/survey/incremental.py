@@ -235,11 +235,7 @@ def update_edges(fp: FingerprintNodes, thresholds: NDArray[np.float64], warm: Wa
             # new row -> any column: the full rule (new walks' own columns are new rows too)
             ok = d < thresholds[rows][:, None]
             ok[np.arange(len(rows)), rows] = False
-            same = fp.session[rows][:, None] == fp.session[None, :]
-            near = (np.abs(t_s[rows][:, None] - t_s[None, :]) < cfg.exclude_same_session_s) | (
-                np.abs(fp.path_m[rows][:, None] - fp.path_m[None, :]) < cfg.exclude_same_session_m
-            )
-            ok &= ~(same & near)
+            _exclude_same_walk(ok, rows, fp, t_s, cfg)
             ri, ci = np.nonzero(ok)
             candidates += len(ri)
             ki.append(rows[ri])
@@ -270,6 +266,27 @@ def update_edges(fp: FingerprintNodes, thresholds: NDArray[np.float64], warm: Wa
     common = _common_aps(fp, a, b)
     log.info("WiFi edges (update): %d new fingerprints compared, %d edges", len(rows_new), len(a))
     return WifiEdges(a, b, dist, common, int(candidates))
+
+
+def _exclude_same_walk(ok: NDArray[np.bool_], rows: NDArray[np.int64], fp: FingerprintNodes, t_s: NDArray,
+                       cfg: EdgeConfig) -> None:
+    """Clear ``ok[i, j]`` (rows ``rows``, every column) where fingerprints ``rows[i]`` and ``j`` are of
+    one walk and near in time or along the walk (``propose_edges``' exclusion). Fingerprints are
+    grouped by walk (``associate``), so only each row's own walk's columns are looked at, not all."""
+    walk = fp.session
+    if len(walk) > 1 and bool(np.any(np.diff(walk) < 0)):  # not grouped: the whole block
+        same = walk[rows][:, None] == walk[None, :]
+        near = (np.abs(t_s[rows][:, None] - t_s[None, :]) < cfg.exclude_same_session_s) | (
+            np.abs(fp.path_m[rows][:, None] - fp.path_m[None, :]) < cfg.exclude_same_session_m)
+        ok &= ~(same & near)
+        return
+    for w in np.unique(walk[rows]).tolist():
+        r = np.flatnonzero(walk[rows] == w)
+        c0, c1 = int(np.searchsorted(walk, w, side="left")), int(np.searchsorted(walk, w, side="right"))
+        rr = rows[r]
+        near = (np.abs(t_s[rr][:, None] - t_s[None, c0:c1]) < cfg.exclude_same_session_s) | (
+            np.abs(fp.path_m[rr][:, None] - fp.path_m[None, c0:c1]) < cfg.exclude_same_session_m)
+        ok[r, c0:c1] &= ~near
 
 
 def _top(i: NDArray, j: NDArray, d: NDArray, m: int) -> NDArray:
