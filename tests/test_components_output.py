@@ -294,3 +294,29 @@ def test_evaluate_fits_one_component(split_run: tuple, floor: Path, capsys: pyte
     assert run_cli(["evaluate", traj, str(floor), "--component", "7"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and traj in err[0] and "no walk in component 7" in err[0]
+
+
+def test_the_radio_map_reuses_the_surveys_encoding_of_its_scans() -> None:
+    # the crowdsourced map takes its rows of the matrix the survey encoded (associate's) instead of
+    # encoding the kept scans again: the same matrix as from_scans, also when the dropped rows alone
+    # heard an AP (it leaves the index) and with readings below the threshold
+    from types import SimpleNamespace
+
+    from graphslam.core.radiomap.fingerprints import FingerprintMatrix
+    from graphslam.core.survey.radio_maps import _kept_fingerprints
+
+    rng = np.random.default_rng(3)
+    aps = [f"ap{i:02d}" for i in range(30)]
+    scans = [{a: float(rng.integers(-105, -35)) for a in rng.choice(aps[:25], rng.integers(1, 12), replace=False)}
+             for _ in range(60)]
+    scans[7]["ap29"] = -50.0  # heard by a dropped row only
+    keep = rng.random(60) < 0.7
+    keep[7] = False
+    full = FingerprintMatrix.from_scans(scans, missing_dbm=-110.0, min_rssi_dbm=-100.0)
+    got = _kept_fingerprints(SimpleNamespace(fingerprints=SimpleNamespace(fingerprints=full)), keep)
+    want = FingerprintMatrix.from_scans([s for s, k in zip(scans, keep) if k], missing_dbm=-110.0, min_rssi_dbm=-100.0)
+    assert got.bssids == want.bssids and "ap29" not in got.bssids and len(got.bssids) < len(full.bssids)
+    for a in ("indptr", "indices", "data"):
+        assert np.array_equal(getattr(got.values, a), getattr(want.values, a)), a
+    assert np.array_equal(got.extra_sq, want.extra_sq) and np.array_equal(got.extra_n, want.extra_n)
+    assert got.missing_dbm == want.missing_dbm

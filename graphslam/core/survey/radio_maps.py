@@ -6,36 +6,44 @@ from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import sparse
 
 from graphslam.config import GraphSlamConfig
 from graphslam.core.survey.align import Alignment
 from graphslam.core.common.geometry import interpolate_xy, se2_apply
 from graphslam.core.survey.factors import edge_state
+from graphslam.core.radiomap.fingerprints import FingerprintMatrix
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.radiomap.uncertainty import with_uncertainty
 from graphslam.core.types import Survey
 from graphslam.errors import SolverError
 
 
-def _readings(survey: Survey, al: Alignment) -> list[dict[str, float]]:
-    fp = al.fingerprints
-    return [dict(survey.sessions[s].scans[k].readings) for s, k in zip(fp.session.tolist(), fp.scan.tolist())]
+def _kept_fingerprints(al: Alignment, keep: NDArray[np.bool_]) -> FingerprintMatrix:
+    """The ``keep`` rows of the survey's fingerprint matrix (``associate``'s, encoded with the
+    config's ``fingerprint`` settings) over the APs those rows heard: what encoding their scans
+    again (``FingerprintMatrix.from_scans``) gives, without doing it."""
+    m = al.fingerprints.fingerprints
+    rows = np.flatnonzero(keep)
+    sub = m.values[rows]
+    used = np.unique(sub.indices)
+    if len(used) < m.n_aps:  # APs only dropped walks heard: out of the index, as from_scans leaves them
+        sub = sparse.csr_matrix((sub.data, np.searchsorted(used, sub.indices), sub.indptr), shape=(len(rows), len(used)))
+    return FingerprintMatrix(tuple(m.bssids[i] for i in used.tolist()), sub, m.missing_dbm, m.extra_sq[rows], m.extra_n[rows])
 
 
 def _build(survey: Survey, al: Alignment, xy: NDArray, frame: str, cfg: GraphSlamConfig, meta: dict[str, Any]) -> RadioMap:
     fp = al.fingerprints
     keep = np.isfinite(xy).all(axis=1)
-    scans = _readings(survey, al)
     ids = np.array(al.session_ids, dtype=object)[fp.session]
-    return RadioMap.from_scans(
-        [scans[i] for i in np.flatnonzero(keep)],
+    return RadioMap.from_fingerprints(
+        _kept_fingerprints(al, keep),
         xy[keep],
         session_ids=[str(x) for x in ids[keep]],
         t_ns=fp.t_ns[keep],
         frame=frame,
         floors=[survey.sessions[s].floor for s in fp.session[keep]] if any(s.floor for s in survey) else None,
         metadata={"config": cfg.model_dump(mode="json"), "reference_session": al.reference, **meta},
-        missing_dbm=cfg.fingerprint.missing_rssi_dbm,
         min_rssi_dbm=cfg.fingerprint.min_rssi_dbm,
     )
 
