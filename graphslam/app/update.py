@@ -57,7 +57,7 @@ def mismatch(
             f" (+{len(diff) - 3} more)" if len(diff) > 3 else "")
     current = {s.session_id: s for s in survey}
     if previous.format_version < 3 and any(
-        s.heading is not None or s.landmarks or s.uwb_id or s.uwb_ranges is not None
+        s.heading is not None or s.landmarks or s.uwb_id or s.uwb_anchors or s.uwb_ranges is not None
         for s in (current.get(sid) for sid in previous.session_ids) if s is not None
     ):
         return (f"the previous survey state (format {previous.format_version}) does not record its walks' headings, "
