@@ -195,3 +195,25 @@ def test_top_matches_dense_and_sparse_products_agree(monkeypatch: pytest.MonkeyP
     monkeypatch.setattr(sim, "DENSE_MAX_CELLS", 10**9)
     m = pc.top_matches(mixed, 4, block_rows=64)
     assert len(m) == 4 * n and not (mixed[m.i] == mixed[m.j]).any()
+
+
+def test_an_updates_rows_get_the_partners_of_the_whole_survey(monkeypatch: pytest.MonkeyPatch) -> None:
+    # ``top_matches(rows=...)`` (an update's new walks against every fingerprint) takes the same
+    # products and the same own-walk mask as the whole survey's: the same partners for those rows,
+    # on the dense and on the sparse path, with walks in runs and interleaved
+    import graphslam.core.radiomap.similarity as sim
+
+    rng = np.random.default_rng(7)
+    n, a = 300, 12
+    rssi = np.where(rng.random((n, a)) < 0.6, rng.uniform(-95, -40, (n, a)), np.nan)
+    fm = FingerprintMatrix.from_dense(rssi, tuple(f"ap{i}" for i in range(a)))
+    pc = PowerCosine.of(fm, 10.0)
+    rows = np.r_[30:60, 200:215, 290:300]
+    for group in (np.repeat(np.arange(10), 30), np.arange(n) % 10):
+        for cells in (10**9, 0):  # dense, sparse
+            monkeypatch.setattr(sim, "DENSE_MAX_CELLS", cells)
+            whole = pc.top_matches(group, 4, block_rows=64)
+            part = pc.top_matches(group, 4, block_rows=16, rows=rows)
+            mine = np.isin(whole.i, rows)
+            assert set(zip(part.i.tolist(), part.j.tolist())) == set(zip(whole.i[mine].tolist(), whole.j[mine].tolist()))
+            assert len(part) == 4 * len(rows) and not (group[part.i] == group[part.j]).any()

@@ -25,6 +25,7 @@ in float64 from the sparse rows, so both paths report the same values.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -92,19 +93,13 @@ class PowerCosine:
         if rows is not None:
             return self._top_of_rows(group, k, np.asarray(rows, np.int64), block_rows)
         rows = max(1, min(block_rows, MAX_BLOCK_CELLS // max(n, 1)))
-        cells = n * self.unit.shape[1]
-        dense = cells <= DENSE_MAX_CELLS and self.unit.nnz >= DENSE_MIN_FILL * cells
-        if dense:
-            u = self.unit.toarray().astype(np.float32)
-            ut = np.ascontiguousarray(u.T)
-        else:
-            ut = self.unit.T.tocsc()
+        u, ut = self._operands()
         # groups (walks) are usually contiguous runs: mask each row's own run by slices
         runs = _runs(group)
         out_i, out_j = [], []
         for a in range(0, n, rows):
             b = min(n, a + rows)
-            block = u[a:b] @ ut if dense else (self.unit[a:b] @ ut).toarray()
+            block = u[a:b] @ ut if u is not None else (self.unit[a:b] @ ut).toarray()
             if runs is not None:
                 for g0, g1, r0, r1 in _overlaps(runs, a, b):
                     block[r0 - a:r1 - a, g0:g1] = -1.0
@@ -119,16 +114,31 @@ class PowerCosine:
         return Matches(i, j, self.pairs(i, j))
 
 
+    def _operands(self) -> tuple[NDArray[np.float32] | None, Any]:
+        """(dense float32 fingerprints or None, the right-hand side of the block products): one float32
+        BLAS product per block where the fingerprints fill ``DENSE_MIN_FILL`` of a dense matrix of at
+        most ``DENSE_MAX_CELLS`` (module docstring), else the sparse product."""
+        cells = len(self) * self.unit.shape[1]
+        if cells <= DENSE_MAX_CELLS and self.unit.nnz >= DENSE_MIN_FILL * cells:
+            u = self.unit.toarray().astype(np.float32)
+            return u, np.ascontiguousarray(u.T)
+        return None, self.unit.T.tocsc()
+
     def _top_of_rows(self, group: NDArray[np.int64], k: int, rows: NDArray[np.int64], block_rows: int) -> Matches:
         """``top_matches`` of some rows against every fingerprint (an update's new walks)."""
         n = len(self)
         step = max(1, min(block_rows, MAX_BLOCK_CELLS // max(n, 1)))
-        ut = self.unit.T.tocsc()
+        u, ut = self._operands()  # the same products as ``top_matches``: the same partners
+        runs = _runs(group)
         out_i, out_j = [], []
         for a in range(0, len(rows), step):
             r = rows[a:a + step]
-            block = (self.unit[r] @ ut).toarray()
-            block[group[r][:, None] == group[None, :]] = -1.0
+            block = u[r] @ ut if u is not None else (self.unit[r] @ ut).toarray()
+            if runs is not None:  # each row's own walk is one run of columns
+                for g0, g1, label in runs[np.isin(runs[:, 2], group[r])].tolist():
+                    block[np.flatnonzero(group[r] == label)[:, None], np.arange(g0, g1)] = -1.0
+            else:
+                block[group[r][:, None] == group[None, :]] = -1.0
             top = np.argpartition(-block, k - 1, axis=1)[:, :k]
             s = np.take_along_axis(block, top, axis=1)
             ok = s > 0
