@@ -59,7 +59,8 @@ class EdgeConfig(_Strict):
         3, ge=0, description="keep at most this many most-similar partners per fingerprint (0 = paper: all)"
     )
     min_common_aps: int = Field(3, ge=1, description="pairs sharing fewer access points are not compared")
-    chunk_rows: int = Field(1024, ge=16, description="fingerprints per block of the distance computation")
+    chunk_rows: int = Field(1024, ge=16, description="at most this many fingerprints per block of the distance computation "
+                            "(fewer against many references: a block holds at most 2M distances)")
     candidates: Literal["auto", "exact", "ivf"] = Field(
         "auto",
         description="pairs compared with the threshold. exact: all (O(F^2)); ivf: each fingerprint's ivf_neighbours "

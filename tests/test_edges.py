@@ -7,7 +7,7 @@ import pytest
 from conftest import T0
 
 from graphslam.core.survey.association import associate
-from graphslam.core.survey.edges import propose_edges, window_thresholds
+from graphslam.core.survey.edges import nearest_per_row, propose_edges, window_thresholds
 from graphslam.core.radiomap.fingerprints import rss_distance
 from graphslam.core.types import PoseTrack, Scan, Session, Survey
 
@@ -157,3 +157,21 @@ def test_auto_candidates_switch_to_ivf_above_the_configured_size() -> None:
     cfg = load_config(None, {"edges": {"ivf_above_fingerprints": 1000}})
     assert edge_candidates(cfg, 1000) == "exact" and edge_candidates(cfg, 1001) == "ivf"
     assert edge_candidates(load_config(None, {"edges": {"candidates": "exact"}}), 10**6) == "exact"
+
+
+@pytest.mark.parametrize("m", [1, 2, 3, 5])
+def test_nearest_per_row_is_the_sort_rule(m: int) -> None:
+    """Each row's m nearest partners, ties to the lower column, in (row, distance, column) order: the
+    same pairs as sorting every pair, also with many equal distances and repeated pairs."""
+    rng = np.random.default_rng(m)
+    for _ in range(50):
+        n_pairs = int(rng.integers(0, 300))
+        i = rng.integers(0, 20, n_pairs)
+        j = rng.integers(0, 20, n_pairs)
+        d = rng.integers(0, 4, n_pairs).astype(float)  # few values: ties everywhere
+        order = np.lexsort((j, d, i))
+        si, sj, sd = i[order], j[order], d[order]
+        keep = (np.arange(n_pairs) - np.searchsorted(si, si, side="left")) < m
+        got = nearest_per_row(i, j, d, m)
+        for a, b in zip(got, (si[keep], sj[keep], sd[keep])):
+            np.testing.assert_array_equal(a, b)

@@ -141,13 +141,10 @@ def propose_edges(
         ri, ci, dv = ri[ok], ci[ok], dv[ok]
         n_candidates += len(ri)
         # the candidates below threshold are few per row: rank those, not the whole block
-        order = np.lexsort((ci, dv, ri))  # nearest first, ties by column (as the exact scan)
-        ri, ci, dv = ri[order], ci[order], dv[order]
-        first = np.searchsorted(ri, ri, side="left")
-        keep = (np.arange(len(ri)) - first) < m
-        out_i.append(ri[keep])
-        out_j.append(ci[keep])
-        out_d.append(dv[keep])
+        ri, ci, dv = nearest_per_row(ri, ci, dv, m)
+        out_i.append(ri)
+        out_j.append(ci)
+        out_d.append(dv)
     if not out_i or not sum(len(x) for x in out_i):
         z = np.zeros(0, np.int64)
         return WifiEdges(z, z, np.zeros(0), z, n_candidates)
@@ -160,6 +157,40 @@ def propose_edges(
     a, b = a[first], b[first]
     log.info("WiFi edges (%s): %d candidates below threshold, %d kept", candidates, n_candidates, len(first))
     return WifiEdges(a, b, dd[first], _common_aps(fp, a, b), n_candidates)
+
+
+def nearest_per_row(
+    i: NDArray[np.int64], j: NDArray[np.int64], d: NDArray[np.float64], m: int
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
+    """Of the directed pairs ``(i, j)`` at distance ``d``, each row's ``m`` nearest (ties: lower ``j``
+    first), ordered by row, distance, column.
+
+    Why not one sort of every pair: the pairs are ~30 per row and ``m`` is a few. ``m`` rounds of
+    per-row minima first keep the pairs at or below each row's ``m``-th smallest distance (ties
+    included), and only those are sorted (800k pairs, m = 3: 0.05 s instead of 0.4 s).
+    """
+    if len(i) == 0 or m <= 0:
+        z = np.zeros(0, np.int64)
+        return z, z, np.zeros(0, np.float64)
+    rows = int(i.max()) + 1
+    active = np.ones(len(i), bool)
+    near = np.zeros(len(i), bool)
+    left = np.full(rows, m, np.int64)  # pairs each row still needs
+    for _ in range(m):
+        low = np.full(rows, np.inf)
+        np.minimum.at(low, i[active], d[active])
+        hit = active & (d == low[i])
+        near |= hit
+        left -= np.bincount(i[hit], minlength=rows)
+        active &= ~hit & (left[i] > 0)
+        if not active.any():
+            break
+    k = np.flatnonzero(near)
+    i, j, d = i[k], j[k], d[k]
+    order = np.lexsort((j, d, i))
+    i, j, d = i[order], j[order], d[order]
+    keep = (np.arange(len(i)) - np.searchsorted(i, i, side="left")) < m
+    return i[keep], j[keep], d[keep]
 
 
 def _exact_candidates(

@@ -33,7 +33,7 @@ from scipy import sparse
 from graphslam.config import EdgeConfig
 from graphslam.core.radiomap.fingerprints import DistanceEngine
 from graphslam.core.survey.association import FingerprintNodes
-from graphslam.core.survey.edges import WifiEdges, _row_distances
+from graphslam.core.survey.edges import WifiEdges, _row_distances, nearest_per_row
 from graphslam.core.survey.initialise import Placement, register_walks
 from graphslam.core.types import Session, Survey
 from graphslam.errors import SolverError
@@ -291,11 +291,7 @@ def _exclude_same_walk(ok: NDArray[np.bool_], rows: NDArray[np.int64], fp: Finge
 
 def _top(i: NDArray, j: NDArray, d: NDArray, m: int) -> NDArray:
     """(3, K) the ``m`` nearest partners of every row (ties: lower column first), as propose_edges."""
-    order = np.lexsort((j, d, i))
-    i, j, d = i[order], j[order], d[order]
-    first = np.searchsorted(i, i, side="left")
-    keep = (np.arange(len(i)) - first) < m
-    return np.vstack([i[keep], j[keep], d[keep]])
+    return np.vstack(nearest_per_row(i, j, d, m))
 
 
 def _common_aps(fp: FingerprintNodes, a: NDArray, b: NDArray) -> NDArray[np.int64]:
