@@ -64,7 +64,7 @@ def test_rerun_replaces_the_whole_set_and_track_refits_stale_models(
     second = snapshot(out)
     assert set(second) == {  # the survey's own file it did not write this time is gone; fit-aps' is rebuilt
         "trajectories.csv", "aligned.mcap", "radio_map.parquet", "wifi_edges.parquet", "config.yaml", "report.json",
-        "survey.png", "survey_state.npz", "ap_models.json",
+        "survey.png", "survey_state.npz", "recordings_cache.npz", "ap_models.json",
     }
     assert second["config.yaml"] != first["config.yaml"] and b"d_max_m: 25" in second["config.yaml"]
     assert no_leftovers(tmp_path)

@@ -24,7 +24,8 @@ from graphslam.core.types import Survey
 from graphslam.errors import InputError, OutputError
 from graphslam.io.atomic import FolderStage, atomic_write_json, atomic_write_text, check_replaceable_folder, clean_stale
 from graphslam.io.csv_io import write_trajectories
-from graphslam.io.mcap_reader import read_survey
+from graphslam.io.mcap_reader import read_recordings
+from graphslam.io.recording_cache import CACHE_FILE, read_recording_cache, write_recording_cache
 from graphslam.io.mcap_writer import write_aligned
 from graphslam.io.survey_state import STATE_FILE, write_survey_state
 
@@ -41,6 +42,7 @@ OUTPUT_FILES = {
     "radio_map_surveyed": "radio_map_surveyed.parquet",
     "wifi_edges": "wifi_edges.parquet",
     "state": STATE_FILE,  # what a later `survey --update` starts from
+    "recordings_cache": CACHE_FILE,  # ... and the walks it need not parse again
     "config": "config.yaml",
     "report": "report.json",
 }
@@ -291,7 +293,11 @@ def _run_survey(
         from graphslam.app.update import align_update, load_previous
 
         previous = load_previous(update)
-    survey = read_survey(paths)
+    cache = None
+    if update is not None:  # the walks read last time, by their files' contents: not parsed again
+        cache = read_recording_cache(Path(update) / CACHE_FILE)
+    recordings = read_recordings(paths, cache)
+    survey = recordings.survey
     if cp is not None:
         check_control_points_marked(cp, survey, cp_source)
     timings["read"] = time.perf_counter() - t0
@@ -319,7 +325,7 @@ def _run_survey(
     files: dict[str, Path] = {}
     report = build_report(survey, alignment, evaluation, cfg, timings, floor=floor_name(paths, survey))
     if update_info is not None:
-        report["update"] = update_info
+        report["update"] = {**update_info, "walks_from_cache": recordings.cached}
 
     def finish(folder: Path | None) -> None:
         """The last of the run, before its set is published: survey.png into the stage, the
@@ -345,7 +351,7 @@ def _run_survey(
         try:
             with Task("write"):
                 files |= write_outputs(Path(out_dir), survey, alignment, report, cfg, surveyed=surveyed,
-                                       before_publish=before_publish)
+                                       before_publish=before_publish, recording_keys=recordings.keys)
         except BaseException:
             if viz is not None:  # let the child finish (and clean up its temp file) before failing
                 with contextlib.suppress(Exception):
@@ -443,17 +449,20 @@ def _check_outputs(
 
 def write_outputs(
     out_dir: Path, survey: Survey, al: Alignment, report: dict, cfg: GraphSlamConfig, *, surveyed: bool = False,
-    before_publish: Callable[[Path], None] | None = None,
+    before_publish: Callable[[Path], None] | None = None, recording_keys: Mapping[str, str] | None = None,
 ) -> dict[str, Path]:
     """Write every output into a staging folder beside ``out_dir``, then swap it in as a whole
     (``FolderStage``): ``out_dir`` holds this run's files (no ``radio_map_surveyed.parquet`` left
     from an earlier run) and the other commands' files it held, rebuilt for the new map
     (``graphslam.app.derived``, listed in report.json's ``derived_files``), or, if anything fails or
     the process is killed, exactly what it held before. ``before_publish(stage folder)`` runs after
-    the data files and before report.json (which it may still change) is written, the last file."""
+    the data files and before report.json (which it may still change) is written, the last file.
+    ``recording_keys`` (session id -> file key, ``read_recordings``): the recordings cache is written
+    for them, else none."""
     stage = FolderStage.create(out_dir, OWNED_FILES)
     try:
-        names = {k: v for k, v in OUTPUT_FILES.items() if k != "radio_map_surveyed" or surveyed}
+        names = {k: v for k, v in OUTPUT_FILES.items()
+                 if (k != "radio_map_surveyed" or surveyed) and (k != "recordings_cache" or recording_keys is not None)}
         component = al.component_of()
         write_trajectories(al.tracks, stage.path / names["trajectories"], component)
         write_aligned(al.tracks, stage.path / names["aligned"], frame_id=al.frame,
@@ -469,6 +478,8 @@ def write_outputs(
                             stage.path / names["radio_map_surveyed"])
         atomic_write_text(stage.path / names["config"], cfg.to_yaml())
         write_survey_state(stage.path / names["state"], survey, al, cfg)
+        if recording_keys is not None:
+            write_recording_cache(stage.path / names["recordings_cache"], survey, recording_keys)
         if before_publish is not None:
             before_publish(stage.path)
         atomic_write_json(stage.path / names["report"], report)

@@ -16,9 +16,10 @@ import json
 import logging
 import math
 from contextlib import contextmanager
+from dataclasses import dataclass
 from itertools import chain
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Sequence
+from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 import orjson
@@ -29,6 +30,7 @@ from graphslam.errors import InputError
 from graphslam.io.mcap_container import DamagedMcap, McapContents, TopicMessages, read_mcap
 from graphslam.io import uwb_io
 from graphslam.io.paths import expand_paths
+from graphslam.io.recording_cache import RecordingCache, recording_key
 from graphslam.io.schemas import (
     MCAP_MAGIC,
     SESSION_METADATA,
@@ -66,8 +68,40 @@ def floor_folders(site_dir: str | Path, floors: Iterable[str] | None = None) -> 
 
 def read_survey(paths: Iterable[str | Path]) -> Survey:
     """Read every session under ``paths`` (files or folders). Session ids must be unique."""
+    return read_recordings(paths).survey
+
+
+@dataclass(frozen=True, eq=False)
+class Recordings:
+    """A survey as read, with each walk's file key (``recording_cache.recording_key``, by session id)."""
+
+    survey: Survey
+    keys: Mapping[str, str]
+    cached: int = 0  # walks taken from the cache
+
+
+def read_recordings(paths: Iterable[str | Path], cache: RecordingCache | None = None) -> Recordings:
+    """``read_survey``, keeping each file's key; a file whose key ``cache`` holds is taken from it,
+    not parsed (``graphslam.io.recording_cache``)."""
     files = expand_paths(paths)
-    sessions = [read_session(f) for f in progress_over(files, "read", unit="files")]
+    sessions, keys, cached = [], [], 0
+    for f in progress_over(files, "read", unit="files"):
+        buf = _file_bytes(f)
+        key = recording_key(buf)
+        s = None
+        if cache is not None:
+            with _gc_paused():  # as the parser: thousands of readings' dicts, nothing to collect
+                s = cache.session(key, f)
+        cached += s is not None
+        sessions.append(s if s is not None else _parse_session(f, buf))
+        keys.append(key)
+    if cache is not None:
+        log.info("read %d recordings, %d of them from the cache", len(files), cached)
+    survey = _checked_survey(sessions)
+    return Recordings(survey, {s.session_id: k for s, k in zip(sessions, keys)}, cached)
+
+
+def _checked_survey(sessions: list[Session]) -> Survey:
     by_id: dict[str, Session] = {}
     for s in sessions:
         if s.session_id in by_id:
@@ -378,12 +412,19 @@ def read_session(path: str | Path) -> Session:
     """Read one recording. Raises ``InputError`` on anything that breaks the contract or
     a damaged file (every CRC it carries is checked)."""
     path = Path(path)
+    return _parse_session(path, _file_bytes(path))
+
+
+def _file_bytes(path: Path) -> bytes:
     try:
-        buf = path.read_bytes()
+        return path.read_bytes()
     except IsADirectoryError:
         raise InputError(path, "is a folder, expected an .mcap file") from None
     except OSError as e:
         raise InputError(path, f"cannot read: {e.strerror or e}") from None
+
+
+def _parse_session(path: Path, buf: bytes) -> Session:
     if buf[: len(MCAP_MAGIC)] != MCAP_MAGIC:
         raise InputError(path, "not an MCAP file (bad magic bytes)")
     with _gc_paused():
