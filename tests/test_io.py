@@ -264,3 +264,27 @@ def test_aligned_mcap_is_the_writers_byte_for_byte(tmp_path: Path, walks: int, p
     assert summary is not None and summary.statistics.message_count == n
     if walks == 6:
         assert summary.statistics.chunk_count > 1
+
+
+@pytest.mark.parametrize("frame", ["aligned", 'a "quoted" \\ frame'])
+def test_pose_messages_are_orjson_of_the_pose_dicts(frame: str) -> None:
+    """``_pose_msgs`` formats the messages from the arrays: each must be, byte for byte, orjson of the
+    pose's dict with ``heading_to_quaternion``'s quaternion (the files written before stay equal)."""
+    import orjson
+
+    from graphslam.core.types import PoseTrack, heading_to_quaternion
+    from graphslam.io.mcap_writer import _pose_msgs, _stamp
+
+    tracks = list(_tracks(5, 2, 300).values())
+    t = np.arange(7, dtype=np.int64) * 1_000_000_007 + 1_600_000_000_123_456_789
+    xy = np.array([[0.0, -0.0], [1e-7, 1e22], [-3.5, 2.0**-40], [123456.789, -1e-300], [5e-324, 0.1], [1.0, 2.0], [-0.0, 7.0]])
+    tracks.append(PoseTrack(t, xy, np.array([0.0, -0.0, np.pi, -np.pi, 1e-9, 3.0, -2.5])))
+    for track in tracks:
+        expected = [
+            orjson.dumps({"timestamp": _stamp(ti), "frame_id": frame, "pose": {
+                "position": {"x": x, "y": y, "z": 0.0}, "orientation": dict(zip("xyzw", heading_to_quaternion(h)))}})
+            for ti, (x, y), h in zip(track.t_ns.tolist(), track.xy.tolist(), track.heading.tolist())
+        ]
+        got = _pose_msgs(track, frame)
+        assert [m for _, m in got] == expected
+        assert [ti for ti, _ in got] == track.t_ns.tolist()

@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Iterable, Mapping
+from typing import Mapping
 
 import numpy as np
 import orjson
 from mcap.records import Channel, Schema
 from mcap.writer import CompressionType, Writer
 
-from graphslam.core.types import PoseTrack, Session, heading_to_quaternion
+from graphslam.core.types import PoseTrack, Session
 from graphslam.io.atomic import atomic_open
 from graphslam.io.mcap_bulk import write_bulk
 from graphslam.io.schemas import (
@@ -28,22 +28,34 @@ from graphslam.io.schemas import (
 from graphslam.io.uwb_io import anchors_metadata, range_messages
 
 
+NSEC = 1_000_000_000
+
+
 def _stamp(t_ns: int) -> dict:
     return {"sec": int(t_ns // 1_000_000_000), "nsec": int(t_ns % 1_000_000_000)}
 
 
-def _pose_msgs(track: PoseTrack, frame_id: str) -> Iterable[tuple[int, bytes]]:
-    for t, (x, y), h in zip(track.t_ns.tolist(), track.xy.tolist(), track.heading.tolist()):
-        qx, qy, qz, qw = heading_to_quaternion(h)
-        body = {
-            "timestamp": _stamp(t),
-            "frame_id": frame_id,
-            "pose": {
-                "position": {"x": x, "y": y, "z": 0.0},
-                "orientation": {"x": qx, "y": qy, "z": qz, "w": qw},
-            },
-        }
-        yield t, orjson.dumps(body)
+# One pose message as orjson writes {"timestamp": _stamp(t), "frame_id": ..., "pose": {"position":
+# {x, y, z: 0.0}, "orientation": heading_to_quaternion(heading)}} (keys in this order, no spaces).
+_POSE_JSON = (b'{"timestamp":{"sec":%d,"nsec":%d},"frame_id":%s,"pose":{"position":{"x":%s,"y":%s,"z":0.0},'
+              b'"orientation":{"x":0.0,"y":0.0,"z":%s,"w":%s}}}')
+
+
+def _float_texts(a: np.ndarray) -> list[bytes]:
+    """Each value as ``orjson.dumps`` writes it alone: one call for all of them, split at the commas."""
+    return orjson.dumps(a.tolist())[1:-1].split(b",") if len(a) else []
+
+
+def _pose_msgs(track: PoseTrack, frame_id: str) -> list[tuple[int, bytes]]:
+    """Every pose's message, the bytes of ``orjson.dumps`` of its dict: formatted from the arrays'
+    float texts (why: one dict and one dumps per pose cost 0.85 s of CPU for 103k poses; this, 0.2 s).
+    The quaternion is ``heading_to_quaternion``'s, element-wise (numpy's sin and cos of an array
+    equal those of its elements)."""
+    half = track.heading / 2.0
+    frame = orjson.dumps(frame_id)
+    texts = zip(track.t_ns.tolist(), _float_texts(track.xy[:, 0]), _float_texts(track.xy[:, 1]),
+                _float_texts(np.sin(half)), _float_texts(np.cos(half)))
+    return [(t, _POSE_JSON % (t // NSEC, t % NSEC, frame, x, y, z, w)) for t, x, y, z, w in texts]
 
 
 class _Channels:
