@@ -217,3 +217,26 @@ def test_an_updates_rows_get_the_partners_of_the_whole_survey(monkeypatch: pytes
             mine = np.isin(whole.i, rows)
             assert set(zip(part.i.tolist(), part.j.tolist())) == set(zip(whole.i[mine].tolist(), whole.j[mine].tolist()))
             assert len(part) == 4 * len(rows) and not (group[part.i] == group[part.j]).any()
+
+
+@pytest.mark.parametrize("k", [1, 3, 5, 9])
+def test_each_rows_best_matches_are_its_k_largest_positive_similarities(k: int) -> None:
+    """``_row_top_k`` (a bound from column groups' maxima, then a sort of the few values above it)
+    against the definition: each row's k largest positive values, largest first, ties to the lower
+    column; rows narrower or sparser than k, all ties, and zero or masked (-1) rows included."""
+    from graphslam.core.radiomap.similarity import TOP_K_GROUP, _row_top_k
+
+    rng = np.random.default_rng(k)
+    for trial in range(60):
+        rows, cols = int(rng.integers(1, 6)), int(rng.integers(1, 6 * TOP_K_GROUP))
+        if trial % 2:
+            block = (rng.integers(-1, 5, (rows, cols)) / 4).astype(np.float32)  # few values: ties
+        else:
+            block = (rng.random((rows, cols)) ** 6).astype(np.float32)
+        block[0, : cols // 2] = -1.0
+        if rows > 1:
+            block[1] = 0.0
+        ri, ci = _row_top_k(block, k)
+        for r in range(rows):
+            want = sorted((-float(block[r, j]), j) for j in range(cols) if block[r, j] > 0)[:k]
+            assert ci[ri == r].tolist() == [j for _, j in want]

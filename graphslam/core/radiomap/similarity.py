@@ -105,11 +105,9 @@ class PowerCosine:
                     block[r0 - a:r1 - a, g0:g1] = -1.0
             else:
                 block[group[a:b, None] == group[None, :]] = -1.0
-            top = np.argpartition(-block, k - 1, axis=1)[:, :k]
-            s = np.take_along_axis(block, top, axis=1)
-            ok = s > 0  # a partner that shares no access point is no match
-            out_i.append(np.repeat(np.arange(a, b), k)[ok.ravel()])
-            out_j.append(top.ravel()[ok.ravel()])
+            ri, ci = _row_top_k(block, k)
+            out_i.append(ri + a)
+            out_j.append(ci)
         i, j = np.concatenate(out_i), np.concatenate(out_j)
         return Matches(i, j, self.pairs(i, j))
 
@@ -139,13 +137,42 @@ class PowerCosine:
                     block[np.flatnonzero(group[r] == label)[:, None], np.arange(g0, g1)] = -1.0
             else:
                 block[group[r][:, None] == group[None, :]] = -1.0
-            top = np.argpartition(-block, k - 1, axis=1)[:, :k]
-            s = np.take_along_axis(block, top, axis=1)
-            ok = s > 0
-            out_i.append(np.repeat(r, k)[ok.ravel()])
-            out_j.append(top.ravel()[ok.ravel()])
+            ri, ci = _row_top_k(block, k)
+            out_i.append(r[ri])
+            out_j.append(ci)
         i, j = np.concatenate(out_i), np.concatenate(out_j)
         return Matches(i, j, self.pairs(i, j))
+
+
+# Columns per group of ``_row_top_k``'s first pass.
+TOP_K_GROUP = 64
+
+
+def _row_top_k(block: NDArray, k: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """(row, column) of each row's ``k`` largest positive values (a partner that shares no access
+    point is no match), per row largest first, ties to the lower column.
+
+    Why not ``argpartition`` of every row: it cost ~19 ms per block of 71 x 28k (paper size 12, 8.6 s
+    of the survey). The k-th largest of the rows' maxima over groups of ``TOP_K_GROUP`` columns is at
+    most the row's k-th largest value (k groups hold a value at least that large), so the values at
+    or above it hold the answer, and they are few: only those are sorted."""
+    r, n = block.shape
+    g = TOP_K_GROUP
+    groups = -(-n // g)
+    gmax = np.empty((r, groups), block.dtype)
+    full = n // g
+    if full:
+        gmax[:, :full] = block[:, : full * g].reshape(r, full, g).max(axis=2)
+    if full < groups:
+        gmax[:, full] = block[:, full * g :].max(axis=1)
+    tiny = np.finfo(block.dtype).tiny
+    tau = np.maximum(np.partition(gmax, groups - k, axis=1)[:, groups - k], tiny) if groups >= k else np.full(r, tiny)
+    ri, ci = np.nonzero(block >= tau[:, None])
+    v = block[ri, ci]
+    o = np.lexsort((ci, -v, ri))
+    ri, ci = ri[o], ci[o]
+    keep = (np.arange(len(ri)) - np.searchsorted(ri, ri, side="left")) < k
+    return ri[keep].astype(np.int64), ci[keep].astype(np.int64)
 
 
 def _runs(group: NDArray[np.int64]) -> NDArray[np.int64] | None:
