@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+import graphslam
 from conftest import run_cli as _run
 
 from graphslam.core.survey.incremental import session_digest
@@ -125,6 +127,9 @@ def test_an_unusable_cache_is_a_log_line_and_a_full_read(walks: Path, tmp_path: 
     arrays["graphslam"] = np.array("0.0.0-other")
     np.savez(tmp_path / "other.npz", **arrays)
     assert read_recording_cache(tmp_path / "other.npz") is None
+    short = {**arrays, "graphslam": np.array(graphslam.__version__), "rssi": arrays["rssi"][:-1]}
+    np.savez(tmp_path / "short.npz", **short)  # readings' arrays that disagree
+    assert read_recording_cache(tmp_path / "short.npz") is None
     arrays = {k: v for k, v in arrays.items() if k != "graphslam"}
     np.savez(tmp_path / "missing.npz", **arrays)
     assert read_recording_cache(tmp_path / "missing.npz") is None

@@ -140,7 +140,8 @@ def read_recording_cache(path: str | Path) -> RecordingCache | None:
             off, rows = a[f"{name}_off"], a[f"{name}_id" if name == "anc" else f"{name}_t"]
             if off.shape != (n + 1,) or off[0] != 0 or np.any(np.diff(off) < 0) or off[-1] != len(rows):
                 raise ValueError(f"{name}_off does not index its rows")
-        if len(a["read_off"]) != len(a["scan_t"]) + 1 or a["read_off"][-1] != len(a["read_ap"]) != len(a["rssi"]):
+        n_read = len(a["read_ap"])
+        if len(a["read_off"]) != len(a["scan_t"]) + 1 or a["read_off"][-1] != n_read or len(a["rssi"]) != n_read:
             raise ValueError("read_off does not index the readings")
         if len(a["read_ap"]) and (a["read_ap"].min() < 0 or a["read_ap"].max() >= len(a["aps"])):
             raise ValueError("read_ap out of range")
