@@ -176,10 +176,37 @@ class HeadingTrack:
 
 
 @dataclass(frozen=True, eq=False)
+class MagneticTrack:
+    """The phone's magnetic field per step (``/phone/magnetic``): ``enu[i]`` = (east, north, up) in µT at
+    ``t_ns[i]``, the calibrated magnetometer rotated into the Earth frame with the phone's own orientation
+    and averaged since the previous step. Indoors it varies from metre to metre (the building's steel):
+    a sequence of it along a walk is a signature of the corridor walked. Per-walk device and calibration
+    offsets of a few µT (10-30 µT on some phones) are the data's, not an error."""
+
+    t_ns: NDArray[np.int64]
+    enu: NDArray[np.float64]  # (N, 3) east, north, up (µT)
+
+    def __post_init__(self) -> None:
+        t = frozen_array(self.t_ns, np.int64)
+        b = frozen_array(np.reshape(self.enu, (-1, 3)), np.float64)
+        if not (t.ndim == 1 and len(t) == len(b)):
+            raise ValueError("MagneticTrack: t_ns and enu must have the same length")
+        if not np.isfinite(b).all():
+            raise ValueError("MagneticTrack: non-finite field")
+        if len(t) > 1 and np.any(np.diff(t) <= 0):
+            raise ValueError("MagneticTrack: timestamps must strictly increase")
+        object.__setattr__(self, "t_ns", t)
+        object.__setattr__(self, "enu", b)
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+
+@dataclass(frozen=True, eq=False)
 class Session:
     """One walker's recording.
 
-    ``steps``, ``scans``, ``heading`` and ``uwb_ranges`` are what the solver sees. ``landmarks``
+    ``steps``, ``scans``, ``heading``, ``magnetic`` and ``uwb_ranges`` are what the solver sees. ``landmarks``
     and ``ground_truth`` are kept apart: evaluation only (landmark ids a user names as control
     points are the one exception, ``graphslam.core.survey.control``).
     """
@@ -198,6 +225,7 @@ class Session:
     uwb_ranges: UwbRanges | None = None
     uwb_anchors: Mapping[str, tuple[float, ...]] = field(default_factory=dict)
     heading: HeadingTrack | None = None  # the phone's azimuth per step (optional ``/phone/heading``)
+    magnetic: MagneticTrack | None = None  # the phone's magnetic field per step (optional ``/phone/magnetic``)
 
     def __post_init__(self) -> None:
         if not self.session_id:

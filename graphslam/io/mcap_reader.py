@@ -25,7 +25,7 @@ import numpy as np
 import orjson
 
 from graphslam.core.progress import progress_over
-from graphslam.core.types import HeadingTrack, LandmarkMark, PoseTrack, Scan, Session, Survey, wrap_angle
+from graphslam.core.types import HeadingTrack, LandmarkMark, MagneticTrack, PoseTrack, Scan, Session, Survey, wrap_angle
 from graphslam.errors import InputError
 from graphslam.io.mcap_container import DamagedMcap, McapContents, TopicMessages, read_mcap
 from graphslam.io import uwb_io
@@ -37,6 +37,7 @@ from graphslam.io.schemas import (
     TOPIC_GROUND_TRUTH,
     TOPIC_HEADING,
     TOPIC_LANDMARKS,
+    TOPIC_MAGNETIC,
     TOPIC_POSE,
     TOPIC_SCAN,
     TOPIC_SCHEMAS,
@@ -372,6 +373,29 @@ def _headings(path: Path, topic: str, msgs: TopicMessages) -> HeadingTrack:
     return HeadingTrack(t, wrap_angle(yaw))
 
 
+def _magnetic(path: Path, topic: str, msgs: TopicMessages) -> MagneticTrack:
+    """``/phone/magnetic``: the field (east, north, up; µT) per message, time strictly increasing."""
+    objs = _objects(path, topic, msgs.data)
+    try:
+        t = _stamps_fast(objs)
+        enu = _finite([m["east"] for m in objs] + [m["north"] for m in objs] + [m["up"] for m in objs])
+    except (KeyError, TypeError):
+        t = enu = None
+    if t is None or enu is None:  # some message is not certainly valid: check one by one
+        rows = [(p.stamp(m), p.number(m, "east"), p.number(m, "north"), p.number(m, "up"))
+                for p, m in ((_Parse(path, topic, i), m) for i, m in enumerate(objs))]
+        t = np.array([r[0] for r in rows], np.int64)
+        b = np.array([r[1:] for r in rows], np.float64).reshape(-1, 3)
+    else:
+        b = enu.reshape(3, len(objs)).T
+    bad = np.flatnonzero(np.diff(t) <= 0)
+    if bad.size:
+        i = int(bad[0]) + 1
+        raise _Parse(path, topic, i).fail("timestamp", f"time does not increase ({t[i]} ns after {t[i - 1]} ns)")
+    _log_time_mismatch(path, topic, t, msgs)
+    return MagneticTrack(t, b)
+
+
 def _log_time_mismatch(path: Path, topic: str, t: np.ndarray, msgs: TopicMessages) -> None:
     if not log.isEnabledFor(logging.DEBUG):
         return
@@ -394,6 +418,7 @@ DECODERS: dict[str, Callable[[Path, str, TopicMessages], Any]] = {
     TOPIC_GROUND_TRUTH: _poses,
     TOPIC_UWB_RANGE: _uwb_ranges,
     TOPIC_HEADING: _headings,
+    TOPIC_MAGNETIC: _magnetic,
 }
 
 
@@ -473,6 +498,7 @@ def _session(path: Path, contents: McapContents) -> Session:
         uwb_ranges=uwb_io.ranges(path, decoded.get(TOPIC_UWB_RANGE, []), anchors, tag_id),
         uwb_anchors=anchors,
         heading=decoded.get(TOPIC_HEADING),
+        magnetic=decoded.get(TOPIC_MAGNETIC),
     )
 
 

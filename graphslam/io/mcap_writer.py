@@ -17,6 +17,7 @@ from graphslam.io.schemas import (
     SESSION_METADATA,
     TOPIC_GROUND_TRUTH,
     TOPIC_HEADING,
+    TOPIC_MAGNETIC,
     TOPIC_LANDMARKS,
     TOPIC_POSE,
     TOPIC_SCAN,
@@ -116,6 +117,10 @@ def write_session(session: Session, path: str | Path) -> Path:
             hd_ch = ch.channel(TOPIC_HEADING)
             for t, yaw in zip(session.heading.t_ns.tolist(), session.heading.yaw.tolist()):
                 events.append((t, hd_ch, orjson.dumps({"timestamp": _stamp(t), "yaw": yaw})))
+        if session.magnetic is not None:
+            mg_ch = ch.channel(TOPIC_MAGNETIC)
+            for t, (e, n, u) in zip(session.magnetic.t_ns.tolist(), session.magnetic.enu.tolist()):
+                events.append((t, mg_ch, orjson.dumps({"timestamp": _stamp(t), "east": e, "north": n, "up": u})))
         if session.uwb_ranges is not None:
             uwb_ch = ch.channel(TOPIC_UWB_RANGE)
             events += [(t, uwb_ch, orjson.dumps(body)) for t, body in range_messages(session)]

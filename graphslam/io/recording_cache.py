@@ -13,7 +13,7 @@ A NumPy ``.npz`` archive (no pickles). S cached walks, arrays concatenated over 
 ==============  ===========  ==================================================
 array           dtype        meaning
 ==============  ===========  ==================================================
-format_version  int64 ()     1
+format_version  int64 ()     2
 graphslam       str ()       the version of graphslam that parsed the files
 key             str (S,)     BLAKE2b-128 of the file's bytes (hex)
 session_id      str (S,)     the walk's id
@@ -23,6 +23,7 @@ uwb_id          str (S,)     ``graphslam.session``'s ``uwb_id``
 step_*          t, xy, h     ``/foot/pose`` (ns; m; rad)
 gt_*            t, xy, h     ``/ground_truth/pose``; ``gt_has`` (S,) bool: the topic is present
 hd_*            t, yaw       ``/phone/heading``; ``hd_has`` (S,) bool
+mg_*            t, enu       ``/phone/magnetic`` (ns; µT east, north, up); ``mg_has`` (S,) bool
 lm_*            t, id, x, y  ``/landmarks``
 scan_*          t            ``/wifi/scan`` (ns); ``read_off`` (scans+1) its readings
 read_ap, rssi   int64, f8    each reading's access point (index into ``aps``) and RSS (dBm)
@@ -46,13 +47,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 import graphslam
-from graphslam.core.types import HeadingTrack, LandmarkMark, PoseTrack, Scan, Session, Survey, UwbRanges
+from graphslam.core.types import HeadingTrack, LandmarkMark, MagneticTrack, PoseTrack, Scan, Session, Survey, UwbRanges
 from graphslam.io.atomic import atomic_open
 
 log = logging.getLogger(__name__)
 
 CACHE_FILE = "recordings_cache.npz"
-CACHE_FORMAT = 1  # bumped whenever the reader's Sessions change (a release's version changes anyway)
+CACHE_FORMAT = 2  # bumped whenever the reader's Sessions change (a release's version changes anyway)
 
 
 def recording_key(buf: bytes) -> str:
@@ -99,6 +100,8 @@ class RecordingCache:
         gt = PoseTrack(a["gt_t"][g], a["gt_xy"][g], a["gt_h"][g]) if a["gt_has"][k] else None
         h = rows("hd")
         heading = HeadingTrack(a["hd_t"][h], a["hd_yaw"][h]) if a["hd_has"][k] else None
+        g = rows("mg")
+        magnetic = MagneticTrack(a["mg_t"][g], a["mg_enu"][g]) if a["mg_has"][k] else None
         m = rows("lm")
         marks = tuple(LandmarkMark(int(t), str(i), float(x), float(y)) for t, i, x, y in
                       zip(a["lm_t"][m], a["lm_id"][m], a["lm_x"][m], a["lm_y"][m]))
@@ -118,7 +121,7 @@ class RecordingCache:
         return Session(
             session_id=sid, steps=steps, scans=scans, landmarks=marks, ground_truth=gt,
             site=str(a["site"][k]), floor=str(a["floor"][k]), source=str(path), uwb_id=str(a["uwb_id"][k]),
-            uwb_ranges=uwb, uwb_anchors=anchors, heading=heading,
+            uwb_ranges=uwb, uwb_anchors=anchors, heading=heading, magnetic=magnetic,
         )
 
 
@@ -136,7 +139,7 @@ def read_recording_cache(path: str | Path) -> RecordingCache | None:
             return None
         keys = [str(k) for k in a["key"].reshape(-1)]
         n = len(keys)
-        for name in ("step", "gt", "hd", "lm", "scan", "uwb", "anc"):
+        for name in ("step", "gt", "hd", "mg", "lm", "scan", "uwb", "anc"):
             off, rows = a[f"{name}_off"], a[f"{name}_id" if name == "anc" else f"{name}_t"]
             if off.shape != (n + 1,) or off[0] != 0 or np.any(np.diff(off) < 0) or off[-1] != len(rows):
                 raise ValueError(f"{name}_off does not index its rows")
@@ -174,6 +177,7 @@ def write_recording_cache(path: str | Path, survey: Survey, keys: Mapping[str, s
 
     gts = [s.ground_truth for s in walks if s.ground_truth is not None]
     hds = [s.heading for s in walks if s.heading is not None]
+    mgs = [s.magnetic for s in walks if s.magnetic is not None]
     marks = [m for s in walks for m in s.landmarks]
     uwbs = [s.uwb_ranges for s in walks if s.uwb_ranges is not None]
     anchors = [(i, xyz) for s in walks for i, xyz in s.uwb_anchors.items()]
@@ -199,6 +203,10 @@ def write_recording_cache(path: str | Path, survey: Survey, keys: Mapping[str, s
         "hd_off": off([len(s.heading) if s.heading is not None else 0 for s in walks]),
         "hd_t": cat([h.t_ns for h in hds], np.int64),
         "hd_yaw": cat([h.yaw for h in hds], np.float64),
+        "mg_has": np.array([s.magnetic is not None for s in walks], bool),
+        "mg_off": off([len(s.magnetic) if s.magnetic is not None else 0 for s in walks]),
+        "mg_t": cat([m.t_ns for m in mgs], np.int64),
+        "mg_enu": cat([m.enu for m in mgs], np.float64, (3,)),
         "lm_off": off([len(s.landmarks) for s in walks]),
         "lm_t": np.array([m.t_ns for m in marks], np.int64),
         "lm_id": np.array([m.landmark_id for m in marks], dtype=str).reshape(-1),

@@ -14,6 +14,7 @@ TOPIC_LANDMARKS = "/landmarks"
 TOPIC_GROUND_TRUTH = "/ground_truth/pose"
 TOPIC_UWB_RANGE = "/uwb/range"
 TOPIC_HEADING = "/phone/heading"
+TOPIC_MAGNETIC = "/phone/magnetic"
 
 _TIME = {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}}
 _XYZ = {"type": "object", "properties": {k: {"type": "number"} for k in "xyz"}}
@@ -80,6 +81,13 @@ HEADING = {
     "required": ["timestamp", "yaw"],
 }
 
+MAGNETIC_FIELD = {
+    "title": "graphslam.MagneticField",
+    "type": "object",
+    "properties": {"timestamp": _TIME, "east": {"type": "number"}, "north": {"type": "number"}, "up": {"type": "number"}},
+    "required": ["timestamp", "east", "north", "up"],
+}
+
 # topic -> (schema name, schema)
 TOPIC_SCHEMAS: dict[str, tuple[str, dict]] = {
     TOPIC_POSE: ("foxglove.PoseInFrame", POSE_IN_FRAME),
@@ -88,6 +96,7 @@ TOPIC_SCHEMAS: dict[str, tuple[str, dict]] = {
     TOPIC_GROUND_TRUTH: ("foxglove.PoseInFrame", POSE_IN_FRAME),
     TOPIC_UWB_RANGE: ("graphslam.UwbRange", UWB_RANGE),
     TOPIC_HEADING: ("graphslam.Heading", HEADING),
+    TOPIC_MAGNETIC: ("graphslam.MagneticField", MAGNETIC_FIELD),
 }
 
 

@@ -56,7 +56,7 @@ def control_points_digest(control_points: Mapping[str, tuple[float, float]] | No
 def session_digest(session: Session) -> str:
     """SHA-256 of what the solver reads from a walk: equal digests, equal walk. Its id, steps and
     scans; when present (each hashed only then: a walk without them keeps the digest it had before
-    they were), the phone's headings, the landmark marks' ids and times (the ids a user names as
+    they were), the phone's headings and magnetic field, the landmark marks' ids and times (the ids a user names as
     control points tie the walk to the site) and its UWB id, anchors and rangings. Left out: ground
     truth and the marks' surveyed positions, which never reach the solver."""
     h = hashlib.sha256()
@@ -73,6 +73,10 @@ def session_digest(session: Session) -> str:
         h.update(b"\0heading")
         h.update(np.ascontiguousarray(session.heading.t_ns, np.int64).tobytes())
         h.update(np.ascontiguousarray(session.heading.yaw, np.float64).tobytes())
+    if session.magnetic is not None:
+        h.update(b"\0magnetic")
+        h.update(np.ascontiguousarray(session.magnetic.t_ns, np.int64).tobytes())
+        h.update(np.ascontiguousarray(session.magnetic.enu, np.float64).tobytes())
     if session.landmarks:
         h.update(b"\0landmarks")
         h.update(np.array([m.t_ns for m in session.landmarks], np.int64).tobytes())
