@@ -209,6 +209,48 @@ class HeadingConfig(_Strict):
     )
 
 
+class MagneticConfig(_Strict):
+    """The magnetic field (/phone/magnetic): sequences of it along the walks link walks that share a corridor."""
+
+    enabled: bool = Field(True, description="use /phone/magnetic where walks have it, with the headings (false: WiFi only)")
+    sample_m: float = Field(0.5, gt=0, description="the field is resampled every this much walked (dead-reckoned) distance")
+    window_m: float = Field(10.0, gt=0, description="length of a matched stretch")
+    stride_m: float = Field(2.0, gt=0, description="a window starts every this much along each walk")
+    search_m: float = Field(
+        10.0, ge=0, description="a window is compared with the other walk's stretches this far either side of where "
+        "a WiFi match (the placement's) anchors it",
+    )
+    null_quantile: float = Field(
+        0.99, gt=0, lt=1, description="a window match counts when its score beats this quantile of the best scores "
+        "the same search reaches against phase-randomised surrogates of the walks (the threshold comes from the data)",
+    )
+    min_windows: int = Field(
+        2, ge=1, description="a link between two walks: at least this many window matches, disjoint on both walks, "
+        "agreeing on one translation",
+    )
+    agree_m: float = Field(2.0, gt=0, description="window matches of one link agree on its translation this closely")
+    direction_cos: float = Field(
+        0.7, ge=0, le=1, description="matched stretches must run parallel (forward) or anti-parallel (reversed) "
+        "within this cosine, with each walk turned by its heading",
+    )
+    loop_m: float = Field(
+        3.0, gt=0, description="a link counts only when a third walk's links close a loop with it this closely "
+        "(a single pair of walks is no confirmation)",
+    )
+    pair_every_m: float = Field(2.0, gt=0, description="one magnetic factor every this much along a matched stretch")
+    sigma_m: float = Field(1.0, gt=0, description="sigma of a magnetic factor on the ramp beyond its dead zone")
+    d_min_m: float = Field(0.5, ge=0, description="dead zone of a magnetic factor (the match's own precision)")
+    d_max_m: float = Field(5.0, gt=0, description="a magnetic factor saturates beyond this (an outlier)")
+
+    @model_validator(mode="after")
+    def _order(self) -> "MagneticConfig":
+        if self.d_max_m <= self.d_min_m:
+            raise ValueError("d_max_m must be greater than d_min_m")
+        if self.window_m < 4 * self.sample_m:
+            raise ValueError("window_m must hold at least 4 samples (sample_m)")
+        return self
+
+
 class ControlPointConfig(_Strict):
     """Control points (survey --control-points): walks whose /landmarks mark a listed id are tied there."""
 
@@ -268,6 +310,7 @@ class GraphSlamConfig(_Strict):
     optimizer: OptimizerConfig = OptimizerConfig()
     placement: PlacementConfig = PlacementConfig()
     heading: HeadingConfig = HeadingConfig()
+    magnetic: MagneticConfig = MagneticConfig()
     control_points: ControlPointConfig = ControlPointConfig()
     update: UpdateConfig = UpdateConfig()  # not part of a solution's identity (app/update.py)
     uwb: UwbConfig = UwbConfig()

@@ -38,10 +38,12 @@ from graphslam.core.survey.graph import (
     native_graph,
     pose_graph,
     solved_wifi_pairs,
+    solved_magnetic_pairs,
     use_vectorised_solver,
     values_to_xyh,
 )
 from graphslam.core.survey.initialise import Placement, connected_to, register_walks, se2_apply_poses
+from graphslam.core.survey.magnetic import MagneticLinks
 from graphslam.core.types import PoseTrack, Survey
 from graphslam.errors import SolverError
 
@@ -191,6 +193,9 @@ class Problem:
     imu_u: NDArray[np.float64]  # (M, 3) measured body-frame step (eq. 6)
     wifi_pairs: NDArray[np.int64]  # (E, 2) nodes of WiFi edges between included walks
     timings_s: dict[str, float]
+    # (P, 2) step nodes a magnetic link says are one place (graphslam.core.survey.magnetic), within a component
+    magnetic_pairs: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    magnetic: MagneticLinks | None = None  # the links behind them
     # --update: nodes re-solved; the others keep init_xyh (their previous solution).
     # None: every node of an included walk is a variable (a full solve).
     free: NDArray[np.bool_] | None = None
@@ -394,6 +399,10 @@ def build_problem(
             prev = fp.node[incremental.previous_edge_rows(fp, warm)]
             keep[both_old] = incremental.pairs_in(wifi_pairs[both_old], prev[warm.prev_edge_used], len(init_xyh))
         wifi_pairs = wifi_pairs[keep]
+    magnetic_pairs = np.zeros((0, 2), np.int64)
+    if split is not None and split.magnetic is not None and len(split.magnetic):
+        pn = split.magnetic.pair_nodes
+        magnetic_pairs = pn[split.component[node_sess[pn[:, 0]]] == split.component[node_sess[pn[:, 1]]]]
     free = None
     if warm is not None:
         free = incremental.free_nodes(
@@ -415,6 +424,8 @@ def build_problem(
         imu_u=np.concatenate(imu_u),
         wifi_pairs=wifi_pairs,
         timings_s=timings,
+        magnetic_pairs=magnetic_pairs,
+        magnetic=None if split is None else split.magnetic,
         free=free,
         uwb=uwb,
         method=method,
@@ -498,6 +509,8 @@ def solve(
             imu_graph, wifi_factors, values, chains = native_graph(problem, cfg)
     solved_pairs = problem.wifi_pairs if pardiso else solved_wifi_pairs(problem)
     ea, eb = solved_pairs[:, 0], solved_pairs[:, 1]
+    mag_pairs = problem.magnetic_pairs if pardiso else solved_magnetic_pairs(problem)
+    ma, mb = mag_pairs[:, 0], mag_pairs[:, 1]
     timings["build_graph"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -508,7 +521,8 @@ def solve(
     def objective(xyh: NDArray) -> float:
         d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
         imu = S.between_error(pg, xyh) + S.unary_error(pg, xyh) if pardiso else imu_graph.error(values)
-        return float(imu + F.fuzzy_cost(d, cfg.wifi).sum())
+        dm = np.linalg.norm(xyh[ma, :2] - xyh[mb, :2], axis=1)
+        return float(imu + F.fuzzy_cost(d, cfg.wifi).sum() + F.magnetic_cost(dm, cfg.magnetic).sum())
 
     init_xyh = problem.init_xyh
     dr_xyh = dead_reckoned_nodes(problem.survey)[0]
@@ -518,10 +532,12 @@ def solve(
     prev_active: NDArray | None = None
     for stage, radius in enumerate(_saturation_radii(cfg, problem.method)):
         d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
-        active = d <= radius
+        dm = np.linalg.norm(xyh[ma, :2] - xyh[mb, :2], axis=1)
+        # magnetic pairs saturate at their own d_max, shrinking in step with the WiFi edges' radius
+        active = np.concatenate([d <= radius, dm <= radius * cfg.magnetic.d_max_m / cfg.wifi.d_max_m])
         if prev_active is not None and np.array_equal(active, prev_active) and converged:
             continue  # LM already converged on exactly this graph
-        n_active = int(active.sum())
+        n_active = int(active[:len(d)].sum())  # WiFi edges (the records' and the progress line's count)
 
         def hook(it: int, before: float, after: float, _s: int = stage, _n: int = n_active) -> None:
             rec = IterationRecord(_s, int(it), float(before), float(after), _n)

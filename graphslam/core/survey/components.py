@@ -20,13 +20,17 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from graphslam.core.radiomap.similarity import Matches
-from graphslam.core.survey.initialise import se2_apply, se2_compose
+from graphslam.core.survey.initialise import fit_se2, se2_apply, se2_compose
 from graphslam.core.survey.placement import GrowthParams, GrowthResult, grow_placement
+
+if TYPE_CHECKING:
+    from graphslam.core.survey.magnetic import LinkUnits
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +77,7 @@ def place_components(
     rotation_sigma: NDArray[np.float64] | None = None,
     tied: dict[int, NDArray] | None = None,
     seed: int | None = None,
+    joins: NDArray[np.bool_] | None = None,
 ) -> ComponentPlacement:
     """Split the survey into components by repeated map growth (module docstring).
 
@@ -80,7 +85,9 @@ def place_components(
     each walk's rotation into the common frame (its heading), applied before growth; growth
     then searches only ``params.rotation_window_deg`` about it. ``tied``: walks already placed
     in component 0's frame (walk -> dead reckoning -> frame transform, e.g. by control
-    points), held fixed. ``seed``: the walk component 0 starts from (without ``tied``)."""
+    points), held fixed. ``seed``: the walk component 0 starts from (without ``tied``). ``joins`` (S,):
+    the walks WiFi may join onto a component grown from others (None: every walk); the others only
+    seed components of their own (or are tied)."""
     pre = np.zeros((n_sessions, 3))
     if rotation is not None:
         pre[:, 2] = np.where(np.isfinite(rotation), rotation, 0.0)
@@ -97,11 +104,19 @@ def place_components(
     k = 0
     while (component < 0).any():
         left = component < 0
+        seed_k = seed if k == 0 else None
+        cand = left
+        if joins is not None:  # a component grows by the walks WiFi may join, from its seed (or ties)
+            cand = left & joins
+            if not (k == 0 and initial):
+                seed_k = _strongest(left, scan_session, matches, params) if seed_k is None else seed_k
+                cand = cand.copy()
+                cand[seed_k] = True
         res = grow_placement(
             n_sessions, scan_session, xy, matches, params,
-            seed=seed if k == 0 else None,
+            seed=seed_k,
             initial=initial if (k == 0 and initial) else None,
-            candidates=left,
+            candidates=cand,
             rotation_sigma=rotation_sigma,
         )
         got = res.placed & left
@@ -133,6 +148,76 @@ def place_components(
     return ComponentPlacement(transforms, component, tuple(seeds), support, margin, consistency, reasons)
 
 
+def _strongest(left: NDArray[np.bool_], scan_session: NDArray, matches: Matches, params: GrowthParams) -> int:
+    """The walk of ``left`` with the most match weight into the others of ``left`` (map growth's seed)."""
+    si, sj = scan_session[matches.i], scan_session[matches.j]
+    keep = left[si] & left[sj]
+    w = np.power(np.clip(matches.similarity[keep], 0.0, 1.0), params.weight_power)
+    n = len(left)
+    mass = np.bincount(si[keep], weights=w, minlength=n) + np.bincount(sj[keep], weights=w, minlength=n)
+    return int(np.where(left, mass, -1.0).argmax())
+
+
+def place_units(
+    n_sessions: int,
+    scan_session: NDArray[np.int64],
+    scan_xy: NDArray[np.float64],
+    matches: Matches,
+    params: GrowthParams,
+    units: "LinkUnits",
+    *,
+    rotation_sigma: NDArray[np.float64],
+    ties: tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]] | None = None,
+    seed: int | None = None,
+    min_baseline_m: float = 5.0,
+) -> ComponentPlacement:
+    """``place_components`` over units of walks the magnetic field holds together
+    (``graphslam.core.survey.magnetic.LinkUnits``): each unit is placed as one rigid body by the WiFi
+    matches between its walks and the others' (the repetitions of a route pool their evidence, where one
+    walk alone is weak), and no WiFi match inside a unit counts (the field placed its walks).
+
+    ``scan_xy``: fingerprints in their walk's dead reckoning. ``rotation_sigma`` (S,): each walk's;
+    a unit's is that of their mean. ``ties``: (walk, dead-reckoned xy, site xy) of control-point
+    marks: a unit holding tied walks is placed by translation onto all of its marks (its rotation is
+    its walks' headings, turned into the site frame) and component 0 grows from the tied units.
+    ``seed``: the walk whose unit component 0 starts from (without ties)."""
+    unit = units.unit
+    n_u = units.n_units
+    u_scan = unit[scan_session]
+    xy = se2_apply_rows(units.transforms[scan_session], scan_xy)  # in the unit's frame
+    keep = u_scan[matches.i] != u_scan[matches.j]
+    m = Matches(matches.i[keep], matches.j[keep], matches.similarity[keep])
+    inv = np.bincount(unit, weights=1.0 / np.maximum(rotation_sigma, 1e-6) ** 2, minlength=n_u)
+    sigma_u = 1.0 / np.sqrt(np.maximum(inv, 1e-12))
+    tied_u: dict[int, NDArray] = {}
+    if ties is not None:
+        walk, dr, site = ties
+        at = se2_apply_rows(units.transforms[walk], dr)  # the marks in their unit's frame
+        for u in np.unique(unit[walk]).tolist():
+            sel = unit[walk] == u
+            q = site[sel]
+            if np.linalg.norm(q - q.mean(axis=0), axis=1).max() * 2.0 >= min_baseline_m:
+                # marks of two places or more: they fix the unit's rotation better than its headings do
+                tied_u[int(u)] = fit_se2(at[sel], q)
+            else:
+                t = (q - at[sel]).mean(axis=0)
+                tied_u[int(u)] = np.array([t[0], t[1], 0.0])
+    # a unit of two walks or more joins a component by its own field links only: units the field does
+    # not link share no corridor (their walks only cross), and WiFi places crossings a few metres off
+    # at best; a walk the field links to nothing (short, or without the field) joins by WiFi
+    single = np.bincount(unit, minlength=n_u) == 1
+    cp = place_components(
+        n_u, u_scan, xy, m, params, rotation_sigma=sigma_u, tied=tied_u or None,
+        seed=None if seed is None else int(unit[seed]), joins=single,
+    )
+    transforms = np.array([se2_compose(cp.transforms[unit[s]], units.transforms[s]) for s in range(n_sessions)])
+    transforms = transforms.reshape(n_sessions, 3)
+    seeds = tuple(-1 if sd < 0 else int(units.seed[sd]) for sd in cp.seeds)
+    return ComponentPlacement(
+        transforms, cp.component[unit], seeds, cp.support[unit], cp.margin[unit], cp.consistency[unit], cp.reasons,
+    )
+
+
 def _reasons(component: NDArray, first: GrowthResult | None, remap: NDArray, n_main: int) -> dict[int, str]:
     """Why each component k >= 1 stands apart: its walks' outcome when the first growth tried them."""
     out: dict[int, str] = {}
@@ -162,4 +247,4 @@ def se2_apply_rows(T: NDArray, xy: NDArray) -> NDArray:
     return np.column_stack([c * xy[:, 0] - s * xy[:, 1] + T[:, 0], s * xy[:, 0] + c * xy[:, 1] + T[:, 1]])
 
 
-__all__ = ["Component", "ComponentPlacement", "place_components", "se2_apply"]
+__all__ = ["Component", "ComponentPlacement", "place_components", "place_units", "se2_apply"]

@@ -1,4 +1,4 @@
-"""The paper's two factor types, built from GTSAM's native (C++) factors.
+"""The paper's two factor types, built from GTSAM's native (C++) factors, and the magnetic pairs.
 
 IMU-between factor (eq. 6-8)
     u_{k-1,k} = pos_{k-1}^{-1} * pos_k, the step in the body frame of pose k-1, is
@@ -16,6 +16,11 @@ Fuzzy WiFi-vicinity factor (eq. 10)
     the paper's error is flat (zero gradient): the optimiser drops such edges from
     the active set between LM runs (``graphslam.core.survey.align.solve``), so no Python code
     runs inside GTSAM's inner loop.
+
+Magnetic pair (``graphslam.core.survey.magnetic``)
+    Two step poses a magnetic link says are one place: the same dead-zone range factor with its own
+    sigma and dead zone (``magnetic.sigma_m``, ``d_min_m``: the match's own precision), saturated
+    beyond ``magnetic.d_max_m`` as the WiFi factor is beyond d_max.
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.config import WifiFactorConfig
+from graphslam.config import MagneticConfig, WifiFactorConfig
 from graphslam.core.common.factors import (  # noqa: F401 (re-exported: the survey's IMU chain)
     REFERENCE_PRIOR_SIGMAS, imu_factor, imu_noise, reference_prior_noise, relative_steps,
 )
@@ -67,3 +72,17 @@ def edge_state(d: NDArray, cfg: WifiFactorConfig) -> NDArray[np.int8]:
     """0 = inactive (d < d_min), 1 = on the fuzzy ramp, 2 = saturated (d > d_max)."""
     d = np.asarray(d)
     return np.where(d < cfg.d_min_m, 0, np.where(d > cfg.d_max_m, 2, 1)).astype(np.int8)
+
+
+def magnetic_noise(cfg: MagneticConfig) -> gtsam.noiseModel.Base:
+    """A magnetic pair's noise: the dead-zone range loss of the WiFi factor with the magnetic sigma and dead zone."""
+    import gtsam
+
+    loss = gtsam.noiseModel.mEstimator.L2WithDeadZone(cfg.d_min_m / cfg.sigma_m)
+    return gtsam.noiseModel.Robust.Create(loss, gtsam.noiseModel.Isotropic.Sigma(1, cfg.sigma_m))
+
+
+def magnetic_cost(d: NDArray | float, cfg: MagneticConfig) -> NDArray:
+    """0.5 ((d - d_min) / sigma)^2 per magnetic pair between d_min and d_max, flat beyond (saturated)."""
+    e = (np.clip(np.asarray(d, dtype=float), cfg.d_min_m, cfg.d_max_m) - cfg.d_min_m) / cfg.sigma_m
+    return 0.5 * e * e

@@ -78,7 +78,7 @@ def native_graph(
     if free is None:
         nodes = chains.kept if chains is not None else np.flatnonzero(np.isfinite(problem.init_xyh[:, 0]))
     else:
-        nodes = np.unique(np.concatenate([pairs[use].ravel(), wifi_pairs.ravel()]))
+        nodes = np.unique(np.concatenate([pairs[use].ravel(), wifi_pairs.ravel(), solved_magnetic_pairs(problem).ravel()]))
         for n in nodes[~free[nodes]].tolist():  # the neighbourhood's border keeps its previous solution
             imu_graph.add(gtsam.PriorFactorPose2(X(n), gtsam.Pose2(*problem.init_xyh[n]), F.reference_prior_noise()))
     uwb = problem.uwb
@@ -105,6 +105,9 @@ def native_graph(
         values.insert(uwb_factors.anchor_values(uwb.ranges))
     wifi_nm = F.wifi_noise(cfg.wifi)
     wifi = [F.wifi_factor(X(i), X(j), wifi_nm) for i, j in wifi_pairs.tolist()]
+    if len(problem.magnetic_pairs):  # after the WiFi edges, in the order solve's active set has them
+        mag_nm = F.magnetic_noise(cfg.magnetic)
+        wifi += [F.wifi_factor(X(i), X(j), mag_nm) for i, j in solved_magnetic_pairs(problem).tolist()]
     return imu_graph, wifi, values, chains
 
 
@@ -124,6 +127,7 @@ def pose_graph(problem: Problem, cfg: GraphSlamConfig) -> tuple[S.PoseGraph, Com
         sqrt_info = np.broadcast_to(S.sqrt_information(step_cov[None])[0], (len(pairs), 3, 3))
     hn, ht, hs = heading_priors(problem, nodes)
     pn, pxy, ps = point_priors(problem, cfg)
+    n_w, n_m = len(problem.wifi_pairs), len(problem.magnetic_pairs)
     graph = S.PoseGraph(
         n_nodes=len(problem.init_xyh),
         variables=nodes[~np.isin(nodes, held)].astype(np.int64),
@@ -131,9 +135,10 @@ def pose_graph(problem: Problem, cfg: GraphSlamConfig) -> tuple[S.PoseGraph, Com
         between_pairs=pairs,
         between_measured=measured,
         between_sqrt_info=sqrt_info,
-        range_pairs=problem.wifi_pairs,
-        range_sigma=F.wifi_sigma(cfg.wifi),
-        range_dead_zone_m=cfg.wifi.d_min_m,
+        # WiFi edges, then magnetic pairs (each kind its sigma and dead zone)
+        range_pairs=np.concatenate([problem.wifi_pairs, problem.magnetic_pairs]).astype(np.int64).reshape(-1, 2),
+        range_sigma=F.wifi_sigma(cfg.wifi) if not n_m else np.repeat([F.wifi_sigma(cfg.wifi), cfg.magnetic.sigma_m], [n_w, n_m]),
+        range_dead_zone_m=cfg.wifi.d_min_m if not n_m else np.repeat([cfg.wifi.d_min_m, cfg.magnetic.d_min_m], [n_w, n_m]),
         heading_nodes=hn,
         heading_target=ht,
         heading_sigma=hs,
@@ -146,9 +151,11 @@ def pose_graph(problem: Problem, cfg: GraphSlamConfig) -> tuple[S.PoseGraph, Com
 
 
 def kept_nodes(problem: Problem) -> NDArray[np.bool_]:
-    """Nodes chain compression keeps as variables: WiFi edge ends, held nodes, control-point ties, UWB ranges."""
+    """Nodes chain compression keeps as variables: WiFi edge and magnetic pair ends, held nodes, control-point
+    ties, UWB ranges."""
     keep = np.zeros(len(problem.init_xyh), bool)
     keep[problem.wifi_pairs.ravel()] = True
+    keep[problem.magnetic_pairs.ravel()] = True
     keep[problem.held_nodes] = True
     if problem.ties is not None:
         keep[problem.ties.node] = True
@@ -196,6 +203,13 @@ def solved_wifi_pairs(problem: Problem) -> NDArray[np.int64]:
     if problem.free is None:
         return problem.wifi_pairs
     return problem.wifi_pairs[problem.free[problem.wifi_pairs].any(axis=1)]
+
+
+def solved_magnetic_pairs(problem: Problem) -> NDArray[np.int64]:
+    """The magnetic pairs in the graph ``solve`` optimises: all, or those touching a free node (--update)."""
+    if problem.free is None:
+        return problem.magnetic_pairs
+    return problem.magnetic_pairs[problem.free[problem.magnetic_pairs].any(axis=1)]
 
 
 def lm_params(cfg: GraphSlamConfig, n_poses: int = 0) -> gtsam.LevenbergMarquardtParams:

@@ -21,10 +21,11 @@ from numpy.typing import NDArray
 from graphslam.config import GraphSlamConfig
 from graphslam.core.radiomap.similarity import Matches, PowerCosine
 from graphslam.core.survey.association import FingerprintNodes
-from graphslam.core.survey.components import Component, ComponentPlacement, place_components, se2_apply_rows
+from graphslam.core.survey.components import Component, ComponentPlacement, place_components, place_units, se2_apply_rows
 from graphslam.core.survey.control import ControlTies, control_ties, tie_walks
 from graphslam.core.survey.heading import heading_residuals, walk_headings
 from graphslam.core.survey.incremental import WarmStart
+from graphslam.core.survey.magnetic import LinkUnits, MagneticLinks, MagneticParams, link_units, loop_verified, magnetic_links
 from graphslam.core.survey.initialise import Placement, se2_apply_poses, se2_compose
 from graphslam.core.survey.placement import GrowthParams, grow_placement
 from graphslam.core.types import Survey, wrap_angle
@@ -94,6 +95,7 @@ class ComponentSplit:
     heading: HeadingTerms
     ties: ControlTies | None
     frame_name: str
+    magnetic: MagneticLinks | None = None  # the links the placement used (their node pairs: the graph's factors)
 
 
 def split_by_heading(
@@ -129,10 +131,21 @@ def split_by_heading(
     params = GrowthParams.from_config(cfg, min_margin=hc.min_margin, rotation_window_deg=hc.rotation_window_deg)
     # with ties, every walk's rotation is site-from-dead-reckoning: heading + the site frame's offset
     rotation = wh.rotation + phi
-    cp = place_components(
-        len(survey), fp.session, dr_xyh[fp.node, :2], matches, params,
-        rotation=rotation, rotation_sigma=wh.sigma, tied=tied, seed=seed,
-    )
+    units = _magnetic_units(survey, fp, dr_xyh, node_sess, cfg, matches, rotation, wh.sigma, params)
+    if units is not None and units.n_units < len(survey):  # walks the field holds together move as one
+        tie_arrays = None
+        if ties is not None:
+            placed = np.isin(ties.session, list(tied))
+            tie_arrays = (ties.session[placed], dr_xyh[ties.node[placed], :2], ties.xy[placed])
+        cp = place_units(
+            len(survey), fp.session, dr_xyh[fp.node, :2], matches, params, units,
+            rotation_sigma=wh.sigma, ties=tie_arrays, seed=seed,
+        )
+    else:
+        cp = place_components(
+            len(survey), fp.session, dr_xyh[fp.node, :2], matches, params,
+            rotation=rotation, rotation_sigma=wh.sigma, tied=tied, seed=seed,
+        )
     ids = [s.session_id for s in survey]
     comps = tuple(
         Component(k, tuple(ids[s] for s in cp.walks_of(k)), cp.reasons.get(k, "")) for k in range(cp.n_components)
@@ -161,7 +174,26 @@ def split_by_heading(
     frame = "site" if ties is not None else "earth"
     main = int((cp.component == 0).sum())
     log.info("heading placement: %d components, the main map holds %d of %d walks", cp.n_components, main, len(survey))
-    return ComponentSplit(pl, cp.component, comps, reference, fixed, heading, ties, frame)
+    return ComponentSplit(pl, cp.component, comps, reference, fixed, heading, ties, frame,
+                          magnetic=None if units is None else units.links)
+
+
+def _magnetic_units(
+    survey: Survey, fp: FingerprintNodes, dr_xyh: NDArray, node_sess: NDArray, cfg: GraphSlamConfig, matches: Matches,
+    rotation: NDArray, sigma: NDArray, params: GrowthParams,
+) -> LinkUnits | None:
+    """The walks the magnetic field links (``graphslam.core.survey.magnetic``), as units; None when it
+    is off or fewer than two walks carry it."""
+    if not cfg.magnetic.enabled or sum(s.magnetic is not None and len(s.magnetic) > 0 for s in survey) < 2:
+        return None
+    mp = MagneticParams.from_config(cfg.magnetic)
+    links = magnetic_links(survey, fp.offsets, rotation, fp.node[matches.i], fp.node[matches.j], mp)
+    verified = links.subset(loop_verified(links, mp.loop_m))
+    units = link_units(verified, len(survey), rotation, sigma, dr_xyh[:, :2], node_sess, mp.agree_m, params)
+    log.info("magnetic: %d links, %d close a loop, %d kept; %d walks in %d units of two or more", len(links),
+             len(verified), len(units.links), int((np.bincount(units.unit)[units.unit] > 1).sum()),
+             int((np.bincount(units.unit) > 1).sum()))
+    return units
 
 
 def split_incremental(

@@ -54,9 +54,9 @@ class PoseGraph:
     between_pairs: NDArray[np.int64]  # (M, 2) node ids (a, b)
     between_measured: NDArray[np.float64]  # (M, 3) U = a^-1 b as (x, y, theta)
     between_sqrt_info: NDArray[np.float64]  # (M, 3, 3) W, upper triangular, W^T W = Sigma^-1
-    range_pairs: NDArray[np.int64]  # (E, 2) node ids of WiFi edges
-    range_sigma: float
-    range_dead_zone_m: float
+    range_pairs: NDArray[np.int64]  # (E, 2) node ids of WiFi edges (and magnetic pairs)
+    range_sigma: float | NDArray[np.float64]  # one for all, or (E,) per edge
+    range_dead_zone_m: float | NDArray[np.float64]
     # unary factors: a heading prior r = wrap(theta - target) / sigma (the phones' headings) and a
     # position prior r = (p - xy) / sigma (control points), each on one node
     heading_nodes: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
@@ -157,16 +157,18 @@ def between_residuals(
 
 
 def range_residuals(
-    xa: NDArray, xb: NDArray, sigma: float, dead_zone_m: float, *, jacobians: bool = True
+    xa: NDArray, xb: NDArray, sigma: float | NDArray, dead_zone_m: float | NDArray, *, jacobians: bool = True
 ) -> tuple[NDArray, NDArray | None, NDArray | None]:
-    """r = max(|p_b - p_a| - d0, 0) / sigma (E,) and its Jacobians (E, 3) w.r.t. a's and b's (x, y, theta)."""
+    """r = max(|p_b - p_a| - d0, 0) / sigma (E,) and its Jacobians (E, 3) w.r.t. a's and b's (x, y, theta);
+    ``sigma``, ``dead_zone_m``: one for all edges or (E,)."""
+    sigma = np.asarray(sigma, float)
     d = xb[:, :2] - xa[:, :2]
     n = np.hypot(d[:, 0], d[:, 1])
     on = n > dead_zone_m
     r = np.where(on, n - dead_zone_m, 0.0) / sigma
     if not jacobians:
         return r, None, None
-    unit = np.where(on[:, None], d / np.where(on, n, 1.0)[:, None], 0.0) / sigma
+    unit = np.where(on[:, None], d / np.where(on, n, 1.0)[:, None], 0.0) / (sigma[:, None] if sigma.ndim else sigma)
     Jb = np.zeros((len(xa), 3))
     Jb[:, :2] = unit
     return r, -Jb, Jb
@@ -206,7 +208,7 @@ def between_error(graph: PoseGraph, xyh: NDArray) -> float:
     return 0.5 * float(np.sum(r * r))
 
 
-def range_hessian(xa: NDArray, xb: NDArray, r: NDArray, Jb: NDArray, sigma: float) -> NDArray:
+def range_hessian(xa: NDArray, xb: NDArray, r: NDArray, Jb: NDArray, sigma: float | NDArray) -> NDArray:
     """(E, 3, 3) exact Hessian of 0.5 r^2 w.r.t. b's pose (w.r.t. a's: the same; cross term: minus it).
 
     J^T J = u u^T / sigma^2 plus the curvature of the distance, r / (sigma d) (I - u u^T), which is
@@ -215,7 +217,8 @@ def range_hessian(xa: NDArray, xb: NDArray, r: NDArray, Jb: NDArray, sigma: floa
     minimum with Gauss-Newton alone)."""
     d = np.hypot(*(xb[:, :2] - xa[:, :2]).T)
     H = np.zeros((len(r), 3, 3))
-    u = Jb[:, :2] * sigma  # unit vector where r > 0, else 0
+    sigma = np.asarray(sigma, float)
+    u = Jb[:, :2] * (sigma[:, None] if sigma.ndim else sigma)  # unit vector where r > 0, else 0
     H[:, :2, :2] = Jb[:, :2, None] * Jb[:, None, :2]
     k = np.where(r > 0, r / (sigma * np.where(d > 0, d, 1.0)), 0.0)
     H[:, :2, :2] += k[:, None, None] * (np.eye(2) - u[:, :, None] * u[:, None, :])
@@ -366,6 +369,9 @@ class _Objective:
         self.held = xyh.copy()  # poses of the nodes that are not variables (the reference among them)
         self.bp = g.between_pairs
         self.rp = g.range_pairs[active]
+        # per active edge: its sigma and dead zone (WiFi edges and magnetic pairs differ)
+        self.rs = np.broadcast_to(np.asarray(g.range_sigma, float), (len(g.range_pairs),))[active]
+        self.rd = np.broadcast_to(np.asarray(g.range_dead_zone_m, float), (len(g.range_pairs),))[active]
         # unary factors enter as factors whose second end is held (no off-diagonal block)
         hv, pv = var_of[g.heading_nodes], var_of[g.point_nodes]
         self.hk, self.pk = hv >= 0, pv >= 0  # priors on held nodes are constants
@@ -393,8 +399,7 @@ class _Objective:
             jacobians=False,
         )
         rr, _, _ = range_residuals(
-            self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1]), g.range_sigma, g.range_dead_zone_m,
-            jacobians=False,
+            self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1]), self.rs, self.rd, jacobians=False,
         )
         rh, rp = self._unary(v)
         rho = cauchy(rh, g.heading_cauchy)[0]
@@ -405,11 +410,9 @@ class _Objective:
         rb, Jba, Jbb = between_residuals(
             self.poses(v, self.bp[:, 0]), self.poses(v, self.bp[:, 1]), g.between_measured, g.between_sqrt_info
         )
-        rr, Jra, Jrb = range_residuals(
-            self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1]), g.range_sigma, g.range_dead_zone_m
-        )
+        rr, Jra, Jrb = range_residuals(self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1]), self.rs, self.rd)
         JbaT, JbbT = np.transpose(Jba, (0, 2, 1)), np.transpose(Jbb, (0, 2, 1))
-        Hr = range_hessian(self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1]), rr, Jrb, g.range_sigma)
+        Hr = range_hessian(self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1]), rr, Jrb, self.rs)
         rh, rp = self._unary(v)
         rho, wgt = cauchy(rh, g.heading_cauchy)  # IRLS: the kernel's weight on a Gauss-Newton block
         sh, sp = g.heading_sigma[self.hk], g.point_sigma[self.pk]
