@@ -170,7 +170,8 @@ def test_one_line_per_floor_and_variant_then_a_summary_per_variant(floors: Path,
     assert len(rows) + len(summaries) == len(lines)
     # the control_points variant only on the floor with the file
     assert [(r["floor"], r["variant"]) for r in rows] == [
-        ("cp", "headings"), ("cp", "no_headings"), ("cp", "control_points"), ("plain", "headings"), ("plain", "no_headings"),
+        ("cp", "headings"), ("cp", "no_magnetic"), ("cp", "no_headings"), ("cp", "control_points"), ("plain", "headings"),
+        ("plain", "no_magnetic"), ("plain", "no_headings"),
     ]
     for r in rows:
         assert set(r) == ROW_FIELDS
@@ -195,14 +196,14 @@ def test_one_line_per_floor_and_variant_then_a_summary_per_variant(floors: Path,
     assert cp["main_site_mean_m"] is not None and cp["main_site_mean_m"] < 5.0
     assert all(r["main_site_mean_m"] is None for k, r in by.items() if k[1] != "control_points")
     # the summary: one per variant, sums over its floors
-    assert [s["summary"] for s in summaries] == ["headings", "no_headings", "control_points"]
+    assert [s["summary"] for s in summaries] == ["headings", "no_magnetic", "no_headings", "control_points"]
     for s in summaries:
         mine = [r for r in rows if r["variant"] == s["summary"]]
         assert s["floors"] == len(mine) and s["walks"] == sum(r["walks"] for r in mine)
         assert s["main"] == sum(r["main"] for r in mine)
         assert s["walks_over_10m"] == sum(r["walks_over_10m"] for r in mine)
         assert 0.0 <= s["main_fraction"] <= 1.0
-    assert summaries[2]["main_mean_m"] == cp["main_mean_m"]
+    assert summaries[3]["main_mean_m"] == cp["main_mean_m"]
 
 
 def test_control_points_none_and_variants_and_floors(floors: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -19,7 +19,7 @@ from graphslam.core.progress import progress_over
 log = logging.getLogger(__name__)
 
 
-REAL_VARIANTS = ("headings", "no_headings", "control_points")
+REAL_VARIANTS = ("headings", "no_magnetic", "no_headings", "control_points")
 BIG_COMPONENT_WALKS = 5  # walks_in_components_of_5_or_more
 RIGHT_WALK_M = 5.0  # a walk whose mean landmark error (after its component's SE(2) fit) is at most this is right
 
@@ -37,7 +37,8 @@ def real_floor_rows(
 
     A folder holding ``.mcap`` files is one floor; a folder without (an ILC site) stands for its
     floor sub-folders (``floors`` picks some). Variants: ``headings`` (``cfg`` as given: with the
-    phones' headings where every walk has them), ``no_headings`` (``cfg`` with
+    phones' headings where every walk has them, and the magnetic field where walks carry it),
+    ``no_magnetic`` (``cfg`` with ``magnetic.enabled=false``: WiFi and headings only), ``no_headings`` (``cfg`` with
     ``heading.enabled=false``: the registration path) and ``control_points`` (``cfg`` with the
     floor folder's ``control_points.csv``, component 0 in the site frame; only where the file is
     there and ``control_points`` is ``"auto"``; ``"none"``: never). Ground truth only scores
@@ -81,13 +82,13 @@ def real_floors(
 
 
 def _variant_config(cfg: GraphSlamConfig, variant: str) -> GraphSlamConfig:
-    if variant != "no_headings":
+    if variant not in ("no_headings", "no_magnetic"):
         return cfg
     from graphslam.config import config_from_dict
 
     data = cfg.model_dump()
-    data["heading"]["enabled"] = False
-    return config_from_dict(data, "bench real no_headings")
+    data["heading" if variant == "no_headings" else "magnetic"]["enabled"] = False
+    return config_from_dict(data, f"bench real {variant}")
 
 
 def _real_row(folder: Path, variant: str, cfg: GraphSlamConfig, cp_file: Path | None) -> dict[str, Any]:

@@ -34,6 +34,7 @@ if TYPE_CHECKING:
 
 SURVEY_PNG = "survey.png"
 RADIO_MAP_PNG = "radio_map.png"
+MAGNETIC_MAP = "magnetic_map.parquet"
 
 
 # radio_map.png's text chunk holding the options `plot` drew it with, so that `survey` redraws it
@@ -81,7 +82,38 @@ def plot_survey_folder(
             }
             files["radio_map"] = _draw_radio_map(d, rm, plan, scene.site_from_output, options)
             task.advance()
+            if (d / MAGNETIC_MAP).exists():
+                files["magnetic_map"] = _draw_magnetic_map(d, plan, scene.site_from_output, options)
     return files
+
+
+def _draw_magnetic_map(
+    d: Path, plan: "FloorPlan | None", site_from_output: NDArray[np.float64] | None, options: dict
+) -> Path:
+    """OUT/magnetic_map.png from OUT/magnetic_map.parquet, recording ``options`` in it."""
+    from graphslam.io.magnetic_map_io import read_magnetic_map
+    from graphslam.viz.magnetic_picture import MAGNETIC_PNG, draw_magnetic_map
+
+    mm = read_magnetic_map(d / MAGNETIC_MAP)
+    T = np.zeros(3) if mm.frame == "site" else site_from_output
+    return draw_magnetic_map(mm, d / MAGNETIC_PNG, floor_plan=plan, site_from_map=T,
+                             text={PLOT_OPTIONS_KEY: json.dumps(options)})
+
+
+def redraw_magnetic_map(folder: str | Path, options: dict) -> Path:
+    """magnetic_map.png of ``folder`` drawn again with the options ``plot`` recorded in it (a floor plan
+    that is gone is left out)."""
+    from graphslam.viz.common import load_floor_plan
+    from graphslam.viz.survey_picture import scene_of_folder
+
+    d = Path(folder)
+    plan_path = options.get("floor_plan")
+    if plan_path is not None and not Path(plan_path).is_file():
+        plan_path = None
+    size = tuple(options["floor_size"]) if plan_path is not None and options.get("floor_size") else None
+    plan = load_floor_plan(plan_path, size)
+    recordings = [r for r in options.get("recordings") or [] if Path(r).exists()]
+    return _draw_magnetic_map(d, plan, scene_of_folder(d, recordings).site_from_output, options)
 
 
 def _draw_radio_map(

@@ -40,6 +40,7 @@ OUTPUT_FILES = {
     "aligned": "aligned.mcap",
     "radio_map": "radio_map.parquet",
     "radio_map_surveyed": "radio_map_surveyed.parquet",
+    "magnetic_map": "magnetic_map.parquet",  # when the main map's walks carry /phone/magnetic
     "wifi_edges": "wifi_edges.parquet",
     "state": STATE_FILE,  # what a later `survey --update` starts from
     "recordings_cache": CACHE_FILE,  # ... and the walks it need not parse again
@@ -86,8 +87,8 @@ def build_report(
         + ("; every other component in a frame of its own (its placement relative to component 0 unknown)"
            if len(al.components) > 1 else ""),
         "components": [
-            {"index": c.index, "walks": list(c.walks), "n_walks": len(c.walks), "reason": c.reason}
-            for c in al.components
+            {"index": c.index, "walks": list(c.walks), "n_walks": len(c.walks), "reason": c.reason, "links": links}
+            for c, links in zip(al.components, al.links_by_component())
         ],
         "radio_map": {
             "component": 0,
@@ -116,6 +117,8 @@ def build_report(
         },
         "timings_s": {k: round(v, 4) for k, v in timings.items()},
     }
+    if al.magnetic is not None:
+        report["magnetic"] = magnetic_report(survey, al, cfg)
     if al.placement is not None:
         report.update(_placement_report(al))
     if ev is not None:
@@ -134,6 +137,27 @@ def build_report(
 
             report["evaluation"]["steps_site_frame"] = trajectory_errors(al.main_tracks(), survey, np.zeros(3)).as_dict()
     return report
+
+
+def magnetic_report(survey: Survey, al: Alignment, cfg: GraphSlamConfig) -> dict[str, Any]:
+    """report.json's ``magnetic``: the walks with the field, the window-match threshold the surrogates
+    gave, the links kept, and how far apart the solution leaves the magnetic pairs (no ground truth)."""
+    links = al.magnetic
+    assert links is not None
+    pairs = al.magnetic_pairs if al.magnetic_pairs is not None else np.zeros((0, 2), np.int64)
+    d = np.linalg.norm(al.node_xyh[pairs[:, 0], :2] - al.node_xyh[pairs[:, 1], :2], axis=1)
+    d = d[np.isfinite(d)]
+    return {
+        "walks_with_field": int(sum(s.magnetic is not None and len(s.magnetic) > 0 for s in survey)),
+        "threshold": round(float(links.threshold), 4),
+        "window_matches": int(links.matches),
+        "links": len(links),
+        "pairs": int(len(pairs)),
+        "pair_distance_m": None if not len(d) else {
+            "median": round(float(np.median(d)), 3), "p90": round(float(np.percentile(d, 90)), 3),
+            "saturated": int((d > cfg.magnetic.d_max_m).sum()),
+        },
+    }
 
 
 def main_alignment(al: Alignment) -> Alignment:
@@ -470,6 +494,8 @@ def write_outputs(
         main = main_alignment(al)  # the radio map and its edges: component 0 only
         _write_radio_map(survey, main, cfg, stage.path / names["radio_map"])
         _write_wifi_edges(main, cfg, stage.path / names["wifi_edges"])
+        if not _write_magnetic_map(survey, al, cfg, stage.path / names["magnetic_map"]):
+            names.pop("magnetic_map")
         if surveyed:  # evaluation: the same fingerprints at their ground-truth positions
             from graphslam.core.survey.radio_maps import surveyed_radio_map
             from graphslam.io.radiomap_io import write_radio_map
@@ -517,6 +543,18 @@ def _write_wifi_edges(al: Alignment, cfg: GraphSlamConfig, path: Path) -> None:
     from graphslam.io.edges_io import write_wifi_edges
 
     write_wifi_edges(crowdsourced_edges(al, cfg), path)
+
+
+def _write_magnetic_map(survey: Survey, al: Alignment, cfg: GraphSlamConfig, path: Path) -> bool:
+    """magnetic_map.parquet of the main map; False (no file) when none of its walks carries the field."""
+    from graphslam.core.survey.radio_maps import crowdsourced_magnetic_map
+    from graphslam.io.magnetic_map_io import write_magnetic_map
+
+    mm = crowdsourced_magnetic_map(survey, al, cfg)
+    if mm is None:
+        return False
+    write_magnetic_map(mm, path)
+    return True
 
 
 def _write_radio_map(survey: Survey, al: Alignment, cfg: GraphSlamConfig, path: Path) -> None:

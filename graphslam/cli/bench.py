@@ -28,11 +28,11 @@ def bench_real(
         help="auto: also the control_points variant on floors whose folder holds control_points.csv; none: never.",
     ),
     variants: str = typer.Option(
-        "headings,no_headings,control_points", "--variants", help="Comma-separated variants to run."
+        "headings,no_magnetic,no_headings,control_points", "--variants", help="Comma-separated variants to run."
     ),
 ) -> None:
-    """Survey each floor of real recordings per variant (headings: the config as given; no_headings:
-    heading.enabled=false; control_points: the floor's control_points.csv, site frame); one JSON line
+    """Survey each floor of real recordings per variant (headings: the config as given; no_magnetic:
+    magnetic.enabled=false; no_headings: heading.enabled=false; control_points: the floor's control_points.csv, site frame); one JSON line
     per floor and variant (walks in the main map and in components of 5 or more, landmark errors
     after each component's own SE(2) fit, walks over 10 / 15 m, frame, time), then one summary line
     per variant."""

@@ -15,6 +15,8 @@ docs/rerun.md for what each shows)::
     /world/aligned/radio_map/fingerprints    fingerprint positions
     /world/aligned/radio_map/ap/<rank>_<bssid>            RSSI of the most-heard APs (colour-mapped)
     /world/aligned/radio_map/heatmap/<rank>_<bssid>       their RSS heatmaps (image), uncertain cells faded
+    /world/aligned/magnetic_map/{magnitude,vertical}      the main map's field per step (colour-mapped, µT)
+    /world/aligned/magnetic_pairs            the magnetic factors: step pairs a magnetic link says are one place
     /world/aligned/convergence/<session>     walks at the initial guess and after each LM stage (timed)
     /world/aligned/locate/estimate, /world/locate/{truth,error}   kNN answers (``log_locate_results``)
     /raw/<session>                           each walk in its own dead-reckoning frame, laid on a grid
@@ -46,6 +48,7 @@ from graphslam.config import GraphSlamConfig
 from graphslam.core.survey.align import Alignment, IterationRecord
 from graphslam.core.survey.factors import edge_state
 from graphslam.core.radiomap.field import readings_field
+from graphslam.core.radiomap.magnetic_map import MagneticMap
 from graphslam.core.radiomap.fingerprints import DEFAULT_MIN_RSSI_DBM, FingerprintMatrix
 from graphslam.core.common.geometry import se2_apply
 from graphslam.core.types import PoseTrack, Survey
@@ -78,6 +81,8 @@ EDGES = "world/aligned/wifi_edges"
 FINGERPRINTS = "world/aligned/radio_map/fingerprints"
 APS = "world/aligned/radio_map/ap"
 HEATMAPS = "world/aligned/radio_map/heatmap"
+MAGNETIC = "world/aligned/magnetic_map"
+MAGNETIC_PAIRS = "world/aligned/magnetic_pairs"
 CONVERGENCE = "world/aligned/convergence"
 LOCATE_ESTIMATE = "world/aligned/locate/estimate"
 LOCATE = "world/locate"
@@ -181,6 +186,13 @@ def log_survey(
     _edge_layers(lg, alignment, cfg, max_edges)
     fm = alignment.fingerprints.fingerprints
     _radio_layers(lg, alignment.fingerprint_xy(), fm, top_aps, cfg.fingerprint.min_rssi_dbm)
+    if alignment.magnetic is not None:
+        from graphslam.core.survey.radio_maps import crowdsourced_magnetic_map
+
+        mm = crowdsourced_magnetic_map(survey, alignment, cfg)
+        if mm is not None:
+            _magnetic_layers(lg, mm)
+        _magnetic_pair_layers(lg, alignment)
     _optimiser_layers(lg, alignment.iterations)
     _convergence_layers(lg, alignment, colours)
     lg.notes[:0] = _survey_summary(survey, alignment)
@@ -281,6 +293,14 @@ def write_survey_view(
             _radio_layers(lg, np.asarray(rm.xy), rm.fingerprints, top_aps, rm.min_rssi_dbm)
         except GraphSlamError as e:  # optional file: show the rest, say why the map is missing
             problems.append(f"radio_map.parquet not shown: {e}")
+    mm_path = d / "magnetic_map.parquet"
+    if mm_path.exists():
+        from graphslam.io.magnetic_map_io import read_magnetic_map
+
+        try:
+            _magnetic_layers(lg, read_magnetic_map(mm_path))
+        except GraphSlamError as e:
+            problems.append(f"magnetic_map.parquet not shown: {e}")
     cfg_path = d / "config.yaml"
     if cfg_path.exists():
         text = cfg_path.read_text(encoding="utf-8", errors="replace")
@@ -461,6 +481,38 @@ def _radio_layers(lg: _Log, xy: NDArray, fm: FingerprintMatrix, top_aps: int,
         f"{names[0][5] if names else 0:g} m cells, faded toward white where its standard error exceeds "
         f"{MAX_STD_ERROR_DB:g} dB (docs/pictures.md). {listing}."
     )
+
+
+def _magnetic_layers(lg: _Log, mm: MagneticMap) -> None:
+    """The magnetic map's samples, coloured by |B| and by B_up (viridis over the map's 2nd-98th percentile)."""
+    if not len(mm):
+        return
+    ranges = []
+    for name, col in (("magnitude", 0), ("vertical", 2)):
+        v = mm.features[:, col]
+        lo, hi = (float(q) for q in np.percentile(v, [2, 98]))
+        pts = rr.Points2D(mm.xy, colors=rssi_colours(v, lo, max(hi, lo + 1e-6)),
+                          radii=rr.components.Radius.ui_points(2.5), draw_order=_Z_AP)
+        lg.static(f"{MAGNETIC}/{name}", len(mm), pts, rr.AnyValues(field_ut=v.astype(np.float64)))
+        ranges.append(f"{name} {lo:.1f} to {hi:.1f} µT")
+    lg.notes.append(
+        f"- magnetic map: {len(mm):,} samples of {mm.n_walks} walks under /{MAGNETIC} (one entity per feature: "
+        f"|B| and B_up, each walk's device offset removed); colour viridis over the 2nd-98th percentile "
+        f"({'; '.join(ranges)}); values in the selection panel (field_ut)."
+    )
+
+
+def _magnetic_pair_layers(lg: _Log, al: Alignment) -> None:
+    """The magnetic factors as segments between the two poses they say are one place."""
+    pairs = al.magnetic_pairs
+    if pairs is None or not len(pairs):
+        return
+    seg = np.stack([al.node_xyh[pairs[:, 0], :2], al.node_xyh[pairs[:, 1], :2]], axis=1)
+    seg = seg[np.isfinite(seg).all(axis=(1, 2))]
+    lg.static(MAGNETIC_PAIRS, len(seg), _segments(seg, (140, 60, 200), 0.5, _Z_EDGES))
+    n_links = len(al.magnetic) if al.magnetic is not None else 0
+    lg.notes.append(f"- magnetic factors: {len(seg):,} step pairs of {n_links} magnetic links (purple) under "
+                    f"/{MAGNETIC_PAIRS}.")
 
 
 def _optimiser_layers(lg: _Log, iterations: Sequence[IterationRecord]) -> None:

@@ -95,6 +95,35 @@ class Alignment:
     # (E,) per WiFi edge of ``edges``: it entered the optimiser (same walks' component, the placement's
     # gate); None: every edge between aligned walks did
     used_edges: NDArray[np.bool_] | None = None
+    magnetic: MagneticLinks | None = None  # the magnetic links the placement used (their pairs: factors)
+    magnetic_pairs: NDArray[np.int64] | None = None  # (P, 2) step nodes of the magnetic factors solved
+    ties: ControlTies | None = None  # control-point marks tied to the site frame
+
+    def links_by_component(self) -> list[dict[str, int]]:
+        """Per component (0 first): what links its walks, by kind — WiFi edges and magnetic links
+        (walk pairs) in the optimiser, UWB ranges, control-point marks."""
+        comp = self.component_of()
+        ids = self.session_ids
+        walk_comp = np.array([comp.get(sid, -1) for sid in ids], np.int64)
+        n = len(self.components)
+        out = [{"wifi": 0, "magnetic": 0, "uwb": 0, "control_points": 0} for _ in range(n)]
+        fp = self.fingerprints
+        if len(self.edges):
+            used = np.ones(len(self.edges), bool) if self.used_edges is None else self.used_edges
+            ca, cb = walk_comp[fp.session[self.edges.i]], walk_comp[fp.session[self.edges.j]]
+            for k, c in zip(*np.unique(ca[used & (ca == cb) & (ca >= 0)], return_counts=True)):
+                out[int(k)]["wifi"] = int(c)
+        if self.magnetic is not None and len(self.magnetic):
+            ca, cb = walk_comp[self.magnetic.a], walk_comp[self.magnetic.b]
+            for k, c in zip(*np.unique(ca[(ca == cb) & (ca >= 0)], return_counts=True)):
+                out[int(k)]["magnetic"] = int(c)
+        if self.ties is not None and len(self.ties):
+            ct = walk_comp[self.ties.session]
+            for k, c in zip(*np.unique(ct[ct >= 0], return_counts=True)):
+                out[int(k)]["control_points"] = int(c)
+        if self.uwb is not None and n:  # UWB surveys are one component
+            out[0]["uwb"] = int(self.uwb.anchor_ranges + self.uwb.peer_ranges)
+        return out
 
     @property
     def frame(self) -> str:
@@ -601,4 +630,7 @@ def solve(
         used_edges=incremental.pairs_in(
             np.column_stack([fp.node[problem.edges.i], fp.node[problem.edges.j]]), problem.wifi_pairs, len(xyh)
         ),
+        magnetic=problem.magnetic,
+        magnetic_pairs=problem.magnetic_pairs,
+        ties=problem.ties,
     )

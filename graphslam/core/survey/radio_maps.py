@@ -1,4 +1,5 @@
-"""Radio maps from a survey: crowdsourced (optimised poses) or surveyed (ground truth, evaluation only)."""
+"""Radio maps from a survey: crowdsourced (optimised poses) or surveyed (ground truth, evaluation only),
+and the magnetic map beside them."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from graphslam.core.survey.align import Alignment
 from graphslam.core.common.geometry import interpolate_xy, se2_apply
 from graphslam.core.survey.factors import edge_state
 from graphslam.core.radiomap.fingerprints import FingerprintMatrix
+from graphslam.core.radiomap.magnetic_map import MagneticMap
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.radiomap.uncertainty import with_uncertainty
 from graphslam.core.types import Survey
@@ -97,3 +99,60 @@ def crowdsourced_edges(al: Alignment, cfg: GraphSlamConfig) -> WifiEdgeRows:
     i, j = i[ok], j[ok]
     d = np.linalg.norm(xy[i] - xy[j], axis=1)
     return WifiEdgeRows(row[i], row[j], d, edge_state(d, cfg.wifi))
+
+
+def crowdsourced_magnetic_map(survey: Survey, al: Alignment, cfg: GraphSlamConfig) -> MagneticMap | None:
+    """The field of the main map's walks at their optimised step positions (``MagneticMap``), each
+    walk's offset removed; None when no walk of the main map carries ``/phone/magnetic``.
+
+    Offsets: per feature, least squares over the magnetic links of o_a - o_b = mean over the link's
+    pairs of (F_a - F_b), with a small pull of every offset towards 0 (it fixes the common level and
+    leaves a walk no link ties at 0)."""
+    from graphslam.core.survey.magnetic import step_features
+
+    main = set(al.components[0].walks) if al.components else set()
+    feats = step_features(survey)
+    offsets = al.fingerprints.offsets
+    ids = [s.session_id for s in survey]
+    walks = [s for s in range(len(survey)) if ids[s] in main and feats[s] is not None]
+    if not walks:
+        return None
+    node_feat = np.full((int(offsets[-1]), 3), np.nan)
+    for s in walks:
+        node_feat[offsets[s]:offsets[s + 1]] = feats[s]
+    col = {s: k for k, s in enumerate(walks)}
+    off = np.zeros((len(walks), 3))
+    links = al.magnetic
+    if links is not None and len(links):
+        rows, diffs = [], []
+        pa, pb = links.pair_nodes[:, 0], links.pair_nodes[:, 1]
+        d = node_feat[pa] - node_feat[pb]
+        ok = np.isfinite(d).all(axis=1)
+        for k in range(len(links)):
+            a, b = int(links.a[k]), int(links.b[k])
+            sel = ok & (links.pair_link == k)
+            if a in col and b in col and sel.any():
+                rows.append((col[a], col[b]))
+                diffs.append(d[sel].mean(axis=0))
+        if rows:
+            A = np.zeros((len(rows) + len(walks), len(walks)))
+            for r, (ca, cb) in enumerate(rows):
+                A[r, ca], A[r, cb] = 1.0, -1.0
+            A[len(rows):] = 1e-3 * np.eye(len(walks))
+            rhs = np.vstack([np.array(diffs), np.zeros((len(walks), 3))])
+            off = np.linalg.lstsq(A, rhs, rcond=None)[0]
+    parts_id, parts_t, parts_xy, parts_f = [], [], [], []
+    for s in walks:
+        a, b = int(offsets[s]), int(offsets[s + 1])
+        xy = al.node_xyh[a:b, :2]
+        ok = np.isfinite(xy).all(axis=1)
+        parts_id.append(np.full(int(ok.sum()), ids[s], dtype=object))
+        parts_t.append(survey.sessions[s].steps.t_ns[ok])
+        parts_xy.append(xy[ok])
+        parts_f.append(feats[s][ok] - off[col[s]])
+    return MagneticMap(
+        np.concatenate(parts_id), np.concatenate(parts_t), np.concatenate(parts_xy), np.concatenate(parts_f),
+        frame=al.frame, offsets={ids[s]: tuple(off[col[s]].round(6)) for s in walks},
+        metadata={"kind": "crowdsourced", "reference_session": al.reference,
+                  "magnetic": cfg.magnetic.model_dump(mode="json")},
+    )
