@@ -33,6 +33,7 @@ _EXPORTS: dict[str, str] = {
     **{n: "graphslam.core.survey.align" for n in ("align", "Alignment")},
     **{n: "graphslam.core.survey.evaluate" for n in ("evaluate", "Evaluation", "ErrorStats")},
     **{n: "graphslam.app.survey" for n in ("run_survey", "write_outputs", "SurveyResult")},
+    "SurveyInputs": "graphslam.app.survey_inputs",
     # radio map, positioning, access points
     "RadioMap": "graphslam.core.radiomap.radiomap",
     **{n: "graphslam.core.radiomap.knn" for n in ("KnnConfig", "KnnLocator", "KnnResult")},
@@ -178,6 +179,7 @@ if TYPE_CHECKING:  # static analysers see the real objects
     from graphslam.io.mcap_writer import write_session
     from graphslam.io.radiomap_io import read_radio_map, write_radio_map
     from graphslam.app.survey import SurveyResult, run_survey, write_outputs
+    from graphslam.app.survey_inputs import SurveyInputs
     from graphslam.core.tracking.tracker import SessionTrack, Tracker, track_sessions
     from graphslam.tracking_config import TrackConfig, load_track_config
     from graphslam.app.uwb_track import track_uwb_sessions
