@@ -84,3 +84,22 @@ def test_the_earlier_call_form_runs_the_same_survey_with_a_warning(floor: tuple)
     assert strip(new.report) == strip(old.report)
     with pytest.raises(TypeError, match="fields of SurveyInputs"):
         run_survey(SurveyInputs((folder,)), cfg, picture=False)  # type: ignore[call-arg]
+
+
+def test_the_earlier_call_forms_map_to_the_same_inputs(tmp_path: Path) -> None:
+    from graphslam.app.survey import _legacy_inputs
+
+    cfg = GraphSlamConfig()
+    want = SurveyInputs((tmp_path,), tmp_path / "o", previous=tmp_path / "p", rerun=tmp_path / "r.rrd", picture=False)
+    options = {"update": tmp_path / "p", "rerun_path": tmp_path / "r.rrd", "picture": False}
+    forms = [  # run_survey(paths, out, cfg, ...), (paths, out_dir=out, config=cfg, ...), (paths, out, ...): no config
+        ((tmp_path / "o", (cfg,), dict(options)), cfg),
+        ((cfg, (), {"out_dir": tmp_path / "o", **options}), cfg),
+        ((tmp_path / "o", (), dict(options)), None),
+    ]
+    for (second, args, kw), config in forms:
+        with pytest.warns(DeprecationWarning):
+            inputs, got = _legacy_inputs([tmp_path], second, args, kw)
+        assert got is config and vars(inputs) == vars(want)
+    with pytest.warns(DeprecationWarning), pytest.raises(TypeError, match="unexpected keyword arguments \\['out'\\]"):
+        _legacy_inputs([tmp_path], None, (), {"out": tmp_path})

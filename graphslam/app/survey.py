@@ -254,14 +254,16 @@ _LEGACY_OPTIONS = {"rerun_path": "rerun", "floor_plan": "floor_plan", "floor_siz
 
 
 def _legacy_inputs(
-    paths: Any, out_dir: Any, args: tuple[Any, ...], options: dict[str, Any]
+    paths: Any, second: Any, args: tuple[Any, ...], options: dict[str, Any]
 ) -> tuple[SurveyInputs, GraphSlamConfig | None]:
-    """(inputs, config) of a call in the earlier form ``run_survey(paths, out_dir, config, **options)``."""
+    """(inputs, config) of a call in the earlier form ``run_survey(paths, out_dir, config, **options)``
+    (``second``: what came as ``config``, the output folder unless it was named ``out_dir=``)."""
     warnings.warn("run_survey(paths, out_dir, config, **options) is deprecated: pass "
                   "run_survey(SurveyInputs(paths, out_dir, ...), config)", DeprecationWarning, stacklevel=3)
-    if len(args) > 1:
-        raise TypeError(f"run_survey(paths, out_dir, config): {2 + len(args)} positional arguments")
-    config = args[0] if args else options.pop("config", None)
+    named = isinstance(second, GraphSlamConfig) or "out_dir" in options  # run_survey(paths, [out_dir=...,] config=...)
+    if len(args) > (0 if named else 1):
+        raise TypeError("run_survey(paths, out_dir, config): too many positional arguments")
+    out_dir, config = (options.pop("out_dir", None), second) if named else (second, args[0] if args else None)
     unknown = sorted(set(options) - set(_LEGACY_OPTIONS))
     if unknown:
         raise TypeError(f"run_survey: unexpected keyword arguments {unknown!r}")
