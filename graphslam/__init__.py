@@ -33,6 +33,7 @@ _EXPORTS: dict[str, str] = {
     **{n: "graphslam.core.survey.align" for n in ("align", "Alignment")},
     **{n: "graphslam.core.survey.evaluate" for n in ("evaluate", "Evaluation", "ErrorStats")},
     **{n: "graphslam.app.survey" for n in ("run_survey", "write_outputs", "SurveyResult")},
+    "SurveyInputs": "graphslam.app.survey_inputs",
     # radio map, positioning, access points
     "RadioMap": "graphslam.core.radiomap.radiomap",
     **{n: "graphslam.core.radiomap.knn" for n in ("KnnConfig", "KnnLocator", "KnnResult")},
@@ -65,7 +66,7 @@ _EXPORTS: dict[str, str] = {
     "soak_loopback": "graphslam.app.soak:LOOPBACK",
     **{n: "graphslam.app.bench_real" for n in ("real_floors", "real_floor_rows")},
     "show_progress": "graphslam.app.progress",
-    "POWED_EXPONENT": "graphslam.core.radiomap.knn",
+    "POWED_EXPONENT": "graphslam.core.radiomap.neighbours",
     "tracking_pipeline": "graphslam.core.tracking.tracker:",
     **{n: "graphslam.app.tracking_bench" for n in ("Variant", "floor_plan_area", "held_out_folds", "interpolate_cov", "oracle_radio_map", "score_walks", "standard_variants", "tracking_real", "walk_landmarks")},
     "load_previous": "graphslam.app.update",
@@ -77,10 +78,11 @@ _EXPORTS: dict[str, str] = {
     "progress_over": "graphslam.core.progress",
     **{n: "graphslam.core.radiomap.fingerprints" for n in ("DEFAULT_MIN_RSSI_DBM", "DEFAULT_MISSING_DBM", "DistanceEngine", "FingerprintMatrix")},
     "limit_blas_threads": "graphslam.core.radiomap.ivf",
-    "WEIGHT_EPS_DB": "graphslam.core.radiomap.knn",
+    "WEIGHT_EPS_DB": "graphslam.core.radiomap.knn_types",
     "with_uncertainty": "graphslam.core.radiomap.uncertainty",
     "draw_radio_map": "graphslam.viz.radiomap_picture",
-    **{n: "graphslam.core.survey.align" for n in ("Problem", "build_problem")},
+    "Problem": "graphslam.core.survey.problem",
+    "build_problem": "graphslam.core.survey.align",
     **{n: "graphslam.core.survey.graph" for n in ("lm_params", "native_graph", "pose_graph", "dead_reckoned_nodes", "values_to_xyh")},
     "solve_problem": "graphslam.core.survey.align:solve",
     "survey_align": "graphslam.core.survey.align:",
@@ -177,6 +179,7 @@ if TYPE_CHECKING:  # static analysers see the real objects
     from graphslam.io.mcap_writer import write_session
     from graphslam.io.radiomap_io import read_radio_map, write_radio_map
     from graphslam.app.survey import SurveyResult, run_survey, write_outputs
+    from graphslam.app.survey_inputs import SurveyInputs
     from graphslam.core.tracking.tracker import SessionTrack, Tracker, track_sessions
     from graphslam.tracking_config import TrackConfig, load_track_config
     from graphslam.app.uwb_track import track_uwb_sessions

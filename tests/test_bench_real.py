@@ -14,6 +14,7 @@ import pytest
 from conftest import run_cli
 
 from graphslam.app.survey import run_survey
+from graphslam.app.survey_inputs import SurveyInputs
 from graphslam.core.survey.align import Alignment, Component
 from graphslam.core.survey.evaluate import component_errors
 from graphslam.core.common.geometry import se2_apply
@@ -224,7 +225,7 @@ def test_bad_variant_or_control_points_is_one_line_exit_2(floors: Path, capsys: 
 
 
 def test_report_json_evaluation_has_the_components(floors: Path) -> None:
-    res = run_survey([floors / "cp"], None, picture=False, control_points=floors / "cp" / "control_points.csv")
+    res = run_survey(SurveyInputs.for_floor(floors / "cp", picture=False))  # with its control_points.csv
     ev = res.report["evaluation"]
     assert ev["component"] == 0
     comps = ev["components"]

@@ -25,6 +25,7 @@ from PIL import Image
 import graphslam.app.survey as app_survey
 from graphslam.app.batch import survey_floor
 from graphslam.app.survey import main_map_warning, run_survey
+from graphslam.app.survey_inputs import SurveyInputs
 from graphslam.config import GraphSlamConfig
 from graphslam.core.survey.align import Component, align
 from graphslam.errors import InputError
@@ -129,7 +130,7 @@ def test_radio_map_and_wifi_edges_hold_component_0_only(split_run: tuple, floor:
     rm = read_radio_map(out / "radio_map.parquet")
     assert set(rm.session_ids) == main and len(rm) == report["radio_map"]["fingerprints"]
     # the same survey in one component: the map holds more, and component 0's rows are the same
-    full = run_survey([floor], None, GraphSlamConfig(), picture=False)
+    full = run_survey(SurveyInputs((floor,), picture=False), GraphSlamConfig())
     assert full.report["radio_map"]["fingerprints"] > len(rm)
     from graphslam.core.survey.radio_maps import crowdsourced_radio_map
 
@@ -211,14 +212,14 @@ def test_survey_warns_once_naming_the_floor_when_the_main_map_holds_under_half(
 ) -> None:
     monkeypatch.setattr(app_survey, "align", split_align((2, 3, 1)))
     caplog.set_level("WARNING")
-    r = run_survey([floor], tmp_path / "o1", GraphSlamConfig(), picture=False)
+    r = run_survey(SurveyInputs((floor,), tmp_path / "o1", picture=False), GraphSlamConfig())
     lines = [m for m in caplog.messages if "main map holds" in m]
     assert lines == [main_map_warning(r.report)]
     assert lines[0].startswith("b7_f2 (sim-corridor/F1): the main map holds 2 of 6 walks; 4 are not in it: "
                                "4 in 2 other components")
     caplog.clear()
     monkeypatch.setattr(app_survey, "align", split_align((3, 3)))  # half: no warning
-    run_survey([floor], tmp_path / "o2", GraphSlamConfig(), picture=False)
+    run_survey(SurveyInputs((floor,), tmp_path / "o2", picture=False), GraphSlamConfig())
     assert not [m for m in caplog.messages if "main map holds" in m]
 
 

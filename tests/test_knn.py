@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix, rss_distance
-from graphslam.core.radiomap.knn import KnnConfig, KnnLocator, _candidate_block, _gather_block
+from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
+from graphslam.core.radiomap.neighbours import candidate_block, gather_block
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import ConfigError, QueryError, RadioMapError
 
@@ -126,10 +127,10 @@ def test_sparse_candidate_distances_equal_the_engine(min_common: int) -> None:
     eng = DistanceEngine(rm.fingerprints)
     assert not eng.dense
     full, _ = eng.block(q, min_common=min_common)
-    mine = _candidate_block(eng, q, min_common)
+    mine = candidate_block(eng, q, min_common)
     assert np.array_equal(np.isfinite(full), np.isfinite(mine))
     assert np.array_equal(full[np.isfinite(full)], mine[np.isfinite(mine)])  # bit-identical
-    gathered = _gather_block(eng, q, min_common)  # the few-queries path: same up to summation order
+    gathered = gather_block(eng, q, min_common)  # the few-queries path: same up to summation order
     assert np.array_equal(np.isfinite(full), np.isfinite(gathered))
     np.testing.assert_allclose(gathered[np.isfinite(gathered)], full[np.isfinite(full)], rtol=1e-12)
     # and eq. 9 from its definition, for a few pairs
@@ -256,9 +257,9 @@ def test_sorensen_distances_and_neighbours_equal_their_definition(min_common: in
 
 @pytest.mark.parametrize("min_common", [1, 3])
 def test_sorensen_dense_blocks_equal_the_postings_bit_for_bit(min_common: int, monkeypatch: pytest.MonkeyPatch) -> None:
-    # A block is summed dense, AP by AP, or from its postings (knn.SORENSEN_DENSE_MIN_FILL): the
+    # A block is summed dense, AP by AP, or from its postings (neighbours.SORENSEN_DENSE_MIN_FILL): the
     # same sums in the same order, so the same distances, neighbours and ties, bit for bit.
-    from graphslam.core.radiomap import knn
+    from graphslam.core.radiomap import neighbours
 
     rng = np.random.default_rng(8)
     n = 300
@@ -269,15 +270,15 @@ def test_sorensen_dense_blocks_equal_the_postings_bit_for_bit(min_common: int, m
     queries = rm.encode(_random_scans(rng, 60, 40, 9) + [dict(refs[2]), {}])
     loc = KnnLocator(rm, KnnConfig(k=5, index="exact", min_common=min_common), block_cells=20 * n, threads=1)
     calls: list[int] = []
-    dense = knn._sorensen_dense_sums
-    monkeypatch.setattr(knn, "_sorensen_dense_sums", lambda *a: calls.append(1) or dense(*a))
-    monkeypatch.setattr(knn, "SORENSEN_DENSE_MIN_FILL", 0.0)
+    dense = neighbours._sorensen_dense_sums
+    monkeypatch.setattr(neighbours, "_sorensen_dense_sums", lambda *a: calls.append(1) or dense(*a))
+    monkeypatch.setattr(neighbours, "SORENSEN_DENSE_MIN_FILL", 0.0)
     a = loc.locate(queries)
     assert len(calls) == 4  # every block of 20 queries (the last one's 2)
-    monkeypatch.setattr(knn, "SORENSEN_DENSE_MIN_FILL", float("inf"))
+    monkeypatch.setattr(neighbours, "SORENSEN_DENSE_MIN_FILL", float("inf"))
     b = loc.locate(queries)
     assert len(calls) == 4
-    assert np.array_equal(loc.distances(queries), knn._sorensen_block(loc._sorensen, queries, min_common))
+    assert np.array_equal(loc.distances(queries), neighbours.sorensen_block(loc._sorensen, queries, min_common))
     _assert_same_answers(a, b)
 
 

@@ -2,7 +2,9 @@
 no module imports (at module level or lazily inside a function) from a layer above its own,
 and core does no file I/O beyond what its own layer allows. Inside core the sub-packages depend in
 one direction too: common (with types, progress, summary) -> radiomap -> uwb -> survey, and
-tracking beside survey (on radiomap); neither of survey and tracking imports the other."""
+tracking beside survey (on radiomap); neither of survey and tracking imports the other. And no two
+modules of one core sub-package (or of core's own modules) import each other, directly or through
+others: what two modules share goes into a third that both import."""
 
 from __future__ import annotations
 
@@ -75,6 +77,76 @@ def _violations(root: Path = PKG) -> list[str]:
     return bad
 
 
+def _import_targets(path: Path) -> list[str]:
+    """Every module ``path`` imports (at module level, lazily or for type checking): ``from P import
+    n`` counts as ``P.n`` (a module, when ``n`` is one) and ``P``."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out += [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+    return out
+
+
+def _circles(folder: Path, package: str) -> list[list[str]]:
+    """The circles among the modules of ``folder`` (the package ``package``): the groups of two or
+    more modules each of which imports, directly or through the others, every other (strongly
+    connected components of the import graph), each sorted, in order."""
+    names = {p.stem for p in folder.glob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for path in sorted(folder.glob("*.py")):
+        deps = set()
+        for target in _import_targets(path):
+            if target.startswith(package + "."):
+                name = target[len(package) + 1:].split(".")[0]
+                if name in names and name != path.stem:
+                    deps.add(name)
+        graph[path.stem] = deps
+    # Tarjan's strongly connected components
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    circles = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = []
+            while True:
+                w = stack.pop()
+                group.append(w)
+                if w == v:
+                    break
+            if len(group) > 1:
+                circles.append(sorted(group))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return sorted(circles)
+
+
+def _core_circles(root: Path = PKG) -> list[str]:
+    """Per core sub-package (and core's own modules): its modules that import each other."""
+    core = root / "core"
+    folders = [core] + sorted(p for p in core.iterdir() if p.is_dir() and p.name != "__pycache__")
+    out = []
+    for folder in folders:
+        package = ".".join(["graphslam", *folder.relative_to(root).parts])
+        for group in _circles(folder, package):
+            out.append(f"{folder.relative_to(root).as_posix()}: {', '.join(group)} import each other")
+    return out
+
+
 def test_every_core_sub_package_has_a_rank() -> None:
     # a new core sub-package must be placed in the order (else the check would skip it)
     names = {p.name.removesuffix(".py") for p in (PKG / "core").iterdir() if p.name != "__pycache__"}
@@ -111,4 +183,33 @@ def test_the_checker_sees_a_core_sub_package_violation(tmp_path: Path) -> None:
         "core/survey/probe.py imports graphslam.core.tracking.filters",
         "core/tracking/probe.py imports graphslam.core.survey",
         "core/uwb/probe.py imports graphslam.core.survey.factors",
+    ]
+
+
+def test_no_circle_inside_a_core_sub_package() -> None:
+    assert _core_circles() == []
+
+
+def test_the_checker_sees_a_circle(tmp_path: Path) -> None:
+    # in radiomap: a -> b lazily, b -> c, c -> a for type checking only (one circle of three); d <-> e
+    # through "from package import module"; f -> a is no circle. In survey: a module importing
+    # itself, and one importing radiomap's a (another sub-package): neither is a circle
+    rm, sv = tmp_path / "core" / "radiomap", tmp_path / "core" / "survey"
+    rm.mkdir(parents=True)
+    sv.mkdir()
+    (rm / "__init__.py").write_text("")
+    (rm / "a.py").write_text("def f():\n    from graphslam.core.radiomap.b import g\n")
+    (rm / "b.py").write_text("import graphslam.core.radiomap.c\n")
+    (rm / "c.py").write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from graphslam.core.radiomap.a import f\n")
+    (rm / "d.py").write_text("from graphslam.core.radiomap import e\n")
+    (rm / "e.py").write_text("from graphslam.core.radiomap import d as D\n")
+    (rm / "f.py").write_text("from graphslam.core.radiomap.a import f\n")
+    (sv / "s.py").write_text("from graphslam.core.survey import s\nfrom graphslam.core.radiomap.a import f\n")
+    (sv / "t.py").write_text("from graphslam.core.survey.s import x\n")
+    (tmp_path / "core" / "types.py").write_text("from graphslam.core import summary\n")
+    (tmp_path / "core" / "summary.py").write_text("from graphslam.core.types import Survey\n")
+    assert _core_circles(tmp_path) == [
+        "core: summary, types import each other",
+        "core/radiomap: a, b, c import each other",
+        "core/radiomap: d, e import each other",
     ]

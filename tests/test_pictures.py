@@ -14,6 +14,7 @@ from conftest import run_cli
 from PIL import Image
 
 from graphslam.app.survey import run_survey
+from graphslam.app.survey_inputs import SurveyInputs
 from graphslam.config import GraphSlamConfig
 from graphslam.io.mcap_reader import read_survey
 from graphslam.io.mcap_writer import write_session
@@ -43,7 +44,7 @@ def corridor_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, 
     sim.write(root / "rec")
     lonely = sim.survey.sessions[NO_WIFI]
     write_session(dataclasses.replace(lonely, scans=()), root / "rec" / f"{lonely.session_id}.mcap")
-    result = run_survey(sorted((root / "rec").glob("*.mcap")), root / "out")
+    result = run_survey(SurveyInputs(tuple(sorted((root / "rec").glob("*.mcap"))), root / "out"))
     # corridor APs lie on one line, so fit-aps rightly fits none: give `track` the simulator's APs,
     # moved into the map frame through the survey's landmark fit (a test shortcut, not the product)
     from graphslam.core.tracking.apmodel import ApModel, ApModels

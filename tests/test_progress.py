@@ -184,10 +184,11 @@ def grab() -> Iterator[_Grab]:
 @pytest.mark.parametrize("candidates", ["exact", "ivf"])
 def test_every_timed_survey_stage_reports_progress(recordings: Path, tmp_path: Path, grab: _Grab, candidates: str) -> None:
     from graphslam.app.survey import run_survey
+    from graphslam.app.survey_inputs import SurveyInputs
     from graphslam.config import load_config
 
     cfg = load_config(None, {"edges": {"candidates": candidates}})
-    result = run_survey([recordings], tmp_path / "out", cfg)
+    result = run_survey(SurveyInputs((recordings,), tmp_path / "out"), cfg)
     stages = {k.removeprefix("align.").replace("_", " ") for k in result.report["timings_s"]} - {"total"}
     assert {"read", "edges", "initialise", "optimise", "write", "evaluate"} <= stages
     assert stages <= grab.ended(), stages - grab.ended()

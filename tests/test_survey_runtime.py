@@ -12,6 +12,7 @@ import pytest
 from threadpoolctl import threadpool_info
 
 from graphslam.app.survey import run_survey
+from graphslam.app.survey_inputs import SurveyInputs
 from graphslam.config import config_from_dict
 from graphslam.io.mcap_writer import write_session
 from graphslam.sim import simulate
@@ -40,7 +41,7 @@ def test_survey_runs_openblas_at_the_configured_count_and_restores_it(recordings
         pytest.skip("numpy is not built on OpenBLAS here")
     seen: list[list[int]] = []
     cfg = config_from_dict({"optimizer": {"blas_threads": n}})
-    run_survey(recordings, None, cfg, progress=lambda rec: seen.append(_openblas_threads()))
+    run_survey(SurveyInputs(recordings), cfg, progress=lambda rec: seen.append(_openblas_threads()))
     assert seen, "the optimiser reported no iteration"
     want = before if n == 0 else [n] * len(before)
     assert all(s == want for s in seen)
@@ -52,7 +53,8 @@ def test_a_wifi_only_survey_never_loads_gtsam(recordings: list[Path], tmp_path: 
     code = textwrap.dedent(f"""
         import sys
         from graphslam.app.survey import run_survey
-        r = run_survey({[str(p) for p in recordings]!r}, {str(tmp_path / "out")!r})
+        from graphslam.app.survey_inputs import SurveyInputs
+        r = run_survey(SurveyInputs({[str(p) for p in recordings]!r}, {str(tmp_path / "out")!r}))
         assert not r.alignment.unaligned and r.alignment.tracks, r.alignment.unaligned
         print(sorted(m for m in sys.modules if m.split(".")[0] == "gtsam"))
     """)

@@ -40,6 +40,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+from graphslam.app.survey_inputs import SurveyInputs
 from graphslam.config import GraphSlamConfig, config_from_dict
 from graphslam.errors import ConfigError, GraphSlamError, InputError, require_extra
 from graphslam.io.atomic import atomic_write_json, kill_point
@@ -47,7 +48,6 @@ from graphslam.io.atomic import atomic_write_json, kill_point
 log = logging.getLogger(__name__)
 
 SUMMARY_FILE = "summary.json"
-CONTROL_POINTS_FILE = "control_points.csv"  # in a floor folder: that floor's --control-points
 STATUSES = ("ok", "partial", "failed")
 # One thread per floor process: a survey is single-threaded in GTSAM; BLAS threads on top of
 # two workers on two cores would only compete.
@@ -102,7 +102,6 @@ def survey_floor(floor_dir: str, out_dir: str, config_json: str, floor: str, upd
     """The task: survey one floor, never raise for the floor's own failures (they are its row).
     ``update``: a previous output in ``out_dir`` seeds ``survey --update`` (none: a full survey)."""
     from graphslam.app.survey import main_map_warning, run_survey
-    from graphslam.io.survey_state import STATE_FILE
 
     t = time.perf_counter()
     walks = aligned = main = 0
@@ -112,9 +111,7 @@ def survey_floor(floor_dir: str, out_dir: str, config_json: str, floor: str, upd
         import json
 
         cfg = config_from_dict(json.loads(config_json), "survey-batch configuration")
-        previous = out_dir if update and (Path(out_dir) / STATE_FILE).is_file() else None
-        cp = Path(floor_dir) / CONTROL_POINTS_FILE
-        result = run_survey([floor_dir], out_dir, cfg, update=previous, control_points=cp if cp.is_file() else None)
+        result = run_survey(SurveyInputs.for_floor(floor_dir, out_dir, update=update), cfg)
         walks, aligned = result.report["sessions"], result.report["aligned_sessions"]
         main = result.report["radio_map"]["walks"]
         warning = main_map_warning(result.report)

@@ -13,6 +13,7 @@ from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 
+from graphslam.app.survey_inputs import CONTROL_POINTS_FILE, SurveyInputs
 from graphslam.config import GraphSlamConfig
 from graphslam.core.progress import progress_over
 
@@ -45,7 +46,6 @@ def real_floor_rows(
     (``graphslam.core.survey.evaluate.component_errors``): each component after its own SE(2) fit,
     component 0 of a survey in the site frame also with no fit. See ``_real_row`` for the fields.
     """
-    from graphslam.app.batch import CONTROL_POINTS_FILE  # a floor folder's control points, as survey-batch
     from graphslam.errors import ConfigError
     from graphslam.io.mcap_reader import floor_folders
 
@@ -63,10 +63,11 @@ def real_floor_rows(
         for v in variants:
             if v == "control_points" and (control_points == "none" or not cp_file.is_file()):
                 continue
-            plan.append((folder, v, cp_file if v == "control_points" else None))
+            cp = cp_file if v == "control_points" else None
+            plan.append((v, SurveyInputs((folder,), control_points=cp, picture=False)))
     configs = {v: _variant_config(cfg, v) for v in variants}
-    for folder, variant, cp_file in progress_over(plan, "bench real", unit="surveys"):
-        yield _real_row(folder, variant, configs[variant], cp_file)
+    for variant, inputs in progress_over(plan, "bench real", unit="surveys"):
+        yield _real_row(inputs, variant, configs[variant])
 
 
 def real_floors(
@@ -91,8 +92,8 @@ def _variant_config(cfg: GraphSlamConfig, variant: str) -> GraphSlamConfig:
     return config_from_dict(data, f"bench real {variant}")
 
 
-def _real_row(folder: Path, variant: str, cfg: GraphSlamConfig, cp_file: Path | None) -> dict[str, Any]:
-    """One floor surveyed (``run_survey``, no files) under one variant, scored per component.
+def _real_row(inputs: SurveyInputs, variant: str, cfg: GraphSlamConfig) -> dict[str, Any]:
+    """One floor (``inputs``: its folder, no files written) surveyed under one variant, scored per component.
 
     ``main``: walks in component 0; ``main_mean_m`` (= ``mean_m``) / ``p90_m`` / ``max_m`` its
     landmark errors after one SE(2) fit, ``main_site_mean_m`` with no fit when it is in the site
@@ -105,9 +106,10 @@ def _real_row(folder: Path, variant: str, cfg: GraphSlamConfig, cp_file: Path | 
     from graphslam.app.survey import run_survey
     from graphslam.core.survey.evaluate import component_errors
 
+    folder = inputs.recordings[0]
     log.info("bench real: %s, %s", folder, variant)
     t = time.perf_counter()
-    res = run_survey([folder], None, cfg, picture=False, control_points=cp_file)
+    res = run_survey(inputs, cfg)
     dt = time.perf_counter() - t
     al, ev, n = res.alignment, res.evaluation, len(res.survey)
     site = al.frame == "site"
@@ -150,7 +152,7 @@ def _real_row(folder: Path, variant: str, cfg: GraphSlamConfig, cp_file: Path | 
         "walks_over_10m": int(sum(v > 10.0 for v in per_walk.values())),
         "walks_over_15m": int(sum(v > 15.0 for v in per_walk.values())),
         "frame": al.frame,
-        "control_points": None if cp_file is None else str(cp_file),
+        "control_points": None if inputs.control_points is None else str(inputs.control_points),
         "per_walk_rigid_fit_mean_m": r2(ev.landmarks_per_walk_fit.mean_m) if ev else None,
         "initialization": cfg.optimizer.initialization,
         "placement": None if pl is None else pl.method,

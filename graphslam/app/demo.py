@@ -32,6 +32,7 @@ def run_demo(out_dir: str | Path, *, scenario: str = "paper", seed: int = 0, tes
     from graphslam.io.mcap_reader import read_survey
     from graphslam.io.radiomap_io import read_radio_map
     from graphslam.app.survey import run_survey
+    from graphslam.app.survey_inputs import SurveyInputs
     from graphslam.sim import simulate
 
     out = Path(out_dir)
@@ -40,12 +41,8 @@ def run_demo(out_dir: str | Path, *, scenario: str = "paper", seed: int = 0, tes
     sim.write(out / "recordings")
     t_sim = time.perf_counter() - t0
 
-    result = run_survey(
-        [p for p in sorted((out / "recordings").glob("*.mcap"))],
-        out / "survey",
-        config,
-        rerun_path=rerun,
-    )
+    recordings = tuple(sorted((out / "recordings").glob("*.mcap")))
+    result = run_survey(SurveyInputs(recordings, out / "survey", rerun=rerun), config)
     ev = result.evaluation
 
     t = time.perf_counter()

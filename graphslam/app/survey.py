@@ -9,6 +9,7 @@ import contextlib
 import dataclasses
 import logging
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping, Sequence
@@ -16,6 +17,7 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 import numpy as np
 
 from graphslam.app.derived import DERIVED_FILES, KEPT_FILES, rebuild_derived
+from graphslam.app.survey_inputs import SurveyInputs
 from graphslam.config import GraphSlamConfig
 from graphslam.core.progress import Task
 from graphslam.core.survey.align import Alignment, ProgressCallback, align
@@ -249,31 +251,47 @@ def _placement_report(al: Alignment) -> dict[str, Any]:
 
 
 def run_survey(
-    paths: Sequence[str | Path],
-    out_dir: str | Path | None,
+    inputs: SurveyInputs,
     config: GraphSlamConfig | None = None,
-    *,
+    *legacy_args: Any,
     progress: ProgressCallback | None = None,
-    rerun_path: str | Path | None = None,
-    floor_plan: str | Path | None = None,
-    floor_size: tuple[float, float] | None = None,
-    surveyed: bool = False,
-    picture: bool = True,
-    update: str | Path | None = None,
-    control_points: str | Path | Mapping[str, tuple[float, float]] | None = None,
+    **legacy_options: Any,
 ) -> SurveyResult:
-    """Read ``paths``, align every walk, write the outputs into ``out_dir`` (None: no files);
-    ``picture``: also survey.png there (over ``floor_plan`` when given).
+    """Read ``inputs`` (``SurveyInputs``: the recordings, control points, floor plan, previous
+    output ...), align every walk with ``config``, write the outputs into ``inputs.out`` (None: no
+    files) and survey.png there when ``inputs.picture``.
 
-    ``update``: a previous output folder of this floor; walks solved there start from their
-    solution and only the new walks' neighbourhood is re-solved (``graphslam.app.update``).
-    ``control_points``: a ``landmark_id,x,y`` CSV file (``graphslam.io.control_points``) or its
-    content, landmark id -> site (x, y); at least one id must be marked by a walk."""
+    The earlier form ``run_survey(paths, out_dir, config, rerun_path=, floor_plan=, floor_size=,
+    surveyed=, picture=, update=, control_points=)`` still runs, with a ``DeprecationWarning``."""
+    if not isinstance(inputs, SurveyInputs):
+        inputs, config = _legacy_inputs(inputs, config, legacy_args, legacy_options)
+    elif legacy_args or legacy_options:
+        raise TypeError(f"run_survey(inputs, config, *, progress): unexpected arguments "
+                        f"{list(legacy_args) + sorted(legacy_options)!r} (they are fields of SurveyInputs)")
     cfg = config or GraphSlamConfig()
     with _openblas_threads(cfg.optimizer.blas_threads):
-        return _run_survey(paths, out_dir, cfg, progress=progress, rerun_path=rerun_path, floor_plan=floor_plan,
-                           floor_size=floor_size, surveyed=surveyed, picture=picture, update=update,
-                           control_points=control_points)
+        return _run_survey(inputs, cfg, progress)
+
+
+_LEGACY_OPTIONS = {"rerun_path": "rerun", "floor_plan": "floor_plan", "floor_size": "floor_size", "surveyed": "surveyed",
+                   "picture": "picture", "update": "previous", "control_points": "control_points"}
+
+
+def _legacy_inputs(
+    paths: Any, second: Any, args: tuple[Any, ...], options: dict[str, Any]
+) -> tuple[SurveyInputs, GraphSlamConfig | None]:
+    """(inputs, config) of a call in the earlier form ``run_survey(paths, out_dir, config, **options)``
+    (``second``: what came as ``config``, the output folder unless it was named ``out_dir=``)."""
+    warnings.warn("run_survey(paths, out_dir, config, **options) is deprecated: pass "
+                  "run_survey(SurveyInputs(paths, out_dir, ...), config)", DeprecationWarning, stacklevel=3)
+    named = isinstance(second, GraphSlamConfig) or "out_dir" in options  # run_survey(paths, [out_dir=...,] config=...)
+    if len(args) > (0 if named else 1):
+        raise TypeError("run_survey(paths, out_dir, config): too many positional arguments")
+    out_dir, config = (options.pop("out_dir", None), second) if named else (second, args[0] if args else None)
+    unknown = sorted(set(options) - set(_LEGACY_OPTIONS))
+    if unknown:
+        raise TypeError(f"run_survey: unexpected keyword arguments {unknown!r}")
+    return SurveyInputs(paths, out_dir, **{_LEGACY_OPTIONS[k]: v for k, v in options.items()}), config
 
 
 @contextlib.contextmanager
@@ -289,29 +307,19 @@ def _openblas_threads(n: int) -> Iterator[None]:
         yield
 
 
-def _run_survey(
-    paths: Sequence[str | Path],
-    out_dir: str | Path | None,
-    cfg: GraphSlamConfig,
-    *,
-    progress: ProgressCallback | None,
-    rerun_path: str | Path | None,
-    floor_plan: str | Path | None,
-    floor_size: tuple[float, float] | None,
-    surveyed: bool,
-    picture: bool,
-    update: str | Path | None,
-    control_points: str | Path | Mapping[str, tuple[float, float]] | None,
-) -> SurveyResult:
+def _run_survey(inputs: SurveyInputs, cfg: GraphSlamConfig, progress: ProgressCallback | None) -> SurveyResult:
+    out_dir, update = inputs.out, inputs.previous
     for folder in {Path(f).absolute() for f in (out_dir, update) if f is not None}:
         # what runs into these folders that were killed left (only theirs): a previous set is put
         # back before --update reads it
         clean_stale(folder)
-    _check_outputs(paths, out_dir, rerun_path, floor_plan)
-    plan = _picture_plan(floor_plan, floor_size) if picture and out_dir is not None else None
+    _check_outputs(inputs)
+    plan = _picture_plan(inputs.floor_plan, inputs.floor_size) if inputs.picture and out_dir is not None else None
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    cp_source, cp = _read_control_points(control_points)  # a bad file fails before the work
+    cp_source, cp = _read_control_points(inputs.control_points)  # a bad file fails before the work
+    if inputs.reference_map is not None:  # reserved for the reference-map input: refused until it is read
+        raise InputError(inputs.reference_map, "a reference radio map is not an input of the survey yet")
     previous = None
     if update is not None:  # read first: a bad previous output fails before the work
         from graphslam.app.update import align_update, load_previous
@@ -320,7 +328,7 @@ def _run_survey(
     cache = None
     if update is not None:  # the walks read last time, by their files' contents: not parsed again
         cache = read_recording_cache(Path(update) / CACHE_FILE)
-    recordings = read_recordings(paths, cache)
+    recordings = read_recordings(inputs.recordings, cache)
     survey = recordings.survey
     if cp is not None:
         check_control_points_marked(cp, survey, cp_source)
@@ -341,20 +349,21 @@ def _run_survey(
     timings["evaluate"] = time.perf_counter() - t
 
     viz = None
-    if rerun_path is not None:
+    if inputs.rerun is not None:
         from graphslam.viz.background import start_log_survey
 
         # forked now: imports rerun and logs on the other core while the outputs are written
-        viz = start_log_survey(rerun_path, survey, alignment, cfg, floor_plan=floor_plan, floor_size=floor_size)
+        viz = start_log_survey(inputs.rerun, survey, alignment, cfg, floor_plan=inputs.floor_plan,
+                               floor_size=inputs.floor_size)
     files: dict[str, Path] = {}
-    report = build_report(survey, alignment, evaluation, cfg, timings, floor=floor_name(paths, survey))
+    report = build_report(survey, alignment, evaluation, cfg, timings, floor=floor_name(inputs.recordings, survey))
     if update_info is not None:
         report["update"] = {**update_info, "walks_from_cache": recordings.cached}
 
     def finish(folder: Path | None) -> None:
         """The last of the run, before its set is published: survey.png into the stage, the
         Rerun child waited for, report.json's timings (written last, with the set)."""
-        if folder is not None and picture:
+        if folder is not None and inputs.picture:
             _write_picture(folder, survey, alignment, cfg, evaluation, plan, files, timings)
             if "picture" in files:
                 files["picture"] = Path(out_dir) / files["picture"].name  # where it is once published
@@ -374,7 +383,7 @@ def _run_survey(
 
         try:
             with Task("write"):
-                files |= write_outputs(Path(out_dir), survey, alignment, report, cfg, surveyed=surveyed,
+                files |= write_outputs(Path(out_dir), survey, alignment, report, cfg, surveyed=inputs.surveyed,
                                        before_publish=before_publish, recording_keys=recordings.keys)
         except BaseException:
             if viz is not None:  # let the child finish (and clean up its temp file) before failing
@@ -444,15 +453,11 @@ def _write_picture(
     timings["picture"] = time.perf_counter() - t
 
 
-def _check_outputs(
-    paths: Sequence[str | Path],
-    out_dir: str | Path | None,
-    rerun_path: str | Path | None,
-    floor_plan: str | Path | None,
-) -> None:
+def _check_outputs(inputs: SurveyInputs) -> None:
     """Fail before the work, not after it: an --out that cannot be replaced as one set (see
     ``write_outputs``), or that is (inside) an input folder, a --rerun file inside --out, a
     missing floor plan."""
+    paths, out_dir, rerun_path, floor_plan = inputs.recordings, inputs.out, inputs.rerun, inputs.floor_plan
     if out_dir is not None:
         out = Path(out_dir).resolve()
         for p in map(Path, paths):

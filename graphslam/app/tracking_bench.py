@@ -121,9 +121,10 @@ def oracle_radio_map(walks: Sequence[Session]) -> RadioMap:
 def crowdsourced_map(walks: Sequence[Session], cfg: GraphSlamConfig) -> tuple[RadioMap, dict[str, Any]]:
     """The survey pipeline on the walks' files; the map in the landmark frame by one SE(2) fit."""
     from graphslam.app.survey import run_survey
+    from graphslam.app.survey_inputs import SurveyInputs
     from graphslam.core.survey.radio_maps import crowdsourced_radio_map
 
-    res = run_survey([w.source for w in walks], None, cfg)
+    res = run_survey(SurveyInputs(tuple(w.source for w in walks)), cfg)
     ev = res.evaluation
     if ev is None or ev.landmarks.n < 2:
         raise GraphSlamError("crowdsourced map: the survey placed fewer than 2 landmarks")

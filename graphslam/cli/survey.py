@@ -85,15 +85,17 @@ def survey(
     cfg = config_from_options(config, set_)
     expand_paths(paths)  # a missing input: one line before the survey's libraries are imported
     from graphslam.app.survey import run_survey
+    from graphslam.app.survey_inputs import SurveyInputs
 
     if not progress:
         from graphslam.app.progress import show_progress
 
         show_progress("off")
-    result = run_survey(
-        paths, out, cfg, rerun_path=rerun, floor_plan=floor_plan, floor_size=floor_size, surveyed=surveyed,
-        picture=picture, update=update, control_points=control_points,
+    inputs = SurveyInputs(
+        tuple(paths), out, control_points=control_points, floor_plan=floor_plan, floor_size=floor_size,
+        previous=update, rerun=rerun, picture=picture, surveyed=surveyed,
     )
+    result = run_survey(inputs, cfg)
     r = result.report
     typer.echo(
         f"aligned {r['aligned_sessions']}/{r['sessions']} walks, {r['nodes']:,} poses, "

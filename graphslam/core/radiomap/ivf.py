@@ -296,7 +296,7 @@ class IvfIndex:
     ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """(Q, k) map rows and distances (eq. 9, or Sørensen with ``powed``) of the k nearest
         references among the probed clusters, nearest first, ties by map row; -1 / inf padded
-        (as ``knn._nearest``)."""
+        (as ``neighbours.nearest``)."""
         m = len(q)
         if m == 0 or self.n_clusters == 0:
             return np.full((m, k), -1, np.int64), np.full((m, k), np.inf)

@@ -35,8 +35,8 @@ Frames and units: the radio map's frame, metres.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
-from typing import Any, Mapping
+from dataclasses import dataclass
+from typing import Mapping
 
 import numpy as np
 from numpy.typing import NDArray
@@ -44,7 +44,9 @@ from scipy import sparse
 from scipy.spatial import cKDTree
 
 from graphslam.core.radiomap.fingerprints import FingerprintMatrix
-from graphslam.core.radiomap.knn import WEIGHT_EPS_DB, KnnConfig, KnnLocator, _nearest
+from graphslam.core.radiomap.knn import KnnLocator
+from graphslam.core.radiomap.knn_types import WEIGHT_EPS_DB, KnnConfig, KnnUncertainty
+from graphslam.core.radiomap.neighbours import nearest
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import ConfigError
 
@@ -53,67 +55,6 @@ DEFAULT_FLOOR_M = 2.0
 UNCOVERED_RADIUS_M = 5.0  # the uncovered set: map fingerprints this close to the walk's path removed
 UNCOVERED_WEIGHT = 0.4  # an uncovered scan's weight in the bins' quantiles (a covered one: 1)
 SCORE_BINS = 5  # quantile bins of the calibration scans' scores
-
-
-@dataclass(frozen=True)
-class KnnUncertainty:
-    """``sigma = scale_b * sqrt(spread^2 + floor_m^2)`` for answers of the kNN it was measured with,
-    ``scale_b`` by the answer's score (module docstring)."""
-
-    metric: str
-    k: int
-    weighted: bool
-    scale: float  # the covered scans' single scale (no score bins, or a score that is NaN)
-    floor_m: float
-    n: int  # scans located in the calibration (both sets)
-    coverage: float = 0.95  # share of the covered scans' errors inside their 95 % circle
-    score_edges: tuple[float, ...] = ()  # inner edges of the score bins, ascending
-    scales: tuple[float, ...] = ()  # per bin (len(score_edges) + 1), non-decreasing; () = ``scale`` for all
-
-    def matches(self, config: KnnConfig) -> bool:
-        """Measured with this kNN (metric, k, weights)? (Not ``min_common``: the calibration uses 1,
-        and a larger one, which only excludes weakly overlapping references, reuses it.)"""
-        return (self.metric, self.k, self.weighted) == (config.metric, config.k, config.weighted)
-
-    def scale_for(self, score: NDArray[np.float64] | None) -> NDArray[np.float64] | float:
-        """The scale per answer score (``scale`` without bins, without scores, or for a NaN score)."""
-        if not self.scales or score is None:
-            return self.scale
-        sc = np.asarray(score, float)
-        edges = np.asarray(self.score_edges, float)
-        out = np.asarray(self.scales, float)[np.searchsorted(edges, np.nan_to_num(sc), side="right")]
-        return np.where(np.isfinite(sc), out, self.scale)
-
-    def sigma(self, spread: NDArray[np.float64], score: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
-        """Per answer: sigma (m, per axis) from its neighbours' spread and its score (``KnnResult``'s;
-        without scores, the covered scale). NaN spread stays NaN."""
-        s = np.asarray(spread, float)
-        return self.scale_for(score) * np.sqrt(s * s + self.floor_m**2)
-
-    def as_dict(self) -> dict[str, Any]:
-        d = asdict(self)
-        d["score_edges"], d["scales"] = list(self.score_edges), list(self.scales)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "KnnUncertainty | None":
-        """From a radio map's metadata; None when absent or not a valid record (a record without
-        score bins, as written before them, gives one scale for every answer)."""
-        try:
-            edges = tuple(float(v) for v in d.get("score_edges", ()))
-            scales = tuple(float(v) for v in d.get("scales", ()))
-            u = cls(str(d["metric"]), int(d["k"]), bool(d["weighted"]), float(d["scale"]), float(d["floor_m"]),
-                    int(d["n"]), float(d.get("coverage", 0.95)), edges, scales)
-        except (KeyError, TypeError, ValueError):
-            return None
-        ok = math.isfinite(u.scale) and u.scale > 0 and math.isfinite(u.floor_m) and u.floor_m > 0
-        if scales:
-            ok = ok and len(scales) == len(edges) + 1 and all(math.isfinite(v) for v in edges)
-            ok = ok and all(math.isfinite(v) and v > 0 for v in scales)
-            ok = ok and all(a < b for a, b in zip(edges, edges[1:]))
-        elif edges:
-            ok = False
-        return u if ok else None
 
 
 def leave_one_session_out(
@@ -198,7 +139,7 @@ def calibrate_uncertainty(
                 dropped = drop
             d = d_all.copy()
             d[:, gone] = np.inf
-            idx, dist = _nearest(d, cfg.k)
+            idx, dist = nearest(d, cfg.k)
             res = loc._aggregate(idx, dist, np.diff(q.values.indptr).astype(np.int64))
             ok = res.valid
             sets[uncovered].append((np.linalg.norm(res.xy[ok] - rm.xy[rows[ok]], axis=1), res.spread[ok], res.score[ok]))

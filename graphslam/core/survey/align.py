@@ -29,8 +29,7 @@ from graphslam.core.survey import incremental
 from graphslam.core.survey.association import FingerprintNodes, associate
 from graphslam.core.survey.chains import expand
 from graphslam.core.survey.components import Component
-from graphslam.core.survey.control import ControlTies
-from graphslam.core.survey.heading_split import ComponentSplit, HeadingTerms, split_by_heading, split_incremental
+from graphslam.core.survey.heading_split import ComponentSplit, split_by_heading, split_incremental
 from graphslam.core.survey.edges import WifiEdges, propose_edges, window_thresholds
 from graphslam.core.survey.graph import (
     dead_reckoned_nodes,
@@ -44,11 +43,12 @@ from graphslam.core.survey.graph import (
 )
 from graphslam.core.survey.initialise import Placement, connected_to, register_walks, se2_apply_poses
 from graphslam.core.survey.magnetic import MagneticLinks
+from graphslam.core.survey.problem import Problem
 from graphslam.core.types import PoseTrack, Survey
 from graphslam.errors import SolverError
 
 if TYPE_CHECKING:
-    from graphslam.core.uwb.survey import UwbSummary, UwbTerms
+    from graphslam.core.uwb.survey import UwbSummary
 
 log = logging.getLogger(__name__)
 
@@ -201,53 +201,6 @@ def _saturation_radii(cfg: GraphSlamConfig, method: str = "registration") -> lis
     if method == "origin":
         return [float("inf")] + [float(r) for r in np.geomspace(4.0 * d_max, d_max, n - 1)]
     return [float(r) for r in np.geomspace(2.0 * d_max, d_max, n)]
-
-
-@dataclass(frozen=True, eq=False)
-class Problem:
-    """Everything the optimiser needs, as arrays: built once, solvable by any back end.
-
-    Node ``n`` is step ``n - offsets[s]`` of session ``s`` (global numbering).
-    """
-
-    survey: Survey
-    fingerprints: FingerprintNodes
-    edges: WifiEdges
-    reference: int  # session index
-    included: NDArray[np.bool_]  # (S,) walks in the graph
-    unaligned: dict[str, str]
-    placement: Placement | None
-    init_xyh: NDArray[np.float64]  # (N, 3), NaN for walks not in the graph
-    imu_pairs: NDArray[np.int64]  # (M, 2) consecutive nodes of included walks
-    imu_u: NDArray[np.float64]  # (M, 3) measured body-frame step (eq. 6)
-    wifi_pairs: NDArray[np.int64]  # (E, 2) nodes of WiFi edges between included walks
-    timings_s: dict[str, float]
-    # (P, 2) step nodes a magnetic link says are one place (graphslam.core.survey.magnetic), within a component
-    magnetic_pairs: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), np.int64))
-    magnetic: MagneticLinks | None = None  # the links behind them
-    # --update: nodes re-solved; the others keep init_xyh (their previous solution).
-    # None: every node of an included walk is a variable (a full solve).
-    free: NDArray[np.bool_] | None = None
-    uwb: UwbTerms | None = None  # UWB range factors and placement
-    method: str = "registration"  # the initialization used (``initialization``)
-    component: NDArray[np.int64] | None = None  # (S,) component of each included walk (None: all in 0)
-    components: tuple[Component, ...] = ()
-    fixed_nodes: NDArray[np.int64] | None = None  # nodes held (one per component); None: the reference node
-    heading: HeadingTerms | None = None
-    ties: ControlTies | None = None  # control points: position priors (component 0 in the site frame)
-    frame_name: str = "aligned"
-    control_digest: str = ""  # of the control points given (``incremental.control_points_digest``)
-
-    @property
-    def reference_node(self) -> int:
-        return int(self.fingerprints.offsets[self.reference])
-
-    @property
-    def held_nodes(self) -> NDArray[np.int64]:
-        """Nodes held at their initial pose: one per component (the reference node by default)."""
-        if self.fixed_nodes is not None:
-            return self.fixed_nodes
-        return np.array([self.reference_node], np.int64)
 
 
 def edge_candidates(cfg: GraphSlamConfig, n_fingerprints: int) -> str:

@@ -20,13 +20,12 @@ from graphslam.config import GraphSlamConfig
 from graphslam.core.survey import factors as F
 from graphslam.core.survey import solver as S
 from graphslam.core.survey.chains import CompressedChains, compress
+from graphslam.core.survey.problem import Problem
 from graphslam.core.types import Survey
 from graphslam.core.uwb import factors as uwb_factors
 
 if TYPE_CHECKING:
     import gtsam
-
-    from graphslam.core.survey.align import Problem
 
 
 def X(i: int) -> int:

@@ -1,0 +1,338 @@
+"""The k nearest references of query fingerprints: distances on candidate pairs and the top k.
+
+eq. 9 distances come from ``DistanceEngine`` (same precomputation, same formula, same
+floating-point operations); Sørensen's from the postings of each query AP (``SorensenRefs``). For sparse reference sets (typical: a scan hears a few
+dozen of thousands of APs) the engine's products are kept sparse here: only pairs
+that share at least one AP are ever candidates (``min_common >= 1``), so eq. 9 is
+evaluated on those pairs only and the rest of the block stays ``inf``. On
+UJIIndoorLoc that is ~1.8x faster than ``DistanceEngine.iter_blocks`` + top-k, with
+bit-identical distances (tested). Blocks of a few queries gather postings instead
+(``gather_block``): scipy's per-product overhead would dominate. A few scans (the service's
+requests, ``FewQueries``) go further: no sparse matrix at all, distances on candidate cells
+only, the same answers bit for bit.
+
+``nearest``: one ``argpartition`` per block for the k nearest, ties by reference, so that
+answers do not depend on k, block size or threads. The locator on top of these is
+``graphslam.core.radiomap.knn``.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import sparse
+
+from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix
+from graphslam.core.radiomap.radiomap import RadioMap
+
+# Torres-Sospedra et al. 2015's "powed" representation: (shifted RSS / its range) ** e.
+POWED_EXPONENT = float(np.e)
+
+
+def _sq_norms(m: FingerprintMatrix) -> NDArray[np.float64]:
+    # Same expression as fingerprints._sq_norms, so distances are bit-identical to the engine's.
+    return np.asarray(m.values.multiply(m.values).sum(axis=1)).ravel() + m.extra_sq
+
+
+def candidate_block(eng: DistanceEngine, q: FingerprintMatrix, min_common: int) -> NDArray[np.float64]:
+    """``DistanceEngine.block(q)[0]`` for a sparse engine, evaluating eq. 9 only on pairs that
+    share an AP (the sparse products' pattern); every other cell is ``inf``."""
+    qv = q.values
+    qb = qv.copy()
+    qb.data[:] = 1.0
+    dot = qv @ eng.ref_vT
+    com = qb @ eng.ref_bT
+    # Both products have the same pattern (positive entries); align them if scipy ordered them differently.
+    if not (np.array_equal(dot.indptr, com.indptr) and np.array_equal(dot.indices, com.indices)):
+        dot.sort_indices()
+        com.sort_indices()
+    b, n = qv.shape[0], eng.ref_sq.shape[0]
+    rows = np.repeat(np.arange(b), np.diff(dot.indptr))
+    cols = dot.indices
+    num = _sq_norms(q)[rows] + eng.ref_sq[cols] - 2.0 * dot.data
+    den = q.heard.astype(np.float64)[rows] + eng.ref_n[cols] - com.data
+    d = np.sqrt(np.maximum(num, 0.0) / den)
+    out = np.full(b * n, np.inf)
+    flat = rows * n + cols
+    if min_common > 1:
+        keep = com.data >= min_common
+        flat, d = flat[keep], d[keep]
+    out[flat] = d
+    return out.reshape(b, n)
+
+
+def _postings(
+    q: sparse.csr_matrix, ref_by_ap: sparse.csr_matrix
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+    """Every (query, reference) pair sharing an AP, once per shared AP: the flat cell index
+    ``query * N + reference`` (N = ``ref_by_ap``'s columns), the query's and the reference's value
+    of that AP. ``ref_by_ap``: (A, N) csr, row j = the references that heard AP j."""
+    n = ref_by_ap.shape[1]
+    aps = q.indices
+    starts = ref_by_ap.indptr[aps]
+    lens = ref_by_ap.indptr[aps + 1] - starts
+    pos = np.repeat(starts - (np.cumsum(lens) - lens), lens) + np.arange(int(lens.sum()))
+    key = np.repeat(np.repeat(np.arange(q.shape[0]) * n, np.diff(q.indptr)), lens) + ref_by_ap.indices[pos]
+    return key, np.repeat(q.data, lens), ref_by_ap.data[pos]
+
+
+def gather_block(eng: DistanceEngine, q: FingerprintMatrix, min_common: int) -> NDArray[np.float64]:
+    """Same as ``candidate_block`` for a few queries, without sparse-matrix products: gather the
+    postings (AP -> references) of each query AP and sum with ``bincount``. Why: a sparse product
+    has fixed costs (format checks, a symbolic pass, two products) that one query does not amortise."""
+    qv = q.values
+    ref = eng.ref_vT  # (A, N) csr: row j = the references that heard AP j
+    b, n = qv.shape[0], eng.ref_sq.shape[0]
+    key, qval, rval = _postings(qv, ref)
+    dot = np.bincount(key, weights=qval * rval, minlength=b * n).reshape(b, n)
+    common = np.bincount(key, minlength=b * n).reshape(b, n)
+    num = _sq_norms(q)[:, None] + eng.ref_sq[None, :] - 2.0 * dot
+    den = q.heard.astype(np.float64)[:, None] + eng.ref_n[None, :] - common
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = np.sqrt(np.maximum(num, 0.0) / den)
+    d[common < max(1, min_common)] = np.inf
+    return d
+
+
+# Below this many queries per block, gathering postings beats sparse products.
+GATHER_MAX_ROWS = 16
+
+
+class FewQueries:
+    """A few query scans over the map's AP index as the arrays of ``RadioMap.encode``'s csr matrix
+    (per row, APs in ascending column order: same values, same summation orders)."""
+
+    def __init__(self, rm: RadioMap, scans: Sequence[Mapping[str, float]]) -> None:
+        rows, cols, vals, self.extra_sq, self.extra_n = rm.scan_arrays(scans)
+        self.n, self.n_aps = len(scans), rm.fingerprints.n_aps
+        o = np.argsort(rows * self.n_aps + cols, kind="stable")
+        self.indices, self.data = cols[o], vals[o]
+        self.counts = np.bincount(rows, minlength=self.n)
+        self.indptr = np.zeros(self.n + 1, np.int64)
+        np.cumsum(self.counts, out=self.indptr[1:])
+
+    def row_sums(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Per row, the sum of ``x`` (one value per stored entry) as scipy's ``csr.sum(axis=1)``
+        adds it (``np.add.reduceat`` over the non-empty rows): bit-identical to the matrix path."""
+        out = np.zeros(self.n)
+        nz = self.counts > 0
+        if nz.any():
+            out[nz] = np.add.reduceat(x, self.indptr[:-1][nz])
+        return out
+
+    def dense(self) -> NDArray[np.float64]:
+        """(n, A) shifted RSS: ``toarray()`` of the matrix."""
+        out = np.zeros((self.n, self.n_aps))
+        out[np.repeat(np.arange(self.n), self.counts), self.indices] = self.data
+        return out
+
+    def times(self, m: NDArray[np.float32]) -> NDArray[np.float32]:
+        """(float32 queries) @ ``m`` (A, C), as scipy's csr @ dense adds it: per query, the rows of
+        its APs scaled and added in column order (probe scores bit for bit: a different order could
+        pick another cluster on a near-tie)."""
+        out = np.zeros((self.n, m.shape[1]), np.float32)
+        v = self.data.astype(np.float32)
+        for r, (lo, hi) in enumerate(zip(self.indptr[:-1].tolist(), self.indptr[1:].tolist())):
+            if hi > lo:
+                out[r] = (v[lo:hi, None] * m[self.indices[lo:hi]]).sum(axis=0)
+        return out
+
+    def matrix(self, rm: RadioMap) -> FingerprintMatrix:
+        """The same queries as ``rm.encode`` returns them (paths that need the matrix: IVF, dense)."""
+        v = sparse.csr_matrix((self.data, self.indices, self.indptr), shape=(self.n, self.n_aps))
+        return FingerprintMatrix(rm.bssids, v, rm.missing_dbm, self.extra_sq, self.extra_n)
+
+
+def _top_k(refs: NDArray[np.int64], d: NDArray[np.float64], k: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """One query's row of ``nearest`` from its candidates only (``refs`` ascending, distances
+    ``d``; every other reference ``inf``): the k smallest, ties by reference, -1 / inf padded."""
+    idx = np.full(k, -1, np.int64)
+    dist = np.full(k, np.inf)
+    kk = min(k, len(d))
+    if kk == 0:
+        return idx, dist
+    if kk < len(d):
+        sel = np.argpartition(d, kk - 1)[:kk]
+        tau = d[sel].max()
+        # argpartition picks any of several candidates tied at the k-th distance: take the
+        # first ones (lowest references), as nearest does
+        if np.isfinite(tau) and np.count_nonzero(d <= tau) > kk:
+            below = np.flatnonzero(d < tau)
+            sel = np.concatenate([below, np.flatnonzero(d == tau)[: kk - len(below)]])
+    else:
+        sel = np.arange(kk)
+    sd = d[sel]
+    o = np.lexsort((sel, sd))
+    sel, sd = sel[o], sd[o]
+    ok = np.isfinite(sd)
+    idx[:kk] = np.where(ok, refs[sel], -1)
+    dist[:kk] = np.where(ok, sd, np.inf)
+    return idx, dist
+
+
+def _few_nearest(
+    q: FewQueries, qdata: NDArray[np.float64], ref_by_ap: sparse.csr_matrix, min_common: int, k: int,
+    combine: Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]],
+    distance: Callable[[int, NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]], NDArray[np.float64]],
+) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """``nearest`` of a postings block (``sorensen_block``, ``gather_block``) for a ``FewQueries``, one
+    query at a time (a loop over <= 16 queries: no (query, reference) key arithmetic, and its
+    bincounts are one query wide). Per query: its APs' postings (``ref_by_ap``: (A, N) csr) copied
+    as one slice per AP, in the same order as ``_postings``, so ``bincount`` adds the same terms in
+    the same order (bit-identical sums); ``combine(query values, reference values)`` per posting,
+    summed per reference; ``distance(query, candidates, sums, shared APs)`` evaluated on the
+    references sharing ``max(1, min_common)`` APs only (every other one is ``inf``)."""
+    n = ref_by_ap.shape[1]
+    ip, ind, dat = ref_by_ap.indptr, ref_by_ap.indices, ref_by_ap.data
+    starts, ends = ip[q.indices], ip[q.indices + 1]
+    lens = ends - starts
+    starts_l, ends_l, bounds = starts.tolist(), ends.tolist(), q.indptr.tolist()
+    need = max(1, min_common)
+    idx = np.full((q.n, k), -1, np.int64)
+    dist = np.full((q.n, k), np.inf)
+    for r in range(q.n):
+        a, e = bounds[r], bounds[r + 1]
+        if a == e:
+            continue  # no known AP: no candidate
+        spans = list(zip(starts_l[a:e], ends_l[a:e]))
+        ref = np.concatenate([ind[s:t] for s, t in spans])
+        terms = combine(np.repeat(qdata[a:e], lens[a:e]), np.concatenate([dat[s:t] for s, t in spans]))
+        common = np.bincount(ref, minlength=n)
+        cand = np.flatnonzero(common >= need)
+        sums = np.bincount(ref, weights=terms, minlength=n)[cand]
+        idx[r], dist[r] = _top_k(cand, distance(r, cand, sums, common[cand]), k)
+    return idx, dist
+
+
+def sorensen_few(refs: "SorensenRefs", q: FewQueries, min_common: int, k: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """``nearest(sorensen_block(...), k)`` for a ``FewQueries``: the same sums in the same order."""
+    qp = refs.powed_values(q.data)
+    qsum = q.row_sums(qp)
+
+    def distance(r: int, c: NDArray[np.int64], both: NDArray[np.float64], _: NDArray[np.int64]) -> NDArray[np.float64]:
+        return np.maximum(1.0 - 2.0 * both / (qsum[r] + refs.sum[c]), 0.0)
+
+    return _few_nearest(q, qp, refs.pT, min_common, k, np.minimum, distance)
+
+
+def eq9_few(eng: DistanceEngine, q: FewQueries, min_common: int, k: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """``nearest(gather_block(...), k)`` (sparse engine) for a ``FewQueries``: the same sums in the same order."""
+    sq = q.row_sums(q.data * q.data) + q.extra_sq
+    heard = (q.counts + q.extra_n).astype(np.float64)
+
+    def distance(r: int, c: NDArray[np.int64], dot: NDArray[np.float64], common: NDArray[np.int64]) -> NDArray[np.float64]:
+        num = sq[r] + eng.ref_sq[c] - 2.0 * dot
+        den = heard[r] + eng.ref_n[c] - common
+        return np.sqrt(np.maximum(num, 0.0) / den)
+
+    return _few_nearest(q, q.data, eng.ref_vT, min_common, k, np.multiply, distance)
+
+
+class SorensenRefs:
+    """What the Sørensen distance needs of the reference set (``KnnConfig.metric``): powed values
+    by AP (postings, (A, N) csr) and their sum per reference."""
+
+    def __init__(self, ref: FingerprintMatrix) -> None:
+        # the shifted values' range: 0 (missing_dbm) to 0 dBm; a map whose missing_dbm is not negative
+        # has no such range, so its strongest reading stands in
+        scale = -ref.missing_dbm if ref.missing_dbm < 0 else float(ref.values.data.max(initial=1.0))
+        self.scale = scale
+        p = ref.values.copy()
+        p.data = self.powed_values(p.data)
+        self.sum = np.asarray(p.sum(axis=1)).ravel()
+        self.pT = p.T.tocsr()
+
+    def powed(self, q: FingerprintMatrix) -> sparse.csr_matrix:
+        p = q.values.copy()
+        p.data = self.powed_values(p.data)
+        return p
+
+    def powed_values(self, v: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Shifted RSS values -> powed values (element-wise; the IVF index's Sørensen too)."""
+        return (v / self.scale) ** POWED_EXPONENT
+
+
+# A block of queries over a map whose references hear most of the block's APs (a small site) is
+# computed dense, AP by AP, when its postings would fill at least this share of the dense cells
+# (block x references x the block's APs). Measured (2026-12-04; the `paper` simulator map, IPIN
+# b100_f-2, ILC F2): ~3-4 ns per dense cell against 24-107 ns per posting (random-access sums).
+SORENSEN_DENSE_MIN_FILL = 0.15
+
+
+def sorensen_block(refs: SorensenRefs, q: FingerprintMatrix, min_common: int) -> NDArray[np.float64]:
+    """(len(q), N) Sørensen distances of powed fingerprints: sum min(p_q, p_r) per (query,
+    reference) pair over their common APs, accumulated in ascending AP order, either by gathering
+    the postings of each query AP (``bincount``; memory: the block's postings) or dense, one AP at
+    a time (``SORENSEN_DENSE_MIN_FILL``): the same sums in the same order, bit for bit. Pairs
+    sharing fewer than ``max(1, min_common)`` APs are ``inf``."""
+    qp = refs.powed(q)
+    b, n = qp.shape[0], len(refs.sum)
+    aps = np.flatnonzero(np.bincount(qp.indices, minlength=refs.pT.shape[0]))
+    postings = int(np.diff(refs.pT.indptr)[qp.indices].sum())
+    if b > 1 and postings >= SORENSEN_DENSE_MIN_FILL * len(aps) * b * n:
+        both, common = _sorensen_dense_sums(qp, refs.pT, aps)
+    else:
+        key, qval, rval = _postings(qp, refs.pT)
+        both = np.bincount(key, weights=np.minimum(qval, rval), minlength=b * n)
+        common = np.bincount(key, minlength=b * n)
+    qsum = np.asarray(qp.sum(axis=1)).ravel()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = 1.0 - 2.0 * both.reshape(b, n) / (qsum[:, None] + refs.sum[None, :])
+    d = np.maximum(d, 0.0)
+    d[common.reshape(b, n) < max(1, min_common)] = np.inf
+    return d
+
+
+def _sorensen_dense_sums(
+    qp: sparse.csr_matrix, ref_by_ap: sparse.csr_matrix, aps: NDArray[np.int64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``sorensen_block``'s sums of min(p_q, p_r) and counts of common APs, (b, N) each, over
+    the APs ``aps`` (ascending: every AP a query of the block heard) one at a time. A pair that
+    does not share an AP adds min = 0 there, which leaves a float sum unchanged: the postings'
+    sums exactly. Common APs are counted from the stored entries (as the postings count them)."""
+    Q = qp[:, aps]
+    R = ref_by_ap[aps]
+    Qd, Rd = Q.toarray(), R.toarray()
+    both = np.zeros((qp.shape[0], ref_by_ap.shape[1]))
+    tmp = np.empty_like(both)
+    for j in range(len(aps)):
+        np.minimum(Qd[:, j, None], Rd[j, None, :], out=tmp)
+        both += tmp
+    Q.data, R.data = np.ones_like(Q.data), np.ones_like(R.data)
+    common = Q.toarray() @ R.toarray()  # small integers: exact in float64
+    return both.ravel(), common.ravel()
+
+
+def nearest(d: NDArray[np.float64], k: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Rows' k smallest entries, nearest first (ties by index); non-finite -> index -1."""
+    b, n = d.shape
+    k_eff = min(k, n)
+    if k_eff == 0:
+        return np.full((b, k), -1, np.int64), np.full((b, k), np.inf)
+    if k_eff < n:
+        idx = np.argpartition(d, k_eff - 1, axis=1)[:, :k_eff]
+        dist = np.take_along_axis(d, idx, axis=1)
+        # argpartition picks any of several references tied at the k-th distance; take the
+        # lowest rows instead, so answers do not depend on k, block size or threads.
+        tau = dist.max(axis=1)
+        fin = np.isfinite(tau)
+        straddle = fin & ((d == tau[:, None]).sum(axis=1) > (dist == tau[:, None]).sum(axis=1))
+        for r in np.flatnonzero(straddle):  # rare: only rows with ties across the boundary
+            below = np.flatnonzero(d[r] < tau[r])
+            tied = np.flatnonzero(d[r] == tau[r])[: k_eff - len(below)]
+            idx[r] = np.concatenate([below, tied])
+    else:
+        idx = np.broadcast_to(np.arange(n), (b, n)).copy()
+    dist = np.take_along_axis(d, idx, axis=1)
+    order = np.lexsort((idx, dist), axis=1)
+    idx = np.take_along_axis(idx, order, axis=1).astype(np.int64)
+    dist = np.take_along_axis(dist, order, axis=1)
+    bad = ~np.isfinite(dist)
+    idx[bad] = -1
+    dist[bad] = np.inf
+    if k_eff < k:
+        idx = np.pad(idx, ((0, 0), (0, k - k_eff)), constant_values=-1)
+        dist = np.pad(dist, ((0, 0), (0, k - k_eff)), constant_values=np.inf)
+    return idx, dist
