@@ -103,13 +103,16 @@ def crowdsourced_edges(al: Alignment, cfg: GraphSlamConfig) -> WifiEdgeRows:
 
 def crowdsourced_magnetic_map(survey: Survey, al: Alignment, cfg: GraphSlamConfig) -> MagneticMap | None:
     """The field of the main map's walks at their optimised step positions (``MagneticMap``), each
-    walk's offset removed; None when no walk of the main map carries ``/phone/magnetic``.
+    walk's offset removed; None when no walk of the main map carries ``/phone/magnetic`` or
+    ``magnetic.enabled`` is off.
 
     Offsets: per feature, least squares over the magnetic links of o_a - o_b = mean over the link's
     pairs of (F_a - F_b), with a small pull of every offset towards 0 (it fixes the common level and
     leaves a walk no link ties at 0)."""
     from graphslam.core.survey.magnetic import step_features
 
+    if not cfg.magnetic.enabled:
+        return None
     main = set(al.components[0].walks) if al.components else set()
     feats = step_features(survey)
     offsets = al.fingerprints.offsets
