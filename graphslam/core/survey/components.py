@@ -199,6 +199,7 @@ def place_units(
             if np.linalg.norm(q - q.mean(axis=0), axis=1).max() * 2.0 >= min_baseline_m:
                 # marks of two places or more: they fix the unit's rotation better than its headings do
                 tied_u[int(u)] = fit_se2(at[sel], q)
+                log.debug("unit %d: tied rigidly by %d marks (rotation %.1f deg)", u, int(sel.sum()), np.degrees(tied_u[int(u)][2]))
             else:
                 t = (q - at[sel]).mean(axis=0)
                 tied_u[int(u)] = np.array([t[0], t[1], 0.0])
