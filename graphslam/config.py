@@ -233,10 +233,6 @@ class MagneticConfig(_Strict):
         0.7, ge=0, le=1, description="matched stretches must run parallel (forward) or anti-parallel (reversed) "
         "within this cosine, with each walk turned by its heading",
     )
-    loop_m: float = Field(
-        3.0, gt=0, description="a link counts only when a third walk's links close a loop with it this closely "
-        "(a single pair of walks is no confirmation)",
-    )
     pair_every_m: float = Field(2.0, gt=0, description="one magnetic factor every this much along a matched stretch")
     sigma_m: float = Field(1.0, gt=0, description="sigma of a magnetic factor on the ramp beyond its dead zone")
     d_min_m: float = Field(0.5, ge=0, description="dead zone of a magnetic factor (the match's own precision)")

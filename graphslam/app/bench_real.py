@@ -20,7 +20,8 @@ from graphslam.core.progress import progress_over
 log = logging.getLogger(__name__)
 
 
-REAL_VARIANTS = ("headings", "no_magnetic", "no_headings", "control_points")
+REAL_VARIANTS = ("headings", "no_magnetic", "no_headings", "control_points", "reference_map")
+REFERENCE_MAP_FILE = "reference_map.csv"  # in a floor folder: a surveyed radio map of that floor
 BIG_COMPONENT_WALKS = 5  # walks_in_components_of_5_or_more
 RIGHT_WALK_M = 5.0  # a walk whose mean landmark error (after its component's SE(2) fit) is at most this is right
 
@@ -32,6 +33,7 @@ def real_floor_rows(
     *,
     variants: Sequence[str] = REAL_VARIANTS,
     control_points: str = "auto",
+    reference_map: str = "auto",
 ) -> Iterator[dict[str, Any]]:
     """Survey each floor of real recordings with landmarks once per variant; one row per floor and
     variant, yielded as each is done.
@@ -42,7 +44,10 @@ def real_floor_rows(
     ``no_magnetic`` (``cfg`` with ``magnetic.enabled=false``: WiFi and headings only), ``no_headings`` (``cfg`` with
     ``heading.enabled=false``: the registration path) and ``control_points`` (``cfg`` with the
     floor folder's ``control_points.csv``, component 0 in the site frame; only where the file is
-    there and ``control_points`` is ``"auto"``; ``"none"``: never). Ground truth only scores
+    there and ``control_points`` is ``"auto"``; ``"none"``: never) and ``reference_map`` (the floor
+    folder's ``reference_map.csv`` held fixed in the site frame, the crowd placed on it: every walk but
+    the reference's own — those whose scans it holds verbatim, ``crowd_walks``; only where the file is
+    there and ``reference_map`` is ``"auto"``). Ground truth only scores
     (``graphslam.core.survey.evaluate.component_errors``): each component after its own SE(2) fit,
     component 0 of a survey in the site frame also with no fit. See ``_real_row`` for the fields.
     """
@@ -54,14 +59,22 @@ def real_floor_rows(
         raise ConfigError(f"bench real variants {list(variants)!r}: expected some of {', '.join(REAL_VARIANTS)}")
     if control_points not in ("auto", "none"):
         raise ConfigError(f"--control-points {control_points!r}: expected auto or none")
+    if reference_map not in ("auto", "none"):
+        raise ConfigError(f"--reference-map {reference_map!r}: expected auto or none")
     expanded: list[Path] = []
     for f in map(Path, folders):
         expanded += [f] if any(f.glob("*.mcap")) else floor_folders(f, floors)
     plan = []
     for folder in expanded:
         cp_file = folder / CONTROL_POINTS_FILE
+        ref_file = folder / REFERENCE_MAP_FILE
         for v in variants:
             if v == "control_points" and (control_points == "none" or not cp_file.is_file()):
+                continue
+            if v == "reference_map":
+                if reference_map == "none" or not ref_file.is_file():
+                    continue
+                plan.append((v, SurveyInputs(crowd_walks(folder, ref_file), reference_map=ref_file, picture=False)))
                 continue
             cp = cp_file if v == "control_points" else None
             plan.append((v, SurveyInputs((folder,), control_points=cp, picture=False)))
@@ -77,9 +90,32 @@ def real_floors(
     *,
     variants: Sequence[str] = REAL_VARIANTS,
     control_points: str = "auto",
+    reference_map: str = "auto",
 ) -> list[dict[str, Any]]:
     """``real_floor_rows`` as a list."""
-    return list(real_floor_rows(folders, cfg, floors, variants=variants, control_points=control_points))
+    return list(real_floor_rows(folders, cfg, floors, variants=variants, control_points=control_points,
+                                reference_map=reference_map))
+
+
+def crowd_walks(folder: Path, reference: Path) -> tuple[Path, ...]:
+    """The recordings of ``folder`` that are not the reference map's own: a walk at least half of whose
+    scans the reference holds verbatim (the same readings) is one of the walks it was made from."""
+    from graphslam.io.mcap_reader import read_recordings
+    from graphslam.io.reference_map import read_reference_map
+
+    ref = read_reference_map(reference)
+    fm = ref.fingerprints
+    v = fm.values
+    held = {frozenset((fm.bssids[j], round(float(x) + fm.missing_dbm, 3)) for j, x in
+                      zip(v.indices[v.indptr[r]:v.indptr[r + 1]], v.data[v.indptr[r]:v.indptr[r + 1]]))
+            for r in range(len(fm))}
+    floor = ref.min_rssi_dbm
+    out = []
+    for s in read_recordings([folder]).survey:
+        scans = [frozenset((b, round(r, 3)) for b, r in sc.readings.items() if r >= floor) for sc in s.scans]
+        if not scans or sum(sc in held for sc in scans) < 0.5 * len(scans):
+            out.append(Path(s.source))
+    return tuple(out)
 
 
 def _variant_config(cfg: GraphSlamConfig, variant: str) -> GraphSlamConfig:
@@ -149,10 +185,12 @@ def _real_row(inputs: SurveyInputs, variant: str, cfg: GraphSlamConfig) -> dict[
         "walks_in_components_of_5_or_more": n_big,
         "walks_in_components_of_5_or_more_fraction": round(n_big / max(1, n), 3),
         "components_of_5_or_more_mean_m": r2(big_mean),
+        "walks_over_6m": int(sum(v > 6.0 for v in per_walk.values())),
         "walks_over_10m": int(sum(v > 10.0 for v in per_walk.values())),
         "walks_over_15m": int(sum(v > 15.0 for v in per_walk.values())),
         "frame": al.frame,
         "control_points": None if inputs.control_points is None else str(inputs.control_points),
+        "reference_map": None if inputs.reference_map is None else str(inputs.reference_map),
         "per_walk_rigid_fit_mean_m": r2(ev.landmarks_per_walk_fit.mean_m) if ev else None,
         "initialization": cfg.optimizer.initialization,
         "placement": None if pl is None else pl.method,
@@ -195,6 +233,7 @@ def real_summary(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
             "walks_in_components_of_5_or_more": big,
             "walks_in_components_of_5_or_more_fraction": round(big / max(1, walks), 3),
             "components_of_5_or_more_mean_m": wmean("components_of_5_or_more_mean_m", "walks_in_components_of_5_or_more"),
+            "walks_over_6m": sum(r["walks_over_6m"] for r in rs),
             "walks_over_10m": sum(r["walks_over_10m"] for r in rs),
             "walks_over_15m": sum(r["walks_over_15m"] for r in rs),
             "time_s": round(sum(r["time_s"] for r in rs), 2),

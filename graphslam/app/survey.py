@@ -95,8 +95,10 @@ def build_report(
         "radio_map": {
             "component": 0,
             "walks": n_main,
-            "fingerprints": n_main_rows,
+            # the file's rows: the main map's fingerprints and, on a reference map, the reference's
+            "fingerprints": n_main_rows + (len(al.reference_map) if al.reference_map is not None else 0),
             "walks_in_other_components": len(al.tracks) - n_main,
+            **({"reference_fingerprints": len(al.reference_map)} if al.reference_map is not None else {}),
         },
         "nodes": al.n_nodes,
         "fingerprints": len(fp),
@@ -121,6 +123,8 @@ def build_report(
     }
     if al.magnetic is not None:
         report["magnetic"] = magnetic_report(survey, al, cfg)
+    if al.reference_map is not None:
+        report["reference_map"] = reference_report(al)
     if al.placement is not None:
         report.update(_placement_report(al))
     if ev is not None:
@@ -158,6 +162,24 @@ def magnetic_report(survey: Survey, al: Alignment, cfg: GraphSlamConfig) -> dict
         "pair_distance_m": None if not len(d) else {
             "median": round(float(np.median(d)), 3), "p90": round(float(np.percentile(d, 90)), 3),
             "saturated": int((d > cfg.magnetic.d_max_m).sum()),
+        },
+    }
+
+
+def reference_report(al: Alignment) -> dict[str, Any]:
+    """report.json's ``reference_map``: the surveyed map the main map is placed on, and how the crowd joined
+    it: the walks placed on it, its WiFi edges in the optimiser and how far apart the solution leaves them."""
+    ref = al.reference_map
+    assert ref is not None
+    pairs = al.anchor_pairs if al.anchor_pairs is not None else np.zeros((0, 2), np.int64)
+    d = np.linalg.norm(al.node_xyh[pairs[:, 0], :2] - np.asarray(ref.xy)[pairs[:, 1]], axis=1)
+    return {
+        "source": ref.metadata.get("source"),
+        "fingerprints": len(ref),
+        "walks_placed_on_it": len(al.components[0].walks) if al.components else 0,
+        "edges": int(len(pairs)),
+        "edge_distance_m": None if not len(d) else {
+            "median": round(float(np.median(d)), 3), "p90": round(float(np.percentile(d, 90)), 3),
         },
     }
 
@@ -318,8 +340,12 @@ def _run_survey(inputs: SurveyInputs, cfg: GraphSlamConfig, progress: ProgressCa
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     cp_source, cp = _read_control_points(inputs.control_points)  # a bad file fails before the work
-    if inputs.reference_map is not None:  # reserved for the reference-map input: refused until it is read
-        raise InputError(inputs.reference_map, "a reference radio map is not an input of the survey yet")
+    reference = None
+    if inputs.reference_map is not None:  # a bad file fails before the work
+        from graphslam.io.reference_map import read_reference_map
+
+        reference = read_reference_map(inputs.reference_map, min_rssi_dbm=cfg.fingerprint.min_rssi_dbm,
+                                       missing_dbm=cfg.fingerprint.missing_rssi_dbm)
     previous = None
     if update is not None:  # read first: a bad previous output fails before the work
         from graphslam.app.update import align_update, load_previous
@@ -337,9 +363,9 @@ def _run_survey(inputs: SurveyInputs, cfg: GraphSlamConfig, progress: ProgressCa
     update_info = None
     if previous is not None:
         alignment, cfg, update_info = align_update(survey, cfg, previous, previous_dir=update, progress=progress,
-                                                   control_points=cp)
+                                                   control_points=cp, reference=reference)
     else:
-        alignment = align(survey, cfg, progress=progress, control_points=cp)
+        alignment = align(survey, cfg, progress=progress, control_points=cp, reference=reference)
     timings.update({f"align.{k}": v for k, v in alignment.timings_s.items()})
 
     t = time.perf_counter()

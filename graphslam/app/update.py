@@ -13,11 +13,14 @@ import json
 import logging
 import time
 from pathlib import Path
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 
 from graphslam.config import GraphSlamConfig
+
+if TYPE_CHECKING:
+    from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.survey.align import Alignment, ProgressCallback, align, build_problem, initialization, solve
 from graphslam.core.survey.incremental import (
     control_points_digest,
@@ -104,9 +107,11 @@ def align_update(
     previous_dir: str | Path,
     progress: ProgressCallback | None = None,
     control_points: Mapping[str, tuple[float, float]] | None = None,
+    reference: RadioMap | None = None,
 ) -> tuple[Alignment, GraphSlamConfig, dict[str, Any]]:
     """(alignment, effective config, the report's ``update`` section); ``control_points`` (landmark
-    id -> site x, y) are passed on to the solver either way."""
+    id -> site x, y) are passed on to the solver either way; with a ``reference`` map the floor is
+    solved in full (the reference places every walk: a new walk's placement can move old ones)."""
     prev_ids = set(previous.session_ids)
     prev_aligned = {sid for sid, ok in zip(previous.session_ids, previous.aligned.tolist()) if ok}
     info: dict[str, Any] = {
@@ -115,9 +120,11 @@ def align_update(
         "placed_again": [s.session_id for s in survey if s.session_id in prev_ids - prev_aligned],
     }
     reason = mismatch(previous, survey, cfg, control_points)
+    if reference is not None:
+        reason = "a survey on a reference map is solved in full (the reference places every walk)"
     if reason is not None:
         log.warning("--update: full re-solve: %s", reason)
-        al = align(survey, cfg, progress=progress, control_points=control_points)
+        al = align(survey, cfg, progress=progress, control_points=control_points, reference=reference)
         info.update(mode="full", reason=reason, resolved={"nodes": al.n_nodes, "of_nodes": al.n_nodes})
         return al, cfg, info
     # the previous reference walk stays the reference: the solution keeps its frame

@@ -27,21 +27,29 @@ def bench_real(
         "auto", "--control-points",
         help="auto: also the control_points variant on floors whose folder holds control_points.csv; none: never.",
     ),
+    reference_map: ControlPoints = typer.Option(
+        "auto", "--reference-map",
+        help="auto: also the reference_map variant on floors whose folder holds reference_map.csv (the crowd: every "
+        "walk whose scans it does not hold); none: never.",
+    ),
     variants: str = typer.Option(
-        "headings,no_magnetic,no_headings,control_points", "--variants", help="Comma-separated variants to run."
+        "headings,no_magnetic,no_headings,control_points,reference_map", "--variants",
+        help="Comma-separated variants to run.",
     ),
 ) -> None:
     """Survey each floor of real recordings per variant (headings: the config as given; no_magnetic:
-    magnetic.enabled=false; no_headings: heading.enabled=false; control_points: the floor's control_points.csv, site frame); one JSON line
-    per floor and variant (walks in the main map and in components of 5 or more, landmark errors
-    after each component's own SE(2) fit, walks over 10 / 15 m, frame, time), then one summary line
-    per variant."""
+    magnetic.enabled=false; no_headings: heading.enabled=false; control_points: the floor's
+    control_points.csv, site frame; reference_map: the floor's reference_map.csv held fixed, the other
+    walks placed on it, site frame); one JSON line per floor and variant (walks in the main map and in
+    components of 5 or more, landmark errors after each component's own SE(2) fit, walks over 6 / 10 /
+    15 m, frame, time), then one summary line per variant."""
     from graphslam.app.bench_real import real_floor_rows, real_summary
 
     rows = []
     for row in real_floor_rows(
         folders, config_from_options(config, set_), floors.split(",") if floors else None,
         variants=[v.strip() for v in variants.split(",") if v.strip()], control_points=plain(control_points),
+        reference_map=plain(reference_map),
     ):
         rows.append(row)
         typer.echo(json.dumps(row))

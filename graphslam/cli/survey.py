@@ -77,6 +77,11 @@ def survey(
         None, "--control-points", help="CSV landmark_id,x,y (site metres): the landmarks of these ids, where a walk "
         "marks them on /landmarks, tie the map to the site frame.",
     ),
+    reference_map: Optional[Path] = typer.Option(
+        None, "--reference-map", help="A surveyed radio map of the floor in the site frame (CSV fingerprint_id,x,y,"
+        "bssid,rssi_dbm, or a radio_map.parquet in the site frame): held fixed, the walks that match it are placed "
+        "on it and the main map is in the site frame.",
+    ),
 ) -> None:
     """Align every walk into one frame; write trajectories.csv, aligned.mcap, radio_map.parquet,
     wifi_edges.parquet, report.json, survey_state.npz, the effective config.yaml and survey.png into OUT.
@@ -92,8 +97,8 @@ def survey(
 
         show_progress("off")
     inputs = SurveyInputs(
-        tuple(paths), out, control_points=control_points, floor_plan=floor_plan, floor_size=floor_size,
-        previous=update, rerun=rerun, picture=picture, surveyed=surveyed,
+        tuple(paths), out, control_points=control_points, reference_map=reference_map, floor_plan=floor_plan,
+        floor_size=floor_size, previous=update, rerun=rerun, picture=picture, surveyed=surveyed,
     )
     result = run_survey(inputs, cfg)
     r = result.report

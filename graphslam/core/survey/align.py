@@ -43,6 +43,7 @@ from graphslam.core.survey.graph import (
 )
 from graphslam.core.survey.initialise import Placement, connected_to, register_walks, se2_apply_poses
 from graphslam.core.survey.magnetic import MagneticLinks
+from graphslam.core.survey.reference import reference_links
 from graphslam.core.survey.problem import Problem
 from graphslam.core.types import PoseTrack, Survey
 from graphslam.errors import SolverError
@@ -98,15 +99,17 @@ class Alignment:
     magnetic: MagneticLinks | None = None  # the magnetic links the placement used (their pairs: factors)
     magnetic_pairs: NDArray[np.int64] | None = None  # (P, 2) step nodes of the magnetic factors solved
     ties: ControlTies | None = None  # control-point marks tied to the site frame
+    reference_map: RadioMap | None = None  # the surveyed map component 0 is placed on (site frame)
+    anchor_pairs: NDArray[np.int64] | None = None  # (E, 2) its WiFi edges: (step node, reference fingerprint)
 
     def links_by_component(self) -> list[dict[str, int]]:
         """Per component (0 first): what links its walks, by kind — WiFi edges and magnetic links
-        (walk pairs) in the optimiser, UWB ranges, control-point marks."""
+        (walk pairs) in the optimiser, UWB ranges, control-point marks, WiFi edges to a reference map."""
         comp = self.component_of()
         ids = self.session_ids
         walk_comp = np.array([comp.get(sid, -1) for sid in ids], np.int64)
         n = len(self.components)
-        out = [{"wifi": 0, "magnetic": 0, "uwb": 0, "control_points": 0} for _ in range(n)]
+        out = [{"wifi": 0, "magnetic": 0, "uwb": 0, "control_points": 0, "reference": 0} for _ in range(n)]
         fp = self.fingerprints
         if len(self.edges):
             used = np.ones(len(self.edges), bool) if self.used_edges is None else self.used_edges
@@ -121,6 +124,8 @@ class Alignment:
             ct = walk_comp[self.ties.session]
             for k, c in zip(*np.unique(ct[ct >= 0], return_counts=True)):
                 out[int(k)]["control_points"] = int(c)
+        if self.anchor_pairs is not None and len(self.anchor_pairs) and n:  # the reference holds component 0
+            out[0]["reference"] = int(len(self.anchor_pairs))
         if self.uwb is not None and n:  # UWB surveys are one component
             out[0]["uwb"] = int(self.uwb.anchor_ranges + self.uwb.peer_ranges)
         return out
@@ -217,12 +222,15 @@ def build_problem(
     warm: incremental.WarmStart | None = None,
     *,
     control_points: Mapping[str, tuple[float, float]] | None = None,
+    reference: RadioMap | None = None,
 ) -> Problem:
     """Steps 1-3 of the method: fingerprints on nodes, WiFi edges, initial placement.
 
     ``control_points``: landmark id -> site (x, y) of the landmarks a user names as control
     points (``graphslam survey --control-points``): the walks that mark them are tied there and
     component 0 is in the site frame (``graphslam.core.survey.control``; needs the headings).
+    ``reference``: a surveyed radio map in the site frame, held; component 0 is placed on it and tied to
+    it by WiFi edges (``graphslam.core.survey.reference``; needs the headings).
 
     ``warm`` (``graphslam survey --update``, see ``graphslam.core.survey.incremental``): walks
     solved before start from their previous solution, only the new walks' fingerprints are
@@ -279,6 +287,12 @@ def build_problem(
             "control points need the phones' headings (/phone/heading on every walk, optimizer.initialization "
             f"auto or heading); this survey resolves to {method!r}"
         )
+    if reference is not None and (method != "heading" or warm is not None):
+        raise SolverError(
+            "a reference map needs the phones' headings (/phone/heading on every walk, optimizer.initialization "
+            f"auto or heading) and a full survey (no --update); this survey resolves to {method!r}"
+            + (" with --update" if warm is not None else "")
+        )
     split: ComponentSplit | None = None
     if warm is not None and method == "registration":  # --update: new walks registered to the solved ones
         placement = incremental.place_new_walks(warm, n_s, node_sess, dr_xyh[:, :2], ea, eb)
@@ -300,7 +314,15 @@ def build_problem(
         ref = split.reference
     elif method == "heading":
         seed = _reference_index(survey, cfg) if cfg.optimizer.reference_session is not None else None
-        split = split_by_heading(survey, fp, dr_xyh, node_sess, cfg, control_points, seed=seed)
+        anchors = None
+        if reference is not None:
+            pc = cfg.placement
+            anchors = reference_links(
+                fp.fingerprints, thr, reference, matches_per_fingerprint=pc.matches_per_fingerprint,
+                scale_db=pc.similarity_scale_db, max_per_fingerprint=cfg.edges.max_per_fingerprint,
+                min_common_aps=cfg.edges.min_common_aps,
+            )
+        split = split_by_heading(survey, fp, dr_xyh, node_sess, cfg, control_points, seed=seed, reference=anchors)
         placement, transforms = split.placement, split.placement.transforms
         included = np.ones(n_s, bool)
         ref = split.reference
@@ -369,7 +391,8 @@ def build_problem(
     if split is not None:  # ... and within one, only edges the placement agrees with
         gap = np.linalg.norm(init_xyh[wifi_pairs[:, 0], :2] - init_xyh[wifi_pairs[:, 1], :2], axis=1)
         gate = np.full(len(gap), cfg.heading.wifi_gate_m)
-        if split.ties is not None:  # the control points' component: tighter (the points place its walks)
+        if split.ties is not None or split.anchors is not None:
+            # the component the control points or the reference map place: tighter (they place its walks)
             tied = split.component[node_sess[wifi_pairs[:, 0]]] == 0
             gate[tied] = min(cfg.heading.wifi_gate_m, cfg.control_points.wifi_gate_m)
         keep = gap <= gate
@@ -381,6 +404,15 @@ def build_problem(
             prev = fp.node[incremental.previous_edge_rows(fp, warm)]
             keep[both_old] = incremental.pairs_in(wifi_pairs[both_old], prev[warm.prev_edge_used], len(init_xyh))
         wifi_pairs = wifi_pairs[keep]
+    anchor_xy, anchor_pairs = np.zeros((0, 2)), np.zeros((0, 2), np.int64)
+    if split is not None and split.anchors is not None:
+        # the reference's WiFi edges to component 0's walks that the placement puts within the gate
+        a = split.anchors
+        node = fp.node[a.edge_i]
+        on = split.component[node_sess[node]] == 0
+        gap = np.linalg.norm(init_xyh[node, :2] - a.xy[a.edge_j], axis=1)
+        keep = on & (gap <= min(cfg.heading.wifi_gate_m, cfg.control_points.wifi_gate_m))
+        anchor_xy, anchor_pairs = a.xy, np.column_stack([node[keep], a.edge_j[keep]]).astype(np.int64)
     magnetic_pairs = np.zeros((0, 2), np.int64)
     if split is not None and split.magnetic is not None and len(split.magnetic):
         pn = split.magnetic.pair_nodes
@@ -408,6 +440,9 @@ def build_problem(
         timings_s=timings,
         magnetic_pairs=magnetic_pairs,
         magnetic=None if split is None else split.magnetic,
+        anchor_xy=anchor_xy,
+        anchor_pairs=anchor_pairs,
+        reference_map=reference if split is not None and split.anchors is not None else None,
         free=free,
         uwb=uwb,
         method=method,
@@ -456,13 +491,15 @@ def align(
     warm: incremental.WarmStart | None = None,
     *,
     control_points: Mapping[str, tuple[float, float]] | None = None,
+    reference: RadioMap | None = None,
 ) -> Alignment:
     """Align all walks of ``survey`` into the frame of the reference walk's first pose
     (``warm``: re-solve only around the walks new since a previous solution, see ``build_problem``;
-    ``control_points``: landmark id -> site (x, y), passed on to ``build_problem``)."""
+    ``control_points``: landmark id -> site (x, y); ``reference``: a surveyed radio map in the site
+    frame; both passed on to ``build_problem``)."""
     cfg = config or GraphSlamConfig()
     t0 = time.perf_counter()
-    problem = build_problem(survey, cfg, warm, control_points=control_points)
+    problem = build_problem(survey, cfg, warm, control_points=control_points, reference=reference)
     return solve(problem, cfg, progress, t0=t0)
 
 
@@ -488,11 +525,18 @@ def solve(
                 single_above_variables=cfg.optimizer.single_above_variables,
             )
         else:
+            if len(problem.anchor_pairs):
+                raise SolverError("a reference map is solved by graphslam's own LM (optimizer.solver auto, pardiso "
+                                  "or cholmod), not optimizer.solver gtsam")
             imu_graph, wifi_factors, values, chains = native_graph(problem, cfg)
     solved_pairs = problem.wifi_pairs if pardiso else solved_wifi_pairs(problem)
     ea, eb = solved_pairs[:, 0], solved_pairs[:, 1]
     mag_pairs = problem.magnetic_pairs if pardiso else solved_magnetic_pairs(problem)
     ma, mb = mag_pairs[:, 0], mag_pairs[:, 1]
+    # a reference map's fingerprints: held nodes after the steps (node N + r), WiFi edges to them
+    n_steps = len(problem.init_xyh)
+    ra, rb = problem.anchor_pairs[:, 0], n_steps + problem.anchor_pairs[:, 1]
+    anchors = np.column_stack([problem.anchor_xy, np.zeros(len(problem.anchor_xy))])
     timings["build_graph"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -504,7 +548,9 @@ def solve(
         d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
         imu = S.between_error(pg, xyh) + S.unary_error(pg, xyh) if pardiso else imu_graph.error(values)
         dm = np.linalg.norm(xyh[ma, :2] - xyh[mb, :2], axis=1)
-        return float(imu + F.fuzzy_cost(d, cfg.wifi).sum() + F.magnetic_cost(dm, cfg.magnetic).sum())
+        dr = np.linalg.norm(xyh[ra, :2] - anchors[rb - n_steps, :2], axis=1)
+        return float(imu + F.fuzzy_cost(d, cfg.wifi).sum() + F.magnetic_cost(dm, cfg.magnetic).sum()
+                     + F.fuzzy_cost(dr, cfg.wifi).sum())
 
     init_xyh = problem.init_xyh
     dr_xyh = dead_reckoned_nodes(problem.survey)[0]
@@ -515,8 +561,9 @@ def solve(
     for stage, radius in enumerate(_saturation_radii(cfg, problem.method)):
         d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
         dm = np.linalg.norm(xyh[ma, :2] - xyh[mb, :2], axis=1)
+        dr = np.linalg.norm(xyh[ra, :2] - anchors[rb - n_steps, :2], axis=1)
         # magnetic pairs saturate at their own d_max, shrinking in step with the WiFi edges' radius
-        active = np.concatenate([d <= radius, dm <= radius * cfg.magnetic.d_max_m / cfg.wifi.d_max_m])
+        active = np.concatenate([d <= radius, dm <= radius * cfg.magnetic.d_max_m / cfg.wifi.d_max_m, dr <= radius])
         if prev_active is not None and np.array_equal(active, prev_active) and converged:
             continue  # LM already converged on exactly this graph
         n_active = int(active[:len(d)].sum())  # WiFi edges (the records' and the progress line's count)
@@ -529,9 +576,9 @@ def solve(
                 progress(rec)
 
         if pardiso:
-            res = S.levenberg_marquardt(pg, xyh, active, settings, hook)
+            res = S.levenberg_marquardt(pg, np.concatenate([xyh, anchors]), active, settings, hook)
             converged = res.converged
-            xyh = res.xyh
+            xyh = res.xyh[:n_steps]
         else:
             values, converged = gtsam_lm(imu_graph, wifi_factors, values, active, cfg, hook)
             xyh = values_to_xyh(values, init_xyh)
@@ -586,4 +633,6 @@ def solve(
         magnetic=problem.magnetic,
         magnetic_pairs=problem.magnetic_pairs,
         ties=problem.ties,
+        reference_map=problem.reference_map,
+        anchor_pairs=problem.anchor_pairs if problem.reference_map is not None else None,
     )

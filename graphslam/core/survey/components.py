@@ -170,6 +170,7 @@ def place_units(
     ties: tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]] | None = None,
     seed: int | None = None,
     min_baseline_m: float = 5.0,
+    reference: tuple[NDArray[np.float64], Matches] | None = None,
 ) -> ComponentPlacement:
     """``place_components`` over units of walks the magnetic field holds together
     (``graphslam.core.survey.magnetic.LinkUnits``): each unit is placed as one rigid body by the WiFi
@@ -180,7 +181,10 @@ def place_units(
     a unit's is that of their mean. ``ties``: (walk, dead-reckoned xy, site xy) of control-point
     marks: a unit holding tied walks is placed by translation onto all of its marks (its rotation is
     its walks' headings, turned into the site frame) and component 0 grows from the tied units.
-    ``seed``: the walk whose unit component 0 starts from (without ties)."""
+    ``seed``: the walk whose unit component 0 starts from (without ties). ``reference``: a surveyed map
+    held in the site frame (its fingerprints' site positions, and the matches from ``scan_xy``'s rows
+    to its rows): component 0 grows from it (and the ties) by each unit's reference matches alone;
+    the units left form components among themselves (``graphslam.core.survey.reference``)."""
     unit = units.unit
     n_u = units.n_units
     u_scan = unit[scan_session]
@@ -207,16 +211,71 @@ def place_units(
     # not link share no corridor (their walks only cross), and WiFi places crossings a few metres off
     # at best; a walk the field links to nothing (short, or without the field) joins by WiFi
     single = np.bincount(unit, minlength=n_u) == 1
-    cp = place_components(
-        n_u, u_scan, xy, m, params, rotation_sigma=sigma_u, tied=tied_u or None,
-        seed=None if seed is None else int(unit[seed]), joins=single,
-    )
+    if reference is None:
+        cp = place_components(
+            n_u, u_scan, xy, m, params, rotation_sigma=sigma_u, tied=tied_u or None,
+            seed=None if seed is None else int(unit[seed]), joins=single,
+        )
+    else:
+        cp = _on_reference(n_u, u_scan, xy, m, params, sigma_u, tied_u, single, reference)
     transforms = np.array([se2_compose(cp.transforms[unit[s]], units.transforms[s]) for s in range(n_sessions)])
     transforms = transforms.reshape(n_sessions, 3)
     seeds = tuple(-1 if sd < 0 else int(units.seed[sd]) for sd in cp.seeds)
     return ComponentPlacement(
         transforms, cp.component[unit], seeds, cp.support[unit], cp.margin[unit], cp.consistency[unit], cp.reasons,
     )
+
+
+def _on_reference(
+    n_u: int, u_scan: NDArray[np.int64], xy: NDArray, m: Matches, params: GrowthParams, sigma_u: NDArray,
+    tied_u: dict[int, NDArray], single: NDArray[np.bool_], reference: tuple[NDArray[np.float64], Matches],
+) -> ComponentPlacement:
+    """``place_units``' placement with a reference map: component 0 = the reference (a held pseudo-unit,
+    index ``n_u``), the tied units and every unit its reference matches register onto it; the rest by
+    ``place_components`` among themselves."""
+    ref_xy, rm = reference
+    n_rows = len(u_scan)
+    scan = np.concatenate([u_scan, np.full(len(ref_xy), n_u, np.int64)])
+    pts = np.concatenate([xy, ref_xy])
+    # a multi-walk unit registers on the reference's matches alone; a single walk also on its WiFi matches
+    # into the walks placed before it (as between walks without a reference)
+    one = single[u_scan[m.i]] | single[u_scan[m.j]]
+    mr = Matches(np.concatenate([rm.i, m.i[one]]), np.concatenate([rm.j + n_rows, m.j[one]]),
+                 np.concatenate([rm.similarity, m.similarity[one]]))
+    initial = {n_u: np.zeros(3), **tied_u}
+    res = grow_placement(n_u + 1, scan, pts, mr, params, initial=initial,
+                         rotation_sigma=np.concatenate([sigma_u, [1e-6]]))
+    main = res.placed[:n_u]
+    for u, why in sorted(res.reasons.items()):
+        log.debug("reference map: unit %d not placed: %s", u, why)
+    component = np.full(n_u, -1, np.int64)
+    component[main] = 0
+    T = np.zeros((n_u, 3))
+    T[main] = res.transforms[:n_u][main]
+    support, margin, consistency = res.support[:n_u].copy(), res.margin[:n_u].copy(), res.consistency[:n_u].copy()
+    seeds: list[int] = [-1]
+    reasons: dict[int, str] = {}
+    left = np.flatnonzero(~main)
+    if len(left):  # the rest: components of their own, among themselves
+        local = np.full(n_u, -1, np.int64)
+        local[left] = np.arange(len(left))
+        rows = np.flatnonzero(local[u_scan] >= 0)
+        row_of = np.full(n_rows, -1, np.int64)
+        row_of[rows] = np.arange(len(rows))
+        keep = (row_of[m.i] >= 0) & (row_of[m.j] >= 0)
+        sub = place_components(len(left), local[u_scan[rows]], xy[rows],
+                               Matches(row_of[m.i[keep]], row_of[m.j[keep]], m.similarity[keep]), params,
+                               rotation_sigma=sigma_u[left], joins=single[left])
+        component[left] = sub.component + 1
+        T[left] = sub.transforms
+        support[left], margin[left], consistency[left] = sub.support, sub.margin, sub.consistency
+        seeds += [int(left[sd]) for sd in sub.seeds]
+        matched = np.unique(u_scan[rm.i])  # units with a reference match at all
+        for k in range(sub.n_components):
+            reasons[k + 1] = ("its WiFi registration onto the reference map is ambiguous"
+                              if np.isin(left[sub.walks_of(k)], matched).any() else "no match onto the reference map")
+    log.info("reference map: %d of %d units placed onto it", int(main.sum()), n_u)
+    return ComponentPlacement(T, component, tuple(seeds), support, margin, consistency, reasons)
 
 
 def _reasons(component: NDArray, first: GrowthResult | None, remap: NDArray, n_main: int) -> dict[int, str]:

@@ -126,18 +126,23 @@ def pose_graph(problem: Problem, cfg: GraphSlamConfig) -> tuple[S.PoseGraph, Com
         sqrt_info = np.broadcast_to(S.sqrt_information(step_cov[None])[0], (len(pairs), 3, 3))
     hn, ht, hs = heading_priors(problem, nodes)
     pn, pxy, ps = point_priors(problem, cfg)
-    n_w, n_m = len(problem.wifi_pairs), len(problem.magnetic_pairs)
+    n_w, n_m, n_r = len(problem.wifi_pairs), len(problem.magnetic_pairs), len(problem.anchor_pairs)
+    n_steps = len(problem.init_xyh)
+    # WiFi edges, magnetic pairs, then WiFi edges to a reference map's fingerprints (held nodes after the steps)
+    anchor = problem.anchor_pairs + np.array([0, n_steps])
+    sigma, dead = np.repeat([F.wifi_sigma(cfg.wifi), cfg.magnetic.sigma_m, F.wifi_sigma(cfg.wifi)], [n_w, n_m, n_r]), \
+        np.repeat([cfg.wifi.d_min_m, cfg.magnetic.d_min_m, cfg.wifi.d_min_m], [n_w, n_m, n_r])
     graph = S.PoseGraph(
-        n_nodes=len(problem.init_xyh),
+        n_nodes=n_steps + len(problem.anchor_xy),
         variables=nodes[~np.isin(nodes, held)].astype(np.int64),
         reference=int(held[0]) if len(held) else -1,
         between_pairs=pairs,
         between_measured=measured,
         between_sqrt_info=sqrt_info,
         # WiFi edges, then magnetic pairs (each kind its sigma and dead zone)
-        range_pairs=np.concatenate([problem.wifi_pairs, problem.magnetic_pairs]).astype(np.int64).reshape(-1, 2),
-        range_sigma=F.wifi_sigma(cfg.wifi) if not n_m else np.repeat([F.wifi_sigma(cfg.wifi), cfg.magnetic.sigma_m], [n_w, n_m]),
-        range_dead_zone_m=cfg.wifi.d_min_m if not n_m else np.repeat([cfg.wifi.d_min_m, cfg.magnetic.d_min_m], [n_w, n_m]),
+        range_pairs=np.concatenate([problem.wifi_pairs, problem.magnetic_pairs, anchor]).astype(np.int64).reshape(-1, 2),
+        range_sigma=F.wifi_sigma(cfg.wifi) if not (n_m or n_r) else sigma,
+        range_dead_zone_m=cfg.wifi.d_min_m if not (n_m or n_r) else dead,
         heading_nodes=hn,
         heading_target=ht,
         heading_sigma=hs,
@@ -155,6 +160,7 @@ def kept_nodes(problem: Problem) -> NDArray[np.bool_]:
     keep = np.zeros(len(problem.init_xyh), bool)
     keep[problem.wifi_pairs.ravel()] = True
     keep[problem.magnetic_pairs.ravel()] = True
+    keep[problem.anchor_pairs[:, 0]] = True
     keep[problem.held_nodes] = True
     if problem.ties is not None:
         keep[problem.ties.node] = True

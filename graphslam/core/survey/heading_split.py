@@ -25,7 +25,10 @@ from graphslam.core.survey.components import Component, ComponentPlacement, plac
 from graphslam.core.survey.control import ControlTies, control_ties, tie_walks
 from graphslam.core.survey.heading import heading_residuals, walk_headings
 from graphslam.core.survey.incremental import WarmStart
-from graphslam.core.survey.magnetic import LinkUnits, MagneticLinks, MagneticParams, link_units, loop_verified, magnetic_links
+from graphslam.core.survey.magnetic import (
+    LinkUnits, MagneticLinks, MagneticParams, link_units, magnetic_links, singleton_units,
+)
+from graphslam.core.survey.reference import ReferenceLinks, site_rotation
 from graphslam.core.survey.initialise import Placement, se2_apply_poses, se2_compose
 from graphslam.core.survey.placement import GrowthParams, grow_placement
 from graphslam.core.types import Survey, wrap_angle
@@ -96,6 +99,7 @@ class ComponentSplit:
     ties: ControlTies | None
     frame_name: str
     magnetic: MagneticLinks | None = None  # the links the placement used (their node pairs: the graph's factors)
+    anchors: ReferenceLinks | None = None  # the reference map component 0 is placed on
 
 
 def split_by_heading(
@@ -103,10 +107,11 @@ def split_by_heading(
     control_points: Mapping[str, tuple[float, float]] | None,
     *,
     seed: int | None = None,
+    reference: ReferenceLinks | None = None,
 ) -> ComponentSplit:
     """Heading placement: every walk rotated by its heading (east/north), map growth into components
     (``graphslam.core.survey.components``); with control points component 0 grows from the walks
-    they tie, in the site frame."""
+    they tie, in the site frame; with a reference map (``graphslam.core.survey.reference``) from it."""
     hc, pc = cfg.heading, cfg.placement
     wh = walk_headings(
         survey, sigma_floor_rad=np.radians(hc.sigma_floor_deg), cauchy_scale_rad=np.radians(hc.cauchy_scale_deg),
@@ -118,7 +123,7 @@ def split_by_heading(
             f"optimizer.initialization heading needs /phone/heading on every walk; {len(missing)} have none "
             f"(e.g. {missing[0]!r}): use auto or registration"
         )
-    ties = tied = None
+    ties = tied = tp = None
     phi = 0.0
     if control_points:
         ties = control_ties(survey, control_points, fp.offsets)
@@ -132,14 +137,27 @@ def split_by_heading(
     # with ties, every walk's rotation is site-from-dead-reckoning: heading + the site frame's offset
     rotation = wh.rotation + phi
     units = _magnetic_units(survey, fp, dr_xyh, node_sess, cfg, matches, rotation, wh.sigma, params)
-    if units is not None and units.n_units < len(survey):  # walks the field holds together move as one
+    if reference is not None:  # the surveyed map holds component 0 in the site frame
+        units = units if units is not None else singleton_units(rotation)
+        if ties is None or not tp.rotation_fixed:  # the site's rotation from the crowd's reference matches
+            unit_xy = se2_apply_rows(units.transforms[fp.session], dr_xyh[fp.node, :2])
+            turn, _ = site_rotation(units.unit[fp.session], unit_xy, reference, params)
+            units = units.turned(turn)
+            phi += turn
+            rotation = wh.rotation + phi
+            log.info("reference map: the site frame is turned %.1f deg from east/north (the crowd's matches)",
+                     np.degrees(phi))
+    if reference is not None or (units is not None and units.n_units < len(survey)):
+        # walks the field holds together move as one
         tie_arrays = None
         if ties is not None:
             placed = np.isin(ties.session, list(tied))
             tie_arrays = (ties.session[placed], dr_xyh[ties.node[placed], :2], ties.xy[placed])
+        ref = None if reference is None else (
+            reference.xy, Matches(reference.match_i, reference.match_j, reference.similarity))
         cp = place_units(
             len(survey), fp.session, dr_xyh[fp.node, :2], matches, params, units,
-            rotation_sigma=wh.sigma, ties=tie_arrays, seed=seed,
+            rotation_sigma=wh.sigma, ties=tie_arrays, seed=seed, reference=ref,
         )
     else:
         cp = place_components(
@@ -153,7 +171,8 @@ def split_by_heading(
     offsets = fp.offsets
     # held nodes: the first pose of each component's seed walk (component 0 with ties: none, the ties hold it)
     fixed = np.array([int(offsets[sd]) for sd in cp.seeds if sd >= 0], np.int64)
-    reference = cp.seeds[0] if cp.seeds and cp.seeds[0] >= 0 else int(ties.walks[0]) if ties is not None else 0
+    main_walks = cp.walks_of(0)
+    ref_walk = cp.seeds[0] if cp.seeds and cp.seeds[0] >= 0 else int(main_walks[0]) if len(main_walks) else 0
     # the prior's target: the dead-reckoned heading turned by the rotation the phone's heading gives
     # (not the placed one, which would only restate the placement); with ties every component was
     # placed turned by the site offset, so every frame is site-aligned
@@ -171,11 +190,11 @@ def split_by_heading(
         cp.transforms, np.ones(len(survey), bool), np.full(len(survey), -1, np.int64), np.full(len(survey), -1, np.int64),
         method="heading", support=cp.support, margin=cp.margin, consistency=cp.consistency,
     )
-    frame = "site" if ties is not None else "earth"
+    frame = "site" if ties is not None or reference is not None else "earth"
     main = int((cp.component == 0).sum())
     log.info("heading placement: %d components, the main map holds %d of %d walks", cp.n_components, main, len(survey))
-    return ComponentSplit(pl, cp.component, comps, reference, fixed, heading, ties, frame,
-                          magnetic=None if units is None else units.links)
+    return ComponentSplit(pl, cp.component, comps, ref_walk, fixed, heading, ties, frame,
+                          magnetic=None if units is None else units.links, anchors=reference)
 
 
 def _magnetic_units(
@@ -188,10 +207,9 @@ def _magnetic_units(
         return None
     mp = MagneticParams.from_config(cfg.magnetic)
     links = magnetic_links(survey, fp.offsets, rotation, fp.node[matches.i], fp.node[matches.j], mp)
-    verified = links.subset(loop_verified(links, mp.loop_m))
-    units = link_units(verified, len(survey), rotation, sigma, dr_xyh[:, :2], node_sess, mp.agree_m, params)
-    log.info("magnetic: %d links, %d close a loop, %d kept; %d walks in %d units of two or more", len(links),
-             len(verified), len(units.links), int((np.bincount(units.unit)[units.unit] > 1).sum()),
+    units = link_units(links, len(survey), rotation, sigma, dr_xyh[:, :2], node_sess, mp.agree_m, params)
+    log.info("magnetic: %d links, %d consistent with their units' placement; %d walks in %d units of two or more",
+             len(links), len(units.links), int((np.bincount(units.unit)[units.unit] > 1).sum()),
              int((np.bincount(units.unit) > 1).sum()))
     return units
 

@@ -27,9 +27,11 @@ the corridor walked, in whichever direction it is walked.
    meet still passes any fixed threshold now and then). With every walk turned into east/north by
    its heading, each match says where the other walk lies (a translation) and which way the two
    windows run (parallel for a forward match, anti-parallel for a reversed one: else it is dropped);
-   a link is at least ``min_windows`` matches from non-overlapping windows agreeing on one
-   translation within ``agree_m``. Its correspondences (sample pairs every ``pair_every_m`` along
-   the matched windows, as step nodes) become the graph's magnetic factors.
+   a link is at least ``min_windows`` matches, disjoint on both walks, agreeing on one translation
+   within ``agree_m``. Its correspondences (sample pairs every ``pair_every_m`` along every agreeing
+   match, as step nodes) become the graph's magnetic factors.
+5. **Units** (``link_units``): walks the links connect are placed relative to each other as rigid
+   bodies; a link the placement leaves more than ``agree_m`` apart is dropped.
 
 Frames: each walk's dead reckoning; translations in east/north (after each walk's rotation from its
 heading), metres. Field in µT.
@@ -67,7 +69,6 @@ class MagneticParams:
     min_windows: int = 2
     agree_m: float = 2.0
     direction_cos: float = 0.7
-    loop_m: float = 3.0
     pair_every_m: float = 2.0
     min_std_ut: float = 0.3  # a window flatter than this (rms, every feature) is no signature
     sharp_m: float = 2.0
@@ -79,7 +80,7 @@ class MagneticParams:
         return cls(
             sample_m=cfg.sample_m, window_m=cfg.window_m, stride_m=cfg.stride_m, search_m=cfg.search_m,
             null_quantile=cfg.null_quantile, min_windows=cfg.min_windows, agree_m=cfg.agree_m,
-            direction_cos=cfg.direction_cos, loop_m=cfg.loop_m, pair_every_m=cfg.pair_every_m,
+            direction_cos=cfg.direction_cos, pair_every_m=cfg.pair_every_m,
         )
 
     @property
@@ -469,15 +470,17 @@ def walk_links(
         tt = t[idx]
         d = np.linalg.norm(tt[:, None] - tt[None], axis=2)
         best: list[int] = []
+        members = np.zeros(0, np.int64)
         for c0 in range(len(idx)):
+            agree = np.flatnonzero(d[c0] <= p.agree_m)  # ascending index = descending score
             chosen: list[int] = []
-            for q in np.flatnonzero(d[c0] <= p.agree_m):  # ascending index = descending score
+            for q in agree:
                 # a match holds a stretch of both walks: independent matches overlap on neither
                 e = idx[q]
                 if all(abs(s_lo[idx[r]] - s_lo[e]) >= L and abs(s_hi[idx[r]] - s_hi[e]) >= L for r in chosen):
                     chosen.append(int(q))
             if len(chosen) > len(best):
-                best = chosen
+                best, members = chosen, agree
         if len(best) < p.min_windows:
             continue
         k = len(links_a)
@@ -489,7 +492,7 @@ def walk_links(
         links_c.append(len(idx))
         links_s.append(float(sc[sel].mean()))
         tk = np.arange(0, L, step_pairs)
-        for e in sel:
+        for e in idx[members]:  # node pairs: every agreeing match, overlapping ones too (the disjoint ones count)
             u = s_lo[e] + tk
             v = s_hi[e] + (L - 1 - tk if rev[e] else tk)
             pairs_k.append(np.full(len(tk), k))
@@ -525,33 +528,6 @@ def magnetic_links(
     return links
 
 
-def loop_verified(links: MagneticLinks, tol_m: float) -> NDArray[np.bool_]:
-    """The links that close a loop: walks a, b, c pairwise linked whose translations sum to within
-    ``tol_m`` of zero. A link between two walks alone is no confirmation (a chance match can look like
-    a true one); a third walk that sees both where the link puts them is. Repeated until stable: a
-    link whose only loops run through rejected links is rejected too."""
-    keep = np.ones(len(links), bool)
-    while keep.any():
-        t: dict[tuple[int, int], NDArray] = {}
-        nb: dict[int, set[int]] = {}
-        for k in np.flatnonzero(keep):
-            a, b = int(links.a[k]), int(links.b[k])
-            t[(a, b)], t[(b, a)] = links.translation[k], -links.translation[k]
-            nb.setdefault(a, set()).add(b)
-            nb.setdefault(b, set()).add(a)
-        ok = np.zeros(len(links), bool)
-        for k in np.flatnonzero(keep):
-            a, b = int(links.a[k]), int(links.b[k])
-            for c in nb[a] & nb[b]:
-                if np.hypot(*(t[(a, b)] + t[(b, c)] + t[(c, a)])) <= tol_m:
-                    ok[k] = True
-                    break
-        if np.array_equal(ok, keep):
-            break
-        keep = ok
-    return keep
-
-
 @dataclass(frozen=True, eq=False)
 class LinkUnits:
     """Walks the magnetic links hold together as rigid bodies ("units"), placed relative to each other.
@@ -571,6 +547,22 @@ class LinkUnits:
 
     def walks_of(self, u: int) -> NDArray[np.int64]:
         return np.flatnonzero(self.unit == u)
+
+    def turned(self, angle: float) -> "LinkUnits":
+        """The same units with every unit frame turned by ``angle`` (rad) about its origin."""
+        c, s = np.cos(angle), np.sin(angle)
+        T = self.transforms
+        out = np.column_stack([c * T[:, 0] - s * T[:, 1], s * T[:, 0] + c * T[:, 1],
+                               np.arctan2(np.sin(T[:, 2] + angle), np.cos(T[:, 2] + angle))])
+        return LinkUnits(self.unit, out, self.seed, self.links)
+
+
+def singleton_units(rotation: NDArray[np.float64]) -> LinkUnits:
+    """Every walk a unit of its own, turned by its ``rotation`` (no magnetic links)."""
+    n = len(rotation)
+    rot = np.where(np.isfinite(rotation), rotation, 0.0)
+    return LinkUnits(np.arange(n, dtype=np.int64), np.column_stack([np.zeros(n), np.zeros(n), rot]),
+                     np.arange(n, dtype=np.int64), MagneticLinks.empty())
 
 
 def link_units(

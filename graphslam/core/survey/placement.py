@@ -125,24 +125,8 @@ def hough_se2(
         k = int(np.floor(params.rotation_window_deg / params.rotation_step_deg))
         thetas = np.radians(np.arange(-k, k + 1) * params.rotation_step_deg)
     rot = _rotate(src_xy, thetas)  # (R, M, 2)
-    t = dst_xy[None] - rot  # translation that brings each pair together, per rotation
-    lo = t.reshape(-1, 2).min(0) - 3.0 * params.blur_m
-    hi = t.reshape(-1, 2).max(0) + 3.0 * params.blur_m
-    shape = np.ceil((hi - lo) / params.cell_m).astype(int) + 1
+    votes, lo, cell, shape = _vote_grid(rot, dst_xy, weight, params)
     n_rot = len(thetas)
-    if n_rot * shape[0] * shape[1] > params.max_grid_cells:
-        # very spread votes: coarser cells keep the grid bounded (resolution degrades, memory does not)
-        cell = params.cell_m * np.sqrt(n_rot * shape[0] * shape[1] / params.max_grid_cells)
-    else:
-        cell = params.cell_m
-    shape = np.ceil((hi - lo) / cell).astype(int) + 1
-    g = np.floor((t - lo) / cell).astype(np.int64)
-    flat = (np.arange(n_rot)[:, None] * shape[0] + g[..., 0]) * shape[1] + g[..., 1]
-    votes = np.bincount(flat.ravel(), weights=np.broadcast_to(weight, flat.shape).ravel(),
-                        minlength=n_rot * shape[0] * shape[1]).reshape(n_rot, shape[0], shape[1])
-    votes = gaussian_filter(votes, sigma=(0.0, params.blur_m / cell, params.blur_m / cell), mode="constant", truncate=3.0)
-    # per cell_m^2 of translation, so support and margins mean the same whatever cell a wide grid took
-    votes *= (params.cell_m / cell) ** 2
     per_rot = votes.reshape(n_rot, -1)
     best_cell = per_rot.argmax(axis=1)
     best_val = per_rot[np.arange(n_rot), best_cell]
@@ -161,6 +145,38 @@ def hough_se2(
     grid[max(0, cx - rad): cx + rad + 1, max(0, cy - rad): cy + rad + 1] = 0.0
     second = max(second, float(grid.max()))
     return T, float(best_val[r0]), second
+
+
+def _vote_grid(
+    rot: NDArray, dst_xy: NDArray, weight: NDArray, params: GrowthParams
+) -> tuple[NDArray, NDArray, float, NDArray]:
+    """(votes (R, nx, ny) blurred, grid origin, cell, shape): each rotated source point votes, with its
+    weight, for the translation that puts it on its destination; per cell_m^2 of translation."""
+    t = dst_xy[None] - rot  # translation that brings each pair together, per rotation
+    lo = t.reshape(-1, 2).min(0) - 3.0 * params.blur_m
+    hi = t.reshape(-1, 2).max(0) + 3.0 * params.blur_m
+    shape = np.ceil((hi - lo) / params.cell_m).astype(int) + 1
+    n_rot = len(rot)
+    if n_rot * shape[0] * shape[1] > params.max_grid_cells:
+        # very spread votes: coarser cells keep the grid bounded (resolution degrades, memory does not)
+        cell = params.cell_m * np.sqrt(n_rot * shape[0] * shape[1] / params.max_grid_cells)
+    else:
+        cell = params.cell_m
+    shape = np.ceil((hi - lo) / cell).astype(int) + 1
+    g = np.floor((t - lo) / cell).astype(np.int64)
+    flat = (np.arange(n_rot)[:, None] * shape[0] + g[..., 0]) * shape[1] + g[..., 1]
+    votes = np.bincount(flat.ravel(), weights=np.broadcast_to(weight, flat.shape).ravel(),
+                        minlength=n_rot * shape[0] * shape[1]).reshape(n_rot, shape[0], shape[1])
+    votes = gaussian_filter(votes, sigma=(0.0, params.blur_m / cell, params.blur_m / cell), mode="constant", truncate=3.0)
+    # per cell_m^2 of translation, so support and margins mean the same whatever cell a wide grid took
+    votes *= (params.cell_m / cell) ** 2
+    return votes, lo, float(cell), shape
+
+
+def hough_profile(src_xy: NDArray, dst_xy: NDArray, weight: NDArray, thetas: NDArray, params: GrowthParams) -> NDArray:
+    """Per rotation of ``thetas``: the best translation's blurred vote (``hough_se2``'s grid)."""
+    votes, _, _, _ = _vote_grid(_rotate(src_xy, thetas), dst_xy, weight, params)
+    return votes.reshape(len(thetas), -1).max(axis=1)
 
 
 def refine_rigid(

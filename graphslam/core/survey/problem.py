@@ -24,6 +24,7 @@ from graphslam.core.survey.magnetic import MagneticLinks
 from graphslam.core.types import Survey
 
 if TYPE_CHECKING:
+    from graphslam.core.radiomap.radiomap import RadioMap
     from graphslam.core.uwb.survey import UwbTerms
 
 
@@ -49,6 +50,11 @@ class Problem:
     # (P, 2) step nodes a magnetic link says are one place (graphslam.core.survey.magnetic), within a component
     magnetic_pairs: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), np.int64))
     magnetic: MagneticLinks | None = None  # the links behind them
+    # a reference map (graphslam.core.survey.reference): its fingerprints' site positions, held, and the
+    # WiFi edges (crowd node, reference fingerprint) of component 0's walks
+    anchor_xy: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
+    anchor_pairs: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    reference_map: RadioMap | None = None  # the reference map itself (its fingerprints join the output map)
     # --update: nodes re-solved; the others keep init_xyh (their previous solution).
     # None: every node of an included walk is a variable (a full solve).
     free: NDArray[np.bool_] | None = None

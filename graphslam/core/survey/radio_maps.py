@@ -56,12 +56,34 @@ def crowdsourced_radio_map(
     """Every fingerprint of an aligned walk at its optimised position (aligned frame, or the site
     frame when ``site_from_aligned`` is given, e.g. from an evaluation fit)."""
     xy = al.fingerprint_xy()
-    frame = "aligned"
+    frame = al.frame  # the survey's own (report.json's): aligned, earth or site
     if site_from_aligned is not None:
         xy = se2_apply(np.asarray(site_from_aligned, float), xy)
         frame = "site"
+    rm = _build(survey, al, xy, frame, cfg, {"kind": "crowdsourced"})
+    if al.reference_map is not None:  # a survey on a reference map: its fingerprints join the crowd's
+        rm = with_reference(rm, al.reference_map)
     # the default kNN's uncertainty, measured on the map (leave one walk out), rides along
-    return with_uncertainty(_build(survey, al, xy, frame, cfg, {"kind": "crowdsourced"}))
+    return with_uncertainty(rm)
+
+
+def with_reference(crowd: RadioMap, ref: RadioMap) -> RadioMap:
+    """The crowd's fingerprints and the reference's in one map (site frame), over the union of their access
+    points; every fingerprint counts the same in a kNN answer (the reference's as surveyed, the crowd's at
+    their optimised positions). ``metadata.reference``: where it came from and how many rows it gave."""
+    from graphslam.core.survey.reference import on_index
+
+    bssids = tuple(sorted(set(crowd.fingerprints.bssids) | set(ref.fingerprints.bssids)))
+    a, b = on_index(crowd.fingerprints, bssids), on_index(ref.fingerprints, bssids)
+    fm = FingerprintMatrix(bssids, sparse.vstack([a.values, b.values]).tocsr(), a.missing_dbm,
+                           np.concatenate([a.extra_sq, b.extra_sq]), np.concatenate([a.extra_n, b.extra_n]))
+    labels = None if crowd.floors is None else [*crowd.floors.tolist(), *([""] * len(ref))]
+    meta = {**dict(crowd.metadata), "reference": {"source": ref.metadata.get("source"), "fingerprints": len(ref)}}
+    return RadioMap.from_fingerprints(
+        fm, np.concatenate([crowd.xy, ref.xy]), session_ids=[*crowd.session_ids.tolist(), *ref.session_ids.tolist()],
+        t_ns=np.concatenate([crowd.t_ns, ref.t_ns]), frame=crowd.frame, floors=labels, metadata=meta,
+        min_rssi_dbm=crowd.min_rssi_dbm,
+    )
 
 
 def surveyed_radio_map(survey: Survey, al: Alignment, cfg: GraphSlamConfig) -> RadioMap:

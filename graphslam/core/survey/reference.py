@@ -1,0 +1,146 @@
+"""A surveyed radio map as anchors: crowd walks join a site's existing survey.
+
+A reference map (fingerprints at known site positions: a professional survey, last year's, another
+tool's) is held fixed in the site frame. The crowd's walks are tied to it as they are to each other:
+
+1. **Matches for placement**: each crowd fingerprint's ``k`` most similar reference fingerprints by
+   the placement's power-cosine similarity (``graphslam.core.radiomap.similarity``: a constant RSS
+   offset between phones cancels; the reference may come from another device).
+2. **The site's rotation**: every walk is turned into east/north by its heading; the site frame's one
+   rotation from east/north is the rotation under which the crowd's matches agree best: for each
+   rotation of a grid, every unit's (walk's, or magnetic unit's) best translation vote onto the
+   reference, summed over units (``site_rotation``).
+3. **Placement**: the reference is a placed, held body; units join it by map growth on their reference
+   matches alone (``graphslam.core.survey.components.place_units``) — the repetitions of a route,
+   held together by the field, vote as one. Units that match no reference place stay apart.
+4. **Factors**: a crowd fingerprint and a reference fingerprint whose eq.-9 distance is below the
+   crowd fingerprint's own median-window threshold (the edge rule between walks, ``edges``) get the
+   same fuzzy WiFi factor as two crowd fingerprints, with the reference end fixed
+   (``reference_edges``); the ones the placement puts beyond the gate are left out, as between walks.
+
+Frames: site (the reference's, metres); the crowd's dead reckoning turned by the headings (east/north)
+and by the site's rotation.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import sparse
+
+from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix
+from graphslam.core.radiomap.radiomap import RadioMap
+from graphslam.core.radiomap.similarity import Matches, PowerCosine
+from graphslam.core.survey.placement import GrowthParams, hough_profile
+
+log = logging.getLogger(__name__)
+
+
+def on_index(fm: FingerprintMatrix, bssids: tuple[str, ...]) -> FingerprintMatrix:
+    """``fm``'s rows over another AP index: readings of APs outside it count in ``extra_sq``/``extra_n``,
+    as ``FingerprintMatrix.from_scans`` with a given index does (eq. 9 unchanged)."""
+    col = {b: i for i, b in enumerate(bssids)}
+    to = np.array([col.get(b, -1) for b in fm.bssids], np.int64)
+    v = fm.values.tocoo()
+    inside = to[v.col] >= 0
+    vals = sparse.csr_matrix((v.data[inside], (v.row[inside], to[v.col[inside]])), shape=(len(fm), len(bssids)))
+    extra_sq = fm.extra_sq + np.bincount(v.row[~inside], weights=v.data[~inside] ** 2, minlength=len(fm))
+    extra_n = fm.extra_n + np.bincount(v.row[~inside], minlength=len(fm))
+    return FingerprintMatrix(bssids, vals, fm.missing_dbm, extra_sq, extra_n)
+
+
+@dataclass(frozen=True, eq=False)
+class ReferenceLinks:
+    """How the crowd's fingerprints (rows of ``FingerprintNodes``) relate to the reference's."""
+
+    xy: NDArray[np.float64]  # (R, 2) the reference fingerprints' site positions
+    match_i: NDArray[np.int64]  # (M,) crowd fingerprint
+    match_j: NDArray[np.int64]  # (M,) its similar reference fingerprint
+    similarity: NDArray[np.float64]  # (M,) power cosine
+    edge_i: NDArray[np.int64]  # (E,) crowd fingerprint of a reference edge
+    edge_j: NDArray[np.int64]  # (E,) its reference fingerprint
+    edge_d: NDArray[np.float64]  # (E,) eq.-9 distance (dB)
+
+    def __len__(self) -> int:
+        return len(self.xy)
+
+
+def reference_links(
+    crowd: FingerprintMatrix, thresholds: NDArray[np.float64], ref: RadioMap, *, matches_per_fingerprint: int,
+    scale_db: float, max_per_fingerprint: int, min_common_aps: int, block_rows: int = 2048,
+) -> ReferenceLinks:
+    """Matches (placement) and edges (factors) between the crowd's fingerprints and the reference's
+    (module docstring, 1 and 4). ``thresholds``: each crowd fingerprint's median-window threshold."""
+    bssids = tuple(sorted(set(crowd.bssids) | set(ref.fingerprints.bssids)))
+    c, r = on_index(crowd, bssids), on_index(ref.fingerprints, bssids)
+    # placement matches: power cosine of crowd rows against reference rows, top k per crowd row
+    pc = PowerCosine.of(FingerprintMatrix(bssids, sparse.vstack([c.values, r.values]).tocsr(), c.missing_dbm), scale_db)
+    u = pc.unit
+    cu, ru = u[: len(c)], u[len(c):].T.tocsc()
+    k = int(min(matches_per_fingerprint, len(r)))
+    mi, mj, ms = [], [], []
+    ei, ej, ed = [], [], []
+    engine = DistanceEngine(r)
+    cap = max(1, max_per_fingerprint)
+    for a in range(0, len(c), block_rows):
+        b = min(len(c), a + block_rows)
+        sim = (cu[a:b] @ ru).toarray()
+        top = np.argpartition(-sim, k - 1, axis=1)[:, :k] if k < sim.shape[1] else np.tile(np.arange(sim.shape[1]), (b - a, 1))
+        rows = np.repeat(np.arange(a, b), top.shape[1])
+        s = sim[np.arange(b - a)[:, None], top].ravel()
+        keep = s > 0
+        mi.append(rows[keep])
+        mj.append(top.ravel()[keep])
+        ms.append(s[keep])
+        # edges: below the crowd row's own threshold, the nearest few
+        d, _ = engine.block(c.rows(slice(a, b)), min_common=min_common_aps)
+        thr = thresholds[a:b]
+        d = np.where(np.isfinite(thr)[:, None] & (d < thr[:, None]), d, np.inf)
+        m = min(cap, d.shape[1])
+        near = np.argpartition(d, m - 1, axis=1)[:, :m] if m < d.shape[1] else np.tile(np.arange(d.shape[1]), (b - a, 1))
+        dn = d[np.arange(b - a)[:, None], near]
+        ok = np.isfinite(dn)
+        ei.append(np.repeat(np.arange(a, b), near.shape[1])[ok.ravel()])
+        ej.append(near.ravel()[ok.ravel()])
+        ed.append(dn.ravel()[ok.ravel()])
+
+    def cat(parts: list, dtype: object) -> NDArray:
+        return np.concatenate(parts).astype(dtype) if parts else np.zeros(0, dtype)
+
+    out = ReferenceLinks(np.asarray(ref.xy, float), cat(mi, np.int64), cat(mj, np.int64), cat(ms, np.float64),
+                         cat(ei, np.int64), cat(ej, np.int64), cat(ed, np.float64))
+    log.info("reference map: %d fingerprints; %d placement matches and %d edges from the crowd's %d fingerprints",
+             len(out), len(out.match_i), len(out.edge_i), len(c))
+    return out
+
+
+def site_rotation(
+    unit_of_row: NDArray[np.int64], unit_xy: NDArray[np.float64], links: ReferenceLinks, params: GrowthParams,
+) -> tuple[float, float]:
+    """(rotation of the site frame from east/north, its vote support): the rotation under which the
+    units' reference matches agree best (module docstring, 2): every 3 degrees around the circle, then
+    every half degree within 4 degrees of the best. ``unit_xy``: each crowd fingerprint in its unit's
+    frame (east/north); ``unit_of_row``: its unit."""
+    if not len(links.match_i):
+        return 0.0, 0.0
+    w = np.power(np.clip(links.similarity, 0.0, 1.0), params.weight_power)
+    u = unit_of_row[links.match_i]
+    order = np.argsort(u, kind="stable")
+    bounds = np.flatnonzero(np.concatenate([[True], np.diff(u[order]) != 0, [True]]))
+    groups = [order[g0:g1] for g0, g1 in zip(bounds[:-1], bounds[1:]) if g1 - g0 >= 3]
+
+    def profile(thetas: NDArray) -> NDArray:
+        total = np.zeros(len(thetas))
+        for sel in groups:
+            total += hough_profile(unit_xy[links.match_i[sel]], links.xy[links.match_j[sel]], w[sel], thetas, params)
+        return total
+
+    coarse = np.radians(np.arange(0.0, 360.0, 3.0))
+    c0 = coarse[int(np.argmax(profile(coarse)))]
+    fine = c0 + np.radians(np.arange(-4.0, 4.01, 0.5))
+    total = profile(fine)
+    best = int(np.argmax(total))
+    return float(np.arctan2(np.sin(fine[best]), np.cos(fine[best]))), float(total[best])

@@ -1,0 +1,117 @@
+"""A site's surveyed radio map as the survey's anchors (``graphslam survey --reference-map FILE``).
+
+Two forms, both fingerprints at known site positions (metres):
+
+- a CSV with the header ``fingerprint_id,x,y,bssid,rssi_dbm`` and one row per reading (standard CSV
+  quoting): every row of one ``fingerprint_id`` gives the same ``x, y``; ``rssi_dbm`` in dBm;
+- a radio map graphslam wrote (``radio_map.parquet`` of a previous survey) whose frame is ``site``
+  (control points or UWB anchors): a map in an ``aligned`` or ``earth`` frame has no known place in
+  the site and is refused.
+
+A UTF-8 byte-order mark and blank lines are accepted. Anything else (another header, a missing or
+extra column, an empty id or BSSID, a coordinate or RSS that is not a finite number, two positions
+for one fingerprint, a BSSID twice in one fingerprint, no fingerprint at all) is an ``InputError``
+naming the file, the line and the field.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+from graphslam.core.radiomap.radiomap import RadioMap
+from graphslam.errors import GraphSlamError, InputError
+
+HEADER = ("fingerprint_id", "x", "y", "bssid", "rssi_dbm")
+REFERENCE_SESSION = "reference"  # the session id of the reference's rows in the survey's radio map
+
+
+def read_reference_map(path: str | Path, *, min_rssi_dbm: float = -100.0, missing_dbm: float = -110.0) -> RadioMap:
+    """The reference map at ``path`` (CSV or graphslam Parquet), frame ``site``; its rows' session id is
+    ``reference`` for a CSV (one survey; the map's own ids for a Parquet file)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "reference map not found" if not path.exists() else "not a file")
+    with open(path, "rb") as fh:
+        magic = fh.read(4)
+    if magic == b"PAR1":
+        return _from_radio_map(path)
+    return _from_csv(path, min_rssi_dbm, missing_dbm)
+
+
+def _from_radio_map(path: Path) -> RadioMap:
+    from graphslam.io.radiomap_io import read_radio_map
+
+    try:
+        rm = read_radio_map(path)
+    except GraphSlamError as e:
+        raise InputError(path, f"not a readable radio map ({' '.join(str(e).split())})") from None
+    if rm.frame != "site":
+        raise InputError(path, f"a radio map in the {rm.frame!r} frame: a reference must be in the site frame (a survey "
+                         "with control points or UWB anchors)", field="metadata.frame")
+    if not len(rm):
+        raise InputError(path, "no fingerprint: the reference map is empty")
+    return rm
+
+
+def _from_csv(path: Path, min_rssi_dbm: float, missing_dbm: float) -> RadioMap:
+    order: list[str] = []
+    where: dict[str, tuple[float, float, int]] = {}  # id -> (x, y, first line)
+    readings: dict[str, dict[str, float]] = {}
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            reader = csv.reader(fh, strict=True)
+            header = next(reader, None)
+            if header is None:
+                raise InputError(path, f"empty file: expected the header {','.join(HEADER)} and one row per reading")
+            if tuple(c.strip() for c in header) != HEADER:
+                raise InputError(path, f"line 1: header {','.join(header)!r}, expected {','.join(HEADER)}")
+            for row in reader:
+                n = reader.line_num
+                if not row:
+                    continue
+                if len(row) != len(HEADER):
+                    raise InputError(path, f"line {n}: {len(row)} columns, expected {len(HEADER)} ({','.join(HEADER)})")
+                fid, bssid = row[0], row[3].strip()
+                if not fid.strip():
+                    raise InputError(path, f"line {n}: empty fingerprint id", field="fingerprint_id")
+                if not bssid:
+                    raise InputError(path, f"line {n}: empty BSSID", field="bssid")
+                x, y, rssi = (_number(path, n, name, text) for name, text in (("x", row[1]), ("y", row[2]),
+                                                                                ("rssi_dbm", row[4])))
+                if fid not in where:
+                    where[fid] = (x, y, n)
+                    order.append(fid)
+                    readings[fid] = {}
+                elif (x, y) != where[fid][:2]:
+                    raise InputError(path, f"line {n}: fingerprint {fid!r} at ({x:g}, {y:g}), on line {where[fid][2]} at "
+                                     f"({where[fid][0]:g}, {where[fid][1]:g})", field="x")
+                if bssid in readings[fid]:
+                    raise InputError(path, f"line {n}: BSSID {bssid} twice in fingerprint {fid!r}", field="bssid")
+                readings[fid][bssid] = rssi
+    except OSError as e:
+        raise InputError(path, f"cannot read: {e.strerror or e}") from None
+    except (UnicodeDecodeError, csv.Error) as e:
+        raise InputError(path, f"not a readable CSV file ({type(e).__name__}: {e})") from None
+    if not order:
+        raise InputError(path, "no fingerprint: the file has a header and no rows")
+    xy = np.array([where[f][:2] for f in order], float)
+    return RadioMap.from_scans(
+        [readings[f] for f in order], xy, session_ids=REFERENCE_SESSION,
+        t_ns=np.zeros(len(order), np.int64), frame="site",
+        metadata={"kind": "reference", "source": str(path), "fingerprint_ids": order},
+        missing_dbm=missing_dbm, min_rssi_dbm=min_rssi_dbm,
+    )
+
+
+def _number(path: Path, line: int, name: str, text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise InputError(path, f"line {line}: {text!r} is not a number", field=name) from None
+    if not math.isfinite(v):
+        raise InputError(path, f"line {line}: {text!r} is not a finite number", field=name)
+    return v
