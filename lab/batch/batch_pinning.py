@@ -6,7 +6,7 @@ the floors one after another in one process (the sequential baseline of `python 
 two plain processes on one thread each (the benchmark's control), and the same two pinned with
 `taskset -c 0|1`. Prints each run and the medians' throughput ratios.
 
-    python lab/scripts/batch_pinning.py OUT --rounds 3
+    python lab/batch/batch_pinning.py OUT --rounds 3
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 the time its result arrived), the cluster's start-up before the first floor and the tail after the
 last one. Shows whether the scheduler or the machine limits the batch (issue 18).
 
-    python lab/scripts/batch_timeline.py SITES_ROOT [--workers 2]
+    python lab/batch/batch_timeline.py SITES_ROOT [--workers 2]
 
 SITES_ROOT as for `graphslam survey-batch`; outputs go to a temporary folder.
 """

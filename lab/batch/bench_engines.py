@@ -5,8 +5,8 @@ Run in a venv that has the engine (Ray is not a graphslam dependency):
     python -m venv /tmp/v-dask && /tmp/v-dask/bin/pip install distributed
     du -sh /tmp/v-dask/lib/python3*/site-packages
     python -m venv /tmp/v-ray && /tmp/v-ray/bin/pip install ray && du -sh /tmp/v-ray/lib/python3*/site-packages
-    /tmp/v-dask/bin/python lab/scripts/bench_engines.py dask --repeats 3
-    /tmp/v-ray/bin/python lab/scripts/bench_engines.py ray --repeats 3
+    /tmp/v-dask/bin/python lab/batch/bench_engines.py dask --repeats 3
+    /tmp/v-ray/bin/python lab/batch/bench_engines.py ray --repeats 3
 
 Prints one JSON line: import, cluster start, first task, shutdown (medians, s); a task whose worker
 is SIGKILLed mid-task (retried? seconds); a task that kills its worker every time (what error, after

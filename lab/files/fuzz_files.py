@@ -18,7 +18,7 @@ summary: where a CRC is least likely to help). ``--cli N``: N of the flipped fil
 also go through the CLI entry point (``graphslam.cli.main``: ``inspect``, ``fit-aps``,
 ``track``), which must exit 0 or 2 with one line on stderr.
 
-    python lab/scripts/fuzz_files.py [--flips 500] [--seed 0] [--cli 20] [--types mcap,radio_map,ap_models]
+    python lab/files/fuzz_files.py [--flips 500] [--seed 0] [--cli 20] [--types mcap,radio_map,ap_models]
         [--mcap FILE]    # fuzz this recording too (e.g. a real one, which may lack a data CRC)
 
 Prints one JSON line per file type with the counts (and the first findings), exit 1 if any.

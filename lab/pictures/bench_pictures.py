@@ -1,7 +1,7 @@
 """What the pictures cost (issue 19): `graphslam survey` with and without survey.png, side by side,
 and the drawing time of survey.png for a small and a large survey.
 
-    python lab/scripts/bench_pictures.py [--runs 7] [--big-walks 200] [--skip-big | --skip-paper]
+    python lab/pictures/bench_pictures.py [--runs 7] [--big-walks 200] [--skip-big | --skip-paper]
 
 1. Side by side on the simulator's `paper` survey (seed 0, 5 walks): fresh `graphslam survey`
    processes, alternating --picture / --no-picture (so load changes hit both alike); median

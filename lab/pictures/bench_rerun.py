@@ -1,7 +1,7 @@
 """Time `graphslam survey` with and without `--rerun` (fresh process per run); medians.
 
     graphslam simulate paper --out /tmp/paper
-    python lab/scripts/bench_rerun.py /tmp/paper --runs 5
+    python lab/pictures/bench_rerun.py /tmp/paper --runs 5
 
 Prints one JSON object: median end-to-end wall time with/without --rerun, the median
 `rerun` step of report.json (log_survey alone), the survey total it reports, and the

@@ -1,8 +1,8 @@
 """Regenerate every picture of docs/pictures.md with today's graphslam, by the commands its captions give.
 
-    python -m lab.scripts.doc_pictures                 # all of them (a few minutes on 2 cores; real data: ../shared/data)
-    python -m lab.scripts.doc_pictures paper crowd200  # some of them (the groups below)
-    python -m lab.scripts.doc_pictures --into /tmp/img # somewhere else than docs/img
+    python -m lab.pictures.doc_pictures                 # all of them (a few minutes on 2 cores; real data: ../shared/data)
+    python -m lab.pictures.doc_pictures paper crowd200  # some of them (the groups below)
+    python -m lab.pictures.doc_pictures --into /tmp/img # somewhere else than docs/img
 
 Each group runs real `graphslam` commands (this interpreter's) in a temporary folder and copies the
 pictures they wrote into docs/img under the names docs/pictures.md shows. A group whose real data
@@ -33,8 +33,8 @@ def gs(work: Path, *args: str) -> None:
 def paper(work: Path) -> dict[str, Path]:
     gs(work, "simulate", "paper", "--out", "data/paper", "--seed", "0", "--test-walks", "3")
     gs(work, "survey", "data/paper", "--out", "out/paper")
-    print("+ python lab/scripts/sim_floor_plan_png.py data/paper/building.json plan.png", flush=True)
-    subprocess.run([sys.executable, str(REPO / "lab" / "scripts" / "sim_floor_plan_png.py"), "data/paper/building.json",
+    print("+ python lab/pictures/sim_floor_plan_png.py data/paper/building.json plan.png", flush=True)
+    subprocess.run([sys.executable, str(REPO / "lab" / "pictures" / "sim_floor_plan_png.py"), "data/paper/building.json",
                     "plan.png"], cwd=work, check=True, stdout=subprocess.DEVNULL)
     gs(work, "fit-aps", "--radio-map", "out/paper/radio_map.parquet")
     gs(work, "plot", "out/paper", "--floor-plan", "plan.png", "--floor-size", "120", "60", "--recordings", "data/paper")
@@ -91,7 +91,7 @@ GROUPS: dict[str, tuple[Path | None, Callable[[Path], dict[str, Path]]]] = {
     "ipin_accuracy": (DATA / "ipin2023" / "b100_f-2", ipin_accuracy),
     "ilc_f1": (DATA / "ilc20" / "site1" / "F1", ilc_f1),
 }
-# what each group writes into docs/img (docs/pictures.md shows exactly these; lab/scripts/tests check it)
+# what each group writes into docs/img (docs/pictures.md shows exactly these; lab/pictures/tests check it)
 PICTURES = {
     "paper": ("survey_paper.png", "radio_map_paper.png", "track_paper.png", "positions_paper.png"),
     "crowd200": ("survey_crowd200.png",),

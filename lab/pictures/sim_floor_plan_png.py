@@ -3,7 +3,7 @@
 The image spans x in [0, width_m], y in [0, height_m] of the site frame (top edge at
 y = height_m), as `graphslam survey --floor-plan PNG --floor-size W H` expects.
 
-    python lab/scripts/sim_floor_plan_png.py /tmp/paper/building.json /tmp/paper_plan.png
+    python lab/pictures/sim_floor_plan_png.py /tmp/paper/building.json /tmp/paper_plan.png
     # prints: --floor-size 120 60
 """
 

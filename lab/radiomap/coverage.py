@@ -3,7 +3,7 @@ oracle maps: 5 folds of walks; the map of the other folds is calibrated without 
 (calibrate_uncertainty: its walks left out one at a time), the held-out fold's scans are located and
 scored against the truth (evaluation only). Prints mean error and the share of errors inside the
 answers' 95 % circles (2.448 sigma_m).
-python -m lab.issue41.coverage FLOOR [FLOOR ...] [folds=5]"""
+python -m lab.radiomap.coverage FLOOR [FLOOR ...] [folds=5]"""
 from __future__ import annotations
 
 import math

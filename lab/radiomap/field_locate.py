@@ -1,6 +1,6 @@
 """A likelihood estimator over a signal field (law + kernel-smoothed residual, per AP) vs kNN, on a
 real floor's oracle maps (folds of walks; truth builds the map and scores, as bench tracking-real).
-python lab/issue41/field_locate.py FLOOR [folds=5] [h=3] [s=0.5] [s0=5] [T=1,2,4,8]"""
+python lab/radiomap/field_locate.py FLOOR [folds=5] [h=3] [s=0.5] [s0=5] [T=1,2,4,8]"""
 from __future__ import annotations
 import sys, time
 import numpy as np

@@ -11,7 +11,7 @@ per-query RSS offset profiled out with a 6 dB prior, unheard APs ignored), and f
 neighbours to it), and convex blends w * knn + (1 - w) * field. Tn=K: the temperature T = max(1, n_heard / K) per
 query (n_heard: the query's APs the map knows), one setting that tempers scans hearing many APs more.
 
-python lab/issue41/fusion.py FLOOR [FLOOR ...] [max_q=600] [T=1,2,4,8] [out=/tmp/fusion/x.json]
+python lab/radiomap/fusion.py FLOOR [FLOOR ...] [max_q=600] [T=1,2,4,8] [out=/tmp/fusion/x.json]
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Held-out readings: how well does each model predict a new walk's RSS? Folds of walks (the map =
 the other walks' scans at their oracle positions; truth builds the map, as bench tracking-real does).
-python lab/issue41/heldout.py FLOOR [folds=10] [h=3] [s=0.5]"""
+python lab/radiomap/heldout.py FLOOR [folds=10] [h=3] [s=0.5]"""
 from __future__ import annotations
 import sys
 import numpy as np

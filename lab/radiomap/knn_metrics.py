@@ -9,7 +9,7 @@ inverse-distance weights. Representations (Torres-Sospedra et al. 2015): ``shift
 the paper's eq. 9), ``positive`` (RSS - min + 1), ``powed`` (positive / its range) ** e; distances:
 eq. 9, Euclidean, Sørensen, cosine. Dense over the floor's APs (a floor, not a survey: ~2,400 x 2,400).
 
-    python lab/scripts/knn_metrics.py FOLDER [route|FOLDS]
+    python lab/radiomap/knn_metrics.py FOLDER [route|FOLDS]
 """
 
 from __future__ import annotations

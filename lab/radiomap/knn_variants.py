@@ -2,7 +2,7 @@
 the map and scores, as bench tracking-real does). The uncertainty's scale is calibrated without
 truth: each map walk located on the map of the other walks (its own positions in the map are the
 reference there).
-python lab/issue41/knn_variants.py FLOOR [folds=5]"""
+python lab/radiomap/knn_variants.py FLOOR [folds=5]"""
 from __future__ import annotations
 import sys
 import numpy as np

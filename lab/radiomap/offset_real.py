@@ -12,7 +12,7 @@ of heard APs (query APs the map does not know left out, as the product does). Re
 inverse-distance weighted mean (1 / (d + 1e-6), as KnnLocator) of the k nearest, k = 3 and 5.
 Check: the same code with offset 0 reproduces KnnLocator's distances on the candidates.
 
-python lab/issue41/offset_real.py FLOOR [FLOOR ...] [max_q=0] [out=/tmp/offreal/x.json]
+python lab/radiomap/offset_real.py FLOOR [FLOOR ...] [max_q=0] [out=/tmp/offreal/x.json]
 max_q: score the offset variants on a seeded subsample of this many held-out scans when a floor has
 more than 2 * max_q (0 = all scans); the baselines are then reported on the same subsample too.
 """

@@ -5,7 +5,7 @@ every map fingerprint within R m of their path removed (it has not). Per bin of 
 sigma = scale_b * sqrt(spread^2 + 2^2). Compared with today's single scale (A only) and with the
 score term of uncovered_calibration.py. Truth only scores the held-out walks.
 
-python lab/issue41/score_bins.py FLOOR route|FOLDS [R=5] [BINS=5] [WEIGHT_B=1]"""
+python lab/radiomap/score_bins.py FLOOR route|FOLDS [R=5] [BINS=5] [WEIGHT_B=1]"""
 import math
 import sys
 

@@ -4,7 +4,7 @@ fingerprint within R m of its path removed) and a score term,
 sigma^2 = (scale * sqrt(spread^2 + 2^2))^2 + (c * max(0, score - s0))^2, (c, s0) the cheapest with
 95 % of that set inside (s0 a quantile of the covered set's scores, or Q given). Scored on held-out
 walks (truth: evaluation only).
-python lab/issue41/uncovered_calibration.py FLOOR route|FOLDS R Q   (Q: 0 = search s0)"""
+python lab/radiomap/uncovered_calibration.py FLOOR route|FOLDS R Q   (Q: 0 = search s0)"""
 import numpy as np, graphslam as gs, sys, math
 from scipy.spatial import cKDTree
 from graphslam import KnnConfig, KnnLocator, oracle_radio_map, RadioMap

@@ -7,7 +7,7 @@ says which map gave it. Bounded: stops after the swaps (or MAX_SECONDS). Prints 
 requests, failed requests, answers mixing two maps, per-swap latency from rename to the first
 answer from the new map, request latency percentiles.
 
-    python lab/scripts/bench_reload.py RADIO_MAP.parquet [--swaps 10] [--clients 4] [--search-processes 1]
+    python lab/service/bench_reload.py RADIO_MAP.parquet [--swaps 10] [--clients 4] [--search-processes 1]
 """
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ The server's search is ``--index`` (default ``auto``: the IVF index on this map)
 runs ``--workers`` processes (default 1) and ``--search-processes`` search workers (default:
 the server's, min(2, cores) with one server process; 0 = search in the server process).
 
-    python lab/scripts/bench_service.py [DATA_DIR] [--k 7] [--batch 1000] [--index auto] [--workers 1]
+    python lab/service/bench_service.py [DATA_DIR] [--k 7] [--batch 1000] [--index auto] [--workers 1]
                                     [--search-processes N]
 """
 

@@ -19,7 +19,7 @@ Prints, per metric, the median and range over blocks for A and B, and the median
 of the paired ratio B / A (a ratio < 1 = B cheaper or faster). ``--baseline current``
 runs the installed service on both sides (an A/A run: the noise floor).
 
-    python lab/scripts/bench_service_ab.py --baseline /tmp/base/graphslam/service [DATA_DIR] [--rounds 12]
+    python lab/service/bench_service_ab.py --baseline /tmp/base/graphslam/service [DATA_DIR] [--rounds 12]
         [--block 4] [--single 100] [--batch 1000] [--search-processes 2]
 """
 

@@ -12,7 +12,7 @@ over ``--rounds``; reported per variant and level: the median over rounds of thr
 (requests/s) and of p50 / p99 latency (client-measured round trip), the non-200 count, and
 the load average around each block (the machine is shared: read the figures with it).
 
-    python lab/scripts/bench_service_load.py --radio-map out/paper/radio_map.parquet --base /path/to/base-checkout \\
+    python lab/service/bench_service_load.py --radio-map out/paper/radio_map.parquet --base /path/to/base-checkout \\
         [--rounds 3] [--clients 1,8,32] [--requests 3000] [--seconds 10] [--variant NAME=CHECKOUT:ARGS ...]
 
 A variant is ``NAME=CHECKOUT`` or ``NAME=CHECKOUT:extra serve args`` (e.g.

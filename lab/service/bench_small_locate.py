@@ -1,6 +1,6 @@
 """CPU per ``KnnLocator.locate`` call for 1 and 8 queries, two checkouts side by side.
 
-    python lab/scripts/bench_small_locate.py --base /tmp/sq_base --rounds 7
+    python lab/service/bench_small_locate.py --base /tmp/sq_base --rounds 7
 
 One worker process per checkout (maps built once), rounds alternate base / this checkout;
 each round times ``calls`` locate calls with ``time.process_time``; medians over rounds.
@@ -78,8 +78,9 @@ def main() -> None:  # pragma: no cover - benchmark
     procs = {}
     for name, root in (("base", Path(a.base).resolve()), ("new", here)):
         env = dict(os.environ, PYTHONPATH=str(root), OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
-        procs[name] = subprocess.Popen([sys.executable, "-c", f"import sys; sys.path.insert(0, {str(root)!r}); "
-                                        "from lab.scripts.bench_small_locate import _worker; _worker()"],
+        # the worker is this file's (a base checkout may file the lab otherwise), graphslam the root's
+        procs[name] = subprocess.Popen([sys.executable, "-c", f"import sys, runpy; sys.path.insert(0, {str(root)!r}); "
+                                        f"runpy.run_path({str(Path(__file__).resolve())!r})['_worker']()"],
                                        cwd=root, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     for p in procs.values():
         print(p.stdout.readline().strip(), file=sys.stderr)

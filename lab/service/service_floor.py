@@ -11,7 +11,7 @@ layer:
 
 Rounds alternate the three; medians of requests/s, p99 and the server's CPU per request.
 
-    python lab/scripts/service_floor.py --radio-map out/paper/radio_map.parquet [--rounds 3] [--clients 8]
+    python lab/service/service_floor.py --radio-map out/paper/radio_map.parquet [--rounds 3] [--clients 8]
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ rigidly fitted to its own landmarks, since the real walks have no other ground t
 Prints a Markdown table: one column for the real floor (when its folder exists), one
 per simulator seed. Ground truth is used only to measure, as everywhere.
 
-    python lab/scripts/sim_vs_real_shape.py [--data ../shared/data/ipin2023/b100_f-2] [--seeds 0,1,2] [--json]
+    python lab/simulator/sim_vs_real_shape.py [--data ../shared/data/ipin2023/b100_f-2] [--seeds 0,1,2] [--json]
 """
 
 from __future__ import annotations

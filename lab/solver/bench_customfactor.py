@@ -8,7 +8,7 @@ its flat saturation) in Python inside every linearisation; graphslam's build use
 GTSAM's C++ BetweenFactorPose2 / RangeFactorPose2 + L2WithDeadZone and handles the
 saturation between LM runs.
 
-Usage: python lab/scripts/bench_customfactor.py [--scenario paper] [--seed 0] [--runs 3]
+Usage: python lab/solver/bench_customfactor.py [--scenario paper] [--seed 0] [--runs 3]
 Prints one JSON line.
 """
 

@@ -7,7 +7,7 @@ Prints one JSON line per folder and precision: optimise wall (median of the roun
 factorisation and triangular-solve seconds, solves per LM step, final error, landmark error, and
 how often single precision fell back to double. Ground truth only scores.
 
-    python lab/scripts/bench_factor_precision.py /tmp/p4 /tmp/p8 /tmp/p12 --rounds 3
+    python lab/solver/bench_factor_precision.py /tmp/p4 /tmp/p8 /tmp/p12 --rounds 3
 
 (folders: ``graphslam simulate paper --seed 0 --size N --out /tmp/pN``)
 """

@@ -14,7 +14,7 @@ Per solver, single-threaded, the fastest of ``--repeats`` runs, wall and process
   reuse the analysis), if installed;
 - ``qdldl``: QDLDL (AMD ordering, simplicial LDL^T), refactorisation + solve, if installed.
 
-    python lab/scripts/bench_linear_solvers.py --sizes 1,4,12 [--skip qdldl] [--repeats 3]
+    python lab/solver/bench_linear_solvers.py --sizes 1,4,12 [--skip qdldl] [--repeats 3]
 
 Prints one JSON line per size: seconds per solver, the residual |Ax - b| / |b|, PARDISO's
 factor size and flop count.

@@ -1,7 +1,7 @@
 """PARDISO options on a survey's own normal equations: analysis and numeric factorisation time,
 factor non-zeros, for the default parameters and the two-level factorisation (iparm[23] = 1).
 
-    python lab/scripts/bench_pardiso_iparm.py RECORDINGS_FOLDER [--repeat 3]
+    python lab/solver/bench_pardiso_iparm.py RECORDINGS_FOLDER [--repeat 3]
 
 The system is the first LM step's damped J^T J of ``graphslam survey RECORDINGS_FOLDER`` (default
 configuration), captured from the solver; each variant analyses it once and factorises it

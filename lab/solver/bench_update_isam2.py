@@ -9,7 +9,7 @@ reference prior, the WiFi edges active at the start):
   and `RELIN_UPDATES` more updates to relinearise;
 - local LM: what `graphslam survey --update` does (`update.hops` = HOPS).
 
-    python lab/scripts/bench_update_isam2.py RECORDINGS PREVIOUS_OUT [--hops 1]
+    python lab/solver/bench_update_isam2.py RECORDINGS PREVIOUS_OUT [--hops 1]
 
 Prints one JSON line: seconds of each part and the landmark errors after an SE(2) fit.
 """

@@ -5,7 +5,7 @@ Both edge sets come from ``propose_edges`` with the default thresholds, exclusio
 only the candidate source differs. Recall = |ivf & exact| / |exact|, precision = |ivf &
 exact| / |ivf|; seconds are wall time of ``propose_edges`` (window thresholds excluded).
 
-    python lab/scripts/edge_recall.py --sizes 1,4,12 [--seed 0] [--neighbours 32] [--probes 8]
+    python lab/solver/edge_recall.py --sizes 1,4,12 [--seed 0] [--neighbours 32] [--probes 8]
 """
 
 from __future__ import annotations

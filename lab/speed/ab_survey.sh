@@ -3,9 +3,9 @@
 # machine's drift hits both), medians at the end. A variant is a source tree (run with PYTHONPATH,
 # `python -P`) and optional extra survey arguments.
 #
-#   lab/scripts/ab_survey.sh DATA RUNS SRC_A SRC_B ["ARGS_A"] ["ARGS_B"]
-#   lab/scripts/ab_survey.sh /tmp/p1 15 /work/wt/old /work/main                 # two commits
-#   lab/scripts/ab_survey.sh /tmp/p4 3 . . "--set optimizer.blas_threads=1" "--set optimizer.blas_threads=0"
+#   lab/speed/ab_survey.sh DATA RUNS SRC_A SRC_B ["ARGS_A"] ["ARGS_B"]
+#   lab/speed/ab_survey.sh /tmp/p1 15 /work/wt/old /work/main                 # two commits
+#   lab/speed/ab_survey.sh /tmp/p4 3 . . "--set optimizer.blas_threads=1" "--set optimizer.blas_threads=0"
 #
 # DATA: a folder of recordings (e.g. `graphslam simulate paper --seed 0 --out /tmp/p1`).
 set -euo pipefail

@@ -3,7 +3,7 @@
 Each measurement is a fresh process (so imports and caches do not carry over); old and new
 runs alternate, and the medians of wall and CPU time are reported with the load average.
 
-    python lab/scripts/bench_read.py --base /path/to/base-checkout DATA [DATA ...] [--rounds 5]
+    python lab/speed/bench_read.py --base /path/to/base-checkout DATA [DATA ...] [--rounds 5]
 
 ``DATA``: a folder of .mcap recordings (or several, one survey each). Prints one JSON line per
 data folder: {"data", "sessions", "messages", "new_wall_s", "old_wall_s", "new_cpu_s", "old_cpu_s", ...}.

@@ -2,7 +2,7 @@
 and a memory-bound one (streaming a 512 MB array), each alone and then as two processes side by
 side: the ratio bounds what any two-worker scheduler can reach (issue 18's survey-batch).
 
-    python lab/scripts/core_contention.py [--rounds 2]
+    python lab/speed/core_contention.py [--rounds 2]
 """
 
 from __future__ import annotations

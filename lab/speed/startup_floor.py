@@ -4,7 +4,7 @@
 a minimal typer app with one option (run and ``--help``), graphslam's configuration module, and
 the real commands, medians of ``--runs`` fresh processes each (installed graphslam).
 
-    python lab/scripts/startup_floor.py [--runs 9]
+    python lab/speed/startup_floor.py [--runs 9]
 """
 
 from __future__ import annotations

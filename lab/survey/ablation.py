@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Ablation of the alignment defaults on the simulator (accuracy and solve time per variant).
 
-Usage: python lab/scripts/ablation.py [--scenario paper] [--seeds 0,1,2]
+Usage: python lab/survey/ablation.py [--scenario paper] [--seeds 0,1,2]
 Prints one JSON line per variant: mean over seeds of landmark mean/max error, heading
 error, LM iterations and alignment time. Each variant changes the defaults as named.
 """

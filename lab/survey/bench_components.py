@@ -1,5 +1,5 @@
 """Per floor: components of `align` (product config + --set overrides), each with its own SE(2) fit.
-python lab/issue37/bench_components.py FOLDER [key=value ...] [cp=FILE] [noLM]"""
+python lab/survey/bench_components.py FOLDER [key=value ...] [cp=FILE] [noLM]"""
 import sys, time, csv
 import numpy as np
 import graphslam as gs

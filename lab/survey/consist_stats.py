@@ -1,5 +1,5 @@
 import sys
-sys.path.insert(0, "lab/issue37")
+sys.path.insert(0, "lab/survey")
 import numpy as np
 import graphslam as gs
 from graphslam import associate

@@ -1,6 +1,6 @@
 """Walks tied at control points with rotation from the heading (+ common offset fitted): landmark errors."""
 import sys, csv
-sys.path.insert(0, "lab/issue37")
+sys.path.insert(0, "lab/survey")
 import numpy as np
 from common import load
 from graphslam import interpolate_xy

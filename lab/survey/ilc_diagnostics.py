@@ -31,7 +31,7 @@ the data; nothing here feeds the solver. Per floor:
 Truth per walk: the rigid SE(2) fit of its dead reckoning to its own waypoints (itself
 ~1.5-1.9 m off, the drift within a walk).
 
-    python lab/scripts/ilc_diagnostics.py [SITE_DIR] [--floors B1,F1] [--seed 0]
+    python lab/survey/ilc_diagnostics.py [SITE_DIR] [--floors B1,F1] [--seed 0]
 """
 
 from __future__ import annotations

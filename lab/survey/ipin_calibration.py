@@ -12,10 +12,10 @@ placement:
 - ``oracle``: cross-walk pairs at true distance (the bound).
 
 Each route is then registered onto all other routes at their TRUE positions (leave-route-out,
-``lab/scripts/ipin_diagnostics.py`` experiment 5) with the Manhattan prior from the PDR axes; one JSON
+``lab/survey/ipin_diagnostics.py`` experiment 5) with the Manhattan prior from the PDR axes; one JSON
 line per perturbation seed with every route's error and the mean.
 
-    python lab/scripts/ipin_calibration.py ../shared/data/ipin2023/b100_f-2 --perturb-m 5 --perturb-deg 5 --seeds 0
+    python lab/survey/ipin_calibration.py ../shared/data/ipin2023/b100_f-2 --perturb-m 5 --perturb-deg 5 --seeds 0
 """
 
 from __future__ import annotations

@@ -54,7 +54,7 @@ chosen by experiment 1. One JSON line per experiment on stdout, nothing written 
    from the data), known modulo 90 deg exactly (true + k 90 deg) and known; ``fails_by`` says
    whether a wrong unknown-rotation answer is the rotation's fault or wrong even at the true one.
 
-    python lab/scripts/ipin_diagnostics.py [FLOOR_DIR]    # default ../shared/data/ipin2023/b100_f-2
+    python lab/survey/ipin_diagnostics.py [FLOOR_DIR]    # default ../shared/data/ipin2023/b100_f-2
 
 About two minutes on a 2-core machine under load (most of it experiment 5).
 """

@@ -1,6 +1,6 @@
 """Per joined walk: margin, support, scans vs its truth error (permissive growth)."""
 import sys
-sys.path.insert(0, "lab/issue37")
+sys.path.insert(0, "lab/survey")
 import numpy as np
 import graphslam as gs
 from graphslam import associate

@@ -1,6 +1,6 @@
 """Components by repeated growth on heading-rotated walks; truth per component (scoring only)."""
 import sys, time
-sys.path.insert(0, "lab/issue37")
+sys.path.insert(0, "lab/survey")
 import numpy as np
 import graphslam as gs
 from graphslam import associate

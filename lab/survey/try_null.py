@@ -1,7 +1,7 @@
 """Rotation null: a walk (cluster) rotated by a wrong angle keeps its similarity statistics but loses
 its geometry; its best score is the null for the correct rotation's peak."""
 import sys
-sys.path.insert(0, "lab/issue37")
+sys.path.insert(0, "lab/survey")
 import numpy as np
 from common import load, true_xy
 from pairlik import calibrate2, truth_calibrate, sim_bins, PairGrid

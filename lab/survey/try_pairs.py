@@ -1,5 +1,5 @@
 import sys, time
-sys.path.insert(0, "lab/issue37")
+sys.path.insert(0, "lab/survey")
 import numpy as np
 from common import load, true_xy
 from pairlik import calibrate2, calibrate, truth_calibrate, sim_bins, PairGrid

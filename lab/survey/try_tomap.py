@@ -1,6 +1,6 @@
 """Register a route's walks onto a map of other walks held at the truth (the control-point case)."""
 import sys
-sys.path.insert(0, "lab/issue37")
+sys.path.insert(0, "lab/survey")
 import numpy as np
 from common import load, true_xy
 from pairlik import calibrate2, truth_calibrate, sim_bins, PairGrid, truncate, cross_ref

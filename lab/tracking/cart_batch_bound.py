@@ -19,7 +19,7 @@ If ``batch`` meets a target the filter misses, the information is in the data an
 causal filter loses it (here: the bias state absorbs the correlated shadowing of the first
 round and the position offset never leaves). ~3 min for both filters and 20 seeds.
 
-    python lab/scripts/cart_batch_bound.py [--seeds 0-19] [--filters ekf,ukf] [--json OUT]
+    python lab/tracking/cart_batch_bound.py [--seeds 0-19] [--filters ekf,ukf] [--json OUT]
 """
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ If ``online_map`` misses the target where ``whole_run_map`` meets it, the inform
 the error arrives later than the lag allows: no estimator reporting the posterior of the data so
 far can meet it under this model. ~7 s per seed at ``--every 10``.
 
-    python lab/scripts/cart_online_bound.py [--seeds 0-19] [--every 10] [--json OUT]
+    python lab/tracking/cart_online_bound.py [--seeds 0-19] [--every 10] [--json OUT]
 """
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ the landmarks as ``bench tracking-real`` scores kNN. One mode per run:
   direction (ground truth, for this statistic only), histogrammed; and the forward/backward table
   the map itself gives (leave one session out, no ground truth) on the map of all walks.
 
-    python lab/scripts/fix_alternatives.py FOLDER route|FOLDS sequence|cells|shift|directions
+    python lab/tracking/fix_alternatives.py FOLDER route|FOLDS sequence|cells|shift|directions
 """
 
 from __future__ import annotations

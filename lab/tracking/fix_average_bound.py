@@ -19,8 +19,8 @@ odometry, the unknown heading and the start cost. (A generalised-least-squares a
 the binned correlation was tried: the binned estimate is not positive definite, and clipped it
 gives unstable weights, e.g. +110 % on ILC F3; the plain mean is what is reported.)
 
-    python lab/scripts/fix_average_bound.py FOLDER [LAG_S]
-    python lab/scripts/fix_average_bound.py ../shared/data/ilc20/site1/B1 2
+    python lab/tracking/fix_average_bound.py FOLDER [LAG_S]
+    python lab/tracking/fix_average_bound.py ../shared/data/ilc20/site1/B1 2
 """
 
 from __future__ import annotations

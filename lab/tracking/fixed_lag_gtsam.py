@@ -10,7 +10,7 @@ Gaussian losses on both sides. GTSAM has no native factor for the papers' RSSI (
 velocity (eq. 4) readings nor for the process x' = F x, so they are ``gtsam.CustomFactor``s:
 Python callbacks inside the optimiser (docs/benchmarks.md measures what that costs).
 
-    python lab/scripts/fixed_lag_gtsam.py [--seeds 0-4] [--window 40]
+    python lab/tracking/fixed_lag_gtsam.py [--seeds 0-4] [--window 40]
 
 One JSON line per smoother: RMS x / y (m) mean over seeds, seconds per run (median), and the
 largest difference of its estimates from ours (m).

@@ -10,7 +10,7 @@ from it; every held-out walk is tracked from its real phone PDR steps and scans 
 (mean / median / p75 / p90) for ``knn`` (the scans' kNN fixes interpolated in time) and each
 tracker; ``inside_95``: the share of waypoints inside the tracker's 95 % ellipse.
 
-    python lab/scripts/ilc_tracking.py [SITE_DIR] [--floors F1,F3] [--folds 5] [--seed 0]
+    python lab/tracking/ilc_tracking.py [SITE_DIR] [--floors F1,F3] [--folds 5] [--seed 0]
         [--lags 2] [--filters ekf] [--smoothers map]
 
 One JSON line per floor (``graphslam.app.tracking_bench.tracking_real``'s result).

@@ -11,7 +11,7 @@
    true position* (the truth is the condition: an upper bound, not a method), R = 5, 10, 15 m, vs
    plain kNN at the scan times.
 
-    python lab/scripts/knn_fix_diagnostics.py FOLDER [FOLDER ...]
+    python lab/tracking/knn_fix_diagnostics.py FOLDER [FOLDER ...]
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ scan located with k = 3 under the paper's eq. 9 and under Sørensen, and with th
 fixes (1 : 1, and 1 : 2 toward Sørensen); mean landmark error (m) of each fix track, interpolated
 as ``bench tracking-real`` scores kNN.
 
-    python lab/scripts/knn_fix_ensemble.py FOLDER [route|FOLDS]
+    python lab/tracking/knn_fix_ensemble.py FOLDER [route|FOLDS]
 """
 
 from __future__ import annotations

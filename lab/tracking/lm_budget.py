@@ -2,7 +2,7 @@
 """The fixed-lag tracker's LM budget per window and the bank's merging: ms per step and the tracks'
 departure from the first variant's (give the unmerged 1e-6:10 first), on the same map and walks, one run.
 
-    python lab/issue40/lm_budget.py RADIO_MAP WALKS... [--variants 1e-6:10,1e-4:10,1e-6:3,1e-6:10:0.001]
+    python lab/tracking/lm_budget.py RADIO_MAP WALKS... [--variants 1e-6:10,1e-4:10,1e-6:3,1e-6:10:0.001]
 
 (a third field: ``fixed_lag.merge_tol``; without it, no merging)
 

@@ -7,9 +7,9 @@ IPIN); per fold, AP models and the field are fitted on the training map only; ea
 of a fitted AP is compared with the model at the reading's true position (ground truth places the
 held-out scans: evaluation only). Prints the readings' rms and robust std (1.4826 MAD) in dB.
 
-    python lab/scripts/rssi_field_residuals.py FOLDER route|FOLDS [MAX_FOLDS] [BANDWIDTHS]
+    python lab/tracking/rssi_field_residuals.py FOLDER route|FOLDS [MAX_FOLDS] [BANDWIDTHS]
 
-    python lab/scripts/rssi_field_residuals.py ../shared/data/ilc20/site1/B1 5 2 1.5,3,5
+    python lab/tracking/rssi_field_residuals.py ../shared/data/ilc20/site1/B1 5 2 1.5,3,5
 """
 
 from __future__ import annotations

@@ -12,8 +12,8 @@ the walks, as ``bench tracking-real``), the default tracker on each held-out wal
   the tracker's reported position at the scan (or inside the 99 % gate of its covariance plus a
   2-m fix), against the global fix and the tracker itself, scored at the landmarks.
 
-    python lab/scripts/tracking_heading_errors.py FOLDER FOLD_IDS heading|local
-    python lab/scripts/tracking_heading_errors.py ../shared/data/ilc20/site1/B1 0,1 heading
+    python lab/tracking/tracking_heading_errors.py FOLDER FOLD_IDS heading|local
+    python lab/tracking/tracking_heading_errors.py ../shared/data/ilc20/site1/B1 0,1 heading
 """
 
 from __future__ import annotations

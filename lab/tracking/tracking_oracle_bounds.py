@@ -19,8 +19,8 @@ self-calibrated noise); the same folds, oracle maps and scoring as ``bench track
 (``tracking_bench.score_walks``). Mean landmark error per variant, also by seconds since the
 walk's first step.
 
-    python lab/scripts/tracking_oracle_bounds.py FOLDER FOLD_IDS [VARIANTS]
-    python lab/scripts/tracking_oracle_bounds.py ../shared/data/ilc20/site1/B1 0,1,2,3,4 heading,heading-mod-180,heading+start
+    python lab/tracking/tracking_oracle_bounds.py FOLDER FOLD_IDS [VARIANTS]
+    python lab/tracking/tracking_oracle_bounds.py ../shared/data/ilc20/site1/B1 0,1,2,3,4 heading,heading-mod-180,heading+start
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ _TRUTH: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # held-out session id -> 
 _product_fixed_lag = track_module._track_fixed_lag
 
 
-def _oracle_fixed_lag(session_id, model, starts, P0, t, y_v, walked, meas, fixes, cfg, axes=None):  # noqa: ANN001, ANN202
+def _oracle_fixed_lag(session_id, model, starts, P0, t, y_v, walked, meas, fixes, cfg, *rest):  # noqa: ANN001, ANN002, ANN202
     """The product's fixed-lag tracker with its start replaced by the oracle's (``cfg.oracle``)."""
     oracle = getattr(cfg, "oracle", None)
     if oracle is not None and session_id in _TRUTH:  # a held-out walk (not the self-calibration's replay)
@@ -57,7 +57,7 @@ def _oracle_fixed_lag(session_id, model, starts, P0, t, y_v, walked, meas, fixes
             P0[0, 0] = P0[1, 1] = 1.0
         n = ORACLES[oracle]
         starts = [np.concatenate([x0[:6], [T[2] + 2.0 * math.pi * k / n]]) for k in range(n)]
-    return _product_fixed_lag(session_id, model, starts, P0, t, y_v, walked, meas, fixes, cfg, axes)
+    return _product_fixed_lag(session_id, model, starts, P0, t, y_v, walked, meas, fixes, cfg, *rest)  # axes, area, progress
 
 
 class _OracleConfig(TrackConfig):

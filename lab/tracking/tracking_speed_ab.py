@@ -14,7 +14,7 @@ medians, the per-round ratios baseline / this, and the largest position differen
 two sides' tracks and calibrations.
 
     git archive HEAD~3 | tar -x -C /tmp/base
-    python lab/scripts/tracking_speed_ab.py --baseline /tmp/base RADIO_MAP WALK_OR_FOLDER... [--rounds 3]
+    python lab/tracking/tracking_speed_ab.py --baseline /tmp/base RADIO_MAP WALK_OR_FOLDER... [--rounds 3]
 """
 
 from __future__ import annotations

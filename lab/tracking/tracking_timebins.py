@@ -5,8 +5,8 @@ ILC-style seeded folds of a real floor (oracle map of the other walks, as ``benc
 per variant the mean landmark error in bins of seconds since the first step, and the share inside
 the 95 % ellipse.
 
-    python lab/scripts/tracking_timebins.py FOLDER FOLD_IDS NAMES [NAME=EXPR ...]
-    python lab/scripts/tracking_timebins.py ../shared/data/ilc20/site1/B1 0,1 mixture,map 'g=TrackConfig(motion={"velocity_sigma_mps": 0.3})'
+    python lab/tracking/tracking_timebins.py FOLDER FOLD_IDS NAMES [NAME=EXPR ...]
+    python lab/tracking/tracking_timebins.py ../shared/data/ilc20/site1/B1 0,1 mixture,map 'g=TrackConfig(motion={"velocity_sigma_mps": 0.3})'
 
 Built-in names: ``best``, ``mixture`` (default), ``map`` (``--filter ekf --smooth map``, offline),
 ``norssi`` (steps and kNN fixes only).

@@ -4,11 +4,11 @@
 ``graphslam.app.tracking_bench.tracking_real`` with named ``TrackConfig`` variants (kNN is always
 reported). Folds: ``route`` (leave one route out; IPIN) or a number of seeded random folds (ILC).
 
-    python lab/scripts/tracking_variants.py FOLDER MAPS FOLDS NAMES [NAME=EXPR ...]
+    python lab/tracking/tracking_variants.py FOLDER MAPS FOLDS NAMES [NAME=EXPR ...]
 
-    python lab/scripts/tracking_variants.py ../shared/data/ilc20/site1/B1 oracle 5 best,mixture
-    python lab/scripts/tracking_variants.py ../shared/data/ipin2023/b100_f-2 oracle,crowdsourced route best,mixture
-    python lab/scripts/tracking_variants.py ../shared/data/ipin2023/b100_f-2 oracle route mixroute \\
+    python lab/tracking/tracking_variants.py ../shared/data/ilc20/site1/B1 oracle 5 best,mixture
+    python lab/tracking/tracking_variants.py ../shared/data/ipin2023/b100_f-2 oracle,crowdsourced route best,mixture
+    python lab/tracking/tracking_variants.py ../shared/data/ipin2023/b100_f-2 oracle route mixroute \\
         'mixroute=TrackConfig(calibration={"replay_route_radius_m": 2.0})'
 
 Built-in names: ``best`` (the lowest-cost heading hypothesis), ``mixture`` (the default), ``ekf``,

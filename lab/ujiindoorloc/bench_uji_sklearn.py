@@ -13,7 +13,7 @@ the queries over the map's AP index and votes floor and building), alternated, m
 --repeats runs (>= 5). The two engines use the machine's cores (OpenMP/BLAS threads vs
 our 2 search threads). Prints a table, then one JSON line.
 
-    python lab/scripts/bench_uji_sklearn.py [DATA_DIR] [--k 7] [--repeats 7]
+    python lab/ujiindoorloc/bench_uji_sklearn.py [DATA_DIR] [--k 7] [--repeats 7]
 """
 
 from __future__ import annotations

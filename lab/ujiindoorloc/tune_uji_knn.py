@@ -6,7 +6,7 @@ Train on trainingData, test on validationData, as ``python -m lab.bench ujiindoo
 UJIIndoorLoc has no public test set besides validationData, so the chosen setting is
 tuned on the data it is reported on: read the table for how flat the optimum is.
 
-    python lab/scripts/tune_uji_knn.py [DATA_DIR] > sweep.txt
+    python lab/ujiindoorloc/tune_uji_knn.py [DATA_DIR] > sweep.txt
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """UJIIndoorLoc validation with learned regressors instead of kNN (a different formulation for the
 <= 5.5 m target): tree ensembles and an MLP on the powed representation (the Sørensen kNN's), alone
 and averaged with the default Sørensen kNN. Training on trainingData only; the validation set
-scores (needs scikit-learn, which graphslam does not install). python -m lab.issue41.uji_learned [--trees 200]"""
+scores (needs scikit-learn, which graphslam does not install). python -m lab.ujiindoorloc.uji_learned [--trees 200]"""
 from __future__ import annotations
 
 import argparse

@@ -1,7 +1,7 @@
 """UJIIndoorLoc validation: device-robust kNN formulations (per-query RSS offset, rank-based
 fingerprints, per-phone normalisation of the training set, floor decision by a wider vote).
 
-    python -m lab.issue41.uji_offset
+    python -m lab.ujiindoorloc.uji_offset
 
 Training set = map, validation set = queries; validation positions/floors/buildings are used only
 to score. Re-ranking variants re-rank the Sørensen (powed, exact) top-100 candidates of each query.

@@ -1,5 +1,5 @@
 """UJIIndoorLoc validation: Sørensen kNN (exact) with k and neighbour weights varied offline
-(inverse distance^p, similarity^p). python -m lab.issue41.uji_weights"""
+(inverse distance^p, similarity^p). python -m lab.ujiindoorloc.uji_weights"""
 import numpy as np
 from graphslam import KnnConfig, KnnLocator
 from lab.bench.uji import find_uji_file, TRAIN_FILE, TEST_FILE

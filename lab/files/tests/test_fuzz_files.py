@@ -1,6 +1,6 @@
 """Seeded bit-flip fuzz of a small recording, radio map and AP models through the real readers
 (and some through the CLI): never altered data, never a traceback. The full run (500+ flips
-per type) is ``lab/scripts/fuzz_files.py``, recorded in docs/benchmarks.md; this is a subset with
+per type) is ``lab/files/fuzz_files.py``, recorded in docs/benchmarks.md; this is a subset with
 another seed."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from lab.conftest import REPO
 
-sys.path.insert(0, str(REPO / "lab" / "scripts"))
+sys.path.insert(0, str(REPO / "lab" / "files"))
 import fuzz_files  # noqa: E402
 
 

@@ -4,7 +4,7 @@ here only to measure how much a per-cluster AP fit could link clusters."""
 from __future__ import annotations
 import re, sys
 import numpy as np
-sys.path.insert(0, "lab/issue37")
+sys.path.insert(0, "lab/survey")
 from common import load, true_xy
 from graphslam import fit_ap, ApFitConfig, ApModel
 

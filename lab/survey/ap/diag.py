@@ -1,5 +1,5 @@
 """Per component and walk: route label, landmark error (component's own SE(2) fit). Truth scores only.
-python lab/issue37/ap/diag.py FOLDER [key=value ...] [cp=FILE]"""
+python lab/survey/ap/diag.py FOLDER [key=value ...] [cp=FILE]"""
 import sys, re, csv
 import numpy as np
 import graphslam as gs

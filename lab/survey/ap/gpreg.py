@@ -1,12 +1,12 @@
 """Cluster-to-cluster registration by a GP signal field (per AP) of cluster A predicting cluster B's
 readings: log-likelihood ratio against the field's prior, over translations (FFT correlation).
 Oracle layout (walks at their truth translation) -> the right offset is 0. Truth scores only.
-python lab/issue37/ap/gpreg.py [ell=3] [sn=4] [minrss=-90]"""
+python lab/survey/ap/gpreg.py [ell=3] [sn=4] [minrss=-90]"""
 from __future__ import annotations
 import re, sys
 import numpy as np
 from scipy.fft import rfft2, irfft2
-sys.path.insert(0, "lab/issue37"); sys.path.insert(0, "lab/issue37/ap")
+sys.path.insert(0, "lab/survey"); sys.path.insert(0, "lab/survey/ap")
 from common import load, true_xy
 
 args = dict(a.split("=") for a in sys.argv[1:] if "=" in a)

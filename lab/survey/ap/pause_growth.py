@@ -1,7 +1,7 @@
 """Placement with standstill links: each pause (no step for > MIN_S s, >= 2 scans) gets its averaged
 fingerprint; pauses of different walks with power-cosine >= THR become heavy matches (weight = W
 per pair, between the pauses' middle scans). Placement only; truth scores.
-python lab/issue37/ap/pause_growth.py FLOOR [thr=0.95] [w=10] [margin=1.0]"""
+python lab/survey/ap/pause_growth.py FLOOR [thr=0.95] [w=10] [margin=1.0]"""
 import sys
 import numpy as np
 import graphslam as gs

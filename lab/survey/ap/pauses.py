@@ -3,7 +3,7 @@ across walks? Truth scores only."""
 from __future__ import annotations
 import re, sys
 import numpy as np
-sys.path.insert(0, "lab/issue37")
+sys.path.insert(0, "lab/survey")
 from common import load, true_xy
 
 folder = sys.argv[1] if len(sys.argv) > 1 else "../shared/data/ipin2023/b100_f-2"

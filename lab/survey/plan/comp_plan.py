@@ -1,7 +1,7 @@
 """Components from growth at a low margin, each registered on the floor plan (rotation searched,
 translation by FFT): is the truth placement the best plan fit, and do the off-plan walks at the best
 fit coincide with the wrong walks? Truth scores only.
-python lab/issue37/plan/comp_plan.py FLOOR_DIR [margin=0.25] [minw=5]"""
+python lab/survey/plan/comp_plan.py FLOOR_DIR [margin=0.25] [minw=5]"""
 from __future__ import annotations
 import sys, time
 import numpy as np

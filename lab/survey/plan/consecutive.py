@@ -1,6 +1,6 @@
 """Consecutive walks: does the next walk start where the last one ended? Time gap, WiFi similarity of
 the last scans of walk k and the first scans of walk k+1, and (truth, scoring only) the distance.
-python lab/issue37/plan/consecutive.py FLOOR"""
+python lab/survey/plan/consecutive.py FLOOR"""
 import sys
 import numpy as np
 import graphslam as gs

@@ -1,12 +1,12 @@
 """Each walk alone on the floor plan, rotation from its heading (+ one site rotation per floor):
 how many places does it fit, is the truth among them? Truth scores only.
-python lab/issue37/plan/place_plan.py FLOOR_DIR [cell=0.5]"""
+python lab/survey/plan/place_plan.py FLOOR_DIR [cell=0.5]"""
 from __future__ import annotations
 import sys, time
 import numpy as np
 from scipy.fft import rfft2, irfft2
 from scipy import ndimage
-sys.path.insert(0, "lab/issue37")
+sys.path.insert(0, "lab/survey")
 import graphslam as gs
 from graphslam import walk_headings
 from graphslam import interpolate_xy

@@ -1,4 +1,4 @@
-"""The search and statistics helpers of lab/scripts/ipin_diagnostics.py (the script itself runs on real
+"""The search and statistics helpers of lab/survey/ipin_diagnostics.py (the script itself runs on real
 data for minutes; its figures are only as good as these pieces)."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from graphslam import se2_apply
 
 @pytest.fixture(scope="module")
 def diag() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("ipin_diagnostics", REPO / "lab" / "scripts" / "ipin_diagnostics.py")
+    spec = importlib.util.spec_from_file_location("ipin_diagnostics", REPO / "lab" / "survey" / "ipin_diagnostics.py")
     mod = importlib.util.module_from_spec(spec)
     sys.modules["ipin_diagnostics"] = mod
     spec.loader.exec_module(mod)
@@ -77,7 +77,7 @@ def test_calibration_perturbation_moves_each_route_rigidly(diag: ModuleType) -> 
     route kept, between routes changed), reproducibly per seed."""
     import types
 
-    spec = importlib.util.spec_from_file_location("ipin_calibration", REPO / "lab" / "scripts" / "ipin_calibration.py")
+    spec = importlib.util.spec_from_file_location("ipin_calibration", REPO / "lab" / "survey" / "ipin_calibration.py")
     C = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(C)
 
