@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Does pinning each of two plain survey processes to its own core help? (issue 18's control)
+"""Does pinning each of two plain survey processes to its own core help? (a control for `survey-batch`)
 
 16 simulated `crowd --size 2` floors (generated once into OUT/sites); per round, alternating:
 the floors one after another in one process (the sequential baseline of `python -m lab.bench batch`),

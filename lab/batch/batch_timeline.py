@@ -1,6 +1,6 @@
 """When each floor of a `survey-batch` ran: start and end of every floor (from its row's seconds and
 the time its result arrived), the cluster's start-up before the first floor and the tail after the
-last one. Shows whether the scheduler or the machine limits the batch (issue 18).
+last one. Shows whether the scheduler or the machine limits the batch.
 
     python lab/batch/batch_timeline.py SITES_ROOT [--workers 2]
 

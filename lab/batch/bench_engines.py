@@ -1,4 +1,4 @@
-"""Dask or Ray for survey-batch (issue 18): start-up of a 2-worker local cluster, and worker death.
+"""Dask or Ray for survey-batch: start-up of a 2-worker local cluster, and worker death.
 
 Run in a venv that has the engine (Ray is not a graphslam dependency):
 

@@ -1,4 +1,4 @@
-"""Every speed row of issue 40 side by side with a baseline checkout, in one run:
+"""Every speed row of docs/benchmarks.md's speed table side by side with a baseline checkout, in one run:
 ``python -m lab.bench speed --baseline CHECKOUT``.
 
 Why one command: on a shared 2-core machine an absolute time says little unless the baseline ran

@@ -1,4 +1,4 @@
-"""What the pictures cost (issue 19): `graphslam survey` with and without survey.png, side by side,
+"""What the pictures cost: `graphslam survey` with and without survey.png, side by side,
 and the drawing time of survey.png for a small and a large survey.
 
     python lab/pictures/bench_pictures.py [--runs 7] [--big-walks 200] [--skip-big | --skip-paper]

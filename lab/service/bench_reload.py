@@ -1,4 +1,4 @@
-"""Loopback load test of `graphslam serve --watch` across radio map swaps (issue 18).
+"""Loopback load test of `graphslam serve --watch` across radio map swaps.
 
 A real server (uvicorn, 127.0.0.1, free port) serves map A; client threads post single
 fingerprints and batches without pause while the map file is replaced (write + rename, as a

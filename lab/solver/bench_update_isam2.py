@@ -1,4 +1,4 @@
-"""iSAM2 against the warm-started local LM of `survey --update` (issue 18: "measure which").
+"""iSAM2 against the warm-started local LM of `survey --update` (which of the two to build `--update` on).
 
 Same survey, same edges, same start (walks solved before at their previous solution, the new
 walks registered to them by `build_problem(warm=...)`), same factors (chain-compressed IMU,

@@ -1,6 +1,6 @@
 """How much do two processes slow each other on this machine? A compute-bound kernel (a Python loop)
 and a memory-bound one (streaming a 512 MB array), each alone and then as two processes side by
-side: the ratio bounds what any two-worker scheduler can reach (issue 18's survey-batch).
+side: the ratio bounds what any two-worker scheduler can reach (`survey-batch`).
 
     python lab/speed/core_contention.py [--rounds 2]
 """

@@ -1,4 +1,4 @@
-"""Shared loading for the issue-37 experiments: heading-rotated walks, fingerprints, truth (scoring only)."""
+"""Shared loading for the headings / components / control-point experiments: heading-rotated walks, fingerprints, truth (scoring only)."""
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Can the similarity -> distance table be calibrated from a placement instead of the truth?
 
-Issue 13 diagnostics, ground truth used only to perturb and to score. Every route of the floor
+A diagnostic of the IPIN floor; ground truth used only to perturb and to score. Every route of the floor
 is moved rigidly about its centroid by a random SE(2) (``--perturb-m``, ``--perturb-deg``: the
 standard deviations) -- a stand-in for a placement that is that far off. Tables built from that
 placement:

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""What the WiFi of one IPIN 2023 floor can and cannot tell about walk placement (issue 13).
+"""What the WiFi of one IPIN 2023 floor can and cannot tell about walk placement.
 
 Ground truth is used only to *measure*: nothing here feeds a solver. Truth per walk: the rigid
 SE(2) fit of its dead reckoning (PDR) to its own landmarks (``fit_se2`` of the PDR position at

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """How well could any ONLINE estimator do on the simulated cart? The posterior given the data so far.
 
-Issue 17 asks the fixed-lag smoother (lag <= 2 s) to meet Paper 000's RMS (x <= 0.86 m) on the
+The target: the fixed-lag smoother (lag <= 2 s) meeting Paper 000's RMS (x <= 0.86 m) on the
 simulated cart. The cart's epochs are T = 4 s apart, so a 2-s lag holds no later epoch: the
 estimate of epoch k can use the readings of epochs 0..k only. This script computes, for each
 seed of ``python -m lab.bench filters`` (same simulation, the papers' EKF model, x0, P0, Q, R), at

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Other ways to get a kNN fix out of the same radio map (issue 17, diagnostics; none in the product).
+"""Other ways to get a kNN fix out of the same radio map (diagnostics; none in the product).
 
 The folds and oracle maps of ``bench tracking-real`` (5 seeded folds on ILC, leave one route out on
 IPIN; ground truth places the map's scans and scores, nothing is chosen on it). Each held-out scan

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """GTSAM's fixed-lag smoothers vs graphslam's own, on the filter papers' cart (same model, same data).
 
-The question of issue 17: build the online tracker on ``gtsam.BatchFixedLagSmoother`` /
+The question: build the online tracker on ``gtsam.BatchFixedLagSmoother`` /
 ``gtsam.IncrementalFixedLagSmoother`` or on our own sliding-window MAP
 (``graphslam.core.tracking.fixed_lag``)? Both are run here on the cart experiment of
 ``python -m lab.bench filters`` (Paper 000's EKF model: Q, R, x0, P0, path loss; seeds as given),

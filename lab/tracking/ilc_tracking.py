@@ -2,7 +2,7 @@
 """Tracking on REAL recordings (ILC 2.0 site1 floors) given a radio map: kNN vs the trackers.
 
 Per floor, ``graphslam bench tracking-real`` on the floor's folder with the oracle map only
-(alignment cannot build these floors' map, issue 6): walks split into seeded folds; for each
+(alignment cannot build these floors' map): walks split into seeded folds; for each
 fold the radio map is the OTHER walks' scans placed by their waypoint-fitted rigid poses (ground
 truth builds the map as a perfect survey would and never reaches the tracker), AP models fitted
 from it; every held-out walk is tracked from its real phone PDR steps and scans exactly as

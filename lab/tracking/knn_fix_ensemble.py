@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Do the two kNN metrics' fixes err independently enough to average? (issue 17, a diagnostic)
+"""Do the two kNN metrics' fixes err independently enough to average? (a diagnostic)
 
 The folds and oracle maps of ``bench tracking-real`` (5 seeded folds on ILC, leave one route out
 on IPIN; ground truth places the map's scans and scores, nothing is chosen on it): each held-out

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """How far are held-out walks' RSSI readings from the AP models' law, and from the law plus the
-map's residual field (``graphslam.core.tracking.rssi_field``)? Diagnostics for issue 17.
+map's residual field (``graphslam.core.tracking.rssi_field``)? Diagnostics for the tracker on real walks.
 
 The folds and oracle maps of ``bench tracking-real`` (seeded folds on ILC, leave one route out on
 IPIN); per fold, AP models and the field are fitted on the training map only; each held-out reading

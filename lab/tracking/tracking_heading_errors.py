@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """How wrong is the tracker's walking direction, and would fixes searched near its own estimate do
-better than the global ones? (issue 17, diagnostics; ground truth scores only)
+better than the global ones? (diagnostics; ground truth scores only)
 
 ILC-style seeded folds of a real floor (oracle map of the other walks and the floor plan beside
 the walks, as ``bench tracking-real``), the default tracker on each held-out walk. Two modes:

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """What would the fixed-lag tracker gain if it knew its heading (or its start)? (evaluation only)
 
-Issue 17 asks the online tracker (lag <= 2 s) to beat kNN by 15 % on ILC site1's 30-s walks. The
+The target: the online tracker (lag <= 2 s) beating kNN by 15 % on ILC site1's 30-s walks. The
 offline smoother shows that the whole walk holds more information than the first seconds; this
 script measures which *unknown* the online tracker lacks, by telling it the answer from ground
 truth (never done by the product): each held-out walk's rotation odometry -> site frame and its
