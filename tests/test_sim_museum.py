@@ -1,6 +1,6 @@
 """The museum scenario: the shape of IPIN 2023 floor -2 (docs/simulator.md, "museum").
 
-Bands are the real floor's figures (scripts/sim_vs_real_shape.py) with room for the
+Bands are the real floor's figures (lab/simulator/sim_vs_real_shape.py) with room for the
 seed-to-seed spread measured on seeds 0-5.
 """
 

@@ -132,7 +132,7 @@ def bench_scale(
 @app.command("speed")
 def bench_speed(
     baseline: Path = typer.Option(..., "--baseline", help="A graphslam checkout to compare with, e.g. a git worktree "
-                                  "of the main before issue 40 (6d0b028)."),
+                                  "of an older commit (e.g. 6d0b028)."),
     sizes: str = typer.Option("1,12", help="`paper` survey sizes (the last one is the large-survey row)."),
     runs: str = typer.Option("3,3", help="Rounds per size."),
     startup_runs: int = typer.Option(7, min=1),
@@ -142,7 +142,7 @@ def bench_speed(
     service_rounds: int = typer.Option(2, min=1),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write every figure to this file."),
 ) -> None:
-    """Every speed row of issue 40 (start-up, survey, solver, update, tracking, service) side by side with
+    """Every speed row of docs/benchmarks.md (start-up, survey, solver, update, tracking, service) side by side with
     --baseline in one run: JSON on stdout, then the markdown table."""
     from lab.bench.speed import markdown_table, speed
     try:
@@ -189,7 +189,7 @@ def bench_update(
     hops: str = typer.Option("0,1,2", help="update.hops values to measure (comma-separated)."),
     runs: int = typer.Option(3, min=1, help="Runs of each variant, alternated (medians reported)."),
 ) -> None:
-    """`survey --update` vs a full re-solve of every walk, end to end in fresh processes (issue 18)."""
+    """`survey --update` vs a full re-solve of every walk, end to end in fresh processes."""
     from lab.bench.update import update_speed
 
     typer.echo(json.dumps(update_speed(scenario, seed, size=size, new_fraction=new_fraction, hops=seeds_of(hops), runs=runs)))
@@ -203,7 +203,7 @@ def bench_batch(
     workers: int = typer.Option(2, min=1, help="survey-batch --workers."),
     runs: int = typer.Option(1, min=1, help="Runs of each variant (medians reported)."),
 ) -> None:
-    """`survey-batch` on a local Dask cluster vs the same floors one after another (issue 18)."""
+    """`survey-batch` on a local Dask cluster vs the same floors one after another."""
     from lab.bench.update import batch_speed
 
     typer.echo(json.dumps(batch_speed(scenario, floors=floors, size=size, workers=workers, runs=runs)))

@@ -1,4 +1,4 @@
-"""Every speed row of issue 40 side by side with a baseline checkout, in one run:
+"""Every speed row of docs/benchmarks.md's speed table side by side with a baseline checkout, in one run:
 ``python -m lab.bench speed --baseline CHECKOUT``.
 
 Why one command: on a shared 2-core machine an absolute time says little unless the baseline ran
@@ -9,12 +9,12 @@ folder), and the table puts the medians side by side with the goal:
 - start-up: CPU of ``graphslam --help``, ``survey --help``, ``survey MISSING`` (exit 2), median of
   ``startup_runs`` alternating runs (``os.wait4``: the child's own CPU);
 - survey: ``lab.bench scale`` on the simulator's ``paper`` at each size (wall, CPU, peak RSS);
-- the native solver against the same graph in ``gtsam.CustomFactor`` (``lab/scripts/bench_customfactor.py``,
+- the native solver against the same graph in ``gtsam.CustomFactor`` (``lab/solver/bench_customfactor.py``,
   this checkout only: it is a ratio within one run already);
 - update: ``lab.bench update crowd`` (10 new walks on a size-4 floor), CPU of ``--update`` over a
   full survey, per side;
-- tracking: ``lab/scripts/tracking_speed_ab.py`` on the ``paper`` map (seed 0) and its held-out walks;
-- service: ``lab/scripts/bench_service_load.py``, single queries from 8 keep-alive clients.
+- tracking: ``lab/tracking/tracking_speed_ab.py`` on the ``paper`` map (seed 0) and its held-out walks;
+- service: ``lab/service/bench_service_load.py``, single queries from 8 keep-alive clients.
 
 Stdout: one JSON object (every figure, the load averages), then the markdown table. The baseline is
 any checkout of graphslam with this layout (``lab/``, ``graphslam/``), e.g.
@@ -140,7 +140,7 @@ def speed(
         result["survey"] = _json_after(text)
 
         progress("native solver vs gtsam.CustomFactor (paper seed 0)")
-        text = _run([sys.executable, str(HERE / "lab" / "scripts" / "bench_customfactor.py"), "--runs", "3"],
+        text = _run([sys.executable, str(HERE / "lab" / "solver" / "bench_customfactor.py"), "--runs", "3"],
                     cwd=HERE, env=env_this, what="bench_customfactor")
         result["customfactor"] = _json_after(text)
 
@@ -161,13 +161,13 @@ def speed(
              cwd=HERE, env=env_this, what="survey of the tracking map")
         radio_map = out / "radio_map.parquet"
         progress("tracking (tracking_speed_ab.py)")
-        text = _run([sys.executable, str(HERE / "lab" / "scripts" / "tracking_speed_ab.py"), "--baseline", str(baseline),
+        text = _run([sys.executable, str(HERE / "lab" / "tracking" / "tracking_speed_ab.py"), "--baseline", str(baseline),
                      str(radio_map), str(data / "test"), "--rounds", str(track_rounds)],
                     cwd=HERE, env=env_this, what="tracking_speed_ab")
         result["track"] = _json_after(text)
 
         progress("service (bench_service_load.py, 8 clients)")
-        text = _run([sys.executable, str(HERE / "lab" / "scripts" / "bench_service_load.py"), "--radio-map", str(radio_map),
+        text = _run([sys.executable, str(HERE / "lab" / "service" / "bench_service_load.py"), "--radio-map", str(radio_map),
                      "--variant", f"this={HERE}:--log-level warning", "--variant", f"base={baseline}:--log-level warning",
                      "--rounds", str(service_rounds), "--clients", "8"],
                     cwd=HERE, env=env_this, what="bench_service_load")

@@ -1,4 +1,4 @@
-"""Benchmarks of issue 18: ``survey --update`` against a full re-solve, ``survey-batch`` against a loop.
+"""Benchmarks of ``survey --update`` against a full re-solve, ``survey-batch`` against a loop.
 
 Each run is a fresh ``graphslam`` process, as a user runs it; runs of the variants alternate so
 that they share the (shared, loaded) machine alike. ``os.getloadavg()`` is recorded with every result.

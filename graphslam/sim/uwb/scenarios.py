@@ -271,7 +271,7 @@ class CrowdUwb:
 # On the office floor's east-west corridors (y = 15, 45): each covers ~30 m of corridor either way.
 CROWD_ANCHORS = ((35.0, 15.0), (85.0, 45.0), (85.0, 15.0), (35.0, 45.0))
 # With los_nlos_prob = 0.2, 31-35 % of the ranges come out NLOS (through-wall links add the rest;
-# measured by `graphslam bench uwb-survey`): the "a third of the ranges".
+# measured by `python -m lab.bench uwb-survey`): about a third, the share the NLOS experiment asks for.
 CROWD_NLOS_LOS_PROB = 0.2
 
 
