@@ -45,12 +45,12 @@ APS = np.column_stack([np.arange(0.0, 101.0, 12.0), np.full(9, 4.0)])
 
 
 def walk(sid: str, x0: float, x1: float, field: Field, *, t0: int, dr_turn: float, offset=(0.0, 0.0, 0.0),
-         rng: np.random.Generator, magnetic: bool = True) -> Session:
-    """A walk along the corridor y = 0 from x0 to x1 (either way): dead reckoning turned by ``dr_turn`` and
+         rng: np.random.Generator, magnetic: bool = True, y0: float = 0.0) -> Session:
+    """A walk along the corridor y = ``y0`` from x0 to x1 (either way): dead reckoning turned by ``dr_turn`` and
     started at its origin, the phone's heading and field in east/north, scans every 3 steps."""
     n = int(abs(x1 - x0) / STEP_M) + 1
     x = np.linspace(x0, x1, n)
-    true = np.column_stack([x, 0.05 * np.sin(x / 7.0)])
+    true = np.column_stack([x, y0 + 0.05 * np.sin(x / 7.0)])
     h_true = np.full(n, 0.0 if x1 > x0 else math.pi)
     c, s = math.cos(dr_turn), math.sin(dr_turn)
     d = true - true[0]

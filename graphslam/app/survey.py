@@ -125,6 +125,12 @@ def build_report(
         report["magnetic"] = magnetic_report(survey, al, cfg)
     if al.reference_map is not None:
         report["reference_map"] = reference_report(al)
+    elif al.unused_reference is not None:
+        report["reference_map"] = {
+            "source": al.unused_reference.metadata.get("source"), "fingerprints": len(al.unused_reference),
+            "walks_placed_on_it": 0, "used": False,
+            "reason": "no walk registers onto it unambiguously: the survey is in a frame of its own",
+        }
     if al.placement is not None:
         report.update(_placement_report(al))
     if ev is not None:
@@ -176,6 +182,7 @@ def reference_report(al: Alignment) -> dict[str, Any]:
     return {
         "source": ref.metadata.get("source"),
         "fingerprints": len(ref),
+        "used": True,
         "walks_placed_on_it": len(al.components[0].walks) if al.components else 0,
         "edges": int(len(pairs)),
         "edge_distance_m": None if not len(d) else {

@@ -101,6 +101,7 @@ class Alignment:
     ties: ControlTies | None = None  # control-point marks tied to the site frame
     reference_map: RadioMap | None = None  # the surveyed map component 0 is placed on (site frame)
     anchor_pairs: NDArray[np.int64] | None = None  # (E, 2) its WiFi edges: (step node, reference fingerprint)
+    unused_reference: RadioMap | None = None  # a reference map given that no walk registers onto
 
     def links_by_component(self) -> list[dict[str, int]]:
         """Per component (0 first): what links its walks, by kind — WiFi edges and magnetic links
@@ -443,6 +444,7 @@ def build_problem(
         anchor_xy=anchor_xy,
         anchor_pairs=anchor_pairs,
         reference_map=reference if split is not None and split.anchors is not None else None,
+        unused_reference=reference if split is not None and split.unused_reference else None,
         free=free,
         uwb=uwb,
         method=method,
@@ -635,4 +637,5 @@ def solve(
         ties=problem.ties,
         reference_map=problem.reference_map,
         anchor_pairs=problem.anchor_pairs if problem.reference_map is not None else None,
+        unused_reference=problem.unused_reference,
     )

@@ -100,6 +100,7 @@ class ComponentSplit:
     frame_name: str
     magnetic: MagneticLinks | None = None  # the links the placement used (their node pairs: the graph's factors)
     anchors: ReferenceLinks | None = None  # the reference map component 0 is placed on
+    unused_reference: bool = False  # a reference map was given and no walk registers onto it
 
 
 def split_by_heading(
@@ -125,6 +126,7 @@ def split_by_heading(
         )
     ties = tied = tp = None
     phi = 0.0
+    unused_reference = False
     if control_points:
         ties = control_ties(survey, control_points, fp.offsets)
         tp = tie_walks(ties, dr_xyh, node_sess, wh.rotation)
@@ -137,29 +139,38 @@ def split_by_heading(
     # with ties, every walk's rotation is site-from-dead-reckoning: heading + the site frame's offset
     rotation = wh.rotation + phi
     units = _magnetic_units(survey, fp, dr_xyh, node_sess, cfg, matches, rotation, wh.sigma, params)
+    tie_arrays = None
+    if ties is not None:
+        placed = np.isin(ties.session, list(tied))
+        tie_arrays = (ties.session[placed], dr_xyh[ties.node[placed], :2], ties.xy[placed])
+    cp = None
     if reference is not None:  # the surveyed map holds component 0 in the site frame
-        units = units if units is not None else singleton_units(rotation)
+        on_ref = units if units is not None else singleton_units(rotation)
+        turn = 0.0
         if ties is None or not tp.rotation_fixed:  # the site's rotation from the crowd's reference matches
-            unit_xy = se2_apply_rows(units.transforms[fp.session], dr_xyh[fp.node, :2])
-            turn, _ = site_rotation(units.unit[fp.session], unit_xy, reference, params)
-            units = units.turned(turn)
+            unit_xy = se2_apply_rows(on_ref.transforms[fp.session], dr_xyh[fp.node, :2])
+            turn, _ = site_rotation(on_ref.unit[fp.session], unit_xy, reference, params)
+            on_ref = on_ref.turned(turn)
+        cp = place_units(
+            len(survey), fp.session, dr_xyh[fp.node, :2], matches, params, on_ref, rotation_sigma=wh.sigma,
+            ties=tie_arrays, seed=seed, reference=(reference.xy, Matches(reference.match_i, reference.match_j,
+                                                                         reference.similarity)),
+        )
+        if (cp.component == 0).any():
             phi += turn
             rotation = wh.rotation + phi
             log.info("reference map: the site frame is turned %.1f deg from east/north (the crowd's matches)",
                      np.degrees(phi))
-    if reference is not None or (units is not None and units.n_units < len(survey)):
-        # walks the field holds together move as one
-        tie_arrays = None
-        if ties is not None:
-            placed = np.isin(ties.session, list(tied))
-            tie_arrays = (ties.session[placed], dr_xyh[ties.node[placed], :2], ties.xy[placed])
-        ref = None if reference is None else (
-            reference.xy, Matches(reference.match_i, reference.match_j, reference.similarity))
+        else:  # no walk registers onto it: surveyed as without it, and said
+            log.warning("reference map: no walk registers onto it unambiguously; the survey does not use it")
+            reference, cp = None, None
+            unused_reference = True
+    if cp is None and units is not None and units.n_units < len(survey):  # walks the field holds together move as one
         cp = place_units(
             len(survey), fp.session, dr_xyh[fp.node, :2], matches, params, units,
-            rotation_sigma=wh.sigma, ties=tie_arrays, seed=seed, reference=ref,
+            rotation_sigma=wh.sigma, ties=tie_arrays, seed=seed,
         )
-    else:
+    elif cp is None:
         cp = place_components(
             len(survey), fp.session, dr_xyh[fp.node, :2], matches, params,
             rotation=rotation, rotation_sigma=wh.sigma, tied=tied, seed=seed,
@@ -194,7 +205,8 @@ def split_by_heading(
     main = int((cp.component == 0).sum())
     log.info("heading placement: %d components, the main map holds %d of %d walks", cp.n_components, main, len(survey))
     return ComponentSplit(pl, cp.component, comps, ref_walk, fixed, heading, ties, frame,
-                          magnetic=None if units is None else units.links, anchors=reference)
+                          magnetic=None if units is None else units.links, anchors=reference,
+                          unused_reference=unused_reference)
 
 
 def _magnetic_units(

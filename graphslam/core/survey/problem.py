@@ -55,6 +55,7 @@ class Problem:
     anchor_xy: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
     anchor_pairs: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), np.int64))
     reference_map: RadioMap | None = None  # the reference map itself (its fingerprints join the output map)
+    unused_reference: RadioMap | None = None  # a reference map given that no walk registers onto (not used)
     # --update: nodes re-solved; the others keep init_xyh (their previous solution).
     # None: every node of an included walk is a variable (a full solve).
     free: NDArray[np.bool_] | None = None

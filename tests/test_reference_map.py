@@ -1,0 +1,193 @@
+"""A surveyed radio map as the survey's anchors (survey --reference-map): reading it, placing the crowd on
+it in the site frame, its fingerprints in the output map, bad files."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_magnetic import EARTH, corridor  # noqa: I001
+
+from graphslam.app.survey import run_survey
+from graphslam.app.survey_inputs import SurveyInputs
+from conftest import run_cli as cli_main
+from graphslam.config import load_config
+from graphslam.core.types import Survey
+from graphslam.errors import InputError
+from graphslam.io.mcap_writer import write_session
+from graphslam.io.radiomap_io import read_radio_map
+from graphslam.io.reference_map import read_reference_map
+
+
+def reference_csv(path: Path, survey: Survey, walk: int = 0) -> Path:
+    """One walk's scans at their true positions (the synthetic site frame), as a site would have them."""
+    s = survey.sessions[walk]
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["fingerprint_id", "x", "y", "bssid", "rssi_dbm"])
+        t = s.ground_truth.t_ns
+        for k, sc in enumerate(s.scans):
+            i = int(np.argmin(np.abs(t - sc.t_ns)))
+            x, y = s.ground_truth.xy[i]
+            for b, r in sc.readings.items():
+                w.writerow([f"fp{k}", f"{x:.3f}", f"{y:.3f}", b, r])
+    return path
+
+
+def _write(folder: Path, survey: Survey) -> list[Path]:
+    folder.mkdir()
+    return [write_session(s, folder / f"{s.session_id}.mcap") for s in survey]
+
+
+@pytest.fixture(scope="module")
+def floor(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[Path], Path, Survey]:
+    d = tmp_path_factory.mktemp("reference")
+    survey = corridor()
+    files = _write(d / "walks", survey)
+    return d, files, reference_csv(d / "reference_map.csv", survey), survey
+
+
+def test_the_reference_csv_is_read_as_a_site_map(floor: tuple) -> None:
+    _, _, ref, survey = floor
+    rm = read_reference_map(ref)
+    assert rm.frame == "site" and len(rm) == len(survey.sessions[0].scans)
+    assert set(rm.session_ids.tolist()) == {"reference"} and rm.metadata["fingerprint_ids"][:2] == ["fp0", "fp1"]
+    np.testing.assert_allclose(rm.xy[0], survey.sessions[0].ground_truth.xy[0], atol=0.5)
+
+
+def test_the_crowd_is_placed_on_the_reference_in_the_site_frame(floor: tuple, tmp_path: Path) -> None:
+    _, files, ref, survey = floor
+    out = tmp_path / "out"
+    res = run_survey(SurveyInputs.from_paths(files[1:], out=out, reference_map=ref, picture=False), load_config())
+    r = res.report
+    assert r["frame"] == "site" and r["components"][0]["n_walks"] == 4
+    assert r["components"][0]["links"]["reference"] > 0 and r["reference_map"]["walks_placed_on_it"] == 4
+    assert r["reference_map"]["fingerprints"] == len(survey.sessions[0].scans) and r["reference_map"]["edges"] > 0
+    # no fit: the crowd's steps land where the truth has them, in the reference's frame
+    for s in survey.sessions[1:]:
+        est = res.alignment.tracks[s.session_id].xy
+        assert np.linalg.norm(est - s.ground_truth.xy, axis=1).mean() < 1.0, s.session_id
+    # the output map: the crowd's fingerprints and the reference's, in the site frame, one truth with the report
+    rm = read_radio_map(out / "radio_map.parquet")
+    assert rm.frame == "site" and len(rm) == r["radio_map"]["fingerprints"]
+    assert (rm.session_ids == "reference").sum() == r["radio_map"]["reference_fingerprints"] == len(survey.sessions[0].scans)
+    assert rm.metadata["reference"]["fingerprints"] == len(survey.sessions[0].scans)
+
+
+def test_a_walk_that_matches_no_reference_place_stays_apart(floor: tuple, tmp_path: Path) -> None:
+    d, files, _, survey = floor
+    # a reference of the corridor's first 40 m only; a walk of a corridor 25 m away shares nothing with it
+    rows = list(csv.reader(open(d / "reference_map.csv")))
+    near = [rows[0]] + [row for row in rows[1:] if float(row[1]) < 40.0]
+    small = tmp_path / "small.csv"
+    with open(small, "w", newline="") as fh:
+        csv.writer(fh).writerows(near)
+    from test_magnetic import Field, walk
+
+    far = walk("far", 60.0, 95.0, Field(0), t0=survey.sessions[-1].steps.t_ns[-1] + 10**12, dr_turn=0.4,
+               rng=np.random.default_rng(9), y0=25.0)
+    paths = files[1:] + [write_session(far, tmp_path / "far.mcap")]
+    r = run_survey(SurveyInputs.from_paths(paths, reference_map=small, picture=False), load_config()).report
+    main = set(r["components"][0]["walks"])
+    assert "far" not in main and len(main) >= 1
+    assert any("far" in c["walks"] and c["reason"] for c in r["components"][1:])
+    # a reference no walk registers onto is not used, and the report says so
+    tiny = tmp_path / "tiny.csv"
+    with open(tiny, "w", newline="") as fh:
+        csv.writer(fh).writerows([rows[0]] + [row for row in rows[1:] if float(row[1]) < 6.0])
+    r = run_survey(SurveyInputs.from_paths(paths, reference_map=tiny, picture=False), load_config()).report
+    assert r["frame"] == "earth" and r["reference_map"]["used"] is False and r["components"][0]["n_walks"] > 0
+
+
+@pytest.mark.parametrize("body, field", [
+    ("fingerprint_id,x,y,bssid\n0,1,2,aa\n", "header"),
+    ("fingerprint_id,x,y,bssid,rssi_dbm\n0,1,nan,aa,-50\n", "y"),
+    ("fingerprint_id,x,y,bssid,rssi_dbm\n0,1,2,aa,loud\n", "rssi_dbm"),
+    ("fingerprint_id,x,y,bssid,rssi_dbm\n", "no fingerprint"),
+    ("fingerprint_id,x,y,bssid,rssi_dbm\n0,1,2,aa,-50\n0,1,2,aa,-60\n", "bssid"),
+    ("fingerprint_id,x,y,bssid,rssi_dbm\n0,1,2,aa,-50\n0,1,3,bb,-60\n", "x"),
+    ("fingerprint_id,x,y,bssid,rssi_dbm\n,1,2,aa,-50\n", "fingerprint_id"),
+    ("fingerprint_id,x,y,bssid,rssi_dbm\n0,1,2,aa,-50,7\n", "columns"),
+])
+def test_a_bad_reference_file_is_one_line_and_exit_2(floor: tuple, tmp_path: Path, body: str, field: str,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    _, files, _, _ = floor
+    bad = tmp_path / "bad.csv"
+    bad.write_text(body)
+    with pytest.raises(InputError, match=field):
+        read_reference_map(bad)
+    out = tmp_path / "out"
+    assert cli_main(["survey", str(files[1]), "--out", str(out), "--reference-map", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(bad) in err[0] and not out.exists()
+
+
+def test_a_radio_map_in_another_frame_is_no_reference(floor: tuple, tmp_path: Path) -> None:
+    _, files, _, _ = floor
+    out = tmp_path / "earth"
+    run_survey(SurveyInputs.from_paths(files, out=out, picture=False), load_config())  # frame earth
+    with pytest.raises(InputError, match="frame"):
+        read_reference_map(out / "radio_map.parquet")
+
+
+def test_a_site_radio_map_a_survey_wrote_is_a_reference(floor: tuple, tmp_path: Path) -> None:
+    _, files, ref, _ = floor
+    first = tmp_path / "first"
+    run_survey(SurveyInputs.from_paths(files[1:3], out=first, reference_map=ref, picture=False), load_config())
+    again = run_survey(SurveyInputs.from_paths(files[3:], reference_map=first / "radio_map.parquet", picture=False),
+                       load_config()).report
+    assert again["frame"] == "site" and again["components"][0]["n_walks"] == 2
+
+
+def test_an_update_on_a_reference_is_solved_in_full(floor: tuple, tmp_path: Path) -> None:
+    _, files, ref, _ = floor
+    out = tmp_path / "out"
+    run_survey(SurveyInputs.from_paths(files[1:4], out=out, reference_map=ref, picture=False), load_config())
+    r = run_survey(SurveyInputs.from_paths(files[1:], out=out, reference_map=ref, previous=out, picture=False),
+                   load_config()).report
+    assert r["update"]["mode"] == "full" and "reference" in r["update"]["reason"]
+    assert r["components"][0]["n_walks"] == 4
+
+
+def test_the_reference_needs_the_headings(floor: tuple, tmp_path: Path) -> None:
+    _, files, ref, _ = floor
+    from graphslam.errors import SolverError
+
+    with pytest.raises(SolverError, match="headings"):
+        run_survey(SurveyInputs.from_paths(files[1:], reference_map=ref, picture=False),
+                   load_config(None, {"heading": {"enabled": False}}))
+
+
+def test_the_site_rotation_comes_from_the_crowds_matches(floor: tuple, tmp_path: Path) -> None:
+    _, files, ref, survey = floor
+    res = run_survey(SurveyInputs.from_paths(files[1:], reference_map=ref, picture=False), load_config())
+    # the walks' headings are east/north; the site frame is turned EARTH from it: the placed headings show it
+    s = survey.sessions[1]
+    est = res.alignment.tracks[s.session_id]
+    dh = np.angle(np.exp(1j * (est.heading - s.ground_truth.heading))).mean()
+    assert abs(math.degrees(dh)) < 3.0
+    assert json.dumps(res.report["reference_map"])  # JSON-ready
+    assert EARTH != 0.0
+
+
+def test_bench_real_surveys_the_crowd_on_the_floors_reference(floor: tuple, tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    d, files, ref, _ = floor
+    folder = tmp_path / "floor"
+    folder.mkdir()
+    for f in files:
+        (folder / f.name).write_bytes(f.read_bytes())
+    (folder / "reference_map.csv").write_bytes(ref.read_bytes())
+    capsys.readouterr()
+    assert cli_main(["-q", "bench", "real", str(folder), "--variants", "reference_map"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    row = next(r for r in rows if r.get("variant") == "reference_map")
+    # the crowd: every walk but the one whose scans the reference holds verbatim
+    assert row["walks"] == 4 and row["main"] == 4 and row["frame"] == "site"
+    assert row["reference_map"].endswith("reference_map.csv") and row["walks_over_6m"] == 0
+    assert cli_main(["-q", "bench", "real", str(folder), "--variants", "reference_map", "--reference-map", "none"]) == 0
+    assert not [r for r in map(json.loads, capsys.readouterr().out.splitlines()) if r.get("variant")]
