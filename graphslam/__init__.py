@@ -28,7 +28,9 @@ _EXPORTS: dict[str, str] = {
     # configuration
     **{n: "graphslam.config" for n in ("GraphSlamConfig", "load_config", "config_from_dict")},
     # domain objects
-    **{n: "graphslam.core.types" for n in ("PoseTrack", "Scan", "Session", "Survey", "LandmarkMark", "UwbRanges")},
+    **{n: "graphslam.core.types" for n in (
+        "PoseTrack", "Scan", "Session", "Survey", "LandmarkMark", "UwbRanges", "HeadingTrack", "MagneticTrack",
+    )},
     # alignment and its evaluation
     **{n: "graphslam.core.survey.align" for n in ("align", "Alignment")},
     **{n: "graphslam.core.survey.evaluate" for n in ("evaluate", "Evaluation", "ErrorStats")},
@@ -55,6 +57,9 @@ _EXPORTS: dict[str, str] = {
     **{n: "graphslam.io.mcap_reader" for n in ("read_survey", "read_session")},
     "write_session": "graphslam.io.mcap_writer",
     **{n: "graphslam.io.radiomap_io" for n in ("read_radio_map", "write_radio_map")},
+    **{n: "graphslam.io.magnetic_map_io" for n in ("read_magnetic_map", "write_magnetic_map")},
+    "MagneticMap": "graphslam.core.radiomap.magnetic_map",
+    "read_reference_map": "graphslam.io.reference_map",
     **{n: "graphslam.io.apmodel_io" for n in ("read_ap_models", "write_ap_models")},
     # --- for experiments (lab/: studies, diagnostics, the simulator benchmarks). The lab imports
     # nothing but this module (lab/tests/test_imports.py); these are what it builds on: the survey's
@@ -64,7 +69,7 @@ _EXPORTS: dict[str, str] = {
     "run_batch": "graphslam.app.batch",
     **{n: "graphslam.app.soak" for n in ("free_port", "http_exchange", "query_bodies", "wait_for_port")},
     "soak_loopback": "graphslam.app.soak:LOOPBACK",
-    **{n: "graphslam.app.bench_real" for n in ("real_floors", "real_floor_rows")},
+    **{n: "graphslam.app.bench_real" for n in ("crowd_walks", "real_floors", "real_floor_rows")},
     "show_progress": "graphslam.app.progress",
     "POWED_EXPONENT": "graphslam.core.radiomap.neighbours",
     "tracking_pipeline": "graphslam.core.tracking.tracker:",
@@ -89,6 +94,7 @@ _EXPORTS: dict[str, str] = {
     "associate": "graphslam.core.survey.association",
     **{n: "graphslam.core.radiomap.similarity" for n in ("PowerCosine", "Matches")},
     "walk_headings": "graphslam.core.survey.heading",
+    "survey_magnetic": "graphslam.core.survey.magnetic:",
     **{n: "graphslam.core.survey.placement" for n in ("GrowthParams", "grow_placement")},
     **{n: "graphslam.core.survey.components" for n in ("Component", "place_components")},
     **{n: "graphslam.core.survey.evaluate" for n in ("landmark_errors", "component_errors")},
@@ -168,7 +174,10 @@ if TYPE_CHECKING:  # static analysers see the real objects
     from graphslam.core.radiomap.uncertainty import KnnUncertainty, calibrate_uncertainty
     from graphslam.core.radiomap.radiomap import RadioMap
     from graphslam.core.tracking.smoother import MapProblem, SmoothedRun, map_smooth, rts_smooth, smooth
-    from graphslam.core.types import LandmarkMark, PoseTrack, Scan, Session, Survey, UwbRanges
+    from graphslam.core.radiomap.magnetic_map import MagneticMap
+    from graphslam.core.types import (
+        HeadingTrack, LandmarkMark, MagneticTrack, PoseTrack, Scan, Session, Survey, UwbRanges,
+    )
     from graphslam.core.uwb.ekf import TagTrack, UwbEkfConfig, UwbEpoch, track_tags
     from graphslam.errors import (
         ConfigError, EstimationError, GraphSlamError, InputError, OutputError, QueryError, RadioMapError,
@@ -177,7 +186,9 @@ if TYPE_CHECKING:  # static analysers see the real objects
     from graphslam.io.apmodel_io import read_ap_models, write_ap_models
     from graphslam.io.mcap_reader import read_session, read_survey
     from graphslam.io.mcap_writer import write_session
+    from graphslam.io.magnetic_map_io import read_magnetic_map, write_magnetic_map
     from graphslam.io.radiomap_io import read_radio_map, write_radio_map
+    from graphslam.io.reference_map import read_reference_map
     from graphslam.app.survey import SurveyResult, run_survey, write_outputs
     from graphslam.app.survey_inputs import SurveyInputs
     from graphslam.core.tracking.tracker import SessionTrack, Tracker, track_sessions

@@ -15,9 +15,10 @@ the corridor walked, in whichever direction it is walked.
    the data's: it cancels), compared with every window of another walk, forwards and reversed, by
    ``r = 2 <x, y> / (|x|^2 + |y|^2)`` (1: identical; it punishes a different amplitude as well as a
    different shape). Only where WiFi suggests it: each fingerprint's most similar fingerprints of
-   other walks (the placement's matches) are anchors, and a window is compared with the other walk's
-   windows within ``search_m`` of the anchored place (on IPIN 2023 floor -2 this keeps 98 % of the
-   right matches an all-pairs search finds, at a cost that grows with the survey, not its square).
+   other walks (the placement's matches) are anchors, and the window centred on each is compared with
+   the other walk's stretches within ``search_m`` of the anchored place: a cost that grows with the
+   survey, not its square (on IPIN 2023 floor -2 it finds 39 % of the right matches an all-pairs search
+   finds, and every pair of a route's repetitions still links: ``lab/survey/magnetic.py recall``).
    Each window keeps its best match per other walk.
 3. **Threshold from the data** (``null_threshold``): the same search against phase-randomised
    surrogates of the walks' sequences (same spectrum, so the same smoothness, but no place in
