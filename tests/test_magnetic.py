@@ -306,3 +306,27 @@ def test_plot_and_rerun_show_the_magnetic_map_and_its_factors(tmp_path: Path) ->
     # a later survey into the folder redraws it for the new map (report.json says so)
     report = run_survey(SurveyInputs.from_paths([folder], out=out, picture=False), load_config()).report
     assert report["derived_files"]["magnetic_map.png"]["status"] == "rebuilt"
+
+
+def test_an_update_keeps_the_fields_links_and_places_new_walks_by_theirs(tmp_path: Path) -> None:
+    walks = corridor().sessions
+    folder = tmp_path / "in"
+    folder.mkdir()
+    files = [write_session(s, folder / f"{s.session_id}.mcap") for s in walks]
+    out = tmp_path / "out"
+    first = run_survey(SurveyInputs.from_paths(files[:3], out=out, picture=False), load_config()).report
+    assert first["magnetic"]["links"] >= 2
+    res = run_survey(SurveyInputs.from_paths(files, out=out, previous=out, picture=False), load_config())
+    r = res.report
+    assert r["update"]["mode"] == "incremental", r["update"]
+    assert r["components"][0]["n_walks"] == 5
+    # the previous links between w0..w2 are kept, the new walks' links found
+    links = res.alignment.magnetic
+    pairs = {(int(a), int(b)) for a, b in zip(links.a, links.b)}
+    assert {(0, 1), (0, 2), (1, 2)} & pairs and any(b >= 3 for _, b in pairs)
+    # the new walks where the truth has them, relative to the old ones (one fit of everything)
+    from graphslam.core.common.geometry import fit_se2, se2_apply
+
+    est = np.concatenate([res.alignment.tracks[s.session_id].xy for s in walks])
+    true = np.concatenate([s.ground_truth.xy for s in walks])
+    assert np.linalg.norm(se2_apply(fit_se2(est, true), est) - true, axis=1).mean() < 1.0

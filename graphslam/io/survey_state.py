@@ -1,9 +1,10 @@
 """``survey_state.npz``: what a survey output keeps for a later ``graphslam survey --update``.
 
-A NumPy ``.npz`` archive (no pickles), format version 3. Older states are still read: version 1,
+A NumPy ``.npz`` archive (no pickles), format version 4. Older states are still read: version 1,
 without the last four arrays, has no components (a survey with headings re-solves in full);
 versions 1 and 2 digested each walk's id, steps and scans only (an update whose walks carry
-headings, landmark marks or UWB re-solves in full, once):
+headings, landmark marks or UWB re-solves in full, once); before 4 there are no magnetic links (an
+update keeps none between the walks solved before):
 
 ==================  ===========  ==================================================
 array               dtype        meaning
@@ -24,6 +25,9 @@ component           int64 (S,)   each walk's component (0: the main map), -1 if 
 frame               str ()       component 0's frame: aligned, earth or site
 control_digest      str ()       SHA-256 of the control points used ("" none)
 edge_used           bool (E,)    the edge entered the optimiser (its walks' component, the placement's gate)
+mag_walks           int64 (K,2)  the magnetic links' walks (indices into ``session_ids``)
+mag_link            int64 (P,)   each magnetic pair's link
+mag_step            int64 (P,2)  each magnetic pair's steps (index into each walk's steps)
 ==================  ===========  ==================================================
 """
 
@@ -42,8 +46,8 @@ from graphslam.errors import InputError
 from graphslam.io.atomic import atomic_open
 
 STATE_FILE = "survey_state.npz"
-STATE_FORMAT_VERSION = 3
-READABLE_VERSIONS = (1, 2, 3)
+STATE_FORMAT_VERSION = 4
+READABLE_VERSIONS = (1, 2, 3, 4)
 
 
 def write_survey_state(path: str | Path, survey: Survey, al: Alignment, cfg: GraphSlamConfig) -> Path:
@@ -68,10 +72,24 @@ def write_survey_state(path: str | Path, survey: Survey, al: Alignment, cfg: Gra
         "frame": np.array(al.frame),
         "control_digest": np.array(al.control_digest),
         "edge_used": np.ones(len(al.edges.i), bool) if al.used_edges is None else np.asarray(al.used_edges, bool),
+        **_magnetic_arrays(al),
     }
     with atomic_open(path, "wb") as fh:
         np.savez(fh, **arrays)
     return path
+
+
+def _magnetic_arrays(al: Alignment) -> dict[str, np.ndarray]:
+    """The magnetic links the solution used, by walk and step (none: empty arrays)."""
+    links = al.magnetic
+    if links is None or not len(links):
+        return {"mag_walks": np.zeros((0, 2), np.int64), "mag_link": np.zeros(0, np.int64),
+                "mag_step": np.zeros((0, 2), np.int64)}
+    offsets = al.fingerprints.offsets
+    walk = np.searchsorted(offsets, links.pair_nodes, side="right") - 1
+    return {"mag_walks": np.column_stack([links.a, links.b]).astype(np.int64),
+            "mag_link": links.pair_link.astype(np.int64),
+            "mag_step": (links.pair_nodes - offsets[walk]).astype(np.int64)}
 
 
 def read_survey_state(path: str | Path) -> PreviousSolution:
@@ -130,6 +148,20 @@ def read_survey_state(path: str | Path) -> PreviousSolution:
             raise InputError(path, "array has the wrong shape or values", field="component")
         if data["edge_used"].shape != (len(es),):
             raise InputError(path, "array has the wrong shape or values", field="edge_used")
+    mag = None
+    if version >= 4:
+        for k in ("mag_walks", "mag_link", "mag_step"):
+            if k not in data:
+                raise InputError(path, "missing array", field=k)
+        mw, ml, ms = (data[k].astype(np.int64) for k in ("mag_walks", "mag_link", "mag_step"))
+        ok = (mw.ndim == 2 and mw.shape[1:] == (2,) and ms.shape == (len(ml), 2) and (not len(mw) or
+              (mw.min() >= 0 and mw.max() < n_s)) and (not len(ml) or (ml.min() >= 0 and ml.max() < len(mw))))
+        if ok and len(ml):
+            steps = np.diff(offsets)[mw[ml]]
+            ok = bool((ms >= 0).all() and (ms < steps).all())
+        if not ok:
+            raise InputError(path, "array has the wrong shape or values", field="mag_step")
+        mag = (mw, ml, ms)
     return PreviousSolution(
         session_ids=ids,
         digests=tuple(str(x) for x in data["digests"]),
@@ -147,4 +179,5 @@ def read_survey_state(path: str | Path) -> PreviousSolution:
         control_digest=str(data["control_digest"]) if version >= 2 else "",
         edge_used=data["edge_used"].astype(bool) if version >= 2 else None,
         format_version=version,
+        magnetic=mag,
     )

@@ -267,6 +267,21 @@ def split_incremental(
     support, margin, consistency = (np.full(n_s, np.nan) for _ in range(3))
     margin[old] = np.inf
     n_old = int(component.max()) + 1 if old.any() else 0
+    # the magnetic field: the previous links between walks solved before are kept; the new walks' links
+    # are sought (anchored by their matches only), and a new walk the field links to solved walks is
+    # placed by those links before WiFi is asked
+    links = None
+    if warm.magnetic is not None:
+        links = MagneticLinks.of_pairs(*warm.magnetic)
+    if cfg.magnetic.enabled and new.any() and sum(x.magnetic is not None and len(x.magnetic) > 0 for x in survey) >= 2:
+        mp = MagneticParams.from_config(cfg.magnetic)
+        fresh = magnetic_links(survey, fp.offsets, rotation, fp.node[matches.i], fp.node[matches.j], mp)
+        fresh = fresh.subset(new[fresh.a] | new[fresh.b])
+        links = fresh if links is None else links + fresh
+        placed_by_field = _place_by_links(fresh, new, old, warm, dr_xyh, node_sess, rotation, component, mp.agree_m)
+        for w, (T, k) in placed_by_field.items():
+            component[w], T_pre[w], margin[w] = k, T, np.inf
+        log.info("update: the magnetic field places %d of %d new walks", len(placed_by_field), int(new.sum()))
     for k in range(n_old):
         left = new & (component < 0)
         members = np.flatnonzero(old & (component == k))
@@ -327,7 +342,39 @@ def split_incremental(
              int((new & (component < n_old)).sum()), len(left))
     reference = int(np.flatnonzero(component == 0)[0]) if (component == 0).any() else 0
     frame = "earth" if ties is None else "site"  # the previous survey's (its control points are these)
-    return ComponentSplit(pl, component, comps, reference, np.array(fixed, np.int64), heading, ties, frame)
+    return ComponentSplit(pl, component, comps, reference, np.array(fixed, np.int64), heading, ties, frame,
+                          magnetic=links)
+
+
+def _place_by_links(
+    links: MagneticLinks, new: NDArray[np.bool_], old: NDArray[np.bool_], warm: WarmStart, dr_xyh: NDArray,
+    node_sess: NDArray, rotation: NDArray, component: NDArray[np.int64], agree_m: float,
+) -> dict[int, tuple[NDArray, int]]:
+    """New walk -> (transform in the frame of the previous solution's pre-rotation, i.e. a translation
+    applied after the walk is turned by ``rotation``; component): each new walk whose magnetic pairs with
+    solved walks agree on one translation within ``agree_m`` (mean), into those walks' component."""
+    out: dict[int, tuple[NDArray, int]] = {}
+    pn = links.pair_nodes
+    for w in np.flatnonzero(new):
+        mine = np.where(node_sess[pn[:, 0]] == w, 0, np.where(node_sess[pn[:, 1]] == w, 1, -1))
+        sel = np.flatnonzero(mine >= 0)
+        if not len(sel):
+            continue
+        own = pn[sel, mine[sel]]
+        partner = pn[sel, 1 - mine[sel]]
+        solved = old[node_sess[partner]] & warm.solved[partner]
+        if solved.sum() < 3:
+            continue
+        own, partner = own[solved], partner[solved]
+        c, s_ = np.cos(rotation[w]), np.sin(rotation[w])
+        src = dr_xyh[own, :2] @ np.array([[c, s_], [-s_, c]])
+        dst = warm.xyh[partner, :2]
+        t = (dst - src).mean(axis=0)
+        if np.linalg.norm(src + t - dst, axis=1).mean() > agree_m:
+            continue
+        comps, counts = np.unique(component[node_sess[partner]], return_counts=True)
+        out[int(w)] = (np.array([t[0], t[1], 0.0]), int(comps[np.argmax(counts)]))
+    return out
 
 
 def _sub_placement(

@@ -120,7 +120,9 @@ class PreviousSolution:
     control_digest: str = ""  # ``control_points_digest`` of the control points used ("" none)
     edge_used: NDArray[np.bool_] | None = None  # (E,) the edge entered the optimiser (None: all did)
     # the state's format (``graphslam.io.survey_state``): before 3 the digests covered ids, steps and scans only
-    format_version: int = 3
+    format_version: int = 4
+    # the magnetic links used: (walks (K, 2), each pair's link (P,), each pair's steps (P, 2)); None: none kept
+    magnetic: tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]] | None = None
 
     def walk_xyh(self, session_id: str) -> NDArray[np.float64]:
         s = self.session_ids.index(session_id)
@@ -145,6 +147,9 @@ class WarmStart:
     # None: the previous state has none (written before components)
     component: NDArray[np.int64] | None = None
     prev_edge_used: NDArray[np.bool_] | None = None  # (E,) per previous edge: it entered the optimiser
+    # the previous magnetic links between walks solved before: (walks (K, 2) current indices, each pair's
+    # link (P,), each pair's nodes (P, 2) current numbering); None: none
+    magnetic: tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]] | None = None
 
     @property
     def solved(self) -> NDArray[np.bool_]:
@@ -177,7 +182,13 @@ def warm_start(previous: PreviousSolution, survey: Survey, hops: int) -> WarmSta
     if previous.component is not None:
         component = np.full(len(ids), -1, np.int64)
         component[remap] = np.where(previous.aligned, previous.component, -1)
+    magnetic = None
+    if previous.magnetic is not None and len(previous.magnetic[0]):
+        mw, ml, ms = previous.magnetic
+        walks = remap[mw]
+        magnetic = (walks, ml.copy(), offsets[walks[ml]] + ms)
     return WarmStart(
+        magnetic=magnetic,
         xyh=xyh,
         old=old,
         prev_edge_session=remap[previous.edge_session] if len(previous.edge_session) else np.zeros((0, 2), np.int64),

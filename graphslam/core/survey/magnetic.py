@@ -414,6 +414,24 @@ class MagneticLinks:
         z = np.zeros(0, np.int64)
         return cls(z, z, np.zeros((0, 2)), z, z, np.zeros(0), z, np.zeros((0, 2), np.int64), threshold, 0)
 
+    @classmethod
+    def of_pairs(cls, walks: NDArray[np.int64], pair_link: NDArray[np.int64], pair_nodes: NDArray[np.int64]) -> "MagneticLinks":
+        """Links known by their walks and node pairs alone (a previous survey's: ``survey --update``)."""
+        k = len(walks)
+        z = np.zeros(k, np.int64)
+        return cls(walks[:, 0].astype(np.int64), walks[:, 1].astype(np.int64), np.zeros((k, 2)), z, z, np.zeros(k),
+                   pair_link.astype(np.int64), pair_nodes.astype(np.int64))
+
+    def __add__(self, other: "MagneticLinks") -> "MagneticLinks":
+        """Both sets of links (``other``'s numbered after these)."""
+        return MagneticLinks(
+            np.concatenate([self.a, other.a]), np.concatenate([self.b, other.b]),
+            np.concatenate([self.translation, other.translation]), np.concatenate([self.windows, other.windows]),
+            np.concatenate([self.candidates, other.candidates]), np.concatenate([self.score, other.score]),
+            np.concatenate([self.pair_link, other.pair_link + len(self)]),
+            np.concatenate([self.pair_nodes, other.pair_nodes]), other.threshold, self.matches + other.matches,
+        )
+
     def subset(self, keep: NDArray[np.bool_]) -> "MagneticLinks":
         """The links ``keep`` marks (their node pairs with them)."""
         new = np.cumsum(keep) - 1
