@@ -26,7 +26,8 @@ ROW_FIELDS = {
     "floor", "variant", "walks", "aligned", "aligned_fraction", "main", "main_fraction", "landmarks",
     "main_mean_m", "main_site_mean_m", "mean_m", "p90_m", "max_m", "components",
     "walks_in_components_of_5_or_more", "walks_in_components_of_5_or_more_fraction",
-    "components_of_5_or_more_mean_m", "walks_over_10m", "walks_over_15m", "frame", "control_points",
+    "components_of_5_or_more_mean_m", "walks_over_6m", "walks_over_10m", "walks_over_15m", "frame", "control_points",
+    "reference_map",
     "per_walk_rigid_fit_mean_m", "initialization", "placement", "loop_consistency", "reliable", "confidence",
     "time_s",
 }
@@ -183,7 +184,7 @@ def test_one_line_per_floor_and_variant_then_a_summary_per_variant(floors: Path,
         for f in FRACTIONS:
             assert 0.0 <= r[f] <= 1.0
         assert r["main_fraction"] == round(r["main"] / r["walks"], 3)
-        assert 0 <= r["walks_over_15m"] <= r["walks_over_10m"] <= r["aligned"]
+        assert 0 <= r["walks_over_15m"] <= r["walks_over_10m"] <= r["walks_over_6m"] <= r["aligned"]
         assert r["main_mean_m"] == r["mean_m"] and r["main_mean_m"] < 5.0  # the simulator's walks align
         assert r["landmarks"] > 0 and r["p90_m"] <= r["max_m"]
         assert r["time_s"] > 0
