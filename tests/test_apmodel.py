@@ -458,7 +458,7 @@ def test_track_prints_its_errors_against_the_truth(tiny_case, capsys, tmp_path):
     main(["-q", "track", str(d / "walk.mcap"), "--radio-map", str(d / "radio_map.parquet"), "--filter", "ekf",
           "--no-picture", "-o", str(out)])
     ev = json.loads(capsys.readouterr().out)["errors"]
-    assert ev["evaluated"] and ev["frame"] == "site frame (the map is in the site frame)"
+    assert ev["evaluated"] and ev["frame"] == "site" and ev["site_from_map"] == "identity: the map is in the site frame"
     rows = list(csv.DictReader(out.open()))
     xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
     e = np.linalg.norm(xy - interpolate_xy(session.ground_truth, np.array([float(r["t_ns"]) for r in rows])), axis=1)

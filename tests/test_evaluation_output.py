@@ -120,7 +120,7 @@ def test_locate_prints_its_errors_against_the_truth(surveyed, tmp_path, capsys) 
           "--no-picture"])
     res = json.loads(capsys.readouterr().out)
     ev = res["errors"]
-    assert ev["evaluated"] and "landmark fit" in ev["frame"]
+    assert ev["evaluated"] and ev["frame"] == res["frame"] == "earth" and "landmark fit" in ev["site_from_map"]
     assert ev["truth"]["n"] == res["located"] and 0 < ev["truth"]["median_m"] <= ev["truth"]["p90_m"] <= ev["truth"]["max_m"]
     assert ev["landmarks"]["n"] > 0  # the held-out walks mark landmarks too
     # the figure is what the CSV's answers, placed by the report's fit, are off the truth

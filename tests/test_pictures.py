@@ -59,7 +59,7 @@ def corridor_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, 
     from graphslam.io.radiomap_io import read_radio_map
 
     rm = read_radio_map(root / "out" / "radio_map.parquet")
-    write_ap_models(ApModels("aligned", 1.0, fitted, ()), root / "aps.json", radio_map=rm)
+    write_ap_models(ApModels(rm.frame, 1.0, fitted, ()), root / "aps.json", radio_map=rm)
     return root, root / "out", result
 
 

@@ -73,7 +73,7 @@ def nice_step(span: float, n: float, *, at_most: bool = False) -> float:
 class LegendEntry:
     text: str
     colour: Colour = BLACK
-    kind: str = "line"  # line | dashed | point | ring | cross | star | box | text
+    kind: str = "line"  # line | dashed | point | ring | cross | star | diamond | square | box | text
     width: int = 3
 
 
@@ -209,7 +209,8 @@ class Panel:
 
     def points(self, xy: NDArray, colours: Colour | Sequence[Colour], radius: float = 2.0, kind: str = "point",
                outline: Colour | None = None) -> None:
-        """Markers at ``xy``: ``point`` (disc), ``ring``, ``cross`` or ``star``."""
+        """Markers at ``xy``: ``point`` (disc), ``ring``, ``cross``, ``star``, ``diamond`` or ``square``
+        (filled, outlined in ``outline``, default white)."""
         p = self.px(xy)
         one = np.ndim(colours) == 1  # one colour for all, else one per point
         cs = [tuple(int(v) for v in colours)] * len(p) if one else [tuple(int(v) for v in c) for c in colours]
@@ -221,6 +222,12 @@ class Panel:
                 self.draw.polygon(_star(x, y, radius), fill=c, outline=outline or (255, 255, 255))
             elif kind == "ring":
                 self.draw.ellipse([x - radius, y - radius, x + radius, y + radius], outline=c, width=2)
+            elif kind == "diamond":
+                self.draw.polygon([(x, y - radius), (x + radius, y), (x, y + radius), (x - radius, y)], fill=c,
+                                  outline=outline or (255, 255, 255))
+            elif kind == "square":
+                self.draw.rectangle([x - radius, y - radius, x + radius, y + radius], fill=c,
+                                    outline=outline or (255, 255, 255))
             else:
                 self.draw.ellipse([x - radius, y - radius, x + radius, y + radius], fill=c, outline=outline)
 
@@ -276,6 +283,7 @@ class Picture:
     legend_x: int = 0  # left edge of the legend column (0: no legend)
     colourbars: list[tuple[tuple[int, int, int, int], NDArray, float, float, str]] = field(default_factory=list)
     captions: list[tuple[tuple[int, int], str, int]] = field(default_factory=list)
+    frame: str = ""  # the frame the panels are drawn in (report.json's name), written as a text chunk
 
     def panel(self, box: tuple[int, int, int, int], bounds: Sequence[float], *, tick_labels: bool = True) -> Panel:
         """A panel at ``box``; ``tick_labels``: metre labels beside the frame (off: the grid alone)."""
@@ -334,8 +342,12 @@ class Picture:
 
     def save(self, path: str | Path, text: Mapping[str, str] | None = None) -> Path:
         """Render and write the PNG atomically (complete or absent); ``text``: tEXt chunks (ASCII
-        keyword -> Latin-1 text), e.g. how the picture was drawn."""
-        data = png_bytes(np.asarray(self.render()), text=text)
+        keyword -> Latin-1 text), e.g. how the picture was drawn. The title and the frame are
+        chunks too (``Title``, ``frame``): what the picture says, readable without looking."""
+        meta = {"Title": " ".join(self.title_lines)} if self.title_lines else {}
+        if self.frame:
+            meta["frame"] = self.frame
+        data = png_bytes(np.asarray(self.render()), text={**meta, **(text or {})})
         with atomic_open(path, "wb") as fh:
             fh.write(data)
         return Path(path)
@@ -361,6 +373,10 @@ class Picture:
                 d.line([(x + 9, cy + 5), (x + 19, cy - 5)], fill=e.colour, width=2)
             elif e.kind == "star":
                 d.polygon(_star(x + 14, cy, 8), fill=e.colour)
+            elif e.kind == "diamond":
+                d.polygon([(x + 14, cy - 8), (x + 22, cy), (x + 14, cy + 8), (x + 6, cy)], fill=e.colour)
+            elif e.kind == "square":
+                d.rectangle([x + 8, cy - 6, x + 20, cy + 6], fill=e.colour)
             elif e.kind == "box":
                 d.rectangle([x + 6, cy - 6, x + 22, cy + 6], fill=e.colour, outline=GREY)
             tx = x if e.kind == "text" else x + 36

@@ -113,7 +113,7 @@ def radio_map_picture(
     pic = Picture(size_px, title_lines=[
         f"radio map: {len(rm):,} fingerprints, {rm.fingerprints.n_aps:,} APs, {len(set(rm.session_ids.tolist()))} walks; "
         f"{frame}; {cell:g} m cells, Gaussian kernel {h:g} m; an AP not heard counts as {floor:g} dBm"
-    ])
+    ], frame="site" if registered else rm.frame)
     boxes = _layout(2 + len(cols), size_px, top=36)
     extent = grid.extent
 

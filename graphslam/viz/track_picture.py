@@ -39,12 +39,15 @@ def draw_tracks(
     points: bool = False,
     title: str = "",
     frame: str = "radio map frame",
+    frame_name: str = "",
     size_px: tuple[int, int] = SIZE_PX,
 ) -> Path:
     """Render to the PNG ``path``. ``estimates``: session -> (N, 2) positions in time order (NaN rows:
     no answer, skipped). ``truth``: session -> (M, 2) true path; ``truth_at_estimates``: session ->
     (N, 2) true position at each estimate's time (error segments and the mean error). ``points``:
-    draw each estimate as a dot (kNN answers) rather than only a line (a tracked walk)."""
+    draw each estimate as a dot (kNN answers) rather than only a line (a tracked walk). ``frame``: the
+    subtitle saying which frame is drawn; ``frame_name``: that frame's name (the radio map's), the
+    PNG's ``frame`` text chunk."""
     ids = list(estimates)
     colours = session_colours(ids)
     lines = [_finite(estimates[s]) for s in ids]
@@ -53,7 +56,7 @@ def draw_tracks(
     err = f"; error vs truth mean {err_sum / n_err:.2f} m over {n_err:,} {'answers' if points else 'steps'}" if n_err else ""
     w, h = size_px
     pic = Picture(size_px, title_lines=textwrap.wrap(title + err, 140) + textwrap.wrap(frame, 140),
-                  legend_x=int(0.7 * w))
+                  legend_x=int(0.7 * w), frame=frame_name)
     top = 16 + 20 * len(pic.title_lines)
     panel = pic.panel((62, top, int(0.68 * w), h - 30), bounds_of(map_xy, *lines, *truths))
     legend = pic.legend
