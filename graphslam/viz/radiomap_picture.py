@@ -1,4 +1,4 @@
-"""``radio_map.png``: is the survey good enough? What Anyplace users look at (``graphslam.viz.canvas``).
+"""``radio_map.png``: is the survey good enough? What Anyplace users look at (``graphslam.io.canvas``).
 
 Panel 1, coverage: fingerprints per m^2 on a grid of ``cell_m`` cells. Panel 2, expected accuracy
 (``graphslam.core.radiomap.uncertainty.expected_accuracy``): per cell of ``ACCURACY_CELL_M`` (or the
@@ -38,7 +38,7 @@ from graphslam.core.common.geometry import se2_apply
 from graphslam.core.tracking.apmodel import ApModels
 from graphslam.errors import ConfigError
 from graphslam.io.heatmap import MAX_STD_ERROR_DB, RSS_RANGE_DBM, heatmap_rgba
-from graphslam.viz.canvas import MAGMA_R, RDYLGN_R, VIRIDIS, Panel, Picture, colour_map, font
+from graphslam.io.canvas import MAGMA_R, RDYLGN_R, VIRIDIS, Panel, Picture, colour_map, font
 from graphslam.viz.common import FloorPlan, top_access_points
 
 SIZE_PX = (1600, 1000)

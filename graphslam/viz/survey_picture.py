@@ -1,4 +1,4 @@
-"""``survey.png``: the aligned survey at a glance (``graphslam.viz.canvas``: Pillow, fast).
+"""``survey.png``: the aligned survey at a glance (``graphslam.io.canvas``: Pillow, fast).
 
 Every aligned walk in its own colour (the colours of the Rerun views), the reference walk
 marked at its first pose (the origin of the output frame), the WiFi edges faint by their
@@ -45,7 +45,7 @@ from graphslam.viz.common import (
     FloorPlan, LandmarkMarks, fitted_site_from_aligned, landmark_marks, session_colours, site_to_frame,
     survey_folder_trajectories,
 )
-from graphslam.viz.canvas import BLACK, GREY, LegendEntry, Picture, bounds_of
+from graphslam.io.canvas import BLACK, GREY, LegendEntry, Picture, bounds_of
 
 SIZE_PX = (1600, 1000)
 MAX_EDGES = 20_000  # drawn; more are subsampled (deterministically), the legend gives both counts
@@ -391,7 +391,7 @@ def _site_points(
 
 def _labels(panel: Any, points: tuple[list[str], NDArray], max_labels: int = 24) -> None:
     """Each point's id beside it (none when there are more than ``max_labels``)."""
-    from graphslam.viz.canvas import font
+    from graphslam.io.canvas import font
 
     ids, xy = points
     if len(ids) > max_labels:
@@ -403,7 +403,7 @@ def _labels(panel: Any, points: tuple[list[str], NDArray], max_labels: int = 24)
 
 def _north_arrow(panel: Any, north: NDArray) -> None:
     """An arrow pointing north (unit vector ``north`` in the panel's metres), top right, with an N."""
-    from graphslam.viz.canvas import font
+    from graphslam.io.canvas import font
 
     w, _ = panel.image.size
     c = np.array([w - 34.0, 52.0])  # pixel centre (y down)
@@ -421,7 +421,7 @@ def _north_arrow(panel: Any, north: NDArray) -> None:
 def _component_strip(pic: Picture, scene: SurveyScene, others: list[tuple[int, tuple[str, ...], str]],
                      box: tuple[int, int, int, int]) -> None:
     """The largest other components, a small panel each (own frame, own scale), side by side in ``box``."""
-    from graphslam.viz.canvas import font
+    from graphslam.io.canvas import font
 
     x0, y0, x1, y1 = box
     shown = sorted(others, key=lambda c: (-len(c[1]), -sum(len(scene.tracks[s]) for s in c[1]), c[0]))[:MAX_INSETS]

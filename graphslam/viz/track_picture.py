@@ -1,6 +1,6 @@
 """``track.png`` / ``positions.png``: walks tracked (``graphslam track``) or scans located
 (``graphslam locate``) on a radio map, with the truth when the recordings carry it
-(``graphslam.viz.canvas``: Pillow, fast).
+(``graphslam.io.canvas``: Pillow, fast).
 
 Everything is drawn in the radio map's frame: the estimates as they are, the truth moved
 into it by the caller (``graphslam.app.pictures`` knows the frames). Each session has its
@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graphslam.core.summary import plural
-from graphslam.viz.canvas import BLACK, LegendEntry, Picture, bounds_of
+from graphslam.io.canvas import BLACK, LegendEntry, Picture, bounds_of
 from graphslam.viz.common import session_colours
 
 SIZE_PX = (1400, 1000)
