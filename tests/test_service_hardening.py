@@ -159,6 +159,18 @@ def test_serve_log_level_drops_the_access_line(tmp_path: Path) -> None:
     assert "POST /v1/locate" not in logs["warning"] and "Traceback" not in logs["warning"]
 
 
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_serve_a_bad_map_is_one_line_and_exit_2(tmp_path: Path, workers: str) -> None:
+    bad = tmp_path / "bad.parquet"
+    bad.write_bytes(b"not a parquet file")
+    p = subprocess.run([sys.executable, "-m", "graphslam", "serve", "--radio-map", str(bad), "--port", "0",
+                        "--workers", workers], capture_output=True, text=True, timeout=120)
+    lines = (p.stdout + p.stderr).strip().splitlines()
+    # the map's error alone: no "serving ... on http://..." line before it
+    assert p.returncode == 2 and len(lines) == 1, lines
+    assert lines[0].startswith(f"error: {bad}: not a readable Parquet file"), lines
+
+
 def test_concurrent_single_requests_each_get_their_own_answer(server: BackgroundServer) -> None:
     rng = np.random.default_rng(5)
     scans = [{f"ap{j}": float(rng.integers(-90, -40)) for j in rng.choice(12, 4, replace=False)} for _ in range(64)]
