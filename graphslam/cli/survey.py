@@ -56,7 +56,7 @@ def inspect(
 def survey(
     paths: List[Path] = typer.Argument(..., help="Recordings (.mcap) or folders of them."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (created)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config (see configs/default.yaml)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config (`graphslam config show` prints the defaults)."),
     set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value, e.g. wifi.d_min_m=3."),
     rerun: Optional[Path] = typer.Option(None, "--rerun", help="Also log the survey to this .rrd file."),
     floor_plan: Optional[Path] = typer.Option(None, "--floor-plan", help="Image drawn under survey.png and in Rerun."),
