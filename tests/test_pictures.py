@@ -117,8 +117,8 @@ def test_plot_redraws_the_folder_over_a_floor_plan_with_floor_info(corridor_run:
     assert _colours_present(img, session_colours(result.alignment.session_ids)) == set(result.alignment.tracks)
     # the plan is underneath (drawn at alpha 0.85 over white)
     assert (np.abs(img - np.array([255, 225, 140])).max(axis=2) <= 12).sum() > 2_000
-    with Image.open(out / "radio_map.png") as im:
-        assert im.size == radiomap_picture.SIZE_PX
+    with Image.open(out / "radio_map.png") as im:  # as wide as ever; no taller than the floor needs
+        assert im.size[0] == radiomap_picture.SIZE_PX[0] and im.size[1] <= radiomap_picture.SIZE_PX[1]
 
 
 @pytest.mark.parametrize(
@@ -166,7 +166,35 @@ def test_radio_map_picture_marks_fitted_aps(corridor_run: tuple, tmp_path: Path)
     radiomap_picture.draw_radio_map(rm, starred, aps=[bssid], ap_models=models)
     red = lambda p: int((np.abs(_rgb(p) - np.array([255, 0, 0])).max(axis=2) <= 30).sum())  # noqa: E731
     assert red(plain) == 0 and red(starred) > 30  # the fitted AP position: a red star
-    assert _rgb(plain).shape[:2] == radiomap_picture.SIZE_PX[::-1]
+    h, w = _rgb(plain).shape[:2]
+    assert w == radiomap_picture.SIZE_PX[0] and radiomap_picture.MIN_HEIGHT_PX <= h <= radiomap_picture.SIZE_PX[1]
+
+
+def _radio_map(width_m: float, height_m: float, n: int = 600) -> object:
+    from graphslam.core.radiomap.radiomap import RadioMap
+
+    rng = np.random.default_rng(0)
+    xy = np.column_stack([rng.uniform(0, width_m, n), rng.uniform(0, height_m, n)])
+    aps = [(width_m * (j + 0.5) / 10, height_m / 2) for j in range(10)]
+    scans = [{f"ap{j}": float(-40 - 0.3 * np.hypot(p[0] - a[0], p[1] - a[1])) for j, a in enumerate(aps)} for p in xy]
+    return RadioMap.from_scans(scans, xy, session_ids=[f"s{i % 4}" for i in range(n)], t_ns=np.arange(n), frame="site")
+
+
+def test_radio_map_picture_fits_a_wide_floor() -> None:
+    """A 200 m x 20 m floor: the panels run wide, two a row, and the picture is no taller than they
+    need; the floor covers far more of it than on a grid of panels shaped for a square floor."""
+    def covered(pic: object, w: float, h: float) -> float:
+        return sum(p.scale ** 2 * w * h for p in pic.panels) / (pic.size[0] * pic.size[1])  # type: ignore[attr-defined]
+
+    wide = radiomap_picture.radio_map_picture(_radio_map(200.0, 20.0))
+    assert len(wide.panels) == 7 and wide.size[0] == radiomap_picture.SIZE_PX[0] and wide.size[1] < 900
+    boxes = [p.box for p in wide.panels]
+    assert all((b[2] - b[0]) > 4 * (b[3] - b[1]) for b in boxes)  # wide panels for a wide floor
+    assert len({b[0] for b in boxes}) == 2  # two columns
+    assert covered(wide, 200.0, 20.0) > 0.12  # ~0.05 with the square floor's 3 x 3 grid
+    # a floor about as wide as it is tall keeps three panels a row
+    square = radiomap_picture.radio_map_picture(_radio_map(120.0, 80.0))
+    assert len({p.box[0] for p in square.panels}) == 3 and covered(square, 120.0, 80.0) > 0.25
 
 
 def test_track_and_locate_draw_one_colour_per_session(corridor_run: tuple, capsys: pytest.CaptureFixture) -> None:
