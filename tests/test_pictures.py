@@ -262,3 +262,58 @@ def test_radio_map_picture_has_the_expected_accuracy_panel(corridor_run: tuple, 
     assert colourful(walks) > 200 and grey(walks) < 20
     alone = accuracy_panel(lone, "alone.png")  # one walk: its cells grey, nothing to compare
     assert colourful(alone) == 0 and grey(alone) > 200
+
+
+def test_survey_png_draws_control_points_apart_from_landmarks(tmp_path: Path) -> None:
+    """Control points (given: they tie the walks that mark them) in their own marker and colour, at
+    their site positions; the other landmarks (evaluation only) as crosses; plot redraws them from
+    report.json."""
+    sim = simulate("crowd", seed=0, size=0.25)
+    marks: dict[str, tuple[float, float]] = {}
+    for s in sim.survey:
+        write_session(s, tmp_path / "rec" / f"{s.session_id}.mcap")
+        for m in s.landmarks:
+            marks.setdefault(m.landmark_id, (m.x, m.y))
+    cps = dict(list(marks.items())[:4])
+    res = run_survey([tmp_path / "rec"], tmp_path / "out", control_points=cps)
+    assert res.report["frame"] == "site" and res.report["control_points"] == {k: list(v) for k, v in cps.items()}
+    for scene in (survey_picture.scene_of_alignment(res.survey, res.alignment, GraphSlamConfig(), res.evaluation),
+                  survey_picture.scene_of_folder(tmp_path / "out", [tmp_path / "rec"])):
+        assert dict(scene.control_points) == cps
+        pic = survey_picture.survey_picture(scene)
+        texts = [e.text for e in pic.legend]
+        assert any(t.startswith("4 control points (given, site frame") for t in texts), texts
+        assert "landmark truth (evaluation only)" in texts
+        kinds = {e.kind for e in pic.legend if e.text.startswith("4 control points")}
+        assert kinds == {"diamond"}
+        # each control point drawn at its site position: the diamond's colour there, in the panel
+        panel = pic.panels[0]
+        img = np.asarray(panel.image).astype(int)
+        for x, y in cps.values():
+            i, j = (int(round(v)) for v in panel.px(np.array([[x, y]]))[0])
+            near = img[max(0, j - 3):j + 4, max(0, i - 3):i + 4]
+            assert (np.abs(near - np.array(survey_picture.CONTROL)).max(axis=2) <= 10).any(), (x, y)
+    # a survey without control points draws none
+    plain = survey_picture.scene_of_alignment(res.survey, dataclasses.replace(res.alignment, control_points={}),
+                                              GraphSlamConfig(), res.evaluation)
+    assert not any("control point" in e.text for e in survey_picture.survey_picture(plain).legend)
+
+
+def test_the_uwb_surveys_picture_shows_its_anchors(tmp_path: Path) -> None:
+    from graphslam.sim.uwb.scenarios import CROWD_ANCHORS, CrowdUwb, simulate_crowd
+
+    crowd = simulate_crowd(1, CrowdUwb(n_walkers=4, duration_min=(2.0, 2.5)))
+    crowd.write(tmp_path / "rec")
+    res = run_survey([tmp_path / "rec"], tmp_path / "out")
+    assert res.alignment.frame == "site"
+    scene = survey_picture.scene_of_alignment(res.survey, res.alignment, GraphSlamConfig(), res.evaluation)
+    assert sorted(scene.anchors.values()) == sorted(CROWD_ANCHORS)
+    img = _rgb(tmp_path / "out" / "survey.png")
+    orange = (np.abs(img - np.array(survey_picture.ANCHOR)).max(axis=2) <= 10).sum()
+    assert orange > 4 * 100  # four anchors, ~15 x 15 px each
+    with Image.open(tmp_path / "out" / "survey.png") as im:
+        assert "placed by the UWB anchors" in im.text["Title"]
+    texts = [e.text for e in survey_picture.survey_picture(scene).legend]
+    assert any(t.startswith("4 UWB anchors") for t in texts)
+    # plot with the recordings draws them too (their positions are the recordings')
+    assert sorted(survey_picture.scene_of_folder(tmp_path / "out", [tmp_path / "rec"]).anchors.values()) == sorted(CROWD_ANCHORS)

@@ -53,6 +53,22 @@ def answer_errors(
     T, why = site_from_map(radio_map_path, frame, site_from_map_xyt)
     if T is None:
         return {"evaluated": False, "frame": frame, "reason": why}
+    return errors_in_site_frame(answers, survey, T, frame, why)
+
+
+def errors_in_site_frame(
+    answers: Mapping[str, tuple[NDArray[np.int64], NDArray[np.float64]]],
+    survey: Survey,
+    T: NDArray[np.float64],
+    frame: str,
+    why: str,
+) -> dict[str, Any] | None:
+    """``answer_errors`` with the answers (in ``frame``) placed in the truth's site frame by ``T``
+    (x, y, theta; ``why``: what placed them); None when the recordings carry no truth and no marks."""
+    has_truth = any(s.ground_truth is not None for s in survey if s.session_id in answers)
+    has_marks = any(s.landmarks for s in survey if s.session_id in answers)
+    if not (has_truth or has_marks):
+        return None
     truth_e, mark_e = [], []
     for s in survey:
         if s.session_id not in answers:
