@@ -512,7 +512,7 @@ class SelfCalibration:
             task.advance(info="replaying the map's walks")
             half = cls(float(kappa), float(floor), 1.0, temper)
             scale = replay_covariance_scale(rm, *half.apply(model, cfg), area=area) if cfg.calibration.replay_sessions > 0 else 1.0
-            task.advance()
+            task.advance(info="")  # done: the replay's own line said it
         log.info("track: self-calibration: RSSI variance x %.2f, kNN fix std floor %.2f m, covariance x %.2f, "
                  "heading bank temper %.2f", kappa, floor, scale, temper)
         return cls(float(kappa), float(floor), float(scale), float(temper))
