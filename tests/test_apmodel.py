@@ -345,6 +345,15 @@ def test_track_keeps_its_self_calibration_in_the_cache_folder(tiny_case, tmp_pat
     assert len(measured) == 1  # reused
     np.testing.assert_array_equal(again.tracks[0].x, first.tracks[0].x)
     np.testing.assert_array_equal(again.tracks[0].P, first.tracks[0].P)
+    # an offline smoother post-processes its filter's run: `--filter ekf --smooth map|rts` reuses the
+    # EKF's kept calibration, and smooths what the calibrated EKF would track
+    for smoother in ("map", "rts"):
+        smoothed = T.track_files(rm_path, walk, cfg=cfg.updated({"filter.smoother": smoother}))
+        assert len(measured) == 1 and len(list(cache.parent.iterdir())) == 1, smoother
+        fresh = T.track_files(rm_path, walk, cfg=cfg.updated({"filter.smoother": smoother}), calibration_cache=False)
+        assert len(measured) == 2, smoother  # measured anew: the same calibration as the one kept
+        measured.pop()
+        np.testing.assert_array_equal(smoothed.tracks[0].P, fresh.tracks[0].P)
     T.track_files(rm_path, walk, cfg=cfg.updated({"knn_fixes.k": 5}))
     assert len(measured) == 2  # another configuration: another calibration, kept beside the first
     assert len(list(cache.parent.iterdir())) == 2

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterable
 
 from graphslam.core.tracking.apmodel import ApModels
-from graphslam.core.tracking.tracker import SelfCalibration, SessionTrack, Tracker
+from graphslam.core.tracking.tracker import SelfCalibration, SessionTrack, Tracker, calibration_config
 from graphslam.errors import ConfigError, OutputError
 from graphslam.io.atomic import atomic_open, atomic_write_text
 from graphslam.tracking_config import DEFAULTS, TrackConfig
@@ -232,7 +232,9 @@ def prepare_track(
     cache = key = cached = None
     if cfg.calibration.enabled and calibration_cache:
         models_source = Path(ap_models_path) if ap_models_path is not None else beside if beside.exists() else None
-        key = _calibration_key(Path(radio_map_path), models_source, models, cfg, plan.path if plan is not None else None)
+        # the smoother left out: `--smooth` reuses its filter's kept calibration (core.tracking.tracker)
+        key = _calibration_key(Path(radio_map_path), models_source, models, calibration_config(cfg),
+                               plan.path if plan is not None else None)
         cache = calibration_path(cache_dir, key)
         cached = _read_calibration(cache, key)
     calibrate = cfg.calibration.enabled and cached is None

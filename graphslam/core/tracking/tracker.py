@@ -511,7 +511,10 @@ class SelfCalibration:
                     log.info("track: no fix error correlation (%s)", e)
             task.advance(info="replaying the map's walks")
             half = cls(float(kappa), float(floor), 1.0, temper)
-            scale = replay_covariance_scale(rm, *half.apply(model, cfg), area=area) if cfg.calibration.replay_sessions > 0 else 1.0
+            # the online tracker's replay: an offline smoother takes its filter's calibration (one
+            # calibration kept per map and filter, ``calibration_config``), not a replay of its own
+            online = calibration_config(cfg)
+            scale = replay_covariance_scale(rm, *half.apply(model, online), area=area) if cfg.calibration.replay_sessions > 0 else 1.0
             task.advance(info="")  # done: the replay's own line said it
         log.info("track: self-calibration: RSSI variance x %.2f, kNN fix std floor %.2f m, covariance x %.2f, "
                  "heading bank temper %.2f", kappa, floor, scale, temper)
@@ -525,6 +528,12 @@ class SelfCalibration:
             "fixed_lag.bank_temper": self.bank_temper if cfg.fixed_lag.bank_temper is None else cfg.fixed_lag.bank_temper,
         })
         return model, cfg
+
+
+def calibration_config(cfg: TrackConfig) -> TrackConfig:
+    """What the self-calibration depends on of ``cfg``: all of it but the offline smoother (the
+    smoothers post-process their filter's run, so ``--smooth`` reuses the filter's calibration)."""
+    return cfg if cfg.filter.smoother == "none" else cfg.updated({"filter.smoother": "none"})
 
 
 def self_calibrated(rm: RadioMap, models: ApModels, model: FusionModel, cfg: TrackConfig) -> tuple[FusionModel, TrackConfig]:
