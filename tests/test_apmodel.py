@@ -44,6 +44,24 @@ def test_noisy_readings_with_outliers_recover_the_ap_with_honest_uncertainty():
     assert np.all(np.linalg.eigvalsh(np.array(a.cov)) > 0)
 
 
+def test_p0_is_bounded_by_what_a_physical_ap_gives_at_1_m():
+    """Walls' losses grow with distance and read as a steep law with an unphysically strong AP (the
+    simulator's floors fitted P0 of -1 to -3 dBm with gamma ~5): P0 stops at the ceiling, -10 dBm,
+    and the fit is kept there (gamma and position adjusted); a fit at the floor (-90) is rejected."""
+    rng = np.random.default_rng(3)
+    xy = rng.uniform([-5, -10], [25, 15], (400, 2))
+    d = np.sqrt(((xy - AP) ** 2).sum(1) + 1.0)
+    steep = -1.0 - 10 * 5.5 * np.log10(d) + rng.normal(0, 2.0, len(d))
+    a = fit_ap("steep", xy, steep)
+    assert ApFitConfig().p0_bounds_dbm[1] == -10.0
+    assert isinstance(a, ApModel) and a.p0_dbm == pytest.approx(-10.0, abs=1e-6), a
+    assert 4.0 < a.gamma < 6.0 and np.hypot(a.x - AP[0], a.y - AP[1]) < 2.0
+    unbounded = fit_ap("steep", xy, steep, ApFitConfig(p0_bounds_dbm=(-90.0, 0.0)))
+    assert isinstance(unbounded, ApModel) and unbounded.p0_dbm > -5.0  # what it fitted before the ceiling
+    weak = fit_ap("weak", xy, -120.0 - 10 * 1.2 * np.log10(d) + rng.normal(0, 2.0, len(d)))
+    assert isinstance(weak, UnfittedAp) and "implausible P0" in weak.reason
+
+
 def test_unfittable_aps_are_reported_with_a_reason():
     rng = np.random.default_rng(2)
     xy, rss = _readings(rng, n=10)
