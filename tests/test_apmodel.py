@@ -392,10 +392,20 @@ def test_track_keeps_its_self_calibration_in_the_cache_folder(tiny_case, tmp_pat
 
 
 def test_track_cli_particle_filter_follows_the_walk_and_has_no_offline_smoother(tiny_case, capsys):
+    import json
+
     from graphslam.cli import main
 
-    d, _ = tiny_case
+    d, session = tiny_case
+    capsys.readouterr()
     rows, err = _track_rows_and_errors(tiny_case, "positions_pf.csv", "--filter", "particle")
+    # it weighs every scan's readings of modelled APs (Huber, none gated): it says how many
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    from graphslam.io.radiomap_io import read_radio_map
+
+    modelled = {a.bssid for a in ApModels.fit(read_radio_map(d / "radio_map.parquet")).fitted}
+    heard = sum(len(set(sc.readings) & modelled) for sc in session.scans)
+    assert 0 < printed["rssi_used"] <= heard and printed["rssi_gated"] == 0, (printed, heard)
     assert all(float(r["cov_xx"]) > 0 and float(r["cov_yy"]) > 0 for r in rows)
     assert err[len(err) // 2 :].mean() < 4.0, err.mean()
     bad = d / "positions_pf_map.csv"

@@ -417,7 +417,7 @@ def _track_particles(session: Session, model: FusionModel, locator: KnnLocator, 
     P = np.zeros((n, 7, 7))
     P[:, :2, :2] = run.cov
     P[:, 6, 6] = run.phi_var
-    return SessionTrack(session.session_id, steps.t_ns.copy(), x, P, np.zeros(n, np.int64), 0, 0)
+    return SessionTrack(session.session_id, steps.t_ns.copy(), x, P, np.zeros(n, np.int64), run.rssi_used, 0)
 
 
 def _area_m2(rm: RadioMap) -> float:
