@@ -234,13 +234,17 @@ def evaluate(
 
         landmark_histogram(ev, plot)
     lm, raw = ev.landmarks, ev.landmarks_raw
+
+    def mm(v: float) -> float:  # printed to the millimetre (and the millidegree), as locate's and track's figures
+        return round(float(v), 3)
+
     summary = {
         "component": component,
         "walks": len(tracks),
-        "landmarks": {k: getattr(lm, k) for k in ("n", "mean_m", "median_m", "p90_m", "max_m")},
-        "raw_landmarks_mean_m": raw.mean_m,
-        "heading_mean_deg": ev.heading_mean_deg,
-        "steps_mean_m": ev.steps.mean_m,
+        "landmarks": {k: getattr(lm, k) if k == "n" else mm(getattr(lm, k)) for k in ("n", "mean_m", "median_m", "p90_m", "max_m")},
+        "raw_landmarks_mean_m": mm(raw.mean_m),
+        "heading_mean_deg": mm(ev.heading_mean_deg),
+        "steps_mean_m": mm(ev.steps.mean_m),
     }
     typer.echo(json.dumps(json_safe(summary)))
 
