@@ -275,7 +275,7 @@ def test_survey_png_draws_control_points_apart_from_landmarks(tmp_path: Path) ->
         for m in s.landmarks:
             marks.setdefault(m.landmark_id, (m.x, m.y))
     cps = dict(list(marks.items())[:4])
-    res = run_survey([tmp_path / "rec"], tmp_path / "out", control_points=cps)
+    res = run_survey(SurveyInputs((tmp_path / "rec",), tmp_path / "out", control_points=cps))
     assert res.report["frame"] == "site" and res.report["control_points"] == {k: list(v) for k, v in cps.items()}
     for scene in (survey_picture.scene_of_alignment(res.survey, res.alignment, GraphSlamConfig(), res.evaluation),
                   survey_picture.scene_of_folder(tmp_path / "out", [tmp_path / "rec"])):
@@ -304,7 +304,7 @@ def test_the_uwb_surveys_picture_shows_its_anchors(tmp_path: Path) -> None:
 
     crowd = simulate_crowd(1, CrowdUwb(n_walkers=4, duration_min=(2.0, 2.5)))
     crowd.write(tmp_path / "rec")
-    res = run_survey([tmp_path / "rec"], tmp_path / "out")
+    res = run_survey(SurveyInputs((tmp_path / "rec",), tmp_path / "out"))
     assert res.alignment.frame == "site"
     scene = survey_picture.scene_of_alignment(res.survey, res.alignment, GraphSlamConfig(), res.evaluation)
     assert sorted(scene.anchors.values()) == sorted(CROWD_ANCHORS)

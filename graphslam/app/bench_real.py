@@ -98,8 +98,8 @@ def _real_row(inputs: SurveyInputs, variant: str, cfg: GraphSlamConfig) -> dict[
     """One floor (``inputs``: its folder, no files written) surveyed under one variant, scored per component.
 
     ``main``: walks in component 0, first, with ``other_walks`` in ``other_components`` and
-    ``unaligned`` (``main_map``: the same as ``graphslam survey``'s first line); ``main_mean_m`` (= ``mean_m``) / ``p90_m`` / ``max_m`` its
-    landmark errors after one SE(2) fit, ``main_site_mean_m`` with no fit when it is in the site
+    ``unaligned`` (``main_map``: the same as ``graphslam survey``'s first line); ``main_mean_m``
+    (= ``mean_m``) / ``p90_m`` / ``max_m`` its landmark errors after one SE(2) fit, ``main_site_mean_m`` with no fit when it is in the site
     frame (control points; else None); ``walks_in_components_of_5_or_more``, its fraction of the
     walks read and ``components_of_5_or_more_mean_m`` (each such component's mean error after its own
     fit, weighted by its walks; components without 2 marks left out), the same for components of 4
