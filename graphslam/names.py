@@ -26,6 +26,15 @@ WALKABLE_MODES = ("snap", "prior", "both")
 SCENARIOS = ("paper", "corridor", "crowd", "museum")
 UWB_SCENARIOS = ("zones", "crowd")
 
+# the frame of a survey's main map (report.json ``frame``), named so in every file and answer made
+# from it: the radio map's metadata, the CSVs' ``frame`` column, the pictures, the service's JSON
+FRAMES = ("aligned", "earth", "site")
+FRAME_DESCRIPTIONS = {
+    "aligned": "aligned: origin at the reference walk's first pose, x along its first heading (metres)",
+    "earth": "earth: x east, y north (phones' headings), origin at the reference walk's first pose",
+    "site": "site: the site frame of the control points or UWB anchors (metres)",
+}
+
 # graphslam export: trajectory file formats (TUM and KITTI as evo reads them) and frames
 EXPORT_FORMATS = ("tum", "kitti", "csv")
 EXPORT_FRAMES = ("map", "site")

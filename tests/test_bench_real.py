@@ -23,15 +23,18 @@ from graphslam.io.mcap_writer import write_session
 from graphslam.sim import simulate
 
 ROW_FIELDS = {
-    "floor", "variant", "walks", "aligned", "aligned_fraction", "main", "main_fraction", "landmarks",
+    "floor", "variant", "walks", "aligned", "aligned_fraction", "main", "main_fraction", "other_walks",
+    "other_components", "unaligned", "main_map", "landmarks",
     "main_mean_m", "main_site_mean_m", "mean_m", "p90_m", "max_m", "components",
     "walks_in_components_of_5_or_more", "walks_in_components_of_5_or_more_fraction",
-    "components_of_5_or_more_mean_m", "walks_over_6m", "walks_over_10m", "walks_over_15m", "frame", "control_points",
-    "reference_map",
+    "components_of_5_or_more_mean_m", "walks_in_components_of_4_or_more",
+    "walks_in_components_of_4_or_more_fraction", "components_of_4_or_more_mean_m",
+    "walks_over_6m", "walks_over_10m", "walks_over_15m", "frame", "control_points", "reference_map",
     "per_walk_rigid_fit_mean_m", "initialization", "placement", "loop_consistency", "reliable", "confidence",
     "time_s",
 }
-FRACTIONS = ("aligned_fraction", "main_fraction", "walks_in_components_of_5_or_more_fraction")
+FRACTIONS = ("aligned_fraction", "main_fraction", "walks_in_components_of_5_or_more_fraction",
+             "walks_in_components_of_4_or_more_fraction")
 
 
 # ---------------------------------------------------------------- component_errors, by hand
@@ -98,6 +101,20 @@ def test_each_component_gets_its_own_fit_and_one_in_a_frame_of_its_own_scores_ze
     assert d2["n"] == 0 and d2["mean_m"] is None and d2["walks"] == 1
     # not in the site frame: no unfitted figures
     assert c0.site is None and "site_mean_m" not in c0.as_dict()
+
+
+def test_components_of_4_walks_count_in_the_4_or_more_figures_only(hand_survey: Survey) -> None:
+    from graphslam.app.bench_real import big_component_figures
+
+    truth = {s.session_id: s.steps for s in hand_survey}
+    tracks = {sid: truth[sid] for sid in "ab"} | {sid: _moved(truth[sid], (0.0, 3.0 * (sid == "f"), 0.0)) for sid in "cdef"}
+    al = _alignment(tracks, [["a", "b"], ["c", "d", "e", "f"]])  # component 1: four walks, f 3 m off the others
+    comps = component_errors(al, hand_survey, site_frame=False)
+    four, five = big_component_figures(comps, 6, 4), big_component_figures(comps, 6, 5)
+    assert four["walks_in_components_of_4_or_more"] == 4 and four["walks_in_components_of_4_or_more_fraction"] == 0.667
+    assert four["components_of_4_or_more_mean_m"] == round(comps[1].landmarks.mean_m, 2) > 0
+    assert five == {"walks_in_components_of_5_or_more": 0, "walks_in_components_of_5_or_more_fraction": 0.0,
+                    "components_of_5_or_more_mean_m": None}
 
 
 def test_a_walk_displaced_inside_its_component_counts_over_10m(hand_survey: Survey) -> None:
@@ -178,9 +195,15 @@ def test_one_line_per_floor_and_variant_then_a_summary_per_variant(floors: Path,
     for r in rows:
         assert set(r) == ROW_FIELDS
         assert r["walks"] == 12
+        # the main map counted first, as `graphslam survey` counts it
+        assert list(r)[:5] == ["floor", "variant", "walks", "main", "main_fraction"]
+        assert r["main"] + r["other_walks"] + r["unaligned"] == r["walks"] and r["aligned"] == r["main"] + r["other_walks"]
+        assert r["main_map"].startswith(f"main map: {r['main']} of 12 walks; {r['other_walks']} in ")
         assert 0 < r["main"] <= r["aligned"] <= r["walks"]
         assert 1 <= r["components"] <= r["aligned"]
-        assert r["walks_in_components_of_5_or_more"] <= r["aligned"]
+        assert r["walks_in_components_of_5_or_more"] <= r["walks_in_components_of_4_or_more"] <= r["aligned"]
+        if r["walks_in_components_of_4_or_more"] == r["walks_in_components_of_5_or_more"]:  # the same components
+            assert r["components_of_4_or_more_mean_m"] == r["components_of_5_or_more_mean_m"]
         for f in FRACTIONS:
             assert 0.0 <= r[f] <= 1.0
         assert r["main_fraction"] == round(r["main"] / r["walks"], 3)
@@ -203,6 +226,8 @@ def test_one_line_per_floor_and_variant_then_a_summary_per_variant(floors: Path,
         mine = [r for r in rows if r["variant"] == s["summary"]]
         assert s["floors"] == len(mine) and s["walks"] == sum(r["walks"] for r in mine)
         assert s["main"] == sum(r["main"] for r in mine)
+        assert s["walks_in_components_of_4_or_more"] == sum(r["walks_in_components_of_4_or_more"] for r in mine)
+        assert s["main_map"].startswith(f"main maps: {s['main']} of {s['walks']} walks; ")
         assert s["walks_over_10m"] == sum(r["walks_over_10m"] for r in mine)
         assert 0.0 <= s["main_fraction"] <= 1.0
     assert summaries[3]["main_mean_m"] == cp["main_mean_m"]

@@ -92,5 +92,5 @@ def test_a_survey_through_the_console_entry(tmp_path: Path) -> None:
     p = subprocess.run([sys.executable, "-m", "graphslam", "survey", str(tmp_path / "rec"), "--out",
                         str(tmp_path / "out"), "--no-progress"], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
-    assert p.stdout.startswith("aligned ") and (tmp_path / "out" / "report.json").is_file()
+    assert p.stdout.startswith("main map: ") and (tmp_path / "out" / "report.json").is_file()
     assert (tmp_path / "out" / "radio_map.parquet").is_file() and (tmp_path / "out" / "survey.png").is_file()

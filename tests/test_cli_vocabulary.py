@@ -88,3 +88,38 @@ def test_help_lists_the_choices(command: list[str], shown: list[str]) -> None:
     assert p.returncode == 0, p.stderr
     for text in shown:
         assert text in p.stdout, (command, text, p.stdout)
+
+
+def test_usage_lines_name_arguments_as_metavariables() -> None:
+    """``Usage: graphslam survey [OPTIONS] PATHS...``, not typer's ``{paths}...``; the errors say the same."""
+    from typer.testing import CliRunner
+
+    runner = CliRunner()
+    for where, cmd in COMMANDS.items():
+        res = runner.invoke(app, [*where.split()[1:], "--help"], env={"COLUMNS": "250"}, prog_name="graphslam")
+        assert res.exit_code == 0, (where, res.output)
+        usage = res.output.splitlines()[0]
+        assert usage.startswith(f"Usage: {where} [OPTIONS]") and "{" not in usage and "}" not in usage, usage
+        for p in cmd.params:
+            if p.param_type_name == "argument":
+                assert p.name.upper() in usage, (where, usage)
+    assert runner.invoke(app, ["survey", "--help"], prog_name="graphslam").output.startswith("Usage: graphslam survey [OPTIONS] PATHS...\n")
+    assert "evaluate [OPTIONS] TRAJECTORIES PATHS..." in runner.invoke(app, ["evaluate", "--help"], prog_name="graphslam").output
+    p = subprocess.run([sys.executable, "-m", "graphslam", "survey"], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and "Missing argument 'PATHS...'" in p.stderr, p.stderr
+
+
+def test_config_show_prints_the_default_configurations(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """What the README passes to --config, wherever graphslam is installed (configs/ is in the clone only)."""
+    from graphslam.config import GraphSlamConfig, load_config
+    from graphslam.tracking_config import TrackConfig, load_track_config
+
+    repo = __import__("pathlib").Path(__file__).resolve().parents[1]
+    for args, file, load, default in ((["config", "show"], "default.yaml", load_config, GraphSlamConfig()),
+                                      (["config", "show", "--track"], "track.yaml", load_track_config, TrackConfig())):
+        p = subprocess.run([sys.executable, "-m", "graphslam", *args], capture_output=True, text=True, timeout=120,
+                           cwd=tmp_path)
+        assert p.returncode == 0, p.stderr
+        assert p.stdout == (repo / "configs" / file).read_text()
+        (tmp_path / file).write_text(p.stdout)
+        assert load(tmp_path / file) == default

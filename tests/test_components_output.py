@@ -78,26 +78,35 @@ def split_run(floor: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Pa
 def test_trajectories_csv_has_the_component_of_every_walk_and_round_trips(split_run: tuple, tmp_path: Path) -> None:
     out, report = split_run
     lines = (out / "trajectories.csv").read_text().splitlines()
-    assert lines[0] == "session_id,t_ns,x,y,heading,component"
+    assert lines[0] == "session_id,t_ns,x,y,heading,component,frame"
+    # each walk's frame: the report's for the main map, one of its own for every other component
+    frames = {row.split(",")[0]: (int(row.split(",")[5]), row.split(",")[6]) for row in lines[1:]}
+    assert {f for c, f in frames.values() if c == 0} == {report["frame"]}
+    assert all(f == f"component_{c}" for c, f in frames.values() if c)
     expected = {sid: c["index"] for c in report["components"] for sid in c["walks"]}
     f = read_trajectory_file(out / "trajectories.csv")
     assert f.components == expected and sorted(set(expected.values())) == [0, 1, 2]
     assert set(read_trajectories(out / "trajectories.csv", component=0)) == set(report["components"][0]["walks"])
     # written again from what was read: the same file
-    again = write_trajectories(f.tracks, tmp_path / "again.csv", f.components)
+    assert f.frame == report["frame"]
+    again = write_trajectories(f.tracks, tmp_path / "again.csv", f.components, f.frame)
     assert again.read_text() == (out / "trajectories.csv").read_text()
-    # a file written before components (no column) reads as the main map
+    # a file written before the frame column reads as it did; one before components as the main map
+    before_frame = tmp_path / "v2.csv"
+    before_frame.write_text("\n".join(line.rsplit(",", 1)[0] for line in lines) + "\n")
+    f_v2 = read_trajectory_file(before_frame)
+    assert f_v2.components == f.components and f_v2.frame == ""
     old = tmp_path / "old.csv"
-    old.write_text("\n".join(line.rsplit(",", 1)[0] for line in lines) + "\n")
+    old.write_text("\n".join(line.rsplit(",", 2)[0] for line in lines) + "\n")
     f_old = read_trajectory_file(old)
     assert set(f_old.components.values()) == {0} and set(f_old.tracks) == set(f.tracks)
     np.testing.assert_allclose(f_old.tracks[lines[1].split(",")[0]].xy, f.tracks[lines[1].split(",")[0]].xy)
     # one walk in two components, or a negative component: the file is refused
     bad = tmp_path / "bad.csv"
-    bad.write_text("\n".join(lines[:3] + [lines[3].rsplit(",", 1)[0] + ",5"]) + "\n")
+    bad.write_text("\n".join(lines[:3] + [lines[3].rsplit(",", 2)[0] + ",5,component_5"]) + "\n")
     with pytest.raises(InputError, match="component"):
         read_trajectory_file(bad)
-    bad.write_text("\n".join(lines[:2] + [lines[2].rsplit(",", 1)[0] + ",-1"]) + "\n")
+    bad.write_text("\n".join(lines[:2] + [lines[2].rsplit(",", 2)[0] + ",-1,component_-1"]) + "\n")
     with pytest.raises(InputError, match="line 3"):
         read_trajectory_file(bad)
 
@@ -172,7 +181,13 @@ def test_survey_png_draws_the_other_components_apart(split_run: tuple) -> None:
     assert all(near(scene.colours[s]) < 5 for s in report["components"][0]["walks"])
     legend = " ".join(e.text for e in survey_picture.survey_picture(scene).legend)
     assert "4 walks in 2 other components" in legend and REASON in legend
+    # the title counts the main map first, as `survey`'s first line does (not "6/6 walks aligned")
+    counts = "main map: 2 of 6 walks; 4 in 2 other components; 0 unaligned"
+    with Image.open(png) as im:
+        assert im.text["Title"].startswith(counts), im.text["Title"]
     assert run_cli(["plot", str(out)]) == 0  # redrawn from the folder
+    with Image.open(png) as im:
+        assert im.text["Title"].startswith(counts), im.text["Title"]
 
 
 def test_earth_frame_has_a_north_note_and_many_singletons_are_counted_not_drawn() -> None:
@@ -190,6 +205,9 @@ def test_earth_frame_has_a_north_note_and_many_singletons_are_counted_not_drawn(
     assert any(t.startswith("north arrow") for t in legend)
     assert any("61 components" not in t and "60 components, 60 walks" in t for t in legend)
     assert any("smaller components (55 walks) not drawn" in t for t in legend)
+    # the walks' colours: those of the main map's 50 (not "120 aligned walks"), the others in the strip
+    assert any(t.startswith("50 walks of the main map, one colour each") for t in legend)
+    assert pic.title_lines[0].startswith("main map: 50 of 120 walks; 70 in 61 other components; 0 unaligned")
     assert len(pic.panels) == 1 + survey_picture.MAX_INSETS
     assert pic.render().size == survey_picture.SIZE_PX
 
@@ -246,6 +264,8 @@ def test_the_cli_prints_one_warning_line_on_stderr_and_exits_0(tmp_path: Path) -
     err = res.stderr.strip().splitlines()
     # the four walks without WiFi: unaligned, or components of their own, as the solver decides
     assert len(err) == 1 and "b9_f1" in err[0] and "the main map holds 2 of 6 walks; 4 are not in it" in err[0], err
+    # the first line printed says the same as the warning: the main map first
+    assert res.stdout.startswith("main map: 2 of 6 walks; "), res.stdout
     good = _floor_without_wifi(tmp_path, "b9_f2", keep=6)
     res = survey(good, tmp_path / "o2")
     assert res.returncode == 0 and "main map" not in res.stderr, res.stderr
@@ -278,7 +298,8 @@ def test_batch_counts_partial_floors_and_takes_each_floors_control_points(
     assert str(broken / "control_points.csv") in rows["broken"]["error"] and "[field y]" in rows["broken"]["error"]
     stdout = capsys.readouterr().out
     assert "3 floors: 1 ok, 1 partial, 1 failed" in stdout
-    assert "partial: sparse: sparse (sim-corridor/F1): the main map holds 2 of 6 walks" in stdout
+    assert f"partial: sparse: {rows['sparse']['main_map']} (under half of the walks in the main map" in stdout
+    assert rows["sparse"]["main_map"].startswith("main map: 2 of 6 walks; ")
     # partial floors alone: exit code 0
     (broken / "control_points.csv").unlink()
     assert run_cli(["survey-batch", str(sites), "--out", str(out), "--workers", "2", "--no-progress"]) == 0

@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -120,7 +121,7 @@ def test_locate_prints_its_errors_against_the_truth(surveyed, tmp_path, capsys) 
           "--no-picture"])
     res = json.loads(capsys.readouterr().out)
     ev = res["errors"]
-    assert ev["evaluated"] and "landmark fit" in ev["frame"]
+    assert ev["evaluated"] and ev["frame"] == res["frame"] == "earth" and "landmark fit" in ev["site_from_map"]
     assert ev["truth"]["n"] == res["located"] and 0 < ev["truth"]["median_m"] <= ev["truth"]["p90_m"] <= ev["truth"]["max_m"]
     assert ev["landmarks"]["n"] > 0  # the held-out walks mark landmarks too
     # the figure is what the CSV's answers, placed by the report's fit, are off the truth
@@ -145,5 +146,11 @@ def test_evaluate_on_another_survey_s_recordings_is_one_line_and_exit_2(surveyed
         cap = capsys.readouterr()
         lines = cap.err.strip().splitlines()
         assert e.value.code == 2 and len(lines) == 1 and text in lines[0] and cap.out == "", lines
-    main(["evaluate", str(out / "trajectories.csv"), str(data)])  # its own recordings: figures
-    assert json.loads(capsys.readouterr().out)["landmarks"]["n"] > 0
+    main(["evaluate", str(out / "trajectories.csv"), str(data), "-o", str(tmp_path / "ev.json")])  # its own recordings: figures
+    printed = capsys.readouterr().out
+    got = json.loads(printed)
+    assert got["landmarks"]["n"] > 0
+    # printed to the millimetre (as locate's and track's figures), not 16 digits; the file keeps them all
+    assert not re.search(r"\d\.\d{4,}", printed), printed
+    full = json.loads((tmp_path / "ev.json").read_text())
+    assert got["landmarks"]["mean_m"] == round(full["landmarks"]["mean_m"], 3)

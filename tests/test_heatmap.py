@@ -118,16 +118,44 @@ def test_heatmap_fades_uncertain_cells_and_writes_a_located_png() -> None:
     assert (rgba[known][:, :3].astype(int).sum(axis=1) > plain[known][:, :3].astype(int).sum(axis=1)).all()
     data = heatmap_png(f, frame="site")
     assert data.startswith(PNG_SIGNATURE)
-    with Image.open(io.BytesIO(data)) as im:
-        nx, ny = f.mean_dbm.shape
-        s = int(im.text["px_per_cell"])
-        assert im.size == (nx * s, ny * s) and im.text["bssid"] == "a" and im.text["frame"] == "site"
-        x0, x1, y0, y1 = (float(v) for v in im.text["extent_m"].split())
-        assert (x0, x1, y0, y1) == pytest.approx(f.extent, abs=1e-3)
-        assert str(MAX_STD_ERROR_DB).rstrip("0").rstrip(".") in im.text["faded"]
+    _check_located_picture(data, f, rgba, "site")
     # a frame name beyond Latin-1 (tEXt's alphabet) is written as UTF-8 text, not a failure
     with Image.open(io.BytesIO(heatmap_png(f, frame="楼 €"))) as im:
         assert im.text["frame"] == "楼 €" and im.text["bssid"] == "a"
+
+
+def _check_located_picture(data: bytes, f, rgba: np.ndarray, frame: str) -> None:  # type: ignore[no-untyped-def]
+    """The heatmap PNG reads on its own: the cells where ``panel_px`` says (whole pixels each, as
+    ``heatmap_rgba`` colours them), metre axes, a colour bar in dBm, a scale bar, a title."""
+    from graphslam.io.png import VIRIDIS, colour_map
+
+    with Image.open(io.BytesIO(data)) as im:
+        text = dict(im.text)
+        img = np.asarray(im.convert("RGB")).astype(int)
+    nx, ny = f.mean_dbm.shape
+    s = int(text["px_per_cell"])
+    left, top, right, bottom = (int(v) for v in text["panel_px"].split())
+    assert (right - left, bottom - top) == (nx * s, ny * s) and text["bssid"] == "a" and text["frame"] == frame
+    assert img.shape[1] > right + 60 and img.shape[0] > bottom + 20 and left >= 40 and top >= 40  # room for the rest
+    x0, x1, y0, y1 = (float(v) for v in text["extent_m"].split())
+    assert (x0, x1, y0, y1) == pytest.approx(f.extent, abs=1e-3)
+    assert str(MAX_STD_ERROR_DB).rstrip("0").rstrip(".") in text["faded"]
+    assert f"RSS of a over the radio map ({frame} frame, metres)" in text["Title"] and "faded" in text["Title"]
+    # every cell inside the surveyed area: its colour, at its place (column i from the left, row j from the bottom)
+    inside = np.argwhere(~f.outside)
+    for i, j in inside[:: max(1, len(inside) // 50)]:
+        px = img[bottom - j * s - s // 2 - 1, left + i * s + s // 2]
+        assert np.abs(px - rgba[i, j, :3].astype(int)).max() <= 1, (i, j)
+    # the colour bar right of the cells: viridis from its dark end (bottom) to its light end (top)
+    dark, light = colour_map(np.array([-100.0, -30.0]), -100.0, -30.0, VIRIDIS).astype(int)
+    bar = img[top + 1:bottom, right + 16:right + 29]  # inside its outline
+    assert (np.abs(bar[-1] - dark).max(axis=1) <= 40).all() and (np.abs(bar[0] - light).max(axis=1) <= 40).all()
+    shade = bar.sum(axis=(1, 2))
+    assert (np.diff(shade) <= 0).all() and shade[0] > shade[-1]  # light at the top, dark at the bottom
+    # axes: tick labels (dark text) under the cells and left of them; a scale bar (black) under the ticks
+    assert (img[bottom + 3:bottom + 20, left:right] < 100).any() and (img[top:bottom, :left - 4] < 100).any()
+    under = img[bottom + 24:, left:]
+    assert (np.abs(under).max(axis=2) < 30).sum() > 40
 
 
 def test_radio_map_picture_fades_uncertain_ap_cells(tmp_path: Path) -> None:
@@ -140,7 +168,7 @@ def test_radio_map_picture_fades_uncertain_ap_cells(tmp_path: Path) -> None:
     assert sum(f"faded: s.e. > {MAX_STD_ERROR_DB:g} dB" in text for _, text, _ in crowded.captions) == 2
     path = pic.save(tmp_path / "rm.png")
     with Image.open(path) as im:
-        assert im.size == radiomap_picture.SIZE_PX
+        assert im.size == pic.size and im.size[0] == radiomap_picture.SIZE_PX[0]
 
 
 def test_service_serves_an_aps_heatmap_png_per_map_generation(tmp_path: Path) -> None:
@@ -161,10 +189,8 @@ def test_service_serves_an_aps_heatmap_png_per_map_generation(tmp_path: Path) ->
         a = c.get("/v1/heatmap/a.png", headers=auth)
         assert a.status_code == 200 and a.headers["content-type"] == "image/png"
         assert a.content.startswith(PNG_SIGNATURE) and a.content == heatmap_png(rss_field(rm, "a"), frame="site")
-        with Image.open(io.BytesIO(a.content)) as im:
-            nx, ny = rss_field(rm, "a").mean_dbm.shape
-            s = int(im.text["px_per_cell"])
-            assert im.format == "PNG" and im.size == (nx * s, ny * s) and im.text["bssid"] == "a"
+        field = rss_field(rm, "a")
+        _check_located_picture(a.content, field, heatmap_rgba(field), "site")
         r = c.get(f"/v1/heatmap/{B}.png", headers=auth)
         assert r.status_code == 200 and Image.open(io.BytesIO(r.content)).text["bssid"] == B
         missing = c.get("/v1/heatmap/ff:ff:ff:ff:ff:ff.png", headers=auth)

@@ -59,7 +59,7 @@ def corridor_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, 
     from graphslam.io.radiomap_io import read_radio_map
 
     rm = read_radio_map(root / "out" / "radio_map.parquet")
-    write_ap_models(ApModels("aligned", 1.0, fitted, ()), root / "aps.json", radio_map=rm)
+    write_ap_models(ApModels(rm.frame, 1.0, fitted, ()), root / "aps.json", radio_map=rm)
     return root, root / "out", result
 
 
@@ -117,8 +117,8 @@ def test_plot_redraws_the_folder_over_a_floor_plan_with_floor_info(corridor_run:
     assert _colours_present(img, session_colours(result.alignment.session_ids)) == set(result.alignment.tracks)
     # the plan is underneath (drawn at alpha 0.85 over white)
     assert (np.abs(img - np.array([255, 225, 140])).max(axis=2) <= 12).sum() > 2_000
-    with Image.open(out / "radio_map.png") as im:
-        assert im.size == radiomap_picture.SIZE_PX
+    with Image.open(out / "radio_map.png") as im:  # as wide as ever; no taller than the floor needs
+        assert im.size[0] == radiomap_picture.SIZE_PX[0] and im.size[1] <= radiomap_picture.SIZE_PX[1]
 
 
 @pytest.mark.parametrize(
@@ -166,7 +166,35 @@ def test_radio_map_picture_marks_fitted_aps(corridor_run: tuple, tmp_path: Path)
     radiomap_picture.draw_radio_map(rm, starred, aps=[bssid], ap_models=models)
     red = lambda p: int((np.abs(_rgb(p) - np.array([255, 0, 0])).max(axis=2) <= 30).sum())  # noqa: E731
     assert red(plain) == 0 and red(starred) > 30  # the fitted AP position: a red star
-    assert _rgb(plain).shape[:2] == radiomap_picture.SIZE_PX[::-1]
+    h, w = _rgb(plain).shape[:2]
+    assert w == radiomap_picture.SIZE_PX[0] and radiomap_picture.MIN_HEIGHT_PX <= h <= radiomap_picture.SIZE_PX[1]
+
+
+def _radio_map(width_m: float, height_m: float, n: int = 600) -> object:
+    from graphslam.core.radiomap.radiomap import RadioMap
+
+    rng = np.random.default_rng(0)
+    xy = np.column_stack([rng.uniform(0, width_m, n), rng.uniform(0, height_m, n)])
+    aps = [(width_m * (j + 0.5) / 10, height_m / 2) for j in range(10)]
+    scans = [{f"ap{j}": float(-40 - 0.3 * np.hypot(p[0] - a[0], p[1] - a[1])) for j, a in enumerate(aps)} for p in xy]
+    return RadioMap.from_scans(scans, xy, session_ids=[f"s{i % 4}" for i in range(n)], t_ns=np.arange(n), frame="site")
+
+
+def test_radio_map_picture_fits_a_wide_floor() -> None:
+    """A 200 m x 20 m floor: the panels run wide, two a row, and the picture is no taller than they
+    need; the floor covers far more of it than on a grid of panels shaped for a square floor."""
+    def covered(pic: object, w: float, h: float) -> float:
+        return sum(p.scale ** 2 * w * h for p in pic.panels) / (pic.size[0] * pic.size[1])  # type: ignore[attr-defined]
+
+    wide = radiomap_picture.radio_map_picture(_radio_map(200.0, 20.0))
+    assert len(wide.panels) == 7 and wide.size[0] == radiomap_picture.SIZE_PX[0] and wide.size[1] < 900
+    boxes = [p.box for p in wide.panels]
+    assert all((b[2] - b[0]) > 4 * (b[3] - b[1]) for b in boxes)  # wide panels for a wide floor
+    assert len({b[0] for b in boxes}) == 2  # two columns
+    assert covered(wide, 200.0, 20.0) > 0.12  # ~0.05 with the square floor's 3 x 3 grid
+    # a floor about as wide as it is tall keeps three panels a row
+    square = radiomap_picture.radio_map_picture(_radio_map(120.0, 80.0))
+    assert len({p.box[0] for p in square.panels}) == 3 and covered(square, 120.0, 80.0) > 0.25
 
 
 def test_track_and_locate_draw_one_colour_per_session(corridor_run: tuple, capsys: pytest.CaptureFixture) -> None:
@@ -234,3 +262,58 @@ def test_radio_map_picture_has_the_expected_accuracy_panel(corridor_run: tuple, 
     assert colourful(walks) > 200 and grey(walks) < 20
     alone = accuracy_panel(lone, "alone.png")  # one walk: its cells grey, nothing to compare
     assert colourful(alone) == 0 and grey(alone) > 200
+
+
+def test_survey_png_draws_control_points_apart_from_landmarks(tmp_path: Path) -> None:
+    """Control points (given: they tie the walks that mark them) in their own marker and colour, at
+    their site positions; the other landmarks (evaluation only) as crosses; plot redraws them from
+    report.json."""
+    sim = simulate("crowd", seed=0, size=0.25)
+    marks: dict[str, tuple[float, float]] = {}
+    for s in sim.survey:
+        write_session(s, tmp_path / "rec" / f"{s.session_id}.mcap")
+        for m in s.landmarks:
+            marks.setdefault(m.landmark_id, (m.x, m.y))
+    cps = dict(list(marks.items())[:4])
+    res = run_survey(SurveyInputs((tmp_path / "rec",), tmp_path / "out", control_points=cps))
+    assert res.report["frame"] == "site" and res.report["control_points"] == {k: list(v) for k, v in cps.items()}
+    for scene in (survey_picture.scene_of_alignment(res.survey, res.alignment, GraphSlamConfig(), res.evaluation),
+                  survey_picture.scene_of_folder(tmp_path / "out", [tmp_path / "rec"])):
+        assert dict(scene.control_points) == cps
+        pic = survey_picture.survey_picture(scene)
+        texts = [e.text for e in pic.legend]
+        assert any(t.startswith("4 control points (given, site frame") for t in texts), texts
+        assert "landmark truth (evaluation only)" in texts
+        kinds = {e.kind for e in pic.legend if e.text.startswith("4 control points")}
+        assert kinds == {"diamond"}
+        # each control point drawn at its site position: the diamond's colour there, in the panel
+        panel = pic.panels[0]
+        img = np.asarray(panel.image).astype(int)
+        for x, y in cps.values():
+            i, j = (int(round(v)) for v in panel.px(np.array([[x, y]]))[0])
+            near = img[max(0, j - 3):j + 4, max(0, i - 3):i + 4]
+            assert (np.abs(near - np.array(survey_picture.CONTROL)).max(axis=2) <= 10).any(), (x, y)
+    # a survey without control points draws none
+    plain = survey_picture.scene_of_alignment(res.survey, dataclasses.replace(res.alignment, control_points={}),
+                                              GraphSlamConfig(), res.evaluation)
+    assert not any("control point" in e.text for e in survey_picture.survey_picture(plain).legend)
+
+
+def test_the_uwb_surveys_picture_shows_its_anchors(tmp_path: Path) -> None:
+    from graphslam.sim.uwb.scenarios import CROWD_ANCHORS, CrowdUwb, simulate_crowd
+
+    crowd = simulate_crowd(1, CrowdUwb(n_walkers=4, duration_min=(2.0, 2.5)))
+    crowd.write(tmp_path / "rec")
+    res = run_survey(SurveyInputs((tmp_path / "rec",), tmp_path / "out"))
+    assert res.alignment.frame == "site"
+    scene = survey_picture.scene_of_alignment(res.survey, res.alignment, GraphSlamConfig(), res.evaluation)
+    assert sorted(scene.anchors.values()) == sorted(CROWD_ANCHORS)
+    img = _rgb(tmp_path / "out" / "survey.png")
+    orange = (np.abs(img - np.array(survey_picture.ANCHOR)).max(axis=2) <= 10).sum()
+    assert orange > 4 * 100  # four anchors, ~15 x 15 px each
+    with Image.open(tmp_path / "out" / "survey.png") as im:
+        assert "placed by the UWB anchors" in im.text["Title"]
+    texts = [e.text for e in survey_picture.survey_picture(scene).legend]
+    assert any(t.startswith("4 UWB anchors") for t in texts)
+    # plot with the recordings draws them too (their positions are the recordings')
+    assert sorted(survey_picture.scene_of_folder(tmp_path / "out", [tmp_path / "rec"]).anchors.values()) == sorted(CROWD_ANCHORS)

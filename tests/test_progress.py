@@ -149,6 +149,27 @@ def test_line_handler_throttles_to_its_interval_and_skips_quick_stages() -> None
         show_progress("sometimes")
 
 
+def test_a_tasks_last_count_is_one_line_its_done_line(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The update that completes a task's count and its end come together (the self-calibration's
+    replay: its last segment, then done): the log shows the count once, in the "done" line."""
+    import graphslam.core.progress as core_progress
+
+    monkeypatch.setattr(core_progress, "MIN_INTERVAL_S", 0.0)  # every advance reports
+    buf = io.StringIO()
+    show_progress("log", interval_s=0.0, stream=buf)
+    try:
+        with Task("track: self-calibration replay", total=3, unit="segments") as task:
+            for _ in range(3):
+                task.advance()
+    finally:
+        show_progress("off")
+    lines = [ln.split(" progress ", 1)[1] for ln in buf.getvalue().splitlines()]
+    assert [ln.split(",")[0].split(" done")[0] for ln in lines] == [
+        "track: self-calibration replay: 1/3 segments (33 %)", "track: self-calibration replay: 2/3 segments (67 %)",
+        "track: self-calibration replay: 3/3 segments (100 %)"]
+    assert "done in" in lines[-1] and sum("3/3" in ln for ln in lines) == 1
+
+
 class _Grab(logging.Handler):
     """Every tick of every task, while installed (``_grabbing``)."""
 

@@ -108,13 +108,6 @@ BAD_422 = [
     ("no body fields", b"{}", "give exactly one of 'readings'"),
     ("both forms", b'{"readings": {"ap1": -50}, "fingerprints": [{"readings": {"ap1": -50}}]}', "exactly one"),
     ("extra field", b'{"readings": {"ap1": -50}, "k": 9}', "k: Extra inputs are not permitted"),
-    ("unknown APs only", b'{"readings": {"zz:zz": -50}}', "#0: no_known_ap"),
-    ("below min_rssi only", b'{"readings": {"ap1": -105}}', "#0: no_known_ap"),
-    (
-        "one bad item in a batch",
-        b'{"fingerprints": [{"readings": {"ap1": -50}}, {"readings": {"nope": -50}}]}',
-        "1 of 2 queries cannot be located (#1: no_known_ap)",
-    ),
 ]
 
 
@@ -123,6 +116,39 @@ def test_bad_requests_are_422_with_a_message(client: httpx.Client, name: str, bo
     r = post_raw(client, body)
     assert r.status_code == 422, (name, r.text)
     assert message in r.json()["detail"], r.text
+
+
+@pytest.mark.parametrize("name,body", [
+    ("unknown APs only", b'{"readings": {"zz:zz": -50}}'),
+    ("below min_rssi only", b'{"readings": {"ap1": -105}}'),
+])
+def test_one_fingerprint_that_cannot_be_located_is_404_not_found(client: httpx.Client, name: str, body: bytes) -> None:
+    # as Google's and Mozilla's geolocation APIs answer a query no position is found for
+    r = post_raw(client, body)
+    assert r.status_code == 404, (name, r.text)
+    got = r.json()
+    assert got["reason"] == "notFound" and got["status"] == "no_known_ap", got
+    assert got["detail"] == "the fingerprint cannot be located: none of its access points is in the radio map"
+
+
+def test_a_batch_answers_each_fingerprint_one_not_located_with_null_and_its_reason(client: httpx.Client) -> None:
+    good = {"ap1": -50.0, "ap2": -70.0}
+    for n in (2, MAX_BATCH):  # (big batches, on the thread pool and the search processes: test_service_pool)
+        batch = [{"readings": good}] * n
+        batch[1] = {"readings": {"nope": -50.0}}
+        r = client.post("/v1/locate", json={"fingerprints": batch})
+        assert r.status_code == 200, r.text
+        pos = r.json()["positions"]
+        assert len(pos) == n
+        bad = pos[1]
+        assert bad["x"] is None and bad["y"] is None and bad["sigma_m"] is None and bad["n_neighbours"] == 0
+        assert bad["error"] == {"reason": "notFound", "status": "no_known_ap",
+                                "message": "none of its access points is in the radio map"}
+        one = client.post("/v1/locate", json={"readings": good}).json()["positions"][0]
+        assert all(p == one for k, p in enumerate(pos) if k != 1)  # the others: their own answers, no error key
+    # a batch of one is a batch: answered per fingerprint, not a 404
+    r = client.post("/v1/locate", json={"fingerprints": [{"readings": {"nope": -50.0}}]})
+    assert r.status_code == 200 and r.json()["positions"][0]["error"]["reason"] == "notFound"
 
 
 def test_wrong_content_type_is_4xx(client: httpx.Client) -> None:

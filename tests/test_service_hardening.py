@@ -159,10 +159,22 @@ def test_serve_log_level_drops_the_access_line(tmp_path: Path) -> None:
     assert "POST /v1/locate" not in logs["warning"] and "Traceback" not in logs["warning"]
 
 
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_serve_a_bad_map_is_one_line_and_exit_2(tmp_path: Path, workers: str) -> None:
+    bad = tmp_path / "bad.parquet"
+    bad.write_bytes(b"not a parquet file")
+    p = subprocess.run([sys.executable, "-m", "graphslam", "serve", "--radio-map", str(bad), "--port", "0",
+                        "--workers", workers], capture_output=True, text=True, timeout=120)
+    lines = (p.stdout + p.stderr).strip().splitlines()
+    # the map's error alone: no "serving ... on http://..." line before it
+    assert p.returncode == 2 and len(lines) == 1, lines
+    assert lines[0].startswith(f"error: {bad}: not a readable Parquet file"), lines
+
+
 def test_concurrent_single_requests_each_get_their_own_answer(server: BackgroundServer) -> None:
     rng = np.random.default_rng(5)
     scans = [{f"ap{j}": float(rng.integers(-90, -40)) for j in rng.choice(12, 4, replace=False)} for _ in range(64)]
-    scans[17] = {"nobody-heard-me": -50.0}  # unlocatable: 422 for its own request only
+    scans[17] = {"nobody-heard-me": -50.0}  # unlocatable: 404 for its own request only
     expect = KnnLocator(RM, KnnConfig(k=3)).locate(scans)
     got: dict[int, httpx.Response] = {}
     barrier = threading.Barrier(8)
@@ -178,7 +190,7 @@ def test_concurrent_single_requests_each_get_their_own_answer(server: Background
         t.start()
     for t in threads:
         t.join()
-    assert got[17].status_code == 422 and "no_known_ap" in got[17].json()["detail"]
+    assert got[17].status_code == 404 and got[17].json()["status"] == "no_known_ap"
     for i, r in got.items():
         if i != 17:
             assert r.status_code == 200, r.text
@@ -198,9 +210,15 @@ def test_small_request_fast_path_answers_what_the_route_would(server: Background
     r = post(server.url, orjson.dumps({"fingerprints": [{"readings": s} for s in q]}))
     assert r.status_code == 200 and r.content == expect  # the route's bytes: Response(orjson.dumps(...))
     assert r.headers["content-type"] == "application/json" and int(r.headers["content-length"]) == len(expect)
-    # declined by the fast path (pydantic's message), or refused by the route (no known AP): as before
+    # declined by the fast path (pydantic's message), or answered by the route (no known AP: a 404)
     assert post(server.url, b'{"readings": {"ap1": "-50"}}').status_code == 422
-    assert "no_known_ap" in post(server.url, b'{"readings": {"zz": -50}}').json()["detail"]
+    assert post(server.url, b'{"readings": {"zz": -50}}').json()["reason"] == "notFound"
+    # a small batch with a fingerprint not located: answered on the fast path, as the route renders it
+    q2 = [q[0], {"zz": -50.0}]
+    expect = orjson.dumps({"frame": "aligned", "k": 3, "weighted": True,
+                           "positions": position_dicts(KnnLocator(RM, KnnConfig(k=3)).locate(q2))})
+    r = post(server.url, orjson.dumps({"fingerprints": [{"readings": s} for s in q2]}))
+    assert r.status_code == 200 and r.content == expect and r.json()["positions"][1]["error"]["reason"] == "notFound"
 
 
 def test_coalescer_searches_once_per_loop_pass() -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -338,6 +339,11 @@ def test_cli_simulate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> Non
     assert "3 sessions" in out and "max raw drift" in out and "km" in out
     assert sorted(p.name for p in tmp_path.glob("*.mcap")) == [f"corridor-s4-w{i:02d}.mcap" for i in range(3)]
     assert [p.name for p in (tmp_path / "test").glob("*.mcap")] == ["corridor-s4-t00.mcap"]
+    # the km it reports are those inspect reads back from the recordings (the true path's beside them)
+    walked = re.search(r"([\d.]+) km walked \(true path ([\d.]+) km\)", out)
+    assert walked, out
+    main(["inspect", *map(str, sorted(tmp_path.glob("*.mcap")))])
+    assert f"{walked.group(1)} km walked" in capsys.readouterr().out
     with pytest.raises(SystemExit) as e:
         main(["simulate", "nope", "--out", str(tmp_path)])
     assert e.value.code == 2

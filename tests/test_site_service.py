@@ -94,10 +94,19 @@ def test_each_floors_queries_are_answered_with_that_floor_in_its_frame(tmp_path:
         mixed = {**floors["floor_0"][1][3], **dict(list(floors["floor_1"][1][3].items())[:1])}
         p = c.post("/v1/locate", json={"readings": mixed}).json()["positions"][0]
         assert p["floor"] == "floor_0" and p["floor_scores"]["floor_0"] < p["floor_scores"]["floor_1"]
-        # no floor knows the access points: 422 with the index, as a single map answers
+        # no floor knows the access points: as a single map answers, null and its reason in a batch
+        # (the other fingerprint answered), a 404 notFound alone
         r = c.post("/v1/locate", json={"fingerprints": [{"readings": floors["floor_0"][1][0]},
                                                         {"readings": {"zz:zz": -60.0}}]})
-        assert r.status_code == 422 and "#1" in r.json()["detail"] and "any floor" in r.json()["detail"]
+        assert r.status_code == 200, r.text
+        ok, bad = r.json()["positions"]
+        assert ok["floor"] == "floor_0" and ok["x"] is not None and "error" not in ok
+        assert bad["x"] is None and bad["floor"] is None and bad["frame"] is None
+        assert bad["error"] == {"reason": "notFound", "status": "no_known_ap",
+                                "message": "none of its access points is in any floor's radio map"}
+        assert bad["floor_scores"] == {"floor_0": None, "floor_1": None}
+        r = c.post("/v1/locate", json={"readings": {"zz:zz": -60.0}})
+        assert r.status_code == 404 and r.json()["reason"] == "notFound" and "any floor" in r.json()["detail"]
         r = c.post("/v1/locate", content=b"{", headers={"content-type": "application/json"})
         assert r.status_code == 422 and "malformed JSON" in r.json()["detail"]
 

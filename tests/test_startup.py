@@ -76,5 +76,5 @@ def test_a_survey_imports_only_what_it_uses(tmp_path: Path) -> None:
     """
     p = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
-    assert p.stdout.startswith("aligned ") and (tmp_path / "out" / "survey.png").is_file()
+    assert p.stdout.startswith("main map: ") and (tmp_path / "out" / "survey.png").is_file()
     assert p.stdout.splitlines()[-1] == "[]"

@@ -64,9 +64,9 @@ def test_a_floor_folder_brings_its_control_points_and_its_previous_output(floor:
     assert SurveyInputs.for_floor(site, tmp_path / "out").previous is None  # no update asked for
 
 
-def test_a_reference_map_is_refused_before_any_work(floor: tuple, tmp_path: Path) -> None:
+def test_a_missing_reference_map_fails_before_any_work(floor: tuple, tmp_path: Path) -> None:
     folder, _ = floor
-    with pytest.raises(InputError, match="reference.map.*not an input of the survey yet") as e:
+    with pytest.raises(InputError, match="reference map not found") as e:
         run_survey(SurveyInputs((folder,), tmp_path / "out", reference_map=tmp_path / "ref.parquet"))
     assert e.value.path == str(tmp_path / "ref.parquet")
     assert not (tmp_path / "out").exists()  # nothing written

@@ -5,10 +5,12 @@ recordings are tracked by ``graphslam track-uwb``."""
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from graphslam.sim.uwb.clock import ClockParams, Clocks, SyncParams, sync_phase
 from graphslam.sim.uwb.radio import UwbRadioParams, ds_twr_range
@@ -148,7 +150,7 @@ def test_ds_twr_range_noise() -> None:
     assert abs((r - d).mean()) < 2e-3 and 0.045 < (r - d).std() < 0.055  # the documented 5 cm
 
 
-def test_short_seven_tag_run_and_its_recordings(tmp_path: Path) -> None:
+def test_short_seven_tag_run_and_its_recordings(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from graphslam.cli import main
     from graphslam.sim.uwb.scenarios import simulate_zones
 
@@ -159,7 +161,9 @@ def test_short_seven_tag_run_and_its_recordings(tmp_path: Path) -> None:
     assert all(len(c.slots[t]) >= 1 for c in cyc for t in c.active_tags)
     assert max(max(c.offset_to_neighbours_s.values()) for c in cyc[1:]) < 100e-6
     run.write(tmp_path / "rec")
+    capsys.readouterr()
     main(["track-uwb", str(tmp_path / "rec"), "--out", str(tmp_path / "track.csv")])
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     with open(tmp_path / "track.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert {r["update"] for r in rows} <= {"trilateration", "anchor", "neighbour", "none"}
@@ -171,3 +175,20 @@ def test_short_seven_tag_run_and_its_recordings(tmp_path: Path) -> None:
         if run.site.zone_of(truth[None])[0] == 0:
             errs.append(np.hypot(float(r["x"]) - truth[0], float(r["y"]) - truth[1]))
     assert len(errs) > 100 and np.mean(errs) < 0.10  # zone A, four anchors: the paper's 10 cm
+    # the recordings carry the true paths: the error figures printed are those of every row against them
+    every = [np.hypot(float(r["x"]) - p[0], float(r["y"]) - p[1]) for r in rows for p in
+             [run.paths.at(run.tag_ids.index(r["uwb_id"]), np.array([(int(r["t_ns"]) - 1_780_304_400_000_000_000) / 1e9]))[0]]]
+    ev = printed["errors"]
+    assert ev["evaluated"] and ev["frame"] == printed["frame"] == "site" and ev["truth"]["n"] == len(rows)
+    assert ev["truth"]["mean_m"] == pytest.approx(np.mean(every), abs=2e-3)
+    # ... and the picture beside the CSV: the tracks, the truth (dashed), the anchors (orange squares)
+    png = tmp_path / "track.png"
+    assert printed["picture"] == str(png)
+    with Image.open(png) as im:
+        text, img = dict(im.text), np.asarray(im.convert("RGB")).astype(int)
+    assert text["frame"] == "site" and "error vs truth mean" in text["Title"]
+    from graphslam.viz.track_picture import ANCHOR
+
+    assert (np.abs(img - np.array(ANCHOR)).max(axis=2) <= 10).sum() > 9 * 100  # 9 anchors, ~15x15 px each
+    main(["track-uwb", str(tmp_path / "rec"), "--out", str(tmp_path / "t2.csv"), "--no-picture"])
+    assert not (tmp_path / "t2.png").exists()

@@ -148,8 +148,8 @@ def test_landmarks(corridor: tuple, logged: tuple) -> None:
     np.testing.assert_allclose(truth, marks, atol=1e-3)
     # the aligned frame is displayed in the site frame through the fit, and the notes say so
     assert "Transform3D:translation" in rrd.static["/" + rl.ALIGNED]
-    assert "site-from-aligned" in summary.notes
-    assert "site-from-aligned" in rrd.static["/" + rl.NOTES]["TextDocument:text"][0][0]
+    assert f"site-from-{al.frame}" in summary.notes and f"the {al.frame} frame" in summary.notes
+    assert f"site-from-{al.frame}" in rrd.static["/" + rl.NOTES]["TextDocument:text"][0][0]
 
 
 def test_radio_map(corridor: tuple, logged: tuple) -> None:

@@ -61,15 +61,19 @@ _FORKSERVER_PRELOAD = ["distributed", "numpy", "graphslam.app.survey"]
 
 @dataclass(frozen=True)
 class FloorRow:
-    """One line of summary.json."""
+    """One line of summary.json: the main map first, as ``graphslam survey`` counts it."""
 
     floor: str  # folder relative to SITES_ROOT ("." for SITES_ROOT itself)
     status: str  # "ok" | "partial" (the main map holds under half of the walks) | "failed"
     error: str | None
-    walks: int
-    aligned: int
-    seconds: float
+    walks: int  # walks read
     main: int = 0  # walks in the main map (component 0, the radio map's)
+    other_walks: int = 0  # walks in the other components (a frame each, not in the radio map)
+    other_components: int = 0
+    unaligned: int = 0
+    main_map: str = ""  # the same counts as `survey`'s first line ("main map: 8 of 40 walks; ...")
+    aligned: int = 0  # walks aligned, in any component (main + other_walks)
+    seconds: float = 0.0
     warning: str | None = None  # why the floor is partial
 
 
@@ -102,9 +106,10 @@ def survey_floor(floor_dir: str, out_dir: str, config_json: str, floor: str, upd
     """The task: survey one floor, never raise for the floor's own failures (they are its row).
     ``update``: a previous output in ``out_dir`` seeds ``survey --update`` (none: a full survey)."""
     from graphslam.app.survey import main_map_warning, run_survey
+    from graphslam.core.summary import report_main_map_counts
 
     t = time.perf_counter()
-    walks = aligned = main = 0
+    counts: dict[str, Any] = {}
     error = warning = None
     kill_point(f"floor:{floor}")  # (a test hook: this worker killed while surveying this floor)
     try:
@@ -112,9 +117,13 @@ def survey_floor(floor_dir: str, out_dir: str, config_json: str, floor: str, upd
 
         cfg = config_from_dict(json.loads(config_json), "survey-batch configuration")
         result = run_survey(SurveyInputs.for_floor(floor_dir, out_dir, update=update), cfg)
-        walks, aligned = result.report["sessions"], result.report["aligned_sessions"]
-        main = result.report["radio_map"]["walks"]
-        warning = main_map_warning(result.report)
+        r = result.report
+        comps = r["components"]
+        counts = {"walks": r["sessions"], "main": comps[0]["n_walks"] if comps else 0,
+                  "other_walks": sum(c["n_walks"] for c in comps[1:]), "other_components": max(0, len(comps) - 1),
+                  "unaligned": len(r["unaligned"]), "main_map": report_main_map_counts(r),
+                  "aligned": r["aligned_sessions"]}
+        warning = main_map_warning(r)
     except GraphSlamError as e:
         error = str(e)
     except Exception as e:  # noqa: BLE001 - a floor's internal error must not stop the others
@@ -122,7 +131,10 @@ def survey_floor(floor_dir: str, out_dir: str, config_json: str, floor: str, upd
         error = f"internal error: {type(e).__name__}: {e}"
     seconds = round(time.perf_counter() - t, 3)
     status = "failed" if error else "partial" if warning else "ok"
-    return asdict(FloorRow(floor, status, error, walks, aligned, seconds, main, None if error else warning))
+    if error:
+        counts = {}
+    return asdict(FloorRow(floor, status, error, **({"walks": 0} | counts), seconds=seconds,
+                           warning=None if error else warning))
 
 
 @dataclass(frozen=True)
@@ -185,7 +197,7 @@ def run_batch(
             try:
                 row = FloorRow(**fut.result())
             except Exception as e:  # noqa: BLE001 - KilledWorker, a lost connection: this floor only
-                row = FloorRow(rel, "failed", _lost_why(e), 0, 0, 0.0)
+                row = FloorRow(rel, "failed", _lost_why(e), 0)
             rows[rel] = row
             if row.status == "failed":
                 log.warning("floor %s failed: %s", rel, row.error)

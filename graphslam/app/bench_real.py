@@ -16,6 +16,7 @@ import numpy as np
 from graphslam.app.survey_inputs import CONTROL_POINTS_FILE, SurveyInputs
 from graphslam.config import GraphSlamConfig
 from graphslam.core.progress import progress_over
+from graphslam.core.summary import main_map_counts
 
 log = logging.getLogger(__name__)
 
@@ -23,6 +24,8 @@ log = logging.getLogger(__name__)
 REAL_VARIANTS = ("headings", "no_magnetic", "no_headings", "control_points", "reference_map")
 REFERENCE_MAP_FILE = "reference_map.csv"  # in a floor folder: a surveyed radio map of that floor
 BIG_COMPONENT_WALKS = 5  # walks_in_components_of_5_or_more
+# ... and of 4 or more: the size the survey's targets are stated for
+COMPONENT_SIZES = (4, BIG_COMPONENT_WALKS)
 RIGHT_WALK_M = 5.0  # a walk whose mean landmark error (after its component's SE(2) fit) is at most this is right
 
 
@@ -131,11 +134,13 @@ def _variant_config(cfg: GraphSlamConfig, variant: str) -> GraphSlamConfig:
 def _real_row(inputs: SurveyInputs, variant: str, cfg: GraphSlamConfig) -> dict[str, Any]:
     """One floor (``inputs``: its folder, no files written) surveyed under one variant, scored per component.
 
-    ``main``: walks in component 0; ``main_mean_m`` (= ``mean_m``) / ``p90_m`` / ``max_m`` its
-    landmark errors after one SE(2) fit, ``main_site_mean_m`` with no fit when it is in the site
+    ``main``: walks in component 0, first, with ``other_walks`` in ``other_components`` and
+    ``unaligned`` (``main_map``: the same as ``graphslam survey``'s first line); ``main_mean_m``
+    (= ``mean_m``) / ``p90_m`` / ``max_m`` its landmark errors after one SE(2) fit, ``main_site_mean_m`` with no fit when it is in the site
     frame (control points; else None); ``walks_in_components_of_5_or_more``, its fraction of the
     walks read and ``components_of_5_or_more_mean_m`` (each such component's mean error after its own
-    fit, weighted by its walks; components without 2 marks left out); ``walks_over_10m`` /
+    fit, weighted by its walks; components without 2 marks left out), the same for components of 4
+    or more (``..._4_or_more``); ``walks_over_10m`` /
     ``walks_over_15m``: walks of any component whose mean error is over 10 / 15 m (each component
     after its own fit; component 0 in the site frame without fit); ``time_s``: the whole survey.
     """
@@ -156,25 +161,27 @@ def _real_row(inputs: SurveyInputs, variant: str, cfg: GraphSlamConfig) -> dict[
     per_walk: dict[str, float] = {}
     for c in comps:
         per_walk.update(c.site_per_walk_mean_m if c.site_per_walk_mean_m is not None else c.per_walk_mean_m)
-    big = [c for c in comps if len(c.walks) >= BIG_COMPONENT_WALKS]
-    n_big = sum(len(c.walks) for c in big)
-    scored = [c for c in big if c.landmarks.n > 0]
-    w = sum(len(c.walks) for c in scored)
-    big_mean = sum(len(c.walks) * c.landmarks.mean_m for c in scored) / w if w else None
     c0 = comps[0] if comps else None
     pl = al.placement
 
     def r2(v: float | None) -> float | None:
         return None if v is None or not np.isfinite(v) else round(float(v), 2)
 
+    by_size = {k: v for size in COMPONENT_SIZES for k, v in big_component_figures(comps, n, size).items()}
+    n_other = sum(len(c.walks) for c in al.components[1:])
     return {
         "floor": folder.name,
         "variant": variant,
         "walks": n,
-        "aligned": len(al.tracks),
-        "aligned_fraction": round(len(al.tracks) / max(1, n), 3),
+        # the main map first, counted as `graphslam survey`'s first line counts it
         "main": main,
         "main_fraction": round(main / max(1, n), 3),
+        "other_walks": n_other,
+        "other_components": max(0, len(al.components) - 1),
+        "unaligned": len(al.unaligned),
+        "main_map": main_map_counts(n, main, n_other, max(0, len(al.components) - 1), len(al.unaligned)),
+        "aligned": len(al.tracks),
+        "aligned_fraction": round(len(al.tracks) / max(1, n), 3),
         "landmarks": lm.n if lm else 0,
         "main_mean_m": r2(lm.mean_m) if lm and lm.n else None,
         "main_site_mean_m": r2(c0.site.mean_m) if c0 is not None and c0.site is not None and c0.site.n else None,
@@ -182,9 +189,7 @@ def _real_row(inputs: SurveyInputs, variant: str, cfg: GraphSlamConfig) -> dict[
         "p90_m": r2(lm.p90_m) if lm and lm.n else None,
         "max_m": r2(lm.max_m) if lm and lm.n else None,
         "components": len(al.components),
-        "walks_in_components_of_5_or_more": n_big,
-        "walks_in_components_of_5_or_more_fraction": round(n_big / max(1, n), 3),
-        "components_of_5_or_more_mean_m": r2(big_mean),
+        **by_size,
         "walks_over_6m": int(sum(v > 6.0 for v in per_walk.values())),
         "walks_over_10m": int(sum(v > 10.0 for v in per_walk.values())),
         "walks_over_15m": int(sum(v > 15.0 for v in per_walk.values())),
@@ -201,6 +206,22 @@ def _real_row(inputs: SurveyInputs, variant: str, cfg: GraphSlamConfig) -> dict[
     }
 
 
+def big_component_figures(comps: Sequence[Any], walks: int, size: int) -> dict[str, Any]:
+    """The walks in components of ``size`` walks or more (``ComponentErrors``), their fraction of
+    ``walks`` and those components' mean landmark error, each after its own fit, weighted by its
+    walks (components without 2 marks left out; None when none is left)."""
+    big = [c for c in comps if len(c.walks) >= size]
+    n_big = sum(len(c.walks) for c in big)
+    scored = [c for c in big if c.landmarks.n > 0]
+    w = sum(len(c.walks) for c in scored)
+    mean = sum(len(c.walks) * c.landmarks.mean_m for c in scored) / w if w else None
+    return {
+        f"walks_in_components_of_{size}_or_more": n_big,
+        f"walks_in_components_of_{size}_or_more_fraction": round(n_big / max(1, walks), 3),
+        f"components_of_{size}_or_more_mean_m": None if mean is None or not np.isfinite(mean) else round(float(mean), 2),
+    }
+
+
 def _per_walk_fit(comps: Sequence[Any]) -> dict[str, float]:
     """session id -> mean landmark error after its component's SE(2) fit (``ComponentErrors``)."""
     return {sid: e for c in comps for sid, e in c.per_walk_mean_m.items()}
@@ -208,8 +229,8 @@ def _per_walk_fit(comps: Sequence[Any]) -> dict[str, float]:
 
 def real_summary(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """One line per variant over ``real_floor_rows``' rows: floors, walks, their sums and
-    walk-weighted means (``main_mean_m`` weighted by ``main``, ``components_of_5_or_more_mean_m`` by
-    its walks)."""
+    walk-weighted means (``main_mean_m`` weighted by ``main``, ``components_of_5_or_more_mean_m`` and
+    ``components_of_4_or_more_mean_m`` by their walks)."""
     out = []
     for variant in dict.fromkeys(r["variant"] for r in rows):
         rs = [r for r in rows if r["variant"] == variant]
@@ -221,18 +242,28 @@ def real_summary(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
             return round(sum(a * b for a, b in pairs) / tot, 2) if tot else None
 
         main = sum(r["main"] for r in rs)
-        big = sum(r["walks_in_components_of_5_or_more"] for r in rs)
+        by_size = {}
+        for size in COMPONENT_SIZES:
+            key = f"walks_in_components_of_{size}_or_more"
+            big = sum(r[key] for r in rs)
+            by_size.update({key: big, f"{key}_fraction": round(big / max(1, walks), 3),
+                            f"components_of_{size}_or_more_mean_m": wmean(f"components_of_{size}_or_more_mean_m", key)})
+        other = sum(r["other_walks"] for r in rs)
+        n_comps = sum(r["other_components"] for r in rs)
+        unaligned = sum(r["unaligned"] for r in rs)
         out.append({
             "summary": variant,
             "floors": len(rs),
             "walks": walks,
             "main": main,
             "main_fraction": round(main / max(1, walks), 3),
+            "other_walks": other,
+            "other_components": n_comps,
+            "unaligned": unaligned,
+            "main_map": main_map_counts(walks, main, other, n_comps, unaligned).replace("main map:", "main maps:", 1),
             "main_mean_m": wmean("main_mean_m", "main"),
             "main_site_mean_m": wmean("main_site_mean_m", "main"),
-            "walks_in_components_of_5_or_more": big,
-            "walks_in_components_of_5_or_more_fraction": round(big / max(1, walks), 3),
-            "components_of_5_or_more_mean_m": wmean("components_of_5_or_more_mean_m", "walks_in_components_of_5_or_more"),
+            **by_size,
             "walks_over_6m": sum(r["walks_over_6m"] for r in rs),
             "walks_over_10m": sum(r["walks_over_10m"] for r in rs),
             "walks_over_15m": sum(r["walks_over_15m"] for r in rs),

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from graphslam.config import GraphSlamConfig
+from graphslam.core.summary import report_main_map_counts
 
 
 @dataclass(frozen=True)
@@ -70,6 +71,7 @@ def run_demo(out_dir: str | Path, *, scenario: str = "paper", seed: int = 0, tes
         "walks": len(sim.survey),
         "steps": sim.survey.n_steps,
         "km_walked": round(sum(s.steps.path_length for s in sim.survey) / 1000, 2),
+        "main_map": report_main_map_counts(result.report),
         "aligned": f"{len(result.alignment.tracks)}/{len(sim.survey)}",
         "landmark_mean_m": round(ev.landmarks.mean_m, 2) if ev else None,
         "landmark_max_m": round(ev.landmarks.max_m, 2) if ev else None,

@@ -21,7 +21,7 @@ log = logging.getLogger(__name__)
 
 POSITIONS_HEADER = (
     "session_id", "t_ns", "x", "y", "score", "spread", "sigma_m", "n_neighbours", "n_known_aps", "floor", "building",
-    "status",
+    "status", "frame",
 )
 
 
@@ -40,6 +40,7 @@ class LocateRun:
     def as_dict(self) -> dict[str, object]:
         return {
             "out": None if self.out is None else str(self.out),
+            "frame": self.radio_map_frame,
             "sessions": self.n_sessions,
             "scans": self.n_scans,
             "located": self.n_located,
@@ -55,7 +56,9 @@ def _fmt(v: float, digits: int) -> str:
     return "" if not math.isfinite(v) else f"{v:.{digits}f}"
 
 
-def position_rows(p: SurveyPositions, uncertainty: KnnUncertainty | None = None) -> Iterator[tuple[object, ...]]:
+def position_rows(
+    p: SurveyPositions, uncertainty: KnnUncertainty | None = None, frame: str = ""
+) -> Iterator[tuple[object, ...]]:
     r = p.result
     floor = r.floor.tolist() if r.floor is not None else [""] * len(p)
     building = r.building.tolist() if r.building is not None else [""] * len(p)
@@ -64,21 +67,23 @@ def position_rows(p: SurveyPositions, uncertainty: KnnUncertainty | None = None)
         p.session_ids.tolist(), p.t_ns.tolist(), r.xy.tolist(), r.score.tolist(), r.spread.tolist(), sigma,
         r.n_neighbours.tolist(), r.n_known_aps.tolist(), floor, building, r.status.tolist(),
     ):
-        yield (sid, t, _fmt(x, 4), _fmt(y, 4), _fmt(s, 4), _fmt(sp, 4), _fmt(sg, 3), nn, nk, f, b, st)
+        yield (sid, t, _fmt(x, 4), _fmt(y, 4), _fmt(s, 4), _fmt(sp, 4), _fmt(sg, 3), nn, nk, f, b, st, frame)
 
 
-def write_positions_csv(p: SurveyPositions, path: str | Path, uncertainty: KnnUncertainty | None = None) -> Path:
-    """CSV ``session_id,t_ns,x,y,score,spread,sigma_m,n_neighbours,n_known_aps,floor,building,status``,
+def write_positions_csv(
+    p: SurveyPositions, path: str | Path, uncertainty: KnnUncertainty | None = None, frame: str = ""
+) -> Path:
+    """CSV ``session_id,t_ns,x,y,score,spread,sigma_m,n_neighbours,n_known_aps,floor,building,status,frame``,
     written atomically. ``sigma_m``: the answer's calibrated uncertainty (``uncertainty``; the 95 %
     circle has radius 2.448 sigma_m), empty without one. Unlocated scans keep their row with empty
-    x/y/score/spread/sigma_m."""
+    x/y/score/spread/sigma_m. ``frame``: the radio map's frame name (the answers'), on every row."""
     import csv
 
     path = Path(path)
     with atomic_open(path, "w", encoding="utf-8", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(POSITIONS_HEADER)
-        w.writerows(position_rows(p, uncertainty))
+        w.writerows(position_rows(p, uncertainty, frame))
     return path
 
 
@@ -106,7 +111,7 @@ def locate_files(
     with Task("locate", total=survey.n_scans, unit="scans") as task:
         positions = locate_survey(locator, survey)
         task.advance(len(positions))
-    written = write_positions_csv(positions, out, locator.uncertainty) if out is not None else None
+    written = write_positions_csv(positions, out, locator.uncertainty, rm.frame) if out is not None else None
     n_ok = int(positions.result.valid.sum())
     log.info("located %d of %d scans from %d sessions", n_ok, len(positions), len(survey))
     return LocateRun(positions, written, len(survey), len(positions), n_ok, rm.frame, locator.uncertainty)

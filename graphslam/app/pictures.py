@@ -194,7 +194,7 @@ def write_track_picture(
         steps = sum(len(t.t_ns) for t in run.tracks)
         title = f"track{' ' + label if label else ''}: {plural(len(run.tracks), 'session')}, {plural(steps, 'step')}"
         return draw_tracks(estimates, path, truth=truth or None, truth_at_estimates=at or None, map_xy=np.asarray(rm.xy),
-                           title=title, frame=_frame_note(rm.frame, truth, why, survey))
+                           title=title, frame=_frame_note(rm.frame, truth, why, survey), frame_name=rm.frame)
 
 
 def write_locate_picture(
@@ -222,7 +222,7 @@ def write_locate_picture(
                 at[s.session_id] = site_to_frame(T, interpolate_xy(s.ground_truth, pos.t_ns[rows].astype(float)))
         title = f"locate (kNN): {run.n_located:,} of {plural(run.n_scans, 'scan')} located, {plural(run.n_sessions, 'session')}"
         return draw_tracks(estimates, path, truth=truth or None, truth_at_estimates=at or None, map_xy=np.asarray(rm.xy),
-                           points=True, title=title, frame=_frame_note(rm.frame, truth, why, survey))
+                           points=True, title=title, frame=_frame_note(rm.frame, truth, why, survey), frame_name=rm.frame)
 
 
 def site_from_map(
@@ -232,7 +232,7 @@ def site_from_map(
     if given is not None:
         return np.asarray(given, float).reshape(3), "--site-from-map"
     if frame == "site":
-        return np.zeros(3), "the map is in the site frame"
+        return np.zeros(3), "identity: the map is in the site frame"
     rep_path = Path(radio_map_path).with_name("report.json")
     try:
         report = json.loads(rep_path.read_text(encoding="utf-8"))
@@ -248,6 +248,8 @@ def _frame_note(frame: str, truth: dict, why: str, survey: Survey) -> str:
     has_truth = any(s.ground_truth is not None for s in survey)
     note = f"radio map's {frame} frame"
     if truth:
+        if frame == "site":
+            return note + "; truth as recorded (the same frame)"
         return note + f"; truth placed by {why} (display only)"
     if has_truth:
         return note + f"; truth not drawn: {why}"

@@ -137,8 +137,8 @@ class _LineHandler(_TickHandler):
             self.last.pop(tick.task_id, None)
             if tick.elapsed_s < min(self.interval_s, 1.0):
                 return  # a quick stage: its line would only be noise
-        elif now - last < self.interval_s:
-            return
+        elif now - last < self.interval_s or (tick.total is not None and tick.done >= tick.total):
+            return  # (a task's count complete: its end's "done" line says it, once)
         else:
             self.last[tick.task_id] = now
         record = logging.LogRecord(PROGRESS_LOGGER, logging.INFO, __file__, 0, tick.describe(), None, None)

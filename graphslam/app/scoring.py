@@ -52,7 +52,23 @@ def answer_errors(
         return None
     T, why = site_from_map(radio_map_path, frame, site_from_map_xyt)
     if T is None:
-        return {"evaluated": False, "reason": why}
+        return {"evaluated": False, "frame": frame, "reason": why}
+    return errors_in_site_frame(answers, survey, T, frame, why)
+
+
+def errors_in_site_frame(
+    answers: Mapping[str, tuple[NDArray[np.int64], NDArray[np.float64]]],
+    survey: Survey,
+    T: NDArray[np.float64],
+    frame: str,
+    why: str,
+) -> dict[str, Any] | None:
+    """``answer_errors`` with the answers (in ``frame``) placed in the truth's site frame by ``T``
+    (x, y, theta; ``why``: what placed them); None when the recordings carry no truth and no marks."""
+    has_truth = any(s.ground_truth is not None for s in survey if s.session_id in answers)
+    has_marks = any(s.landmarks for s in survey if s.session_id in answers)
+    if not (has_truth or has_marks):
+        return None
     truth_e, mark_e = [], []
     for s in survey:
         if s.session_id not in answers:
@@ -72,7 +88,9 @@ def answer_errors(
             est = interpolate_xy(PoseTrack(t, xy, np.zeros(len(t))), tm[use].astype(float))
             true = np.array([[m.x, m.y] for m in s.landmarks])[use]
             mark_e.append(np.linalg.norm(est - true, axis=1))
-    out: dict[str, Any] = {"evaluated": True, "frame": f"site frame ({why})"}
+    # the errors are distances in the truth's site frame; the answers are in the map's ``frame``,
+    # placed there by ``site_from_map`` (what placed them is said: the frame keeps its one name)
+    out: dict[str, Any] = {"evaluated": True, "frame": frame, "site_from_map": why}
     if has_truth:
         out["truth"] = figures(np.concatenate(truth_e) if truth_e else np.zeros(0))
     if has_marks:

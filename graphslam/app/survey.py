@@ -16,6 +16,7 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
+from graphslam import names
 from graphslam.app.derived import DERIVED_FILES, KEPT_FILES, rebuild_derived
 from graphslam.app.survey_inputs import SurveyInputs
 from graphslam.config import GraphSlamConfig
@@ -25,7 +26,7 @@ from graphslam.core.survey.evaluate import Evaluation, evaluate
 from graphslam.core.types import Survey
 from graphslam.errors import InputError, OutputError
 from graphslam.io.atomic import FolderStage, atomic_write_json, atomic_write_text, check_replaceable_folder, clean_stale
-from graphslam.io.csv_io import write_trajectories
+from graphslam.io.csv_io import component_frame, write_trajectories
 from graphslam.io.mcap_reader import read_recordings
 from graphslam.io.recording_cache import CACHE_FILE, read_recording_cache, write_recording_cache
 from graphslam.io.mcap_writer import write_aligned
@@ -53,11 +54,7 @@ OUTPUT_FILES = {
 OWNED_FILES = {*OUTPUT_FILES.values(), "survey.png", *DERIVED_FILES, *KEPT_FILES}
 
 # report.json's ``frame_description``: what the coordinates of component 0 mean
-FRAME_DESCRIPTIONS = {
-    "aligned": "aligned: origin at the reference walk's first pose, x along its first heading (metres)",
-    "earth": "earth: x east, y north (phones' headings), origin at the reference walk's first pose",
-    "site": "site: the site frame of the control points or UWB anchors (metres)",
-}
+FRAME_DESCRIPTIONS = names.FRAME_DESCRIPTIONS
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,6 +85,9 @@ def build_report(
         "frame_description": FRAME_DESCRIPTIONS.get(al.frame, al.frame)
         + ("; every other component in a frame of its own (its placement relative to component 0 unknown)"
            if len(al.components) > 1 else ""),
+        # the control points given (landmark id -> site x, y): survey.png draws them apart from landmarks
+        **({"control_points": {k: [float(v[0]), float(v[1])] for k, v in al.control_points.items()}}
+           if al.control_points else {}),
         "components": [
             {"index": c.index, "walks": list(c.walks), "n_walks": len(c.walks), "reason": c.reason, "links": links}
             for c, links in zip(al.components, al.links_by_component())
@@ -526,7 +526,7 @@ def write_outputs(
         names = {k: v for k, v in OUTPUT_FILES.items()
                  if (k != "radio_map_surveyed" or surveyed) and (k != "recordings_cache" or recording_keys is not None)}
         component = al.component_of()
-        write_trajectories(al.tracks, stage.path / names["trajectories"], component)
+        write_trajectories(al.tracks, stage.path / names["trajectories"], component, al.frame)
         write_aligned(al.tracks, stage.path / names["aligned"], frame_id=al.frame,
                       frame_ids={sid: component_frame_id(al, k) for sid, k in component.items()})
         main = main_alignment(al)  # the radio map and its edges: component 0 only
@@ -563,7 +563,7 @@ def write_outputs(
 def component_frame_id(al: Alignment, index: int) -> str:
     """aligned.mcap's ``frame_id`` of a walk in component ``index``: the frame's name for the
     main map ("aligned", "earth", "site"), ``component_<index>`` for the others (a frame each)."""
-    return al.frame if index == 0 else f"component_{index}"
+    return component_frame(al.frame, index)
 
 
 def _without_other_components(survey: Survey, al: Alignment) -> Survey:

@@ -28,8 +28,9 @@ class SurveyInputs:
     - ``control_points``: a ``landmark_id,x,y`` CSV file (``graphslam.io.control_points``) or its
       content, landmark id -> site (x, y) in metres; the landmarks of these ids, where a walk marks
       them on /landmarks, tie the main map to the site frame (at least one must be marked);
-    - ``reference_map``: reserved for a surveyed reference radio map of the floor; not read yet
-      (``run_survey`` refuses one, naming the file);
+    - ``reference_map``: a surveyed radio map of the floor in the site frame (a CSV
+      ``fingerprint_id,x,y,bssid,rssi_dbm`` or a site-frame ``radio_map.parquet``,
+      ``graphslam.io.reference_map``), held fixed: the walks that match it are placed on it;
     - ``floor_plan``: an image drawn under survey.png and in Rerun; ``floor_size``: its (W, H) in
       metres (None: ``floor_info.json`` beside the image);
     - ``previous``: a previous output folder of this floor (``survey --update``): walks solved

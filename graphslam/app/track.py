@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterable
 
 from graphslam.core.tracking.apmodel import ApModels
-from graphslam.core.tracking.tracker import SelfCalibration, SessionTrack, Tracker
+from graphslam.core.tracking.tracker import SelfCalibration, SessionTrack, Tracker, calibration_config
 from graphslam.errors import ConfigError, OutputError
 from graphslam.io.atomic import atomic_open, atomic_write_text
 from graphslam.tracking_config import DEFAULTS, TrackConfig
@@ -40,6 +40,7 @@ def config_path(out: str | Path) -> Path:
 
 TRACK_HEADER = (
     "session_id", "t_ns", "x", "y", "cov_xx", "cov_xy", "cov_yy", "vx", "vy", "theta", "theta_std", "hypothesis",
+    "frame",
 )
 
 
@@ -49,11 +50,13 @@ class TrackRun:
     out: Path | None
     n_aps_modelled: int
     config: Path | None = None  # the effective configuration written beside ``out``
+    frame: str = ""  # the radio map's frame: the positions' (report.json's name)
 
     def as_dict(self) -> dict[str, object]:
         return {
             "out": None if self.out is None else str(self.out),
             "config": None if self.config is None else str(self.config),
+            "frame": self.frame,
             "sessions": len(self.tracks),
             "steps": int(sum(len(t.t_ns) for t in self.tracks)),
             "aps_modelled": self.n_aps_modelled,
@@ -62,8 +65,9 @@ class TrackRun:
         }
 
 
-def write_track_csv(tracks: Iterable[SessionTrack], path: str | Path) -> Path:
-    """CSV (``TRACK_HEADER``), one row per step, written atomically. Units: m, m^2, m/s, rad."""
+def write_track_csv(tracks: Iterable[SessionTrack], path: str | Path, frame: str = "") -> Path:
+    """CSV (``TRACK_HEADER``), one row per step, written atomically. Units: m, m^2, m/s, rad;
+    ``frame``: the radio map's frame name, on every row."""
     path = Path(path)
     with atomic_open(path, "w", encoding="utf-8", newline="") as fh:
         w = csv.writer(fh)
@@ -73,7 +77,7 @@ def write_track_csv(tracks: Iterable[SessionTrack], path: str | Path) -> Path:
                 w.writerow((
                     tr.session_id, t, f"{x[0]:.4f}", f"{x[1]:.4f}", f"{P[0, 0]:.5f}", f"{P[0, 1]:.5f}",
                     f"{P[1, 1]:.5f}", f"{x[2]:.4f}", f"{x[3]:.4f}", f"{math.remainder(x[6], 2 * math.pi):.5f}",
-                    f"{math.sqrt(max(P[6, 6], 0.0)):.5f}", h,
+                    f"{math.sqrt(max(P[6, 6], 0.0)):.5f}", h, frame,
                 ))
     return path
 
@@ -162,10 +166,10 @@ class TrackJob:
         tracks = tracker.track_all(self.survey.sessions)
         written = config = None
         if self.out is not None:
-            written = write_track_csv(tracks, self.out)
+            written = write_track_csv(tracks, self.out, self.radio_map.frame)
             config = config_path(self.out)
             atomic_write_text(config, self.cfg.to_yaml())  # the effective configuration, beside the tracks
-        return TrackRun(tracks, written, len(self.models.fitted), config)
+        return TrackRun(tracks, written, len(self.models.fitted), config, self.radio_map.frame)
 
 
 def default_cache_dir() -> Path:
@@ -228,7 +232,9 @@ def prepare_track(
     cache = key = cached = None
     if cfg.calibration.enabled and calibration_cache:
         models_source = Path(ap_models_path) if ap_models_path is not None else beside if beside.exists() else None
-        key = _calibration_key(Path(radio_map_path), models_source, models, cfg, plan.path if plan is not None else None)
+        # the smoother left out: `--smooth` reuses its filter's kept calibration (core.tracking.tracker)
+        key = _calibration_key(Path(radio_map_path), models_source, models, calibration_config(cfg),
+                               plan.path if plan is not None else None)
         cache = calibration_path(cache_dir, key)
         cached = _read_calibration(cache, key)
     calibrate = cfg.calibration.enabled and cached is None

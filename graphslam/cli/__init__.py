@@ -1,6 +1,6 @@
 """Command-line interface, by command group: ``survey`` (survey, survey-batch, evaluate, export,
 simulate, inspect, plot, view, demo), ``radiomap`` (locate, serve, fit-aps), ``tracking`` (track), ``uwb``
-(simulate-uwb, track-uwb), ``bench`` (real, tracking-real). Each command parses its arguments,
+(simulate-uwb, track-uwb), ``bench`` (real, locate-real, tracking-real, soak), ``configs`` (config show). Each command parses its arguments,
 calls one library function and prints its result; the modules import nothing heavy at start-up.
 
 This is the only place that catches ``GraphSlamError`` (prints one line, exits 2).
@@ -14,7 +14,7 @@ from typing import Optional
 import typer
 
 # each module registers its commands on ``app``, in this order (``--help`` lists them so)
-from graphslam.cli import survey, radiomap, tracking, uwb, bench  # noqa: F401, I001
+from graphslam.cli import survey, radiomap, tracking, uwb, bench, configs  # noqa: F401, I001
 from graphslam.cli.base import EXIT_ERROR, app  # noqa: F401 (app: typer's, for tests and tools)
 from graphslam.cli.options import parse_lags, parse_metric, parse_smoothers  # noqa: F401 (public API)
 from graphslam.cli.process import _defer_numpy_extras, _exit_now

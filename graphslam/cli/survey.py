@@ -56,7 +56,7 @@ def inspect(
 def survey(
     paths: List[Path] = typer.Argument(..., help="Recordings (.mcap) or folders of them."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (created)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config (see configs/default.yaml)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config (`graphslam config show` prints the defaults)."),
     set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value, e.g. wifi.d_min_m=3."),
     rerun: Optional[Path] = typer.Option(None, "--rerun", help="Also log the survey to this .rrd file."),
     floor_plan: Optional[Path] = typer.Option(None, "--floor-plan", help="Image drawn under survey.png and in Rerun."),
@@ -102,8 +102,10 @@ def survey(
     )
     result = run_survey(inputs, cfg)
     r = result.report
+    from graphslam.core.summary import report_main_map_counts
+
     typer.echo(
-        f"aligned {r['aligned_sessions']}/{r['sessions']} walks, {r['nodes']:,} poses, "
+        f"{report_main_map_counts(r)}; frame {r['frame']}; {r['nodes']:,} poses, "
         f"{r['edges']['wifi']:,} WiFi edges; LM {r['optimizer']['iterations']} iterations "
         f"(converged: {r['optimizer']['converged']}), error {r['optimizer']['initial_error']:.4g} -> "
         f"{r['optimizer']['final_error']:.4g}; {r['timings_s']['total']:.2f} s"
@@ -180,11 +182,13 @@ def survey_batch(
         bar.close()
     typer.echo(f"{plural(len(res.rows), 'floor')}: {res.ok} ok, {res.partial} partial, {res.failed} failed in "
                f"{res.seconds:.1f} s; summary in {res.summary}")
-    for row in res.rows:
-        if row.status == "partial":
-            typer.echo(f"partial: {row.floor}: {row.warning}")
-        elif row.status != "ok":
+    for row in res.rows:  # each floor's walks counted as `survey` counts them: the main map first
+        if row.status == "failed":
             typer.echo(f"failed: {row.floor}: {row.error}")
+        else:
+            typer.echo(f"{row.status}: {row.floor}: {row.main_map}"
+                       + (" (under half of the walks in the main map: its report.json, components and unaligned)"
+                          if row.status == "partial" else ""))
     if res.failed:
         sys.exit(1)  # not typer.Exit: main() runs click with standalone_mode=False, which returns its code
 
@@ -235,13 +239,17 @@ def evaluate(
 
         landmark_histogram(ev, plot)
     lm, raw = ev.landmarks, ev.landmarks_raw
+
+    def mm(v: float) -> float:  # printed to the millimetre (and the millidegree), as locate's and track's figures
+        return round(float(v), 3)
+
     summary = {
         "component": component,
         "walks": len(tracks),
-        "landmarks": {k: getattr(lm, k) for k in ("n", "mean_m", "median_m", "p90_m", "max_m")},
-        "raw_landmarks_mean_m": raw.mean_m,
-        "heading_mean_deg": ev.heading_mean_deg,
-        "steps_mean_m": ev.steps.mean_m,
+        "landmarks": {k: getattr(lm, k) if k == "n" else mm(getattr(lm, k)) for k in ("n", "mean_m", "median_m", "p90_m", "max_m")},
+        "raw_landmarks_mean_m": mm(raw.mean_m),
+        "heading_mean_deg": mm(ev.heading_mean_deg),
+        "steps_mean_m": mm(ev.steps.mean_m),
     }
     typer.echo(json.dumps(json_safe(summary)))
 
@@ -305,7 +313,9 @@ def simulate(
     typer.echo(
         f"{scenario} seed={seed} size={size:g}: {plural(len(st.walks), 'session')}, {plural(st.steps, 'step')}, "
         f"{plural(st.scans, 'scan')}, {plural(len(sim.building.aps), 'AP')} ({st.access_points_heard} heard), "
-        f"{st.length_m / 1000:.2f} km, {st.duration_s / 60:.1f} min, {st.marks} landmark marks"
+        # the recorded steps' length, as `inspect` and `demo` read it back; the true path's beside it
+        f"{st.walked_m / 1000:.2f} km walked (true path {st.length_m / 1000:.2f} km), {st.duration_s / 60:.1f} min, "
+        f"{st.marks} landmark marks"
     )
     drifts = ", ".join(f"{w.max_drift_m:.1f}" for w in st.walks[:12]) + (", ..." if len(st.walks) > 12 else "")
     typer.echo(f"max raw drift {st.max_drift_m:.1f} m (per walk: {drifts})")
@@ -399,7 +409,7 @@ def demo(
     f = r.figures
     typer.echo(f"simulated {f['walks']} walks, {f['steps']:,} steps, {f['km_walked']} km ({f['time_simulate_s']} s)")
     typer.echo(
-        f"survey: aligned {f['aligned']} walks in {f['time_survey_s']} s; landmark error mean "
+        f"survey: {f['main_map']} ({f['time_survey_s']} s); landmark error mean "
         f"{f['landmark_mean_m']} m, max {f['landmark_max_m']} m (raw dead reckoning: {f['raw_dead_reckoning_landmark_mean_m']} m)"
     )
     typer.echo(

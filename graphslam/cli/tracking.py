@@ -43,7 +43,7 @@ def track(
     radio_map: Path = typer.Option(..., "--radio-map", help="Radio map (.parquet); positions come out in its frame."),
     out: Path = typer.Option(..., "--out", "-o", help="Output CSV: one row per step (t_ns, x, y, covariance, ...); the "
                              "effective configuration is written beside it (OUT with .config.yaml)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML tracking config (see configs/track.yaml)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML tracking config (`graphslam config show --track` prints the defaults)."),
     set_: Optional[List[str]] = typer.Option(None, "--set", help="Override a config value, e.g. fixed_lag.lag_s=1."),
     filter_: Optional[Tracker] = typer.Option(
         None, "--filter", help="fixed-lag (online, reports each step --lag s late), the causal ekf / ukf, or particle "

@@ -53,9 +53,11 @@ def track_uwb(
     out: Path = typer.Option(..., "--out", "-o", help="Output CSV: one row per slot and step (t_ns, x, y, covariance, update)."),
     slot_gap_s: float = typer.Option(0.02, "--slot-gap", min=0.0, help="Ranges closer than this form one slot (s)."),
     at_steps: bool = typer.Option(True, "--at-steps/--slots-only", help="Also report at every step time."),
+    picture: bool = typer.Option(True, "--picture/--no-picture", help="Also write OUT with .png: the tracks, the truth and the anchors."),
 ) -> None:
-    """Track UWB tags with the paper's collaborative EKF (Paper 003, IV-C): trilateration, anchor and neighbour ranges."""
+    """Track UWB tags with the paper's collaborative EKF (Paper 003, IV-C): trilateration, anchor and neighbour ranges.
+    Prints the error figures when the recordings carry ground truth or landmark marks."""
     from graphslam.app.uwb_track import track_uwb_files
 
-    run = track_uwb_files(sessions, out=out, slot_gap_s=slot_gap_s, at_steps=at_steps)
+    run = track_uwb_files(sessions, out=out, slot_gap_s=slot_gap_s, at_steps=at_steps, picture=picture)
     typer.echo(json.dumps(run.as_dict()))

@@ -1,8 +1,10 @@
-"""Per-session statistics for ``graphslam inspect``."""
+"""Per-session statistics for ``graphslam inspect``; the counts of a survey's walks as every
+output states them (``main_map_counts``)."""
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import Any, Mapping
 
 from graphslam.core.types import Session, Survey
 
@@ -68,3 +70,19 @@ class SurveySummary:
 def plural(n: int, noun: str, many: str | None = None) -> str:
     """``1 session``, ``2 sessions``, ``1,204 steps`` (``many``: an irregular plural)."""
     return f"{n:,} {noun if n == 1 else many or noun + 's'}"
+
+
+def main_map_counts(walks: int, main: int, other_walks: int, other_components: int, unaligned: int) -> str:
+    """The walks of a survey, the main map first: ``main map: 8 of 40 walks; 32 in 12 other
+    components; 0 unaligned`` (what ``survey`` prints first, survey.png's title, ``survey-batch`` and
+    ``bench real`` say)."""
+    return (f"main map: {main:,} of {plural(walks, 'walk')}; {other_walks:,} in {other_components:,} other "
+            f"component{'' if other_components == 1 else 's'}; {unaligned:,} unaligned")
+
+
+def report_main_map_counts(report: Mapping[str, Any]) -> str:
+    """``main_map_counts`` of a survey's report.json (``components``, ``sessions``, ``unaligned``)."""
+    comps = report.get("components") or []
+    n_main = int(comps[0]["n_walks"]) if comps else 0
+    return main_map_counts(int(report.get("sessions") or 0), n_main, sum(int(c["n_walks"]) for c in comps[1:]),
+                           max(0, len(comps) - 1), len(report.get("unaligned") or []))

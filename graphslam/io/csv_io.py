@@ -9,17 +9,26 @@ from typing import Iterable, Mapping, NamedTuple, Sequence
 from graphslam.core.types import PoseTrack
 from graphslam.io.atomic import atomic_open
 
-TRAJECTORY_HEADER = ("session_id", "t_ns", "x", "y", "heading", "component")
-# trajectories.csv before components: every walk in the main map (component 0)
+TRAJECTORY_HEADER = ("session_id", "t_ns", "x", "y", "heading", "component", "frame")
+# trajectories.csv before the frame column, and before components (every walk in component 0)
+TRAJECTORY_HEADER_V2 = TRAJECTORY_HEADER[:6]
 TRAJECTORY_HEADER_V1 = TRAJECTORY_HEADER[:5]
 
 
+def component_frame(main_frame: str, component: int) -> str:
+    """The frame a walk of ``component`` is in: the main map's (``main_frame``, report.json's
+    ``frame``) for component 0, ``component_<k>`` (a frame of its own) for the others."""
+    return main_frame if component == 0 else f"component_{component}"
+
+
 def write_trajectories(
-    tracks: Mapping[str, PoseTrack], path: str | Path, components: Mapping[str, int] | None = None
+    tracks: Mapping[str, PoseTrack], path: str | Path, components: Mapping[str, int] | None = None,
+    frame: str = "aligned",
 ) -> Path:
-    """``session_id,t_ns,x,y,heading,component``: every step of every aligned walk (metres,
+    """``session_id,t_ns,x,y,heading,component,frame``: every step of every aligned walk (metres,
     radians); ``component``: 0 for the main map (the radio map's frame), k >= 1 for a walk in a
-    component of its own frame (``components``: session id -> index; None or missing: 0)."""
+    component of its own frame (``components``: session id -> index; None or missing: 0);
+    ``frame``: the main map's frame name (report.json's) for component 0, ``component_<k>`` else."""
     path = Path(path)
     comp = components or {}
     with atomic_open(path, "w", encoding="utf-8", newline="") as fh:
@@ -27,8 +36,9 @@ def write_trajectories(
         w.writerow(TRAJECTORY_HEADER)
         for sid, tr in tracks.items():
             c = int(comp.get(sid, 0))
+            f = component_frame(frame, c)
             for t, (x, y), h in zip(tr.t_ns.tolist(), tr.xy.tolist(), tr.heading.tolist()):
-                w.writerow((sid, t, f"{x:.4f}", f"{y:.4f}", f"{h:.6f}", c))
+                w.writerow((sid, t, f"{x:.4f}", f"{y:.4f}", f"{h:.6f}", c, f))
     return path
 
 
@@ -46,6 +56,7 @@ class TrajectoryFile(NamedTuple):
 
     tracks: dict[str, PoseTrack]
     components: dict[str, int]  # session id -> component (0: the main map)
+    frame: str = ""  # the main map's frame name ("" in a file written before the frame column)
 
     def of_component(self, index: int) -> dict[str, PoseTrack]:
         return {sid: t for sid, t in self.tracks.items() if self.components.get(sid, 0) == index}
@@ -58,28 +69,31 @@ def read_trajectories(path: str | Path, component: int | None = None) -> dict[st
 
 
 def read_trajectory_file(path: str | Path) -> TrajectoryFile:
-    """trajectories.csv with or without its ``component`` column (a file written before
-    components: every walk in component 0)."""
+    """trajectories.csv with or without its ``frame`` and ``component`` columns (a file written
+    before components: every walk in component 0)."""
     import numpy as np
 
     from graphslam.errors import InputError
 
     rows: dict[str, list[tuple[int, float, float, float]]] = {}
     comp: dict[str, int] = {}
+    main_frame = ""
     try:
         with open(path, newline="", encoding="utf-8") as fh:
             r = csv.reader(fh)
             header = tuple(next(r, None) or ())
-            if header not in (TRAJECTORY_HEADER, TRAJECTORY_HEADER_V1):
+            if header not in (TRAJECTORY_HEADER, TRAJECTORY_HEADER_V2, TRAJECTORY_HEADER_V1):
                 raise InputError(path, f"header {list(header)!r}, expected {','.join(TRAJECTORY_HEADER)}")
             width = len(header)
             for n, row in enumerate(r, start=2):
                 try:
                     if len(row) != width:
                         raise IndexError
-                    c = int(row[5]) if width == 6 else 0
+                    c = int(row[5]) if width >= 6 else 0
                     if c < 0:
                         raise ValueError
+                    if width == 7 and c == 0:
+                        main_frame = main_frame or row[6]
                     rows.setdefault(row[0], []).append((int(row[1]), float(row[2]), float(row[3]), float(row[4])))
                 except (ValueError, IndexError):
                     raise InputError(path, f"line {n}: malformed row {row!r}") from None
@@ -97,4 +111,4 @@ def read_trajectory_file(path: str | Path) -> TrajectoryFile:
             out[sid] = PoseTrack(np.array([x[0] for x in rr], np.int64), a[:, 1:3], a[:, 3])
         except ValueError as e:
             raise InputError(path, f"session {sid}: {e}") from None
-    return TrajectoryFile(out, comp)
+    return TrajectoryFile(out, comp, main_frame)

@@ -3,7 +3,12 @@
 Endpoints (OpenAPI at ``/openapi.json``, docs at ``/docs``):
 
 - ``POST /v1/locate``: one fingerprint ``{"readings": {bssid: dBm}}`` or a batch
-  ``{"fingerprints": [{"readings": {...}}, ...]}`` -> ``{"positions": [...]}``;
+  ``{"fingerprints": [{"readings": {...}}, ...]}`` -> ``{"frame": ..., "positions": [...]}``,
+  one position per fingerprint, in order. As the geolocation APIs users know (Google's,
+  Mozilla's) answer a query no position is found for: a single fingerprint that cannot be located
+  (no access point known to the map) is a 404 with ``reason`` ``notFound``; in a batch such a
+  fingerprint gets null values and an ``error`` (``reason`` ``notFound``, ``status``,
+  ``message``) and the others their answers;
 - ``GET /v1/radio-map``: summary of the loaded map;
 - ``GET /v1/heatmap/{bssid}.png``: one access point's RSS heatmap over the map, cells faded where
   the standard error of the mean exceeds ``graphslam.io.heatmap.MAX_STD_ERROR_DB``
@@ -20,8 +25,7 @@ every ``/v1/`` request needs ``Authorization: Bearer <token>`` (401 otherwise);
 Every bad request is a 4xx with a ``detail`` message: malformed JSON (also: nested deeper
 than ``parsing.MAX_JSON_DEPTH``), wrong types,
 NaN/inf, RSS outside [-200, 0] dBm, empty readings, an empty or too large batch
-(413), a too large body (413), fingerprints with no access point known to the map
-(422, with their indices). The whole batch is refused if any fingerprint is bad, so
+(413), a too large body (413). The whole batch is refused if any fingerprint is malformed, so
 positions always line up with the request. 503 if a search worker process (see
 ``graphslam.service.pool``) died while answering: retry.
 """
@@ -41,7 +45,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi_offline import FastAPIOffline
 
-from graphslam.core.radiomap.knn import IndexKind, KnnConfig, KnnLocator, KnnResult, strict_error
+from graphslam.core.radiomap.knn import IndexKind, KnnConfig, KnnLocator, KnnResult
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import QueryError
 from graphslam.io.heatmap import radio_map_heatmap_png
@@ -60,10 +64,10 @@ from graphslam.service.models import (  # re-exported: the service's public mode
     RadioMapInfo,
 )
 from graphslam.service.coalesce import Coalescer
-from graphslam.service.parsing import flat_scans, is_json_content_type, validated_scans
+from graphslam.service.parsing import flat_scans, is_json_content_type, validated_request
 from graphslam.service.pool import BatchTooLargeError, SearchPool, SearchUnavailableError
 from graphslam.core.radiomap.uncertainty import map_uncertainty
-from graphslam.service.render import position_dicts, response_json
+from graphslam.service.render import not_found, position_dicts, response_json
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +88,11 @@ __all__ = [
 
 def _problem(status: int, detail: str, **extra: Any) -> JSONResponse:
     return JSONResponse({"detail": detail, **extra}, status_code=status)
+
+
+def not_found_response(error: dict[str, str]) -> JSONResponse:
+    """404 for a single fingerprint no position is found for (the geolocation APIs' ``notFound``)."""
+    return JSONResponse({"detail": f"the fingerprint cannot be located: {error['message']}", **error}, status_code=404)
 
 
 class HeatmapCache:
@@ -189,8 +198,9 @@ class SmallLocateFastPath:
     """ASGI middleware: a ``POST /v1/locate`` of at most ``INLINE_MAX`` fingerprints that the fast
     parser accepts and that locates in full is answered here, without FastAPI's routing and
     dependency machinery (~100 us of a ~350 us request). Everything else -- another route,
-    another content type, a body the fast parser declines, an unlocatable fingerprint -- goes to
-    the app unchanged (with the body replayed), which answers exactly as it always does."""
+    another content type, a body the fast parser declines, a single fingerprint that cannot be
+    located (a 404) -- goes to the app unchanged (with the body replayed), which answers exactly as
+    it always does."""
 
     def __init__(self, app: Callable[..., Awaitable[None]], answer: Callable[[bytes], Awaitable[bytes | None]]) -> None:
         self.app, self.answer = app, answer
@@ -363,14 +373,14 @@ def create_app(
     async def heatmap(bssid: str) -> Response:
         return await heatmaps.response(bssid)
 
-    def answer(scans: list[Any]) -> Response:
-        return respond(pool.locate(scans, strict=True))  # QueryError -> 422 with the bad indices
+    def answer(scans: list[Any], single: bool) -> Response:
+        return respond(pool.locate(scans), single)
 
     def answer_body(body: bytes) -> Response | None:
         # Parsed, searched and rendered on the search processes; None: not for the fast path (or no pool).
-        got = pool.locate_body_json(body, max_batch=max_batch, strict=True)
-        if got is None:
-            return None
+        got = pool.locate_body_json(body, max_batch=max_batch)
+        if got is None or (len(got[0]) == 1 and not got[0].valid.all()):
+            return None  # one fingerprint not located: the route tells a 404 (one fingerprint) from a batch of one
         return Response(response_json(head, got[1]), media_type="application/json")
 
     async def answer_small(body: bytes) -> bytes | None:
@@ -381,14 +391,16 @@ def create_app(
         if flat is None or len(flat) > min(INLINE_MAX, max_batch):
             return None
         res = await coalescer.locate(flat.scans)
-        if not res.valid.all():
-            return None  # the route searches again and answers 422 with the bad indices
+        if flat.single and not res.valid.all():
+            return None  # the route answers the 404
         return orjson.dumps({**head, "positions": position_dicts(res, locator.uncertainty)})
 
-    def respond(res: KnnResult) -> Response:
+    def respond(res: KnnResult, single: bool) -> Response:
         # Serialised here (the shape is LocateResponse, documented in OpenAPI): FastAPI's
-        # response-model validation would add a second pass over every position. Every value is
-        # finite (strict=True above), so orjson's NaN -> null never applies.
+        # response-model validation would add a second pass over every position. A row not
+        # located is rendered with explicit nulls (position_dicts), so orjson's NaN -> null never applies.
+        if single and not res.valid.all():
+            return not_found_response(not_found(str(res.status[0]), min_common))
         return Response(orjson.dumps({**head, "positions": position_dicts(res, locator.uncertainty)}), media_type="application/json")
 
     @app.post(
@@ -396,7 +408,9 @@ def create_app(
         response_model=LocateResponse,
         responses={
             413: {"description": "body or batch too large"},
-            422: {"description": "malformed request, or a fingerprint with no access point known to the map"},
+            404: {"description": "a single fingerprint ('readings') that cannot be located: reason 'notFound' "
+                  "(in a batch, such a fingerprint gets null values and an 'error' instead)"},
+            422: {"description": "malformed request"},
             503: {"description": "a search worker process died while answering (retry)"},
         },
         openapi_extra=LOCATE_REQUEST_BODY,
@@ -414,18 +428,14 @@ def create_app(
             if done is not None:
                 return done
         if len(body) > PARSE_INLINE_MAX_BYTES:
-            scans = await run_in_threadpool(validated_scans, body, content_type)
+            scans, single = await run_in_threadpool(validated_request, body, content_type)
         else:
-            scans = validated_scans(body, content_type)
+            scans, single = validated_request(body, content_type)
         if len(scans) > max_batch:
             return _problem(413, f"batch of {len(scans)} fingerprints, at most {max_batch} per request")
         if len(scans) <= INLINE_MAX:  # ~0.5 ms of search: on the event loop, shared with concurrent requests
-            res = await coalescer.locate(scans)
-            err = strict_error(res, min_common)
-            if err is not None:
-                raise err  # -> 422 with the bad indices, as pool.locate(strict=True) would
-            return respond(res)
-        return await run_in_threadpool(answer, scans)  # big batches must not block the event loop
+            return respond(await coalescer.locate(scans), single)
+        return await run_in_threadpool(answer, scans, single)  # big batches must not block the event loop
 
     # Middleware added later runs first: BearerToken (before the body is read), BodyLimit, then
     # the small-request fast path.

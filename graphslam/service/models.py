@@ -55,13 +55,26 @@ class LocateRequest(BaseModel):
         return [f.readings for f in self.fingerprints]
 
 
+class NotFound(BaseModel):
+    """Why a fingerprint of a batch has no position (the geolocation APIs' ``notFound``)."""
+
+    reason: str = Field(description="'notFound', as Google's and Mozilla's geolocation APIs say it")
+    status: str = Field(description="'no_known_ap': none of its access points is in the map; 'no_candidate': no "
+                        "fingerprint of the map shares min_common of them (locate's CSV says the same)")
+    message: str
+
+
 class Position(BaseModel):
-    x: float = Field(description="metres, in the radio map's frame")
-    y: float
-    score: float = Field(
+    """One fingerprint's answer. In a batch, a fingerprint that cannot be located has null values
+    and an ``error``; the others are answered as usual (a single ``readings`` query that cannot be
+    located is a 404 instead)."""
+
+    x: float | None = Field(description="metres, in the radio map's frame (the answer's 'frame')")
+    y: float | None
+    score: float | None = Field(
         description="mean fingerprint distance of the neighbours used (metric eq9: dB; sorensen: 0-1; see GET /v1/radio-map); lower = closer match"
     )
-    spread: float = Field(description="weighted RMS distance (m) of the neighbours' positions to the estimate")
+    spread: float | None = Field(description="weighted RMS distance (m) of the neighbours' positions to the estimate")
     sigma_m: float | None = Field(
         None, description="the answer's uncertainty: sigma (m) of an isotropic 2-D Gaussian, calibrated on the map "
         "(its walks left out one at a time); the 95 % circle has radius 2.448 sigma_m; null for a map of one walk",
@@ -69,10 +82,11 @@ class Position(BaseModel):
     n_neighbours: int
     floor: str | None = None
     building: str | None = None
+    error: NotFound | None = Field(None, description="only on a fingerprint that cannot be located")
 
 
 class LocateResponse(BaseModel):
-    frame: str
+    frame: str = Field(description="the radio map's frame (its report.json's 'frame': aligned, earth or site)")
     k: int
     weighted: bool
     positions: list[Position]

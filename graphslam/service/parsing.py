@@ -84,6 +84,7 @@ class FlatScans:
     keys: list[str]  # every reading's BSSID
     values: NDArray[np.float64]  # every reading's RSS (dBm)
     offsets: NDArray[np.int64]  # (len(scans) + 1,): scan i's readings are [offsets[i], offsets[i + 1])
+    single: bool = False  # the one-fingerprint form ({"readings": ...}), not a batch of one
 
     def __len__(self) -> int:
         return len(self.scans)
@@ -102,7 +103,8 @@ def flat_scans(body: bytes | bytearray) -> FlatScans | None:
 def _flat(obj: Any) -> FlatScans | None:
     if type(obj) is not dict or len(obj) != 1:
         return None
-    if "readings" in obj:
+    single = "readings" in obj
+    if single:
         scans = [obj["readings"]]
     elif "fingerprints" in obj:
         fps = obj["fingerprints"]
@@ -130,7 +132,7 @@ def _flat(obj: Any) -> FlatScans | None:
         return None
     offsets = np.zeros(len(scans) + 1, np.int64)
     np.cumsum(np.fromiter(map(len, scans), np.int64, len(scans)), out=offsets[1:])
-    return FlatScans(scans, keys, v, offsets)
+    return FlatScans(scans, keys, v, offsets, single)
 
 
 def fast_scans(body: bytes) -> list[Scan] | None:
@@ -169,6 +171,12 @@ def _body_errors(errors: list[Any]) -> RequestValidationError:
 def validated_scans(body: bytes, content_type: str | None) -> list[Scan]:
     """Scans of a ``POST /v1/locate`` body, or ``RequestValidationError`` exactly as FastAPI
     with ``LocateRequest`` in the signature would raise it."""
+    return validated_request(body, content_type)[0]
+
+
+def validated_request(body: bytes, content_type: str | None) -> tuple[list[Scan], bool]:
+    """``validated_scans`` and whether the body is the one-fingerprint form (``readings``; a batch
+    answers per fingerprint, one fingerprint that cannot be located is a 404)."""
     if body and is_json_content_type(content_type):
         try:
             obj: Any = orjson.loads(body)  # parsed once: pydantic below validates this object
@@ -177,12 +185,13 @@ def validated_scans(body: bytes, content_type: str | None) -> list[Scan]:
         else:
             flat = _flat(obj)
             if flat is not None:
-                return flat.scans
+                return flat.scans, flat.single
     elif body:
         obj = body  # not JSON: FastAPI validates the raw bytes (and they fail)
     else:
         raise RequestValidationError([{"type": "missing", "loc": ("body",), "msg": "Field required", "input": None}])
     try:
-        return LocateRequest.model_validate(obj).scans()
+        req = LocateRequest.model_validate(obj)
+        return req.scans(), req.readings is not None
     except ValidationError as e:
         raise _body_errors(e.errors(include_url=False)) from None

@@ -259,8 +259,8 @@ def _locate_body(
         b = _bounds(n, parts)
         rows = np.arange(b[part], b[part + 1], dtype=np.int64)
     res = loc.locate(enc.encode(flat, rows))
-    # Rendered only if every row is valid: otherwise the server answers 422 and never uses them.
-    json_rows = position_rows(res, loc.uncertainty) if render and res.valid.all() else None
+    # every row rendered, one not located too (nulls and its error: a batch answers per fingerprint)
+    json_rows = position_rows(res, loc.uncertainty) if render else None
     return rows, tuple(getattr(res, f) for f in _FIELDS), json_rows
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import orjson
 
 from graphslam.core.radiomap.knn import KnnResult
@@ -23,20 +24,48 @@ _ROW_START = b'{"x":'
 _ROW_SEP = b"," + _ROW_START
 
 
+# The reason the geolocation APIs users know (Google's, Mozilla's) give for a query no position is
+# found for; ``status`` says why, in the words of locate's CSV (``KnnResult.status``).
+NOT_FOUND = "notFound"
+
+
+def not_found(status: str, min_common: int = 1, where: str = "the radio map") -> dict[str, str]:
+    """The ``error`` of a fingerprint that cannot be located (``status``: ``no_known_ap`` or
+    ``no_candidate``)."""
+    if status == "no_known_ap":
+        message = f"none of its access points is in {where}"
+    else:
+        message = f"no fingerprint of {where} shares {min_common} of its access points"
+    return {"reason": NOT_FOUND, "status": status, "message": message}
+
+
+def unlocated(error: dict[str, str]) -> dict[str, Any]:
+    """The position object of a fingerprint that cannot be located: no position, and why."""
+    return {"x": None, "y": None, "score": None, "spread": None, "sigma_m": None, "n_neighbours": 0, "floor": None,
+            "building": None, "error": error}
+
+
 def position_dicts(res: KnnResult, uncertainty: KnnUncertainty | None = None) -> list[dict[str, Any]]:
-    """One ``Position`` object per row of ``res`` (finite values: callers locate with ``strict=True``);
-    ``sigma_m`` from ``uncertainty`` (None: null)."""
+    """One ``Position`` object per row of ``res``; ``sigma_m`` from ``uncertainty`` (None: null). A
+    row that could not be located has no position (nulls) and an ``error`` (``not_found``); the
+    others have no ``error`` key."""
     n = len(res)
     floor = res.floor.tolist() if res.floor is not None else [""] * n
     building = res.building.tolist() if res.building is not None else [""] * n
     sigma = uncertainty.sigma(res.spread, res.score).tolist() if uncertainty is not None else [None] * n
-    return [
+    rows = [
         {"x": p[0], "y": p[1], "score": s, "spread": sp, "sigma_m": sg, "n_neighbours": nn, "floor": f or None,
          "building": b or None}
         for p, s, sp, sg, nn, f, b in zip(
             res.xy.tolist(), res.score.tolist(), res.spread.tolist(), sigma, res.n_neighbours.tolist(), floor, building
         )
     ]
+    bad = np.flatnonzero(~res.valid)
+    if len(bad):
+        status = res.status
+        for i in bad.tolist():
+            rows[i] = unlocated(not_found(str(status[i]), res.config.min_common))
+    return rows
 
 
 def position_rows(res: KnnResult, uncertainty: KnnUncertainty | None = None) -> list[bytes]:

@@ -141,18 +141,28 @@ def _serve(radio_map_path: str | Path, cfg: ServeConfig) -> None:
         search_processes = default_search_processes() if workers <= 1 and not site else 0
     kwargs: dict[str, object] = {**cfg.app_options(), "search_processes": search_processes}
     sock = listen(host, port)  # before the map loads: a taken port is one line, not uvicorn's start-up failure
-    log.info(
-        "serving %s on http://%s:%d (%d worker process(es), %d search process(es) each)", radio_map_path, host,
-        sock.getsockname()[1], workers, search_processes,
-    )
+
+    def serving() -> None:  # said once the map has loaded: a map that does not is its one error line alone
+        log.info(
+            "serving %s on http://%s:%d (%d worker process(es), %d search process(es) each)", radio_map_path, host,
+            sock.getsockname()[1], workers, search_processes,
+        )
+
     if workers <= 1:
         try:
             app = served_app(radio_map_path, watch, **kwargs)
         except BaseException:
             sock.close()
             raise
+        serving()
         uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_level=log_level)).run(sockets=[sock])
         return
+    try:  # each worker process loads the maps: read them here first, so that a bad one is one line
+        _check_maps(radio_map_path, site)
+    except BaseException:
+        sock.close()
+        raise
+    serving()
     from uvicorn.supervisors import Multiprocess
 
     class Supervisor(Multiprocess):
@@ -171,6 +181,19 @@ def _serve(radio_map_path: str | Path, cfg: ServeConfig) -> None:
     # bind_socket() omits IPPROTO_TCP, so asyncio skips TCP_NODELAY and every small response
     # waits for a delayed ACK.
     Supervisor(config, sockets=[sock]).run()
+
+
+def _check_maps(radio_map_path: str | Path, site: bool) -> None:
+    """Read the radio map (or every floor's): a ``RadioMapError`` naming a file that does not load."""
+    from graphslam.io.radiomap_io import read_radio_map
+
+    if site:
+        from graphslam.service.site import find_floor_maps
+
+        for path in find_floor_maps(radio_map_path).values():
+            read_radio_map(path)
+    else:
+        read_radio_map(radio_map_path)
 
 
 @dataclass

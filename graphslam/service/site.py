@@ -14,8 +14,9 @@ floor's own Sørensen score ignores the access points it does not know). The
 position is in that floor's frame (each survey has its own): ``floor`` and ``frame`` say which.
 ``floor_scores`` gives those scores (null where the floor could not locate the query). ``GET /v1/maps/{floor}/heatmap/{bssid}.png``: one access point's heatmap on one
 floor (the single map's ``/v1/heatmap/{bssid}.png``; 404 for an unknown floor or access point).
-A fingerprint that no floor can locate (none of its access points is known to
-any floor) refuses the request with 422 and its index, as a single map does.
+A fingerprint that no floor can locate (none of its access points is known to any floor) is
+answered as a single map answers it: a 404 (``notFound``) for a single fingerprint, null values and
+an ``error`` in a batch (the others answered).
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi_offline import FastAPIOffline
 from pydantic import BaseModel, Field
 
-from graphslam.errors import InputError, QueryError
+from graphslam.errors import InputError
 from graphslam.service.app import (
     HEATMAP_RESPONSES,
     INLINE_MAX,
@@ -45,14 +46,15 @@ from graphslam.service.app import (
     BearerToken,
     BodyLimit,
     _problem,
+    not_found_response,
     with_problem_handlers,
     with_request_model,
 )
 from graphslam.service.config import DEFAULT_MAX_BATCH, DEFAULT_MAX_BODY_BYTES
 from graphslam.service.models import Position, RadioMapInfo
-from graphslam.service.parsing import validated_scans
+from graphslam.service.parsing import validated_request
 from graphslam.service.reload import ReloadingApp
-from graphslam.service.render import position_dicts
+from graphslam.service.render import not_found, position_dicts, unlocated
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +62,7 @@ FLOOR_MAP_FILE = "radio_map.parquet"  # a survey's radio map (graphslam.app.surv
 
 
 class SitePosition(Position):
-    frame: str = Field(description="the answering floor's frame: x, y are in it")
+    frame: str | None = Field(description="the answering floor's frame: x, y are in it (null: not located)")
     floor_scores: dict[str, float | None] = Field(
         description="every floor's kNN score over all of this fingerprint's access points, the lowest answers "
         "(null: the floor could not locate it)"
@@ -178,35 +180,37 @@ def create_site_app(
         with r.hold() as current:  # this floor's map, cached per map generation
             return await current.state.heatmaps.response(bssid, f"floor {floor!r}")
 
-    def answer(apps: list[FastAPI], scans: list[Any]) -> bytes:
+    def answer(apps: list[FastAPI], scans: list[Any], single: bool) -> Response:
         results = [a.state.search_pool.locate(scans) for a in apps]
         # over every AP of the query: a floor's own score ignores the APs it does not know
         scores = np.vstack([a.state.locator.scores_over_query(scans, r) for r, a in zip(results, apps)])
         best = _choose(scores)
-        bad = np.flatnonzero(best < 0)
-        if len(bad):
-            detail = ", ".join(f"#{i}" for i in bad[:5]) + (" ..." if len(bad) > 5 else "")
-            raise QueryError(
-                f"{len(bad)} of {len(scans)} queries cannot be located on any floor ({detail}); a query needs an "
-                f"access point heard by one floor's radio map" + (f" (>= {min_common} shared APs)" if min_common > 1 else "")
-            )
         rows = [position_dicts(r, a.state.locator.uncertainty) for r, a in zip(results, apps)]
         frames = [a.state.locator.radio_map.frame for a in apps]
+        statuses = [r.status for r in results]
         positions = []
         for i, f in enumerate(best.tolist()):
-            p = rows[f][i]
-            p["floor"] = names[f]
-            p["frame"] = frames[f]
+            if f < 0:  # no floor located it: no position, and why
+                unknown = all(st[i] == "no_known_ap" for st in statuses)
+                error = not_found("no_known_ap" if unknown else "no_candidate", min_common, "any floor's radio map")
+                if single:
+                    return not_found_response(error)
+                p = unlocated(error) | {"frame": None}
+            else:
+                p = rows[f][i] | {"floor": names[f], "frame": frames[f]}
             p["floor_scores"] = {n: (None if math.isnan(s) else s) for n, s in zip(names, scores[:, i].tolist())}
             positions.append(p)
-        return orjson.dumps({"site": site, "k": k, "weighted": weighted, "positions": positions})
+        return Response(orjson.dumps({"site": site, "k": k, "weighted": weighted, "positions": positions}),
+                        media_type="application/json")
 
     @app.post(
         "/v1/locate",
         response_model=SiteLocateResponse,
         responses={
             413: {"description": "body or batch too large"},
-            422: {"description": "malformed request, or a fingerprint with no access point known to any floor"},
+            404: {"description": "a single fingerprint ('readings') no floor can locate: reason 'notFound' (in a "
+                  "batch, such a fingerprint gets null values and an 'error' instead)"},
+            422: {"description": "malformed request"},
             503: {"description": "a search worker process died while answering (retry)"},
         },
         openapi_extra=LOCATE_REQUEST_BODY,
@@ -215,18 +219,16 @@ def create_site_app(
         body = await request.body()
         content_type = request.headers.get("content-type")
         if len(body) > PARSE_INLINE_MAX_BYTES:
-            scans = await run_in_threadpool(validated_scans, body, content_type)
+            scans, single = await run_in_threadpool(validated_request, body, content_type)
         else:
-            scans = validated_scans(body, content_type)
+            scans, single = validated_request(body, content_type)
         if len(scans) > max_batch:
             return _problem(413, f"batch of {len(scans)} fingerprints, at most {max_batch} per request")
         with ExitStack() as held:  # every floor's current app, kept open until answered
             apps = [held.enter_context(r.hold()) for r in reloaders]
             if len(scans) <= INLINE_MAX:
-                done = answer(apps, scans)
-            else:
-                done = await run_in_threadpool(answer, apps, scans)
-        return Response(done, media_type="application/json")
+                return answer(apps, scans, single)
+            return await run_in_threadpool(answer, apps, scans, single)
 
     with_request_model(app, token)
     app.add_middleware(BodyLimit, max_bytes=max_body_bytes)

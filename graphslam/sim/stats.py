@@ -46,6 +46,7 @@ class WalkStats:
     max_drift_m: float
     final_drift_m: float
     mean_readings_per_scan: float
+    walked_m: float = 0.0  # the recorded (dead-reckoned) steps' length: what `inspect` reads back
 
     @classmethod
     def of(cls, s: Session) -> "WalkStats":
@@ -61,6 +62,7 @@ class WalkStats:
             max_drift_m=float(drift.max()),
             final_drift_m=float(drift[-1]),
             mean_readings_per_scan=float(np.mean([len(x) for x in s.scans])) if s.scans else 0.0,
+            walked_m=s.steps.path_length,
         )
 
 
@@ -92,6 +94,10 @@ class SurveyStats:
     @property
     def length_m(self) -> float:
         return sum(w.length_m for w in self.walks)
+
+    @property
+    def walked_m(self) -> float:
+        return sum(w.walked_m for w in self.walks)
 
     @property
     def duration_s(self) -> float:

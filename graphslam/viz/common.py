@@ -41,6 +41,7 @@ class LandmarkMarks:
     estimate_xy: NDArray[np.float64]  # (M, 2) output frame
     truth_xy: NDArray[np.float64]  # (M, 2) site frame
     labels: tuple[str, ...]  # "<landmark id> (<session>)"
+    ids: tuple[str, ...] = ()  # each mark's landmark id
 
 
 def landmark_marks(tracks: Mapping[str, PoseTrack], survey: Survey | None) -> LandmarkMarks | None:
@@ -50,14 +51,16 @@ def landmark_marks(tracks: Mapping[str, PoseTrack], survey: Survey | None) -> La
     stats, T, _ = landmark_errors(tracks, survey)
     if stats.n < 2:
         return None
-    est, truth, labels = [], [], []
+    est, truth, labels, ids = [], [], [], []
     for s in survey:
         if s.session_id in tracks and s.landmarks:
             t = np.array([m.t_ns for m in s.landmarks], dtype=float)
             est.append(interpolate_xy(tracks[s.session_id], t))
             truth.append(np.array([[m.x, m.y] for m in s.landmarks]))
             labels += [f"{m.landmark_id} ({s.session_id})" for m in s.landmarks]
-    return LandmarkMarks(stats, np.asarray(T, float), np.concatenate(est), np.concatenate(truth), tuple(labels))
+            ids += [m.landmark_id for m in s.landmarks]
+    return LandmarkMarks(stats, np.asarray(T, float), np.concatenate(est), np.concatenate(truth), tuple(labels),
+                         tuple(ids))
 
 
 def top_access_points(fm: FingerprintMatrix, rows: NDArray[np.int64], k: int) -> list[int]:

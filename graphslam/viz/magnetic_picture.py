@@ -1,4 +1,4 @@
-"""magnetic_map.png: the main map's magnetic field, a heatmap per feature (Pillow, ``graphslam.viz.canvas``).
+"""magnetic_map.png: the main map's magnetic field, a heatmap per feature (Pillow, ``graphslam.io.canvas``).
 
 Two panels: the field's magnitude |B| and its vertical component B_up (µT, each walk's offset removed),
 kernel-smoothed on a grid over the samples (blank where no walk passed), with the samples as dots, a
@@ -18,7 +18,7 @@ from graphslam.core.radiomap.field import MIN_WEIGHT, FieldGrid, grid_cell_m
 from graphslam.core.radiomap.magnetic_map import MagneticMap
 from graphslam.core.common.geometry import se2_apply
 from graphslam.errors import ConfigError
-from graphslam.viz.canvas import VIRIDIS, Picture, colour_map
+from graphslam.io.canvas import VIRIDIS, Picture, colour_map
 from graphslam.viz.common import FloorPlan
 
 MAGNETIC_PNG = "magnetic_map.png"

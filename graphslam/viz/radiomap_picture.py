@@ -1,4 +1,4 @@
-"""``radio_map.png``: is the survey good enough? What Anyplace users look at (``graphslam.viz.canvas``).
+"""``radio_map.png``: is the survey good enough? What Anyplace users look at (``graphslam.io.canvas``).
 
 Panel 1, coverage: fingerprints per m^2 on a grid of ``cell_m`` cells. Panel 2, expected accuracy
 (``graphslam.core.radiomap.uncertainty.expected_accuracy``): per cell of ``ACCURACY_CELL_M`` (or the
@@ -38,7 +38,7 @@ from graphslam.core.common.geometry import se2_apply
 from graphslam.core.tracking.apmodel import ApModels
 from graphslam.errors import ConfigError
 from graphslam.io.heatmap import MAX_STD_ERROR_DB, RSS_RANGE_DBM, heatmap_rgba
-from graphslam.viz.canvas import MAGMA_R, RDYLGN_R, VIRIDIS, Panel, Picture, colour_map, font
+from graphslam.io.canvas import MAGMA_R, RDYLGN_R, VIRIDIS, Panel, Picture, colour_map, font
 from graphslam.viz.common import FloorPlan, top_access_points
 
 SIZE_PX = (1600, 1000)
@@ -110,12 +110,12 @@ def radio_map_picture(
     frame = f"{rm.frame} frame"
     if floor_plan is not None:
         frame = "site frame of the floor plan" if registered else f"{rm.frame} frame, floor plan NOT registered to it"
-    pic = Picture(size_px, title_lines=[
+    extent = grid.extent
+    boxes, height = _layout(2 + len(cols), size_px, top=36, aspect=_shown_aspect(extent))
+    pic = Picture((size_px[0], height), title_lines=[
         f"radio map: {len(rm):,} fingerprints, {rm.fingerprints.n_aps:,} APs, {len(set(rm.session_ids.tolist()))} walks; "
         f"{frame}; {cell:g} m cells, Gaussian kernel {h:g} m; an AP not heard counts as {floor:g} dBm"
-    ])
-    boxes = _layout(2 + len(cols), size_px, top=36)
-    extent = grid.extent
+    ], frame="site" if registered else rm.frame)
 
     density = weight / cell**2  # kernel density: fingerprints per m^2
     d_hi = float(np.percentile(density[~outside], 99)) if (~outside).any() else 1.0
@@ -186,17 +186,53 @@ def _accuracy_panel(
     return acc
 
 
-def _layout(n: int, size_px: tuple[int, int], top: int) -> list[tuple[int, int, int, int]]:
-    """Panel boxes on a grid: room above each for a 2-line caption, right for a colour bar, left and
-    below for the ticks."""
-    ncols = {1: 1, 2: 2, 3: 3, 4: 2}.get(n, 3 if n <= 9 else 4)
-    nrows = math.ceil(n / ncols)
+# room around each panel: left for the tick labels, right for the colour bar, above for a 2-line
+# caption, below for the tick labels
+_LEFT, _RIGHT, _ABOVE, _BELOW = 52, 95, 40, 24
+MIN_HEIGHT_PX = 300
+
+
+def _shown_aspect(extent: tuple[float, float, float, float]) -> float:
+    """Width / height of what a panel shows of ``extent`` (x0, x1, y0, y1): the grid and the
+    panel's margins (``Panel``: 4 % of the larger side and 0.5 m each way)."""
+    x0, x1, y0, y1 = extent
+    pad = 2 * (0.04 * max(x1 - x0, y1 - y0) + 0.5)
+    return max(x1 - x0 + pad, 1e-6) / max(y1 - y0 + pad, 1e-6)
+
+
+def _layout(
+    n: int, size_px: tuple[int, int], top: int, aspect: float = 1.5
+) -> tuple[list[tuple[int, int, int, int]], int]:
+    """Panel boxes on a grid of the columns that fit a floor of ``aspect`` (width / height) best, and
+    the picture's height (at most ``size_px``'s; less when the panels need less, so that a wide
+    floor's picture is not mostly blank). Each box: room above for a 2-line caption, right for a
+    colour bar, left and below for the ticks; its height is what the floor needs at the box's width.
+
+    Best: the largest share of the picture the floor covers, plus a tenth of the panels' size
+    relative to the largest possible (two layouts as good: the bigger panels)."""
     w, h = size_px
-    cw, ch = w / ncols, (h - top) / nrows
-    return [
-        (int(c * cw + 52), int(top + r * ch + 40), int((c + 1) * cw - 95), int(top + (r + 1) * ch - 24))
+    options = []
+    for ncols in range(1, n + 1):
+        nrows = math.ceil(n / ncols)
+        pw = w / ncols - _LEFT - _RIGHT
+        ph = (h - top) / nrows - _ABOVE - _BELOW
+        if pw < 60 or ph < 40:
+            continue
+        dw = min(pw, ph * aspect)  # the floor drawn at one scale in the box
+        dh = dw / aspect
+        height = max(MIN_HEIGHT_PX, min(h, int(math.ceil(top + nrows * (dh + _ABOVE + _BELOW)))))
+        options.append((n * dw * dh / (w * height), dw * dh, ncols, nrows, min(ph, dh), height))
+    if not options:  # a picture too small for any grid: one row, as it comes
+        options = [(0.0, 0.0, n, 1, (h - top) - _ABOVE - _BELOW, h)]
+    biggest = max(o[1] for o in options) or 1.0
+    _, _, ncols, nrows, ph, height = max(options, key=lambda o: (o[0] + 0.1 * o[1] / biggest, o[1]))
+    cw, ch = w / ncols, (height - top) / nrows
+    boxes = [
+        (int(c * cw + _LEFT), int(top + r * ch + _ABOVE), int((c + 1) * cw - _RIGHT),
+         int(top + r * ch + _ABOVE + max(20.0, min(ph, ch - _ABOVE - _BELOW))))
         for r in range(nrows) for c in range(ncols)
     ][:n]
+    return boxes, height
 
 
 def _heat_panel(

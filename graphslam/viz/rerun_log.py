@@ -53,6 +53,7 @@ from graphslam.core.radiomap.fingerprints import DEFAULT_MIN_RSSI_DBM, Fingerpri
 from graphslam.core.common.geometry import se2_apply
 from graphslam.core.types import PoseTrack, Survey
 from graphslam.errors import ConfigError, GraphSlamError, VisualizationError, require_extra
+from graphslam.names import FRAME_DESCRIPTIONS
 from graphslam.io.heatmap import MAX_STD_ERROR_DB, heatmap_rgba
 from graphslam.viz.common import (
     FloorPlan, landmark_marks, load_floor_plan, session_colours, survey_folder_tracks, top_access_points,
@@ -176,7 +177,7 @@ def log_survey(
     lg = _Log()
     colours = session_colours(alignment.session_ids)
     T = _landmark_layers(lg, alignment.tracks, survey)
-    _frame_layers(lg, T, plan)
+    _frame_layers(lg, T, plan, what=f"{alignment.frame} frame")
     _raw_layers(lg, survey, colours, set(alignment.tracks))
     _track_layers(lg, alignment.tracks, colours, alignment.reference)
     ref = alignment.session_ids.index(alignment.reference)
@@ -277,7 +278,7 @@ def write_survey_view(
     colours = session_colours(ids)
     lg = _Log()
     T = _landmark_layers(lg, tracks, survey) if survey is not None else None
-    _frame_layers(lg, T, plan)
+    _frame_layers(lg, T, plan, what=f"{report.get('frame') or 'aligned'} frame")
     if survey is not None:
         _raw_layers(lg, survey, colours, set(tracks))
     reference = str(report.get("reference_session") or next(iter(tracks)))
@@ -354,9 +355,11 @@ def _frame_layers(lg: _Log, T: NDArray | None, plan: FloorPlan | None, what: str
             "only, never used by the solver). Data keep their own coordinates."
         )
     else:
+        described = FRAME_DESCRIPTIONS.get(what.split()[0])
         lg.notes.append(
-            f"- frames: the {what} is drawn as is (origin = first pose of the reference walk)"
-            + ("; it is NOT registered to the floor plan (no landmark fit)." if plan is not None else ".")
+            f"- frames: the {what} is drawn as is" + (f" ({described.split(': ', 1)[1]})" if described else "")
+            + ("; it is NOT registered to the floor plan (no landmark fit)."
+               if plan is not None and not what.startswith("site") else ".")
         )
     if plan is not None:
         w_px, h_px = plan.pixels

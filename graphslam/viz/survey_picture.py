@@ -1,4 +1,4 @@
-"""``survey.png``: the aligned survey at a glance (``graphslam.viz.canvas``: Pillow, fast).
+"""``survey.png``: the aligned survey at a glance (``graphslam.io.canvas``: Pillow, fast).
 
 Every aligned walk in its own colour (the colours of the Rerun views), the reference walk
 marked at its first pose (the origin of the output frame), the WiFi edges faint by their
@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import json
 import textwrap
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -37,13 +37,15 @@ from graphslam.core.survey.radio_maps import WifiEdgeRows, crowdsourced_edges
 from graphslam.core.survey.align import Alignment
 from graphslam.core.survey.evaluate import Evaluation
 from graphslam.core.common.geometry import se2_apply
+from graphslam.core.summary import main_map_counts
 from graphslam.core.types import Survey
 from graphslam.errors import InputError
+from graphslam.names import FRAMES
 from graphslam.viz.common import (
     FloorPlan, LandmarkMarks, fitted_site_from_aligned, landmark_marks, session_colours, site_to_frame,
     survey_folder_trajectories,
 )
-from graphslam.viz.canvas import BLACK, GREY, LegendEntry, Picture, bounds_of
+from graphslam.io.canvas import BLACK, GREY, LegendEntry, Picture, bounds_of
 
 SIZE_PX = (1600, 1000)
 MAX_EDGES = 20_000  # drawn; more are subsampled (deterministically), the legend gives both counts
@@ -53,6 +55,8 @@ MAX_INSETS = 6  # other components drawn in the strip under the main map (the la
 INSET_STRIP_PX = 200  # height of that strip, its labels included
 EDGE_COLOURS = ((70, 170, 90), (255, 160, 0), (220, 40, 40))  # inactive, ramp, saturated (as in Rerun)
 MAGENTA = (215, 0, 215)
+CONTROL = (0, 90, 255)  # control points (given) and their marks: not the landmarks' black and magenta
+ANCHOR = (230, 110, 0)  # UWB anchors
 EDGE_NAMES = ("inactive", "ramp", "saturated")
 PICTURE = "survey.png"
 
@@ -77,6 +81,10 @@ class SurveyScene:
     # (index, walks, reason) of every component, 0 first; empty: every walk of ``tracks`` in component 0
     components: tuple[tuple[int, tuple[str, ...], str], ...] = ()
     frame: str = "aligned"  # of component 0: "aligned" | "earth" | "site"
+    # the control points given (landmark id -> site x, y): drawn apart from the landmarks
+    control_points: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    # the UWB anchors whose ranges placed the main map in the site frame (id -> site x, y)
+    anchors: Mapping[str, tuple[float, float]] = field(default_factory=dict)
 
     def main_ids(self) -> list[str]:
         """The walks of the main map (component 0), in ``tracks`` order."""
@@ -115,11 +123,24 @@ def scene_of_alignment(
     T = marks.site_from_output if marks is not None else None
     if T is None and evaluation is not None and evaluation.steps.n:  # fitted on true poses (simulations)
         T = np.asarray(evaluation.site_from_aligned, float)
+    anchors = _anchors(survey, al.uwb.anchors) if al.uwb is not None and al.frame == "site" else {}
     return _scene(
         tracks, al.session_ids, al.reference, dict(al.unaligned), rows_xy, edges, marks, T,
         _landmark_text(marks.stats.as_dict() if marks is not None else None), survey.n_steps, max_edges, (),
-        comps, al.frame,
+        comps, al.frame, dict(al.control_points), anchors,
     )
+
+
+def _anchors(survey: Survey | None, ids: Sequence[str]) -> dict[str, tuple[float, float]]:
+    """The site (x, y) of the anchors ``ids`` as the walks' recordings give them."""
+    if survey is None:
+        return {}
+    out: dict[str, tuple[float, float]] = {}
+    for s in survey:
+        for a, p in s.uwb_anchors.items():
+            if a in ids:
+                out.setdefault(a, (float(p[0]), float(p[1])))
+    return out
 
 
 def scene_of_folder(
@@ -175,10 +196,15 @@ def scene_of_folder(
     comps = tuple((k, tuple(by_index[k]), reasons.get(k, "")) for k in sorted(by_index))
     if comps and comps[0][0] != 0:  # no walk in the main map: an empty component 0 first
         comps = ((0, (), ""),) + comps
-    frame = report.get("frame") if report.get("frame") in ("aligned", "earth", "site") else "aligned"
+    frame = report.get("frame") if report.get("frame") in FRAMES else "aligned"
+    cps = report.get("control_points") if isinstance(report.get("control_points"), dict) else {}
+    control = {str(k): (float(v[0]), float(v[1])) for k, v in cps.items()}
+    uwb = report.get("uwb") if isinstance(report.get("uwb"), dict) else {}
+    anchors = _anchors(survey, [str(a) for a in uwb.get("anchors") or []]) if frame == "site" else {}
     return _scene(
         {sid: np.asarray(t.xy) for sid, t in pose_tracks.items()}, ids, reference, unaligned, rows_xy, edges,
         marks, T, _landmark_text(lm), n_poses, max_edges, tuple(notes), comps if len(comps) > 1 else (), frame,
+        control, anchors,
     )
 
 
@@ -186,7 +212,8 @@ def _scene(
     tracks: dict[str, NDArray], ids: Sequence[str], reference: str, unaligned: dict[str, str], rows_xy: NDArray,
     edges: WifiEdgeRows | None, marks: LandmarkMarks | None, T: NDArray | None, landmark_text: str, n_poses: int,
     max_edges: int, notes: tuple[str, ...], components: tuple[tuple[int, tuple[str, ...], str], ...] = (),
-    frame: str = "aligned",
+    frame: str = "aligned", control_points: Mapping[str, tuple[float, float]] | None = None,
+    anchors: Mapping[str, tuple[float, float]] | None = None,
 ) -> SurveyScene:
     if edges is None or not len(edges.a):
         seg, state, counts = np.zeros((0, 2, 2)), np.zeros(0, np.int8), (0, 0, 0)
@@ -200,7 +227,8 @@ def _scene(
         state = edges.state[pick]
     return SurveyScene(
         tracks, session_colours(ids), reference, unaligned, seg, state, counts, marks, T, landmark_text,
-        len(ids), n_poses, notes, components if len(components) > 1 else (), frame,
+        len(ids), n_poses, notes, components if len(components) > 1 else (), frame, dict(control_points or {}),
+        dict(anchors or {}),
     )
 
 
@@ -238,7 +266,8 @@ def draw_survey(
 def survey_picture(scene: SurveyScene, *, floor_plan: FloorPlan | None = None, size_px: tuple[int, int] = SIZE_PX) -> Picture:
     """The picture, not yet rendered: the main map's panel (a strip of small panels under it for the
     other components), the legend in a column on its right."""
-    T = scene.site_from_output
+    # a main map in the site frame is drawn over the plan as it is; another through the landmark fit
+    T = np.zeros(3) if scene.frame == "site" else scene.site_from_output
     in_site = floor_plan is not None and T is not None
     move = (lambda xy: se2_apply(T, xy)) if in_site else (lambda xy: xy)  # noqa: E731
     ids = scene.main_ids()
@@ -246,17 +275,26 @@ def survey_picture(scene: SurveyScene, *, floor_plan: FloorPlan | None = None, s
     lines = [move(scene.tracks[s]) for s in ids]
     colours = [scene.colours[s] for s in ids]
     est = truth = None
+    site_drawn = in_site or scene.frame == "site"  # the panel's metres are the site frame's
     if scene.marks is not None:
         m = scene.marks
-        est = se2_apply(m.site_from_output, m.estimate_xy) if in_site else m.estimate_xy
-        truth = m.truth_xy if in_site else site_to_frame(m.site_from_output, m.truth_xy)
+        if scene.frame == "site":  # estimates and truth in one frame: the error with no fit
+            est, truth = m.estimate_xy, m.truth_xy
+        else:
+            est = se2_apply(m.site_from_output, m.estimate_xy) if in_site else m.estimate_xy
+            truth = m.truth_xy if in_site else site_to_frame(m.site_from_output, m.truth_xy)
+    # control points and anchors are site positions: drawn where the panel's frame has them
+    to_panel = None if site_drawn else scene.site_from_output
+    control = _site_points(scene.control_points, site_drawn, to_panel)
+    anchors = _site_points(scene.anchors, site_drawn, to_panel)
     plan_box = np.array([[0.0, 0.0], [floor_plan.width_m, floor_plan.height_m]]) if floor_plan is not None else None
     w, h = size_px
-    pic = Picture(size_px, title_lines=_title(scene, floor_plan, in_site), legend_x=int(0.685 * w))
+    pic = Picture(size_px, title_lines=_title(scene, floor_plan, in_site), legend_x=int(0.685 * w),
+                  frame="site" if in_site else scene.frame)
     top = 16 + 20 * len(pic.title_lines)
     right = int(0.665 * w)
     bottom = h - 30 - (INSET_STRIP_PX if others else 0)
-    panel = pic.panel((62, top, right, bottom), bounds_of(*lines, truth, plan_box))
+    panel = pic.panel((62, top, right, bottom), bounds_of(*lines, truth, plan_box, control[1], anchors[1]))
     legend = pic.legend
 
     if floor_plan is not None:
@@ -287,7 +325,10 @@ def survey_picture(scene: SurveyScene, *, floor_plan: FloorPlan | None = None, s
                                + (f" (component {component[s]})" if s in component else ""), scene.colours[s], width=4)
                    for s in scene.tracks]
     else:
-        legend.append(LegendEntry(f"{n_walks} aligned walks, one colour each", colours[0] if colours else GREY, width=4))
+        legend.append(LegendEntry(
+            f"{len(ids)} walks of the main map, one colour each" + (" (the other components' in the strip below)"
+                                                                    if others else ""),
+            colours[0] if colours else GREY, width=4))
 
     if scene.reference in ids and len(scene.tracks[scene.reference]):
         ref = lines[ids.index(scene.reference)]
@@ -297,11 +338,28 @@ def survey_picture(scene: SurveyScene, *, floor_plan: FloorPlan | None = None, s
         legend.append(LegendEntry(f"reference {scene.reference} (thin black line{where})", BLACK, "star"))
 
     if scene.marks is not None and est is not None and truth is not None:
-        panel.points(truth, BLACK, radius=4, kind="cross")
-        panel.points(est, MAGENTA, radius=2)
-        legend.append(LegendEntry("landmark truth", BLACK, "cross"))
+        tie = np.isin(np.asarray(scene.marks.ids, dtype=object), list(scene.control_points)) \
+            if scene.marks.ids and scene.control_points else np.zeros(len(est), bool)
+        if (~tie).any():  # the landmarks (evaluation only); a control point's marks are drawn with it below
+            panel.points(truth[~tie], BLACK, radius=4, kind="cross")
+            panel.points(est[~tie], MAGENTA, radius=2)
+            legend.append(LegendEntry("landmark truth (evaluation only)", BLACK, "cross"))
+            mean = (f"{float(np.linalg.norm(est[~tie] - truth[~tie], axis=1).mean()):.2f} m mean, site frame, no fit"
+                    if scene.frame == "site" else f"{scene.marks.stats.mean_m:.2f} m mean")
+            legend.append(LegendEntry(f"landmark estimate and error line ({mean})", MAGENTA, "point"))
+        if tie.any():
+            panel.points(est[tie], CONTROL, radius=3)
+    if len(control[0]):
+        panel.points(control[1], CONTROL, radius=8, kind="diamond", outline=BLACK)
         legend.append(LegendEntry(
-            f"landmark estimate and error line ({scene.marks.stats.mean_m:.2f} m mean)", MAGENTA, "point"))
+            f"{len(control[0])} control point{'s' if len(control[0]) != 1 else ''} (given, site frame: the walks "
+            "marking one are tied there); the dots: its marks", CONTROL, "diamond"))
+    if len(anchors[0]):
+        panel.points(anchors[1], ANCHOR, radius=7, kind="square", outline=BLACK)
+        _labels(panel, anchors)
+        legend.append(LegendEntry(
+            f"{len(anchors[0])} UWB anchor{'s' if len(anchors[0]) != 1 else ''} (site frame: their ranges place "
+            "the main map)", ANCHOR, "square"))
     if scene.frame == "earth":
         north = se2_apply(np.array([0.0, 0.0, T[2]]), np.array([[0.0, 1.0]]))[0] if in_site and T is not None \
             else np.array([0.0, 1.0])
@@ -317,9 +375,35 @@ def survey_picture(scene: SurveyScene, *, floor_plan: FloorPlan | None = None, s
     return pic
 
 
+def _site_points(
+    points: Mapping[str, tuple[float, float]], site_drawn: bool, site_from_panel: NDArray | None
+) -> tuple[list[str], NDArray[np.float64]]:
+    """(ids, (N, 2) panel metres) of site positions: as they are when the panel is drawn in the site
+    frame, else through the landmark fit; none without it."""
+    ids = list(points)
+    xy = np.array([points[k] for k in ids], float).reshape(-1, 2)
+    if site_drawn:
+        return ids, xy
+    if site_from_panel is None:
+        return [], np.zeros((0, 2))
+    return ids, site_to_frame(np.asarray(site_from_panel, float), xy)
+
+
+def _labels(panel: Any, points: tuple[list[str], NDArray], max_labels: int = 24) -> None:
+    """Each point's id beside it (none when there are more than ``max_labels``)."""
+    from graphslam.io.canvas import font
+
+    ids, xy = points
+    if len(ids) > max_labels:
+        return
+    f = font(11)
+    for k, (x, y) in zip(ids, panel.px(xy).tolist()):
+        panel.draw.text((x + 9, y - 7), k, fill=BLACK, font=f)
+
+
 def _north_arrow(panel: Any, north: NDArray) -> None:
     """An arrow pointing north (unit vector ``north`` in the panel's metres), top right, with an N."""
-    from graphslam.viz.canvas import font
+    from graphslam.io.canvas import font
 
     w, _ = panel.image.size
     c = np.array([w - 34.0, 52.0])  # pixel centre (y down)
@@ -337,7 +421,7 @@ def _north_arrow(panel: Any, north: NDArray) -> None:
 def _component_strip(pic: Picture, scene: SurveyScene, others: list[tuple[int, tuple[str, ...], str]],
                      box: tuple[int, int, int, int]) -> None:
     """The largest other components, a small panel each (own frame, own scale), side by side in ``box``."""
-    from graphslam.viz.canvas import font
+    from graphslam.io.canvas import font
 
     x0, y0, x1, y1 = box
     shown = sorted(others, key=lambda c: (-len(c[1]), -sum(len(scene.tracks[s]) for s in c[1]), c[0]))[:MAX_INSETS]
@@ -403,23 +487,22 @@ def _faint(c: tuple[int, int, int], a: float = 0.55) -> tuple[int, int, int]:
 
 
 def _title(scene: SurveyScene, plan: FloorPlan | None, in_site: bool) -> list[str]:
-    n_al = len(scene.tracks)
     others = scene.other_components()
-    split = (f" ({len(scene.main_ids())} in the main map, {sum(len(w) for _, w, _ in others)} in "
-             f"{len(others)} other component{'s' if len(others) != 1 else ''})" if others else "")
-    head = (f"{n_al}/{scene.n_sessions} walks aligned{split}, {scene.n_poses:,} poses, "
-            f"{sum(scene.edge_counts):,} WiFi edges" + (" in the main map" if others else " between them")
+    counts = main_map_counts(scene.n_sessions, len(scene.main_ids()), sum(len(w) for _, w, _ in others), len(others),
+                             len(scene.unaligned))
+    head = (f"{counts}; {scene.n_poses:,} poses, {sum(scene.edge_counts):,} WiFi edges in the main map"
             + (f"; {scene.landmark_text}" if scene.landmark_text else ""))
     if in_site and scene.site_from_output is not None:
         x, y, th = (float(v) for v in scene.site_from_output)
         frame = (f"site frame of the floor plan: walks placed by the landmark SE(2) fit (x {x:.1f} m, y {y:.1f} m, "
                  f"{np.degrees(th):.1f} deg; display only)")
     else:
-        frame = "output frame (trajectories.csv, metres): origin = first pose of the reference walk"
-        if scene.frame == "earth":
-            frame += "; north-up (x east, y north, from the phones' headings)"
-        elif scene.frame == "site":
-            frame = "site frame (trajectories.csv, metres): placed by the control points or UWB anchors"
+        frame = f"{scene.frame} frame (trajectories.csv, metres): " + {
+            "earth": "north-up (x east, y north, from the phones' headings), origin = first pose of the reference walk",
+            "site": "placed by the " + ("UWB anchors" if scene.anchors and not scene.control_points else
+                                        "control points" if scene.control_points and not scene.anchors else
+                                        "control points or UWB anchors"),
+        }.get(scene.frame, "origin = first pose of the reference walk, x along its first heading")
         if plan is not None:
             frame += "; the floor plan is NOT registered to it (no landmark fit)"
     return [line for s in [head, frame, *scene.notes] for line in textwrap.wrap(s, 150)]

@@ -1,6 +1,6 @@
 """``track.png`` / ``positions.png``: walks tracked (``graphslam track``) or scans located
 (``graphslam locate``) on a radio map, with the truth when the recordings carry it
-(``graphslam.viz.canvas``: Pillow, fast).
+(``graphslam.io.canvas``: Pillow, fast).
 
 Everything is drawn in the radio map's frame: the estimates as they are, the truth moved
 into it by the caller (``graphslam.app.pictures`` knows the frames). Each session has its
@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graphslam.core.summary import plural
-from graphslam.viz.canvas import BLACK, LegendEntry, Picture, bounds_of
+from graphslam.io.canvas import BLACK, LegendEntry, Picture, bounds_of
 from graphslam.viz.common import session_colours
 
 SIZE_PX = (1400, 1000)
@@ -27,6 +27,7 @@ MAX_LEGEND = 16
 MAX_ERROR_SEGMENTS = 5_000
 MAP_DOTS = (175, 175, 175)
 ERROR = (110, 110, 110)
+ANCHOR = (230, 110, 0)  # as survey.png's
 
 
 def draw_tracks(
@@ -39,12 +40,16 @@ def draw_tracks(
     points: bool = False,
     title: str = "",
     frame: str = "radio map frame",
+    frame_name: str = "",
+    anchors: Mapping[str, tuple[float, float]] | None = None,
     size_px: tuple[int, int] = SIZE_PX,
 ) -> Path:
     """Render to the PNG ``path``. ``estimates``: session -> (N, 2) positions in time order (NaN rows:
     no answer, skipped). ``truth``: session -> (M, 2) true path; ``truth_at_estimates``: session ->
     (N, 2) true position at each estimate's time (error segments and the mean error). ``points``:
-    draw each estimate as a dot (kNN answers) rather than only a line (a tracked walk)."""
+    draw each estimate as a dot (kNN answers) rather than only a line (a tracked walk). ``frame``: the
+    subtitle saying which frame is drawn; ``frame_name``: that frame's name (the radio map's), the
+    PNG's ``frame`` text chunk. ``anchors``: UWB anchors (id -> x, y in the drawn frame), marked."""
     ids = list(estimates)
     colours = session_colours(ids)
     lines = [_finite(estimates[s]) for s in ids]
@@ -53,9 +58,10 @@ def draw_tracks(
     err = f"; error vs truth mean {err_sum / n_err:.2f} m over {n_err:,} {'answers' if points else 'steps'}" if n_err else ""
     w, h = size_px
     pic = Picture(size_px, title_lines=textwrap.wrap(title + err, 140) + textwrap.wrap(frame, 140),
-                  legend_x=int(0.7 * w))
+                  legend_x=int(0.7 * w), frame=frame_name)
     top = 16 + 20 * len(pic.title_lines)
-    panel = pic.panel((62, top, int(0.68 * w), h - 30), bounds_of(map_xy, *lines, *truths))
+    anchor_xy = np.array(list((anchors or {}).values()), float).reshape(-1, 2)
+    panel = pic.panel((62, top, int(0.68 * w), h - 30), bounds_of(map_xy, *lines, *truths, anchor_xy))
     legend = pic.legend
     if map_xy is not None and len(map_xy):
         panel.dots(map_xy, MAP_DOTS)
@@ -76,6 +82,9 @@ def draw_tracks(
         legend += [LegendEntry(s, colours[s], width=4) for s in ids]
     else:
         legend.append(LegendEntry(f"{plural(len(ids), 'session')}, one colour each", colours[ids[0]], width=4))
+    if len(anchor_xy):
+        panel.points(anchor_xy, ANCHOR, radius=7, kind="square", outline=BLACK)
+        legend.append(LegendEntry(f"{plural(len(anchor_xy), 'UWB anchor')}", ANCHOR, "square"))
     starts = [xy[:1] for xy in lines if len(xy)]
     if starts:
         panel.points(np.concatenate(starts), BLACK, radius=6, kind="ring")

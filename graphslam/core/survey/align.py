@@ -93,6 +93,8 @@ class Alignment:
     # phones' headings, origin at the reference walk's first pose; "site": control points or UWB anchors
     frame_name: str = "aligned"
     control_digest: str = ""  # ``incremental.control_points_digest`` of the control points used
+    # the control points given: landmark id -> site (x, y) (pictures draw them apart from landmarks)
+    control_points: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     # (E,) per WiFi edge of ``edges``: it entered the optimiser (same walks' component, the placement's
     # gate); None: every edge between aligned walks did
     used_edges: NDArray[np.bool_] | None = None
@@ -455,6 +457,7 @@ def build_problem(
         ties=None if split is None else split.ties,
         frame_name="aligned" if split is None else split.frame_name,
         control_digest=incremental.control_points_digest(control_points),
+        control_points=dict(control_points or {}),
     )
 
 
@@ -629,6 +632,7 @@ def solve(
         component_list=problem.components,
         frame_name=problem.frame_name,
         control_digest=problem.control_digest,
+        control_points=problem.control_points,
         used_edges=incremental.pairs_in(
             np.column_stack([fp.node[problem.edges.i], fp.node[problem.edges.j]]), problem.wifi_pairs, len(xyh)
         ),

@@ -9,7 +9,7 @@ first (or the site frame of the control points / UWB anchors).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Mapping
 
 import numpy as np
 from numpy.typing import NDArray
@@ -68,6 +68,7 @@ class Problem:
     ties: ControlTies | None = None  # control points: position priors (component 0 in the site frame)
     frame_name: str = "aligned"
     control_digest: str = ""  # of the control points given (``incremental.control_points_digest``)
+    control_points: Mapping[str, tuple[float, float]] = field(default_factory=dict)
 
     @property
     def reference_node(self) -> int:

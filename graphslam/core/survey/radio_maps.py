@@ -53,8 +53,9 @@ def _build(survey: Survey, al: Alignment, xy: NDArray, frame: str, cfg: GraphSla
 def crowdsourced_radio_map(
     survey: Survey, al: Alignment, cfg: GraphSlamConfig, *, site_from_aligned: NDArray | None = None
 ) -> RadioMap:
-    """Every fingerprint of an aligned walk at its optimised position (aligned frame, or the site
-    frame when ``site_from_aligned`` is given, e.g. from an evaluation fit)."""
+    """Every fingerprint of an aligned walk at its optimised position, in the survey's frame
+    (``Alignment.frame``: the name report.json gives it), or in the site frame when
+    ``site_from_aligned`` is given (e.g. from an evaluation fit)."""
     xy = al.fingerprint_xy()
     frame = al.frame  # the survey's own (report.json's): aligned, earth or site
     if site_from_aligned is not None:

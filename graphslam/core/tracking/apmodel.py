@@ -14,9 +14,13 @@ of the strongest readings, P0/gamma by linear regression from there. Uncertainty
 
 An AP is *not* fitted, with a reason, when: too few readings; the readings lie nearly on
 a line (mirror ambiguity across it); the solver did not converge; the position ends on
-its search bound (AP outside the surveyed area, unobservable); gamma or P0 at / outside
-plausible bounds; or the position standard deviation is too large. Weak readings are
-censored by the phone's floor, which biases gamma slightly low: documented, not corrected.
+its search bound (AP outside the surveyed area, unobservable); gamma at a bound or P0 at its
+lower bound (implausible); or the position standard deviation is too large. P0 is bounded above
+by what a phone 1 m from a physical AP can hear (``p0_bounds_dbm``: -10 dBm, above the ~-20 dBm of
+a 20 dBm transmitter after 1 m of free space at 2.4 GHz): a fit there is kept, the law's P0
+traded against gamma (walls' losses read as a steep law with an unphysically strong AP, e.g.
+-1 dBm with gamma 5.5 on the simulator's floors). Weak readings are censored by the phone's
+floor, which biases gamma slightly low: documented, not corrected.
 """
 
 from __future__ import annotations
@@ -49,7 +53,9 @@ class ApFitConfig:
     min_spread_m: float = 1.5  # smallest std of the reading positions across their main axis
     min_distance_m: float = 1.0  # d0
     gamma_bounds: tuple[float, float] = (1.0, 6.0)
-    p0_bounds_dbm: tuple[float, float] = (-90.0, 0.0)
+    # P0 (dBm at 1 m): a fit at the lower bound is rejected (implausible), one at the upper kept
+    # there (no physical AP is heard stronger at 1 m; module docstring)
+    p0_bounds_dbm: tuple[float, float] = (-90.0, -10.0)
     margin_m: float = 15.0  # the AP may lie this far outside the readings' bounding box
     loss_scale_db: float = 4.0  # soft-L1 scale: residuals beyond ~this are down-weighted
     strongest: int = 10  # readings in the starting centroid
@@ -203,7 +209,7 @@ def fit_ap(bssid: str, xy: NDArray, rss: NDArray, cfg: ApFitConfig = ApFitConfig
         return UnfittedAp(bssid, n, "position at the search bound (AP outside the surveyed area?)")
     if at_bound[3]:
         return UnfittedAp(bssid, n, f"implausible gamma (at bound {t[3]:.2f})")
-    if at_bound[2]:
+    if np.abs(t[2] - lo[2]) < 1e-3 * span[2]:
         return UnfittedAp(bssid, n, f"implausible P0 (at bound {t[2]:.1f} dBm)")
     r, J = _model(t, xy, d0)
     r = r - rss

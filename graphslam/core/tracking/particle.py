@@ -94,6 +94,7 @@ class ParticleRun:
     phi: NDArray[np.float64]  # (n_steps,) circular mean of the frame rotation (rad)
     phi_var: NDArray[np.float64]  # (n_steps,) its circular variance proxy (rad^2)
     resamplings: int
+    rssi_used: int = 0  # RSSI readings weighed (Huber: none is gated out)
 
 
 def scan_matches(distances: NDArray, k: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
@@ -179,6 +180,7 @@ def run_particle_filter(
     phi_out = np.zeros(n)
     phi_var = np.zeros(n)
     resamplings = 0
+    rssi_used = 0
 
     def weights() -> NDArray:
         w = np.exp(logw - logw.max())
@@ -215,6 +217,7 @@ def run_particle_filter(
             logw += log_likelihood(at, match_xy[j, ok], _mixture(match_d[j, ok], cfg), cfg)
             if rssi is not None and len(rssi.ap_idx[j]):
                 logw += rssi.log_likelihood(at, j, cfg.huber_k)
+                rssi_used += len(rssi.ap_idx[j])
             logw -= logw.max()
         pos = pos + move
         phi = phi + cfg.heading_sigma_rad * rng.standard_normal(N)
@@ -234,4 +237,4 @@ def run_particle_filter(
     w = weights()
     for i, p in enumerate(hist):
         report(base + i, p, w)
-    return ParticleRun(xy_out, cov_out, phi_out, phi_var, resamplings)
+    return ParticleRun(xy_out, cov_out, phi_out, phi_var, resamplings, rssi_used)

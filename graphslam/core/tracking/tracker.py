@@ -417,7 +417,7 @@ def _track_particles(session: Session, model: FusionModel, locator: KnnLocator, 
     P = np.zeros((n, 7, 7))
     P[:, :2, :2] = run.cov
     P[:, 6, 6] = run.phi_var
-    return SessionTrack(session.session_id, steps.t_ns.copy(), x, P, np.zeros(n, np.int64), 0, 0)
+    return SessionTrack(session.session_id, steps.t_ns.copy(), x, P, np.zeros(n, np.int64), run.rssi_used, 0)
 
 
 def _area_m2(rm: RadioMap) -> float:
@@ -511,8 +511,11 @@ class SelfCalibration:
                     log.info("track: no fix error correlation (%s)", e)
             task.advance(info="replaying the map's walks")
             half = cls(float(kappa), float(floor), 1.0, temper)
-            scale = replay_covariance_scale(rm, *half.apply(model, cfg), area=area) if cfg.calibration.replay_sessions > 0 else 1.0
-            task.advance()
+            # the online tracker's replay: an offline smoother takes its filter's calibration (one
+            # calibration kept per map and filter, ``calibration_config``), not a replay of its own
+            online = calibration_config(cfg)
+            scale = replay_covariance_scale(rm, *half.apply(model, online), area=area) if cfg.calibration.replay_sessions > 0 else 1.0
+            task.advance(info="")  # done: the replay's own line said it
         log.info("track: self-calibration: RSSI variance x %.2f, kNN fix std floor %.2f m, covariance x %.2f, "
                  "heading bank temper %.2f", kappa, floor, scale, temper)
         return cls(float(kappa), float(floor), float(scale), float(temper))
@@ -525,6 +528,12 @@ class SelfCalibration:
             "fixed_lag.bank_temper": self.bank_temper if cfg.fixed_lag.bank_temper is None else cfg.fixed_lag.bank_temper,
         })
         return model, cfg
+
+
+def calibration_config(cfg: TrackConfig) -> TrackConfig:
+    """What the self-calibration depends on of ``cfg``: all of it but the offline smoother (the
+    smoothers post-process their filter's run, so ``--smooth`` reuses the filter's calibration)."""
+    return cfg if cfg.filter.smoother == "none" else cfg.updated({"filter.smoother": "none"})
 
 
 def self_calibrated(rm: RadioMap, models: ApModels, model: FusionModel, cfg: TrackConfig) -> tuple[FusionModel, TrackConfig]:

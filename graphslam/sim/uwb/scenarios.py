@@ -189,13 +189,18 @@ class ZonesRun:
 
     def sessions(self) -> tuple[Session, ...]:
         """The run as recordings: one session per tag with its ``/uwb/range`` stream (and the
-        anchors), ground truth at every executed slot. No steps are recorded (no foot module in
-        this experiment): ``steps`` holds the first true position only, as the contract needs one."""
+        anchors), ground truth along its whole true path (the path's knots up to the network's end:
+        the path is piecewise linear between them; evaluation only). No steps are recorded (no foot
+        module in this experiment): ``steps`` holds the first true position only, as the contract
+        needs one."""
         net = self.network
         anchors = dict(zip(net.devices.anchor_ids, self.site.anchor_xyz.tolist()))
         out = []
         for tag, tid in enumerate(self.tag_ids):
-            out.append(_tag_session(net, tag, tid, ZONES_T0_NS, anchors, self.paths.at(tag, np.array([0.0]))[0]))
+            ts = self.paths.t_s[tag]
+            end = float(net.t1_s)
+            t = np.unique(np.concatenate([[0.0], ts[(ts > 0.0) & (ts < end)], [min(end, float(ts[-1]))]]))
+            out.append(_tag_session(net, tag, tid, ZONES_T0_NS, anchors, t, self.paths.at(tag, t)))
         return tuple(out)
 
     def write(self, out_dir: str | Path) -> list[Path]:
@@ -218,11 +223,16 @@ def _tag_ranges(net: NetworkRun, tag: int, t0_ns: int) -> UwbRanges | None:
     )
 
 
-def _tag_session(net: NetworkRun, tag: int, tid: str, t0_ns: int, anchors: dict, xy0: NDArray) -> Session:
+def _tag_session(net: NetworkRun, tag: int, tid: str, t0_ns: int, anchors: dict, t_s: NDArray, xy: NDArray) -> Session:
+    """A tag's recording: its ranges, and its true path ``xy`` at ``t_s`` (s from ``t0_ns``; heading:
+    the direction to the next point, the last one's kept)."""
     from graphslam.core.types import PoseTrack
 
     steps = PoseTrack(np.array([t0_ns], np.int64), np.zeros((1, 2)), np.zeros(1))
-    truth = PoseTrack(np.array([t0_ns], np.int64), np.reshape(xy0, (1, 2)), np.zeros(1))
+    d = np.diff(xy, axis=0)
+    heading = np.arctan2(d[:, 1], d[:, 0]) if len(d) else np.zeros(0)
+    heading = np.concatenate([heading, heading[-1:] if len(heading) else [0.0]])
+    truth = PoseTrack(t0_ns + np.round(np.asarray(t_s) * NS).astype(np.int64), np.asarray(xy, float), heading)
     return Session(
         session_id=f"zones-{tid}", steps=steps, ground_truth=truth, site="sim-zones", floor="F1",
         uwb_id=tid, uwb_ranges=_tag_ranges(net, tag, t0_ns), uwb_anchors=anchors,

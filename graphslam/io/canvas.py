@@ -1,5 +1,6 @@
 """A small map renderer on Pillow, for the pictures a command writes as it runs (survey.png,
-radio_map.png, track.png, positions.png).
+radio_map.png, track.png, positions.png) and the service's heatmaps (``graphslam.io.heatmap``:
+here in io, below both the service and viz, so that both draw with it).
 
 Why not matplotlib: importing it and drawing the 5-walk paper survey cost more than "a few
 percent" of a survey; Pillow imports several times faster and
@@ -27,9 +28,9 @@ from numpy.typing import NDArray
 
 from graphslam.errors import InputError
 from graphslam.io.atomic import atomic_open
-# re-exported: the pictures' colour maps and PNG writer live in io (the service renders PNGs too)
+# re-exported: the pictures' colour maps and PNG writer
+from graphslam.io.floor_plan import FloorPlan
 from graphslam.io.png import MAGMA_R, PNG_COMPRESS_LEVEL, RDYLGN_R, VIRIDIS, colour_map, png_bytes  # noqa: F401
-from graphslam.viz.common import FloorPlan
 
 Colour = tuple[int, int, int]
 BLACK: Colour = (0, 0, 0)
@@ -73,7 +74,7 @@ def nice_step(span: float, n: float, *, at_most: bool = False) -> float:
 class LegendEntry:
     text: str
     colour: Colour = BLACK
-    kind: str = "line"  # line | dashed | point | ring | cross | star | box | text
+    kind: str = "line"  # line | dashed | point | ring | cross | star | diamond | square | box | text
     width: int = 3
 
 
@@ -81,7 +82,9 @@ class Panel:
     """A plot box at ``box`` (x0, y0, x1, y1 pixels of the picture) showing ``bounds`` (x0, y0, x1,
     y1 metres), widened to the box's aspect so that a metre is as long across as up."""
 
-    def __init__(self, box: tuple[int, int, int, int], bounds: Sequence[float], margin: float = 0.04) -> None:
+    def __init__(
+        self, box: tuple[int, int, int, int], bounds: Sequence[float], margin: float = 0.04, pad_m: float = 0.5
+    ) -> None:
         from PIL import Image, ImageDraw
 
         self.box = box
@@ -91,7 +94,7 @@ class Panel:
         if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
             lo, hi = np.array([-1.0, -1.0]), np.array([1.0, 1.0])
         span = float(max(hi - lo)) or 1.0
-        half = (hi - lo) / 2.0 + margin * span + 0.5
+        half = (hi - lo) / 2.0 + margin * span + pad_m
         centre = (lo + hi) / 2.0
         scale = min(w / (2 * half[0]), h / (2 * half[1]))  # px per metre
         self.scale = scale
@@ -209,7 +212,8 @@ class Panel:
 
     def points(self, xy: NDArray, colours: Colour | Sequence[Colour], radius: float = 2.0, kind: str = "point",
                outline: Colour | None = None) -> None:
-        """Markers at ``xy``: ``point`` (disc), ``ring``, ``cross`` or ``star``."""
+        """Markers at ``xy``: ``point`` (disc), ``ring``, ``cross``, ``star``, ``diamond`` or ``square``
+        (filled, outlined in ``outline``, default white)."""
         p = self.px(xy)
         one = np.ndim(colours) == 1  # one colour for all, else one per point
         cs = [tuple(int(v) for v in colours)] * len(p) if one else [tuple(int(v) for v in c) for c in colours]
@@ -221,6 +225,12 @@ class Panel:
                 self.draw.polygon(_star(x, y, radius), fill=c, outline=outline or (255, 255, 255))
             elif kind == "ring":
                 self.draw.ellipse([x - radius, y - radius, x + radius, y + radius], outline=c, width=2)
+            elif kind == "diamond":
+                self.draw.polygon([(x, y - radius), (x + radius, y), (x, y + radius), (x - radius, y)], fill=c,
+                                  outline=outline or (255, 255, 255))
+            elif kind == "square":
+                self.draw.rectangle([x - radius, y - radius, x + radius, y + radius], fill=c,
+                                    outline=outline or (255, 255, 255))
             else:
                 self.draw.ellipse([x - radius, y - radius, x + radius, y + radius], fill=c, outline=outline)
 
@@ -276,10 +286,15 @@ class Picture:
     legend_x: int = 0  # left edge of the legend column (0: no legend)
     colourbars: list[tuple[tuple[int, int, int, int], NDArray, float, float, str]] = field(default_factory=list)
     captions: list[tuple[tuple[int, int], str, int]] = field(default_factory=list)
+    frame: str = ""  # the frame the panels are drawn in (report.json's name), written as a text chunk
+    scale_bars: list[tuple[tuple[int, int], float, float]] = field(default_factory=list)  # outside the panels
 
-    def panel(self, box: tuple[int, int, int, int], bounds: Sequence[float], *, tick_labels: bool = True) -> Panel:
-        """A panel at ``box``; ``tick_labels``: metre labels beside the frame (off: the grid alone)."""
-        p = Panel(box, bounds)
+    def panel(
+        self, box: tuple[int, int, int, int], bounds: Sequence[float], *, tick_labels: bool = True, tight: bool = False
+    ) -> Panel:
+        """A panel at ``box``; ``tick_labels``: metre labels beside the frame (off: the grid alone);
+        ``tight``: ``bounds`` fill the box with no margin (a box of their aspect shows exactly them)."""
+        p = Panel(box, bounds, margin=0.0, pad_m=0.0) if tight else Panel(box, bounds)
         if not tick_labels:
             p.ticks = []
         self.panels.append(p)
@@ -290,6 +305,13 @@ class Picture:
 
     def caption(self, xy: tuple[int, int], text: str, size: int = 12) -> None:
         self.captions.append((xy, text, size))
+
+    def scale_bar(self, panel: Panel, xy: tuple[int, int]) -> float:
+        """A scale bar of ``panel``'s metres drawn outside it, its left end at ``xy`` (picture pixels):
+        a bar that hides none of the panel. Returns its length (m)."""
+        length = nice_step(panel.hi[0] - panel.lo[0], 5.0, at_most=True)
+        self.scale_bars.append((xy, length, length * panel.scale))
+        return length
 
     def render(self) -> Any:
         """The picture as a Pillow RGB image."""
@@ -328,14 +350,28 @@ class Picture:
             d.text((x0, y1 + 4), label, fill=BLACK, font=f_tick)
         for (x, yy), text, size in self.captions:
             d.multiline_text((x, yy), text, fill=BLACK, font=font(size), spacing=2)
+        for (x, yy), length, px_len in self.scale_bars:
+            d.line([(x, yy), (x + px_len, yy)], fill=BLACK, width=3)
+            for xx in (x, x + px_len):
+                d.line([(xx, yy - 5), (xx, yy + 5)], fill=BLACK, width=2)
+            label = f"{length:g} m" if length >= 1 else f"{length * 100:g} cm"
+            d.text((x + px_len + 8, yy - 8), label, fill=BLACK, font=f_leg)
         if self.legend and self.legend_x:
             self._legend(d, f_leg)
         return im
 
+    def png(self, text: Mapping[str, str] | None = None) -> bytes:
+        """The rendered PNG's bytes; ``text``: tEXt chunks (ASCII keyword -> text), e.g. how the
+        picture was drawn. The title and the frame are chunks too (``Title``, ``frame``): what the
+        picture says, readable without looking."""
+        meta = {"Title": " ".join(self.title_lines)} if self.title_lines else {}
+        if self.frame:
+            meta["frame"] = self.frame
+        return png_bytes(np.asarray(self.render()), text={**meta, **(text or {})})
+
     def save(self, path: str | Path, text: Mapping[str, str] | None = None) -> Path:
-        """Render and write the PNG atomically (complete or absent); ``text``: tEXt chunks (ASCII
-        keyword -> Latin-1 text), e.g. how the picture was drawn."""
-        data = png_bytes(np.asarray(self.render()), text=text)
+        """Render and write the PNG (``png``) atomically: complete or absent."""
+        data = self.png(text)
         with atomic_open(path, "wb") as fh:
             fh.write(data)
         return Path(path)
@@ -361,6 +397,10 @@ class Picture:
                 d.line([(x + 9, cy + 5), (x + 19, cy - 5)], fill=e.colour, width=2)
             elif e.kind == "star":
                 d.polygon(_star(x + 14, cy, 8), fill=e.colour)
+            elif e.kind == "diamond":
+                d.polygon([(x + 14, cy - 8), (x + 22, cy), (x + 14, cy + 8), (x + 6, cy)], fill=e.colour)
+            elif e.kind == "square":
+                d.rectangle([x + 8, cy - 6, x + 20, cy + 6], fill=e.colour)
             elif e.kind == "box":
                 d.rectangle([x + 6, cy - 6, x + 22, cy + 6], fill=e.colour, outline=GREY)
             tx = x if e.kind == "text" else x + 36
