@@ -10,9 +10,14 @@ The site's field at a site-frame position p (one per site, the same for every wa
 
 - (0, H, V): the Earth's field, horizontal ``horizontal_ut`` to the north and vertical
   ``vertical_ut`` (negative: pointing down, a northern-hemisphere inclination);
-- a(p): the building's anomaly, three independent smooth Gaussian fields (east, north, up), each
-  of std ``anomaly_sigma_ut`` and correlation exp(-(r / anomaly_corr_m)^2), on a
-  ``grid_m`` grid over the plan, bilinear in between.
+- a(p) = g(p) exp(s(p) - s2): the building's anomaly. g: three independent smooth Gaussian fields
+  (east, north, up) of correlation exp(-(r / anomaly_corr_m)^2); s: one smooth Gaussian field of
+  std ``envelope_sigma`` (natural log of the amplitude) and correlation exp(-(r / envelope_corr_m)^2)
+  shared by the three, so that the field is strong in places (steel) and calm in others, as real
+  floors are (on IPIN 2023 floor -2 and ILC site1 F1 the rms of 10 m stretches spans a factor 4.2
+  between its 10th and 90th percentiles; a Gaussian field's spans 2.3); s2 = ``envelope_sigma``^2,
+  which makes the std of each component ``anomaly_sigma_ut``. On a ``grid_m`` grid over the plan,
+  bilinear in between.
 
 What the phone records at step k >= 1 (the ``/phone/heading`` timestamps: the step timestamps
 after the first, one message each), µT:
@@ -25,17 +30,19 @@ after the first, one message each), µT:
   probability ``large_offset_prob`` one of magnitude U(``large_offset_ut``) in a random
   direction (the 10-30 µT jumps of some phones);
 - n_k: white noise per step and component (the magnetometer's, the hand's motion);
-- e_k: the orientation's azimuth error per step, white, std ``azimuth_sigma_deg``. The phone's
-  orientation is referenced to the magnetometer, so the recorded horizontal part points to
-  magnetic north by construction: ``east`` is 0 up to this error, ``north`` is the local
-  horizontal magnitude, ``up`` the vertical component.
+- e_k: the orientation's azimuth error per step, std ``azimuth_sigma_deg``, correlation
+  exp(-(lag / ``azimuth_corr_steps``)^2). The phone's orientation is referenced to the
+  magnetometer, so the recorded horizontal part points to magnetic north by construction: ``east``
+  is 0 up to this error, ``north`` is the local horizontal magnitude, ``up`` the vertical component.
 
 Simplifications: the anomaly is a random vector field, not a potential field (no physics ties its
 components); an offset is constant in the Earth frame (a residual hard-iron offset lives in the
 phone's frame and turns with it); standing still within a step's interval is not weighted. The
-phone's azimuth (``graphslam.sim.heading``) keeps a distortion field of its own, drawn
-independently: a rotation vector smooths the magnetometer with the gyroscope, so the azimuth follows
-the field's direction only over several metres, and the two fields' directions do not agree.
+phone's azimuth (``graphslam.sim.heading``) keeps a distortion field of its own (7 deg over 7 m),
+drawn independently of this one. Physically both are one field: the azimuth's error is the local
+horizontal field's direction, atan2(a_east, H + a_north) (here ~13 deg std, over ~2.5 m), smoothed
+by the rotation vector's gyroscope; the heading simulation is kept as it was so that every figure
+measured on it stays.
 
 Every draw comes from generators of its own (``graphslam.sim.scenarios``), never from a walk's own
 stream or the heading's, so switching the field on or off changes no other simulated value.
@@ -53,6 +60,7 @@ from graphslam.core.types import MagneticTrack, PoseTrack
 from graphslam.errors import ConfigError, SimulationError
 from graphslam.sim.floorplan import FloorPlan
 from graphslam.sim.radio import ShadowingField, gaussian_field
+from graphslam.sim.walker import smooth_noise
 
 
 @dataclass(frozen=True)
@@ -67,29 +75,33 @@ class MagneticModel:
     enabled: bool = True
     horizontal_ut: float = 20.0  # the Earth's field, horizontal (to magnetic north)
     vertical_ut: float = -44.0  # ... and vertical (up; < 0: pointing down)
-    anomaly_sigma_ut: float = 3.0  # the building's anomaly, std per component
+    anomaly_sigma_ut: float = 4.5  # the building's anomaly, std per component (calm places much less)
     anomaly_corr_m: float = 2.5  # its correlation exp(-1) distance
+    envelope_sigma: float = 0.5  # the anomaly's amplitude varies over the floor: log-amplitude std ...
+    envelope_corr_m: float = 6.0  # ... correlation exp(-1) distance
     grid_m: float = 0.5  # the anomaly's grid spacing (bilinear in between)
     offset_sigma_ut: float = 2.5  # per walk: device/calibration offset, Gaussian std per component ...
     large_offset_prob: float = 0.05  # ... or with this probability a large one ...
     large_offset_ut: tuple[float, float] = (10.0, 30.0)  # ... of magnitude uniform in this range, random direction
-    noise_sigma_ut: float = 0.8  # white, per step and component
-    azimuth_sigma_deg: float = 7.0  # the orientation's azimuth error per step (east = |B_h| sin of it)
+    noise_sigma_ut: float = 0.4  # white, per step and component
+    azimuth_sigma_deg: float = 7.0  # the orientation's azimuth error per step (east = |B_h| sin of it) ...
+    azimuth_corr_steps: float = 1.0  # ... correlation exp(-1) lag in steps
     samples_per_step: int = 4  # points of the path from the previous step averaged per step
 
     def __post_init__(self) -> None:
         values = (
             self.horizontal_ut, self.vertical_ut, self.anomaly_sigma_ut, self.anomaly_corr_m, self.grid_m,
+            self.envelope_sigma, self.envelope_corr_m,
             self.offset_sigma_ut, self.large_offset_prob, *self.large_offset_ut, self.noise_sigma_ut,
-            self.azimuth_sigma_deg,
+            self.azimuth_sigma_deg, self.azimuth_corr_steps,
         )
         if not all(math.isfinite(v) for v in values):
             raise ConfigError("MagneticModel: every parameter must be finite")
-        for name in ("anomaly_sigma_ut", "offset_sigma_ut", "noise_sigma_ut", "azimuth_sigma_deg"):
+        for name in ("anomaly_sigma_ut", "envelope_sigma", "offset_sigma_ut", "noise_sigma_ut", "azimuth_sigma_deg"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"MagneticModel.{name} must be >= 0")
-        if self.anomaly_corr_m <= 0 or self.grid_m <= 0:
-            raise ConfigError("MagneticModel.anomaly_corr_m and grid_m must be > 0")
+        if min(self.anomaly_corr_m, self.envelope_corr_m, self.grid_m, self.azimuth_corr_steps) <= 0:
+            raise ConfigError("MagneticModel.anomaly_corr_m, envelope_corr_m, grid_m and azimuth_corr_steps must be > 0")
         if not 0 <= self.large_offset_prob <= 1:
             raise ConfigError("MagneticModel.large_offset_prob must be in [0, 1]")
         lo, hi = self.large_offset_ut
@@ -112,14 +124,19 @@ def anomaly_field(plan: FloorPlan, model: MagneticModel, rng: np.random.Generato
     """
     if not model.enabled:
         raise SimulationError("anomaly_field: the magnetic model is disabled")
-    pad = 2.0 * model.anomaly_corr_m
+    pad = 2.0 * max(model.anomaly_corr_m, model.envelope_corr_m)
     nx = int(np.ceil((plan.width_m + 2 * pad) / model.grid_m)) + 1
     ny = int(np.ceil((plan.height_m + 2 * pad) / model.grid_m)) + 1
-    if model.anomaly_sigma_ut > 0:
-        values = gaussian_field(rng, (3, ny, nx), model.anomaly_sigma_ut, model.anomaly_corr_m / model.grid_m)
+    if model.anomaly_sigma_ut == 0:
+        return ShadowingField((-pad, -pad), model.grid_m, np.zeros((3, ny, nx)))
+    s2 = model.envelope_sigma**2
+    g = gaussian_field(rng, (3, ny, nx), model.anomaly_sigma_ut * math.exp(-s2), model.anomaly_corr_m / model.grid_m)
+    if model.envelope_sigma > 0:
+        # E[exp(2 s)] = exp(2 s2): the std of g exp(s) is sigma_g exp(s2) = anomaly_sigma_ut
+        g = g * np.exp(gaussian_field(rng, (1, ny, nx), model.envelope_sigma, model.envelope_corr_m / model.grid_m))
     else:
-        values = np.zeros((3, ny, nx))
-    return ShadowingField((-pad, -pad), model.grid_m, values)
+        g = g * math.exp(s2)
+    return ShadowingField((-pad, -pad), model.grid_m, g)
 
 
 def field_at(xy: NDArray, model: MagneticModel, anomaly: ShadowingField) -> NDArray[np.float64]:
@@ -150,7 +167,7 @@ def phone_magnetic(
     xy = np.asarray(truth.xy, dtype=float)
     n = len(xy) - 1
     noise = rng.normal(0.0, model.noise_sigma_ut, (n, 3))
-    azimuth = rng.normal(0.0, math.radians(model.azimuth_sigma_deg), n)
+    azimuth = smooth_noise(rng, n, math.radians(model.azimuth_sigma_deg), model.azimuth_corr_steps)
     # The mean over each step's path (the magnetometer runs at tens of Hz; the phone averages since
     # the previous step): points at the centres of equal parts of the segment.
     f = (np.arange(model.samples_per_step) + 0.5) / model.samples_per_step
