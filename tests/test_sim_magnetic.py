@@ -126,7 +126,8 @@ def test_anomaly_statistics_on_the_grid() -> None:
                 rho = np.mean([np.corrcoef(v[c][:, :-k].ravel(), v[c][:, k:].ravel())[0, 1],
                                np.corrcoef(v[c][:-k].ravel(), v[c][k:].ravel())[0, 1]])
                 d = k * model.grid_m
-                want = math.exp(-((d / model.anomaly_corr_m) ** 2) + s2 * (math.exp(-((d / model.envelope_corr_m) ** 2)) - 1))
+                rho_s = math.exp(-((d / model.envelope_corr_m) ** 2))
+                want = math.exp(-((d / model.anomaly_corr_m) ** 2) + s2 * (rho_s - 1))
                 assert abs(rho - want) < tol, (c, r, rho, want)
         assert abs(np.corrcoef(v[0].ravel(), v[2].ravel())[0, 1]) < 0.06  # components independent
         # the envelope: strong in places, calm in others (heavy tails); none: Gaussian (kurtosis 3)

@@ -14,10 +14,10 @@ The site's field at a site-frame position p (one per site, the same for every wa
   (east, north, up) of correlation exp(-(r / anomaly_corr_m)^2); s: one smooth Gaussian field of
   std ``envelope_sigma`` (natural log of the amplitude) and correlation exp(-(r / envelope_corr_m)^2)
   shared by the three, so that the field is strong in places (steel) and calm in others, as real
-  floors are (on IPIN 2023 floor -2 and ILC site1 F1 the rms of 10 m stretches spans a factor 4.2
-  between its 10th and 90th percentiles; a Gaussian field's spans 2.3); s2 = ``envelope_sigma``^2,
-  which makes the std of each component ``anomaly_sigma_ut``. On a ``grid_m`` grid over the plan,
-  bilinear in between.
+  floors are (on IPIN 2023 floor -2 and ILC site1 F1 the rms of 10 m stretches spans a factor 4.2-4.3
+  between its 10th and 90th percentiles: lab/scripts/magnetic_field_shape.py); s2 =
+  ``envelope_sigma``^2, which makes the std of each component ``anomaly_sigma_ut``. On a
+  ``grid_m`` grid over the plan, bilinear in between.
 
 What the phone records at step k >= 1 (the ``/phone/heading`` timestamps: the step timestamps
 after the first, one message each), µT:
@@ -40,8 +40,8 @@ components); an offset is constant in the Earth frame (a residual hard-iron offs
 phone's frame and turns with it); standing still within a step's interval is not weighted. The
 phone's azimuth (``graphslam.sim.heading``) keeps a distortion field of its own (7 deg over 7 m),
 drawn independently of this one. Physically both are one field: the azimuth's error is the local
-horizontal field's direction, atan2(a_east, H + a_north) (here ~13 deg std, over ~2.5 m), smoothed
-by the rotation vector's gyroscope; the heading simulation is kept as it was so that every figure
+horizontal field's direction, atan2(a_east, H + a_north) (~0.2 rad over ~2.5 m with the
+defaults), smoothed by the rotation vector's gyroscope; the heading simulation is kept as it was so that every figure
 measured on it stays.
 
 Every draw comes from generators of its own (``graphslam.sim.scenarios``), never from a walk's own
@@ -101,7 +101,9 @@ class MagneticModel:
             if getattr(self, name) < 0:
                 raise ConfigError(f"MagneticModel.{name} must be >= 0")
         if min(self.anomaly_corr_m, self.envelope_corr_m, self.grid_m, self.azimuth_corr_steps) <= 0:
-            raise ConfigError("MagneticModel.anomaly_corr_m, envelope_corr_m, grid_m and azimuth_corr_steps must be > 0")
+            raise ConfigError(
+                "MagneticModel.anomaly_corr_m, envelope_corr_m, grid_m and azimuth_corr_steps must be > 0"
+            )
         if not 0 <= self.large_offset_prob <= 1:
             raise ConfigError("MagneticModel.large_offset_prob must be in [0, 1]")
         lo, hi = self.large_offset_ut

@@ -306,7 +306,7 @@ def _with_magnetic(session: Session, sc: Scenario, b: Building, rng: np.random.G
     if not sc.magnetic.enabled:
         return session
     if b.field_anomaly is None or session.ground_truth is None:
-        raise SimulationError(f"{session.session_id}: no magnetic field or ground truth to simulate the phone's field from")
+        raise SimulationError(f"{session.session_id}: no magnetic field or ground truth to simulate its field from")
     return replace(session, magnetic=phone_magnetic(session.ground_truth, sc.magnetic, b.field_anomaly, rng))
 
 
