@@ -23,15 +23,15 @@ import numpy as np
 
 from graphslam import align, build_problem, component_errors, evaluate, load_config, parse_overrides, simulate
 
-_LINK_LOG = re.compile(r"magnetic: (\d+) links, (\d+) close a loop, (\d+) kept")
+_LINK_LOG = re.compile(r"magnetic: (\d+) links, (\d+) consistent with their units' placement")
 
 
 class _Capture(logging.Handler):
-    """The survey's log line counting its magnetic links (found, loop-verified, kept)."""
+    """The survey's log line counting its magnetic links (found, kept: consistent with the placement)."""
 
     def __init__(self) -> None:
         super().__init__(logging.INFO)
-        self.counts: tuple[int, int, int] | None = None
+        self.counts: tuple[int, int] | None = None
 
     def emit(self, record: logging.LogRecord) -> None:
         m = _LINK_LOG.match(record.getMessage())
@@ -112,7 +112,7 @@ def main() -> None:
         problem = build_problem(survey, cfg)
         links = link_scores(survey, problem)
         if cap.counts is not None:
-            links |= dict(zip(("found", "loop_verified", "kept_logged"), cap.counts))
+            links |= dict(zip(("found", "kept_logged"), cap.counts))
         print(json.dumps(survey_row(args.scenario, seed, survey, cfg, True) | {"links": links}), flush=True)
         print(json.dumps(survey_row(args.scenario, seed, survey, off, False)), flush=True)
 
