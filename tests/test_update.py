@@ -242,13 +242,14 @@ def test_session_digest_covers_every_solver_input() -> None:
         replace(s, landmarks=(replace(m0, t_ns=m0.t_ns + 1), *s.landmarks[1:])),
         replace(s, landmarks=(replace(m0, landmark_id=m0.landmark_id + "x"), *s.landmarks[1:])),
         replace(s, uwb_id="tag7"),
+        replace(s, magnetic=None),
     ]
     assert all(inc.session_digest(c) != d for c in changed)
     # what never reaches the solver: the marks' surveyed positions, the ground truth
     same = [replace(s, landmarks=(replace(m0, x=m0.x + 1.0), *s.landmarks[1:])), replace(s, ground_truth=None)]
     assert all(inc.session_digest(c) == d for c in same)
     # a walk with none of the optional inputs keeps the digest earlier states recorded (id, steps, scans)
-    bare = replace(s, heading=None, landmarks=())
+    bare = replace(s, heading=None, landmarks=(), magnetic=None)
     h = hashlib.sha256()
     h.update(bare.session_id.encode())
     for a in (bare.steps.t_ns, bare.steps.xy, bare.steps.heading):

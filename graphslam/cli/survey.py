@@ -290,22 +290,31 @@ def simulate(
         False, "--no-heading",
         help="Record no /phone/heading (the phone's azimuth per step); every other value stays the same.",
     ),
+    no_magnetic: bool = typer.Option(
+        False, "--no-magnetic",
+        help="Record no /phone/magnetic (the phone's magnetic field per step); every other value stays the same.",
+    ),
 ) -> None:
     """Simulate a survey and write it as MCAP recordings (one per walk) plus OUT/building.json.
 
-    Walks carry the phone's azimuth on /phone/heading (unless --no-heading), ground truth and
-    landmark marks (evaluation only).
+    Walks carry the phone's azimuth on /phone/heading (unless --no-heading), its magnetic field on
+    /phone/magnetic (unless --no-magnetic), ground truth and landmark marks (evaluation only).
     Reading OUT as a folder also finds OUT/test/: pass OUT/*.mcap to keep test walks held out.
     """
     import time
 
     from graphslam.core.summary import plural
-    from graphslam.sim import HeadingModel, SurveyStats, with_overrides
+    from graphslam.sim import HeadingModel, MagneticModel, SurveyStats, with_overrides
     from graphslam.sim import simulate as run_simulation
 
     t0 = time.perf_counter()
     scenario = plain(scenario)
-    chosen = with_overrides(scenario, heading=HeadingModel(enabled=False)) if no_heading else scenario
+    off: dict = {}
+    if no_heading:
+        off["heading"] = HeadingModel(enabled=False)
+    if no_magnetic:
+        off["magnetic"] = MagneticModel(enabled=False)
+    chosen = with_overrides(scenario, **off) if off else scenario
     sim = run_simulation(chosen, seed=seed, size=size, test_walks=test_walks)
     t_sim = time.perf_counter() - t0
     sim.write(out)

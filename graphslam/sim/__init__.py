@@ -10,6 +10,7 @@ Typical use::
     sim.building.mean_rss(xy)  # (N, A) noiseless mean RSS, columns = sim.building.aps.bssids
     sim.write("out/")          # OUT/*.mcap, OUT/test/*.mcap, OUT/building.json
     sim.survey.sessions[0].heading  # the phone's azimuth per step (Earth frame; HeadingModel: scenario.heading)
+    sim.survey.sessions[0].magnetic  # the phone's magnetic field per step (µT; MagneticModel: scenario.magnetic)
 
 See docs/simulator.md for the models and their parameters.
 """
@@ -17,6 +18,7 @@ See docs/simulator.md for the models and their parameters.
 from graphslam.sim.cart import CartNoise, CartPath, CartRun, simulate_cart
 from graphslam.sim.floorplan import FloorPlan, Landmark, corridor_plan, office_plan
 from graphslam.sim.heading import HeadingModel, distortion_field, phone_heading, walk_offset, wrap_yaw
+from graphslam.sim.magnetic import MagneticModel, anomaly_field, phone_magnetic
 from graphslam.sim.museum import (
     LayoutParams,
     MuseumParams,
@@ -61,6 +63,7 @@ __all__ = [
     "ImuErrorParams",
     "Landmark",
     "LayoutParams",
+    "MagneticModel",
     "MuseumParams",
     "MuseumWalkerParams",
     "PhoneModel",
@@ -77,6 +80,7 @@ __all__ = [
     "WalkStats",
     "WalkerParams",
     "align_by_start",
+    "anomaly_field",
     "build_building",
     "corridor_plan",
     "distortion_field",
@@ -86,6 +90,7 @@ __all__ = [
     "museum_layout",
     "office_plan",
     "phone_heading",
+    "phone_magnetic",
     "raw_drift",
     "route_of",
     "shape_walks",

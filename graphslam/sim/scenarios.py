@@ -8,7 +8,10 @@ survey. The ``museum`` scenario draws its layout from stream 3 (PDR heading fiel
 (3, 1)) and walk k of route r from ``spawn_key=(1, r, k)``. The phone's azimuth
 (``/phone/heading``, ``graphslam.sim.heading``) has stream 4 of its own: the site's
 magnetic distortion ``(4, 0)``, survey walk i ``(4, 1, i)`` (museum: ``(4, 1, r, k)``),
-test walk i ``(4, 2, i)``; so headings on or off, every other value is the same.
+test walk i ``(4, 2, i)``; so headings on or off, every other value is the same. The magnetic
+field (``/phone/magnetic``, ``graphslam.sim.magnetic``) has stream 5, keyed the same way: the
+site's anomaly ``(5, 0)``, survey walk i ``(5, 1, i)`` (museum: ``(5, 1, r, k)``), test walk i
+``(5, 2, i)``.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from graphslam.io.atomic import atomic_write_text
 from graphslam.io.mcap_writer import write_session
 from graphslam.sim.floorplan import FloorPlan, Landmark, corridor_plan, office_plan
 from graphslam.sim.heading import HeadingModel, distortion_field, phone_heading
+from graphslam.sim.magnetic import MagneticModel, anomaly_field, field_at, phone_magnetic
 from graphslam.sim.museum import MuseumParams, Route, heading_field, museum_layout, simulate_museum_walk
 from graphslam.sim.radio import AccessPoints, RadioEnvironment, RadioParams, ShadowingField, make_radio
 from graphslam.sim.walker import ImuErrorParams, WalkerParams, WalkSpec, simulate_walk
@@ -42,7 +46,7 @@ EPOCH_2026_NS = 1_767_225_600 * 1_000_000_000
 _DAY_NS = 86_400 * 1_000_000_000
 _HOUR_NS = 3_600 * 1_000_000_000
 
-_STREAM_BUILDING, _STREAM_WALK, _STREAM_TEST, _STREAM_LAYOUT, _STREAM_HEADING = 0, 1, 2, 3, 4
+_STREAM_BUILDING, _STREAM_WALK, _STREAM_TEST, _STREAM_LAYOUT, _STREAM_HEADING, _STREAM_MAGNETIC = 0, 1, 2, 3, 4, 5
 
 
 def _rng(seed: int, stream: int, i: int = 0) -> np.random.Generator:
@@ -52,6 +56,11 @@ def _rng(seed: int, stream: int, i: int = 0) -> np.random.Generator:
 def _heading_rng(seed: int, *key: int) -> np.random.Generator:
     """The phone heading's generator for ``key`` (``(stream, i)`` or ``(stream, r, k)``), apart from the walks'."""
     return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(_STREAM_HEADING, *key)))
+
+
+def _magnetic_rng(seed: int, *key: int) -> np.random.Generator:
+    """The magnetic field's generator for ``key`` (as ``_heading_rng``'s), apart from the walks' and the heading's."""
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(_STREAM_MAGNETIC, *key)))
 
 
 @dataclass(frozen=True)
@@ -80,6 +89,7 @@ class Scenario:
     imu: ImuErrorParams = field(default_factory=ImuErrorParams)
     museum: MuseumParams = field(default_factory=MuseumParams)
     heading: HeadingModel = field(default_factory=HeadingModel)  # /phone/heading; enabled=False: none
+    magnetic: MagneticModel = field(default_factory=MagneticModel)  # /phone/magnetic; enabled=False: none
 
     def __post_init__(self) -> None:
         if self.n_walks < 1 or self.n_aps < 1:
@@ -189,6 +199,10 @@ class Building:
     # site +x (deg); None: no /phone/heading simulated.
     magnetic_field: ShadowingField | None = None
     earth_from_site_deg: float | None = None
+    # The site's magnetic field (/phone/magnetic): its model (the Earth's part) and the building's
+    # anomaly (µT; layers east, north, up; site-frame grid); None: no /phone/magnetic simulated.
+    field_model: MagneticModel | None = None
+    field_anomaly: ShadowingField | None = None
 
     @property
     def walls(self) -> NDArray[np.float64]:
@@ -206,6 +220,12 @@ class Building:
         """(N, A) noiseless mean RSS (dBm) of every AP at ``xy`` (N, 2, site frame); see ``RadioEnvironment``."""
         return self.radio.mean_rss(xy, walls=walls, shadowing=shadowing)
 
+    def field_ut(self, xy: NDArray) -> NDArray[np.float64]:
+        """(N, 3) the site's true magnetic field (east, north, up; µT) at ``xy`` (N, 2, site frame)."""
+        if self.field_model is None or self.field_anomaly is None:
+            raise SimulationError(f"{self.site}: no magnetic field simulated")
+        return field_at(xy, self.field_model, self.field_anomaly)
+
     def to_dict(self) -> dict:
         """JSON-ready description (no shadowing field: regenerate it with ``build_building``)."""
         a = self.aps
@@ -217,6 +237,11 @@ class Building:
                 "outer walls' corner of least x and y; Earth (east, north) = site rotated by earth_from_site_deg"
             ),
             "earth_from_site_deg": self.earth_from_site_deg,
+            "magnetic": None if self.field_model is None else {
+                "earth_ut": {"east": 0.0, "north": self.field_model.horizontal_ut, "up": self.field_model.vertical_ut},
+                "anomaly_sigma_ut": self.field_model.anomaly_sigma_ut,
+                "anomaly_corr_m": self.field_model.anomaly_corr_m,
+            },
             "width_m": self.plan.width_m,
             "height_m": self.plan.height_m,
             "walls": np.round(self.plan.walls, 6).tolist(),
@@ -242,13 +267,15 @@ def build_building(scenario: str | Scenario, seed: int = 0) -> Building:
     if sc.plan != "museum":
         plan = sc.floor_plan()
         radio = make_radio(plan, sc.n_aps, sc.radio, _rng(seed, _STREAM_BUILDING))
-        return Building(plan, radio, site=f"sim-{sc.name}", floor="F1", **_magnetic(sc, seed, plan))
+        return Building(
+            plan, radio, site=f"sim-{sc.name}", floor="F1", **_magnetic(sc, seed, plan), **_field(sc, seed, plan)
+        )
     layout = museum_layout(sc.museum.layout, _rng(seed, _STREAM_LAYOUT))
     radio = make_radio(layout.plan, sc.n_aps, sc.radio, _rng(seed, _STREAM_BUILDING))
     hfield = heading_field(layout.plan, sc.museum.pdr, _rng(seed, _STREAM_LAYOUT, 1))
     return Building(
         layout.plan, radio, site=f"sim-{sc.name}", floor="F1", routes=layout.routes, heading_field=hfield,
-        **_magnetic(sc, seed, layout.plan),
+        **_magnetic(sc, seed, layout.plan), **_field(sc, seed, layout.plan),
     )
 
 
@@ -260,6 +287,27 @@ def _magnetic(sc: Scenario, seed: int, plan: FloorPlan) -> dict:
         "magnetic_field": distortion_field(plan, sc.heading, _heading_rng(seed, 0)),
         "earth_from_site_deg": sc.heading.earth_from_site_deg,
     }
+
+
+def _field(sc: Scenario, seed: int, plan: FloorPlan) -> dict:
+    """The ``Building`` fields of ``/phone/magnetic``: the model and the building's anomaly."""
+    if not sc.magnetic.enabled:
+        return {}
+    return {"field_model": sc.magnetic, "field_anomaly": anomaly_field(plan, sc.magnetic, _magnetic_rng(seed, 0))}
+
+
+def _with_phone(session: Session, sc: Scenario, b: Building, seed: int, *key: int) -> Session:
+    """``session`` with its ``/phone/heading`` and ``/phone/magnetic``, each from its own generator for ``key``."""
+    return _with_magnetic(_with_heading(session, sc, b, _heading_rng(seed, *key)), sc, b, _magnetic_rng(seed, *key))
+
+
+def _with_magnetic(session: Session, sc: Scenario, b: Building, rng: np.random.Generator) -> Session:
+    """``session`` with its ``/phone/magnetic`` (from ``rng`` alone), or as it is when the field is off."""
+    if not sc.magnetic.enabled:
+        return session
+    if b.field_anomaly is None or session.ground_truth is None:
+        raise SimulationError(f"{session.session_id}: no magnetic field or ground truth to simulate its field from")
+    return replace(session, magnetic=phone_magnetic(session.ground_truth, sc.magnetic, b.field_anomaly, rng))
 
 
 def _with_heading(session: Session, sc: Scenario, b: Building, rng: np.random.Generator) -> Session:
@@ -358,11 +406,11 @@ def _museum_sessions(
     hkeys = [(_STREAM_WALK, r, k) for r in range(len(b.routes)) for k in range(reps)]
     hkeys += [(_STREAM_TEST, i) for i in range(test_walks)]
     sessions = [
-        _with_heading(
+        _with_phone(
             simulate_museum_walk(
                 sid, start, route, b.plan, b.radio, b.heading_field, mp, phone, rng, site=b.site, floor=b.floor
             ),
-            sc, b, _heading_rng(seed, *hkey),
+            sc, b, seed, *hkey,
         )
         for (sid, start, route, phone, rng), hkey in progress_over(list(zip(jobs, hkeys)), "simulate", unit="walks")
     ]
@@ -396,12 +444,12 @@ def simulate(
 
     def run(specs: list[tuple[WalkSpec, np.random.Generator]], stream: int) -> list[Session]:
         return [
-            _with_heading(
+            _with_phone(
                 simulate_walk(
                     spec, building.plan, building.radio, sc.walker, sc.imu, rng, site=building.site,
                     floor=building.floor,
                 ),
-                sc, building, _heading_rng(int(seed), stream, i),
+                sc, building, int(seed), stream, i,
             )
             for i, (spec, rng) in enumerate(progress_over(specs, "simulate", unit="walks"))
         ]
