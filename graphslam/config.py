@@ -234,9 +234,18 @@ class MagneticConfig(_Strict):
         "within this cosine, with each walk turned by its heading",
     )
     pair_every_m: float = Field(2.0, gt=0, description="one magnetic factor every this much along a matched stretch")
-    sigma_m: float = Field(1.0, gt=0, description="sigma of a magnetic factor on the ramp beyond its dead zone")
+    window_sigma_m: float = Field(
+        1.0, gt=0, description="precision of one matched window's alignment (IPIN 2023 floor -2: its node pairs lie "
+        "0.45-0.55 m apart in truth, median, p90 1.2 m); a window's window_m / pair_every_m factors are one "
+        "measurement, so each factor's sigma is this times the square root of their number",
+    )
     d_min_m: float = Field(0.5, ge=0, description="dead zone of a magnetic factor (the match's own precision)")
     d_max_m: float = Field(5.0, gt=0, description="a magnetic factor saturates beyond this (an outlier)")
+
+    @property
+    def sigma_m(self) -> float:
+        """Sigma of one magnetic factor on the ramp beyond its dead zone (``window_sigma_m``)."""
+        return self.window_sigma_m * max(1.0, self.window_m / self.pair_every_m) ** 0.5
 
     @model_validator(mode="after")
     def _order(self) -> "MagneticConfig":

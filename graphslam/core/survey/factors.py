@@ -19,7 +19,8 @@ Fuzzy WiFi-vicinity factor (eq. 10)
 
 Magnetic pair (``graphslam.core.survey.magnetic``)
     Two step poses a magnetic link says are one place: the same dead-zone range factor with its own
-    sigma and dead zone (``magnetic.sigma_m``, ``d_min_m``: the match's own precision), saturated
+    sigma and dead zone (``MagneticConfig.sigma_m``, from ``window_sigma_m``: the match's own precision, each
+    window's factors counted once together; ``d_min_m``), saturated
     beyond ``magnetic.d_max_m`` as the WiFi factor is beyond d_max.
 """
 

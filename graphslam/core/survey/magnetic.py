@@ -510,13 +510,19 @@ def walk_links(
         links_n.append(len(sel))
         links_c.append(len(idx))
         links_s.append(float(sc[sel].mean()))
-        tk = np.arange(0, L, step_pairs)
-        for e in idx[members]:  # node pairs: every agreeing match, overlapping ones too (the disjoint ones count)
-            u = s_lo[e] + tk
-            v = s_hi[e] + (L - 1 - tk if rev[e] else tk)
-            pairs_k.append(np.full(len(tk), k))
-            pairs_lo.append(seq.node[u])
-            pairs_hi.append(seq.node[v])
+        # node pairs from every agreeing match (overlapping ones too: they cover the shared stretch), one
+        # every ``pair_every_m`` along the first walk, from the best-scoring match there (idx is by score):
+        # overlapping matches say the same thing and must not count twice
+        tk = np.arange(L)
+        us, vs = [], []
+        for e in idx[members]:
+            us.append(s_lo[e] + tk)
+            vs.append(s_hi[e] + (L - 1 - tk if rev[e] else tk))
+        u_all, v_all = np.concatenate(us), np.concatenate(vs)
+        _, first = np.unique(u_all // step_pairs, return_index=True)
+        pairs_k.append(np.full(len(first), k))
+        pairs_lo.append(seq.node[u_all[first]])
+        pairs_hi.append(seq.node[v_all[first]])
     if not links_a:
         return MagneticLinks.empty(threshold)
     nodes = np.column_stack([np.concatenate(pairs_lo), np.concatenate(pairs_hi)])
