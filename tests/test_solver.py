@@ -327,3 +327,47 @@ def test_auto_precision_factorises_in_single_only_above_the_variable_count(monke
     for precision, above in (("auto", n - 1), ("auto", n), ("double", 0), ("single", 10 * n)):
         S.levenberg_marquardt(graph, problem.init_xyh, active, S.LMSettings(precision=precision, single_above_variables=above))
     assert seen == [True, False, False, True]
+
+
+def test_range_factors_between_carried_points_have_the_numerical_jacobians() -> None:
+    rng = np.random.default_rng(7)
+    xa, xb = _poses(rng, 25)
+    offsets = rng.normal(size=(25, 4)) * 1.5
+    sigma, d0 = rng.uniform(0.5, 2.5, 25), rng.uniform(0.0, 1.0, 25)
+    r, Ja, Jb, curv = S.offset_range_residuals(xa, xb, offsets, sigma, d0)
+    np.testing.assert_allclose(Ja, _numerical(lambda x: S.offset_range_residuals(x, xb, offsets, sigma, d0,
+                                                                                 jacobians=False)[0], xa), atol=1e-6)
+    np.testing.assert_allclose(Jb, _numerical(lambda x: S.offset_range_residuals(xa, x, offsets, sigma, d0,
+                                                                                 jacobians=False)[0], xb), atol=1e-6)
+    # the point itself: the distance between the carried points
+    c, s = np.cos(xa[:, 2]), np.sin(xa[:, 2])
+    pa = xa[:, :2] + np.column_stack([c * offsets[:, 0] - s * offsets[:, 1], s * offsets[:, 0] + c * offsets[:, 1]])
+    c, s = np.cos(xb[:, 2]), np.sin(xb[:, 2])
+    pb = xb[:, :2] + np.column_stack([c * offsets[:, 2] - s * offsets[:, 3], s * offsets[:, 2] + c * offsets[:, 3]])
+    np.testing.assert_allclose(r, np.maximum(np.linalg.norm(pb - pa, axis=1) - d0, 0) / sigma)
+    # with no offsets: the plain range factor, curvature included
+    r0, Ja0, Jb0, curv0 = S.offset_range_residuals(xa, xb, np.zeros((25, 4)), sigma, d0)
+    rr, _, jb = S.range_residuals(xa, xb, sigma, d0)
+    np.testing.assert_allclose(r0, rr)
+    np.testing.assert_allclose(Jb0, jb, atol=1e-12)
+    H = S.range_hessian(xa, xb, rr, jb, sigma)
+    np.testing.assert_allclose(Jb0[:, :, None] * Jb0[:, None, :] + np.pad(curv0, ((0, 0), (0, 1), (0, 1))), H, atol=1e-12)
+
+
+def test_a_magnetic_pair_between_skipped_steps_rides_on_the_kept_ones() -> None:
+    from graphslam.core.survey.graph import carried_pairs
+
+    rng = np.random.default_rng(3)
+    dr = np.column_stack([np.cumsum(rng.normal(0.7, 0.05, 40)), np.cumsum(rng.normal(0, 0.1, 40)),
+                          rng.normal(0, 0.3, 40)])
+    keep = np.zeros(40, bool)
+    keep[[0, 7, 15, 20, 30]] = True
+    pairs = np.array([[3, 25], [7, 33], [16, 39]])
+    kp, off = carried_pairs(pairs, keep, dr)
+    np.testing.assert_array_equal(kp, [[0, 20], [7, 30], [15, 30]])
+    # carried from the kept step's pose, the offset lands on the skipped step
+    for side in (0, 1):
+        k, n, o = kp[:, side], pairs[:, side], off[:, 2 * side:2 * side + 2]
+        c, s = np.cos(dr[k, 2]), np.sin(dr[k, 2])
+        np.testing.assert_allclose(dr[k, :2] + np.column_stack([c * o[:, 0] - s * o[:, 1], s * o[:, 0] + c * o[:, 1]]),
+                                   dr[n, :2], atol=1e-12)

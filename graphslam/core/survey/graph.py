@@ -115,9 +115,16 @@ def pose_graph(problem: Problem, cfg: GraphSlamConfig) -> tuple[S.PoseGraph, Com
     step_cov = np.diag([cfg.imu.sigma_xy_m**2, cfg.imu.sigma_xy_m**2, cfg.imu.sigma_heading_rad**2])
     held = problem.held_nodes
     chains = None
+    mag_pairs, mag_offsets = problem.magnetic_pairs, None
     if cfg.optimizer.compress_chains:
-        keep = kept_nodes(problem)
-        chains = compress(dead_reckoned_nodes(problem.survey)[0], problem.fingerprints.offsets, keep, problem.included, step_cov)
+        # magnetic pairs ride on the kept steps before them (``carried_pairs``): a variable per pair end
+        # would more than double a large survey's factorisation
+        keep = kept_nodes(problem, magnetic=False)
+        dr = dead_reckoned_nodes(problem.survey)[0]
+        if len(mag_pairs):
+            keep[problem.fingerprints.offsets[:-1][problem.included]] = True  # a kept step before every pair end
+            mag_pairs, mag_offsets = carried_pairs(mag_pairs, keep, dr)
+        chains = compress(dr, problem.fingerprints.offsets, keep, problem.included, step_cov)
         nodes, pairs, measured = chains.kept, chains.pairs, chains.measured
         sqrt_info = S.sqrt_information(chains.covariance)
     else:
@@ -140,9 +147,11 @@ def pose_graph(problem: Problem, cfg: GraphSlamConfig) -> tuple[S.PoseGraph, Com
         between_measured=measured,
         between_sqrt_info=sqrt_info,
         # WiFi edges, then magnetic pairs (each kind its sigma and dead zone)
-        range_pairs=np.concatenate([problem.wifi_pairs, problem.magnetic_pairs, anchor]).astype(np.int64).reshape(-1, 2),
+        range_pairs=np.concatenate([problem.wifi_pairs, mag_pairs, anchor]).astype(np.int64).reshape(-1, 2),
         range_sigma=F.wifi_sigma(cfg.wifi) if not (n_m or n_r) else sigma,
         range_dead_zone_m=cfg.wifi.d_min_m if not (n_m or n_r) else dead,
+        range_offsets=None if mag_offsets is None else np.concatenate(
+            [np.zeros((n_w, 4)), mag_offsets, np.zeros((n_r, 4))]),
         heading_nodes=hn,
         heading_target=ht,
         heading_sigma=hs,
@@ -154,12 +163,14 @@ def pose_graph(problem: Problem, cfg: GraphSlamConfig) -> tuple[S.PoseGraph, Com
     return graph, chains
 
 
-def kept_nodes(problem: Problem) -> NDArray[np.bool_]:
-    """Nodes chain compression keeps as variables: WiFi edge and magnetic pair ends, held nodes, control-point
+def kept_nodes(problem: Problem, *, magnetic: bool = True) -> NDArray[np.bool_]:
+    """Nodes chain compression keeps as variables: WiFi edge ends, magnetic pair ends (``magnetic``; the
+    vectorised graph carries them on the kept steps instead, ``carried_pairs``), held nodes, control-point
     ties, UWB ranges."""
     keep = np.zeros(len(problem.init_xyh), bool)
     keep[problem.wifi_pairs.ravel()] = True
-    keep[problem.magnetic_pairs.ravel()] = True
+    if magnetic:
+        keep[problem.magnetic_pairs.ravel()] = True
     keep[problem.anchor_pairs[:, 0]] = True
     keep[problem.held_nodes] = True
     if problem.ties is not None:
@@ -169,6 +180,23 @@ def kept_nodes(problem: Problem) -> NDArray[np.bool_]:
     if problem.heading is not None:  # every walk keeps one pose at least, for its heading prior
         keep[problem.fingerprints.offsets[:-1][problem.included]] = True
     return keep
+
+
+def carried_pairs(pairs: NDArray[np.int64], keep: NDArray[np.bool_], dr_xyh: NDArray) -> tuple[NDArray, NDArray]:
+    """Each pair end moved to the last kept step at or before it, with the end's dead-reckoned position in
+    that step's body frame: (pairs of kept steps (P, 2), offsets (P, 4): a's x, y then b's). Between kept steps
+    chain compression holds the walk rigid to first order, so a point at that offset from the kept pose is
+    the skipped step (``keep`` must hold every walk's first step)."""
+    kept = np.flatnonzero(keep)
+    out, offs = [], []
+    for side in (0, 1):
+        n = pairs[:, side]
+        k = kept[np.searchsorted(kept, n, side="right") - 1]
+        c, s = np.cos(dr_xyh[k, 2]), np.sin(dr_xyh[k, 2])
+        d = dr_xyh[n, :2] - dr_xyh[k, :2]
+        out.append(k)
+        offs.append(np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]]))
+    return np.column_stack(out).astype(np.int64), np.concatenate(offs, axis=1)
 
 
 def heading_priors(problem: Problem, nodes: NDArray[np.int64]) -> tuple[NDArray, NDArray, NDArray]:

@@ -70,7 +70,7 @@ class MagneticParams:
     min_windows: int = 2
     agree_m: float = 2.0
     direction_cos: float = 0.7
-    pair_every_m: float = 2.0
+    pair_every_m: float = 4.0
     min_std_ut: float = 0.3  # a window flatter than this (rms, every feature) is no signature
     sharp_m: float = 2.0
     min_sharpness: float = 0.0
@@ -156,15 +156,19 @@ def walk_sequences(survey: Survey, node_offsets: NDArray[np.int64], sample_m: fl
         if f is None or len(xy) < 2:
             sizes.append(0)
             continue
-        d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+        d_all = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+        # a step's message is the field averaged since the previous step: it belongs mid-way between them
+        # (at the step itself, walks matched in opposite directions would be half a step each off the other)
+        mid = np.concatenate([[0.0], 0.5 * (d_all[:-1] + d_all[1:])])
+        on = np.concatenate([[True], np.diff(mid) > 1e-6])
         # standing still (steps on the spot) is one place: the first step there stands for it
-        keep = np.concatenate([[True], np.diff(d) > 1e-6])
-        d, xy_k, f_k, k = d[keep], xy[keep], f[keep], np.flatnonzero(keep)
+        keep = np.concatenate([[True], np.diff(d_all) > 1e-6])
+        d, xy_k, k = d_all[keep], xy[keep], np.flatnonzero(keep)
         if len(d) < 2:
             sizes.append(0)
             continue
         q = np.arange(0.0, d[-1] + 1e-9, sample_m)
-        parts_f.append(np.column_stack([np.interp(q, d, f_k[:, c]) for c in range(N_FEATURES)]))
+        parts_f.append(np.column_stack([np.interp(q, mid[on], f[on, c]) for c in range(N_FEATURES)]))
         parts_xy.append(np.column_stack([np.interp(q, d, xy_k[:, 0]), np.interp(q, d, xy_k[:, 1])]))
         step = np.rint(np.interp(q, d, k.astype(float))).astype(np.int64)
         parts_node.append(node_offsets[s] + step)
@@ -487,16 +491,19 @@ def walk_links(
         if len(idx) < p.min_windows:
             continue
         tt = t[idx]
-        d = np.linalg.norm(tt[:, None] - tt[None], axis=2)
+        near = np.linalg.norm(tt[:, None] - tt[None], axis=2) <= p.agree_m
+        size = near.sum(axis=1)
         best: list[int] = []
         members = np.zeros(0, np.int64)
-        for c0 in range(len(idx)):
-            agree = np.flatnonzero(d[c0] <= p.agree_m)  # ascending index = descending score
+        ga, gb = s_lo[idx], s_hi[idx]
+        for c0 in np.argsort(-size, kind="stable"):  # the largest agreeing sets first
+            if size[c0] <= len(best):
+                break  # no smaller set can hold more disjoint matches
+            agree = np.flatnonzero(near[c0])  # ascending index = descending score
             chosen: list[int] = []
             for q in agree:
                 # a match holds a stretch of both walks: independent matches overlap on neither
-                e = idx[q]
-                if all(abs(s_lo[idx[r]] - s_lo[e]) >= L and abs(s_hi[idx[r]] - s_hi[e]) >= L for r in chosen):
+                if not chosen or (np.all(np.abs(ga[chosen] - ga[q]) >= L) and np.all(np.abs(gb[chosen] - gb[q]) >= L)):
                     chosen.append(int(q))
             if len(chosen) > len(best):
                 best, members = chosen, agree
@@ -593,6 +600,7 @@ def singleton_units(rotation: NDArray[np.float64]) -> LinkUnits:
 def link_units(
     links: MagneticLinks, n_walks: int, rotation: NDArray[np.float64], rotation_sigma: NDArray[np.float64],
     node_xy: NDArray[np.float64], node_walk: NDArray[np.int64], agree_m: float, refine: "GrowthParams",
+    max_pairs: int = 12,
 ) -> LinkUnits:
     """Units from verified links: translations by least squares over each connected set of walks (one
     walk held), then every walk's rotation and translation refined on the links' node pairs (a rigid
@@ -630,12 +638,19 @@ def link_units(
             sol = np.linalg.lstsq(A, links.translation[inside], rcond=None)[0]  # T_b - T_a = translation
             T[free, :2] = sol
         if len(links):
-            pa, pb = links.pair_nodes[:, 0], links.pair_nodes[:, 1]
+            # the refinement on at most ``max_pairs`` pairs of each link, spread along it (a rigid body's
+            # pose needs few; a large survey has tens of thousands)
+            rank = np.arange(len(links.pair_link)) - np.searchsorted(np.sort(links.pair_link), links.pair_link)
+            count = np.bincount(links.pair_link, minlength=len(links))[links.pair_link]
+            spread = (rank * max_pairs) // np.maximum(count, 1)
+            use = np.concatenate([[True], (spread[1:] != spread[:-1]) | (links.pair_link[1:] != links.pair_link[:-1])])
+            pa, pb = links.pair_nodes[use, 0], links.pair_nodes[use, 1]
             pts = np.concatenate([turned[pa], turned[pb]])
             sess = np.concatenate([node_walk[pa], node_walk[pb]])
             i = np.arange(len(pa))
             multi = np.flatnonzero(np.bincount(unit, minlength=n_units)[unit] > 1)
             T = refine_rigid(T, multi, seeds, sess, pts, i, i + len(pa), np.ones(len(pa)), refine, rotation_sigma)
+            pa, pb = links.pair_nodes[:, 0], links.pair_nodes[:, 1]
             gap = np.linalg.norm(_apply(T, node_walk[pa], turned[pa]) - _apply(T, node_walk[pb], turned[pb]), axis=1)
             per_link = np.bincount(links.pair_link, weights=gap, minlength=len(links)) / np.maximum(
                 np.bincount(links.pair_link, minlength=len(links)), 1)

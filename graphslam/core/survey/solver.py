@@ -57,6 +57,10 @@ class PoseGraph:
     range_pairs: NDArray[np.int64]  # (E, 2) node ids of WiFi edges (and magnetic pairs)
     range_sigma: float | NDArray[np.float64]  # one for all, or (E,) per edge
     range_dead_zone_m: float | NDArray[np.float64]
+    # (E, 4) per range edge: the points it joins as offsets (x, y) in each end's body frame, a's then b's
+    # (a magnetic pair between two steps chain compression left out, carried by the kept steps before
+    # them); None: every edge joins the poses themselves
+    range_offsets: NDArray[np.float64] | None = None
     # unary factors: a heading prior r = wrap(theta - target) / sigma (the phones' headings) and a
     # position prior r = (p - xy) / sigma (control points), each on one node
     heading_nodes: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
@@ -172,6 +176,36 @@ def range_residuals(
     Jb = np.zeros((len(xa), 3))
     Jb[:, :2] = unit
     return r, -Jb, Jb
+
+
+def offset_range_residuals(
+    xa: NDArray, xb: NDArray, offsets: NDArray, sigma: NDArray, dead_zone_m: NDArray, *, jacobians: bool = True
+) -> tuple[NDArray, NDArray | None, NDArray | None, NDArray | None]:
+    """``range_residuals`` between points carried by the poses: p = t + R(theta) o, ``offsets`` (E, 4) the
+    o of a and of b. Returns r and its Jacobians (E, 3) w.r.t. a's and b's (x, y, theta), and the
+    curvature of the distance on the translations, r / (sigma d) (I - u u^T) (E, 2, 2) (``range_hessian``)."""
+    def carried(x: NDArray, o: NDArray) -> tuple[NDArray, NDArray]:
+        c, s = np.cos(x[:, 2]), np.sin(x[:, 2])
+        p = x[:, :2] + np.column_stack([c * o[:, 0] - s * o[:, 1], s * o[:, 0] + c * o[:, 1]])
+        dp = np.column_stack([-s * o[:, 0] - c * o[:, 1], c * o[:, 0] - s * o[:, 1]])  # dp / dtheta
+        return p, dp
+
+    sigma = np.asarray(sigma, float)
+    pa, dpa = carried(xa, offsets[:, :2])
+    pb, dpb = carried(xb, offsets[:, 2:])
+    d = pb - pa
+    n = np.hypot(d[:, 0], d[:, 1])
+    on = n > dead_zone_m
+    r = np.where(on, n - dead_zone_m, 0.0) / sigma
+    if not jacobians:
+        return r, None, None, None
+    u = np.where(on[:, None], d / np.where(on, n, 1.0)[:, None], 0.0)
+    g = u / sigma[:, None]
+    Jb = np.column_stack([g, (g * dpb).sum(1)])
+    Ja = -np.column_stack([g, (g * dpa).sum(1)])
+    k = np.where(r > 0, r / (sigma * np.where(n > 0, n, 1.0)), 0.0)
+    curv = k[:, None, None] * (np.eye(2) - u[:, :, None] * u[:, None, :])
+    return r, Ja, Jb, curv
 
 
 def heading_residuals(x: NDArray, target: NDArray, sigma: NDArray) -> NDArray:
@@ -372,6 +406,9 @@ class _Objective:
         # per active edge: its sigma and dead zone (WiFi edges and magnetic pairs differ)
         self.rs = np.broadcast_to(np.asarray(g.range_sigma, float), (len(g.range_pairs),))[active]
         self.rd = np.broadcast_to(np.asarray(g.range_dead_zone_m, float), (len(g.range_pairs),))[active]
+        self.ro = None if g.range_offsets is None else g.range_offsets[active]
+        # the edges that join carried points (the others take the plain, cheaper path)
+        self.carried = None if self.ro is None else np.flatnonzero(np.any(self.ro != 0.0, axis=1))
         # unary factors enter as factors whose second end is held (no off-diagonal block)
         hv, pv = var_of[g.heading_nodes], var_of[g.point_nodes]
         self.hk, self.pk = hv >= 0, pv >= 0  # priors on held nodes are constants
@@ -398,9 +435,11 @@ class _Objective:
             self.poses(v, self.bp[:, 0]), self.poses(v, self.bp[:, 1]), g.between_measured, g.between_sqrt_info,
             jacobians=False,
         )
-        rr, _, _ = range_residuals(
-            self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1]), self.rs, self.rd, jacobians=False,
-        )
+        xa, xb = self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1])
+        rr, _, _ = range_residuals(xa, xb, self.rs, self.rd, jacobians=False)
+        if self.carried is not None and len(self.carried):
+            c = self.carried
+            rr[c] = offset_range_residuals(xa[c], xb[c], self.ro[c], self.rs[c], self.rd[c], jacobians=False)[0]
         rh, rp = self._unary(v)
         rho = cauchy(rh, g.heading_cauchy)[0]
         return 0.5 * float(np.sum(rb * rb) + np.sum(rr * rr) + np.sum(rho) + np.sum(rp * rp))
@@ -410,9 +449,22 @@ class _Objective:
         rb, Jba, Jbb = between_residuals(
             self.poses(v, self.bp[:, 0]), self.poses(v, self.bp[:, 1]), g.between_measured, g.between_sqrt_info
         )
-        rr, Jra, Jrb = range_residuals(self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1]), self.rs, self.rd)
+        xa, xb = self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1])
         JbaT, JbbT = np.transpose(Jba, (0, 2, 1)), np.transpose(Jbb, (0, 2, 1))
-        Hr = range_hessian(self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1]), rr, Jrb, self.rs)
+        rr, Jra, Jrb = range_residuals(xa, xb, self.rs, self.rd)
+        Hr = range_hessian(xa, xb, rr, Jrb, self.rs)
+        Hra, Hrb, Hrab = Hr, Hr, -Hr
+        if self.carried is not None and len(self.carried):
+            # edges between carried points: the blocks of each end differ (their theta columns)
+            c = self.carried
+            rc, Ja, Jb, curv = offset_range_residuals(xa[c], xb[c], self.ro[c], self.rs[c], self.rd[c])
+            K = np.zeros((len(c), 3, 3))
+            K[:, :2, :2] = curv
+            Hra, Hrb, Hrab = Hr.copy(), Hr.copy(), -Hr
+            rr[c], Jra[c], Jrb[c] = rc, Ja, Jb
+            Hra[c] = Ja[:, :, None] * Ja[:, None, :] + K
+            Hrb[c] = Jb[:, :, None] * Jb[:, None, :] + K
+            Hrab[c] = Ja[:, :, None] * Jb[:, None, :] - K
         rh, rp = self._unary(v)
         rho, wgt = cauchy(rh, g.heading_cauchy)  # IRLS: the kernel's weight on a Gauss-Newton block
         sh, sp = g.heading_sigma[self.hk], g.point_sigma[self.pk]
@@ -426,9 +478,9 @@ class _Objective:
         gp[:, :2] = rp[self.pk] / sp[:, None]
         n_u = len(sh) + len(sp)
         H, grad = self.normal.assemble(
-            np.concatenate([JbaT @ Jba, Hr, Hh, Hp]),
-            np.concatenate([JbbT @ Jbb, Hr, np.zeros((n_u, 3, 3))]),
-            np.concatenate([JbaT @ Jbb, -Hr, np.zeros((n_u, 3, 3))]),
+            np.concatenate([JbaT @ Jba, Hra, Hh, Hp]),
+            np.concatenate([JbbT @ Jbb, Hrb, np.zeros((n_u, 3, 3))]),
+            np.concatenate([JbaT @ Jbb, Hrab, np.zeros((n_u, 3, 3))]),
             np.concatenate([(JbaT @ rb[:, :, None])[:, :, 0], Jra * rr[:, None], gh, gp]),
             np.concatenate([(JbbT @ rb[:, :, None])[:, :, 0], Jrb * rr[:, None], np.zeros((n_u, 3))]),
         )
