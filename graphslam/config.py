@@ -129,8 +129,8 @@ class OptimizerConfig(_Strict):
         "auto: pardiso where MKL loads, else cholmod",
     )
     threads: int = Field(
-        0, ge=0, description="threads of the sparse Cholesky (PARDISO's MKL, CHOLMOD's BLAS); 0 = the library's default: "
-        "every core, or MKL_NUM_THREADS / OPENBLAS_NUM_THREADS (survey-batch workers: 1)",
+        0, ge=0, description="threads of PARDISO's factorisation (MKL); 0 = MKL's default: every core, or "
+        "MKL_NUM_THREADS (survey-batch workers: 1). CHOLMOD runs on one (cvxopt's BLAS is single-threaded)",
     )
     factor_precision: Literal["auto", "single", "double"] = Field(
         "auto",

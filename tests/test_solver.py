@@ -407,3 +407,17 @@ def test_the_default_back_end_factorises_in_the_nested_dissection_order(monkeypa
     assert runs[n].iterations == runs[n + 1].iterations
     assert abs(runs[n].error - runs[n + 1].error) <= 1e-9 * runs[n].error
     np.testing.assert_allclose(runs[n].xyh, runs[n + 1].xyh, atol=1e-7)
+
+
+@needs_cholmod
+def test_without_metis_cholmod_orders_by_amd_and_says_so(monkeypatch: pytest.MonkeyPatch, caplog) -> None:
+    def no_metis(*_args, **_kwargs):
+        raise RuntimeError("GTSAM built without METIS")
+
+    monkeypatch.setattr(S, "nested_dissection", no_metis)
+    problem = build_problem(two_walks(), CFG)
+    graph, _ = pose_graph(problem, CFG)
+    active = np.ones(len(problem.wifi_pairs), bool)
+    res = S.levenberg_marquardt(graph, problem.init_xyh, active, S.LMSettings(backend="cholmod", ordering="metis"))
+    assert res.converged and res.factor == S.FactorInfo("cholmod", "amd", "double")
+    assert "METIS ordering unavailable (GTSAM built without METIS): CHOLMOD orders by AMD" in caplog.text

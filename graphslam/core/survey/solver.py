@@ -497,7 +497,13 @@ def levenberg_marquardt(
         ordering = settings.ordering
         if ordering == "auto":
             ordering = "metis" if ne.n >= settings.metis_above_variables else "amd"
-    perm = nested_dissection(ne.indptr, ne.indices) if backend == "cholmod" and ordering == "metis" else None
+    perm = None
+    if backend == "cholmod" and ordering == "metis":
+        try:
+            perm = nested_dissection(ne.indptr, ne.indices)
+        except (RuntimeError, ValueError, ImportError) as e:  # a GTSAM built without METIS: slower, not wrong
+            log.warning("METIS ordering unavailable (%s): CHOLMOD orders by AMD", e)
+            ordering = "amd"
     solver = _DampedSystem(ne, settings.threads, single, backend, perm)
     log.debug("LM over %d unknowns: %s, %s ordering, %s precision", ne.n, backend, ordering, "single" if single else "double")
     H, grad, err = obj.linearise(v)
