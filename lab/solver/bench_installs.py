@@ -32,7 +32,7 @@ from pathlib import Path
 
 
 def simulate_into(folder: Path, scenario: str, seed: int, size: float, walks: int, minutes: str) -> None:
-    from graphslam.sim.scenarios import get_scenario, simulate
+    from graphslam import get_scenario, simulate
 
     sc = get_scenario(scenario)
     if walks:

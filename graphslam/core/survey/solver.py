@@ -14,11 +14,12 @@ the analysis reused (PARDISO, CHOLMOD: ``graphslam.core.common.cholesky``) refac
  * WiFi range: r = max(d - d_min, 0) / sigma, d = |p_a - p_b| (GTSAM's ``RangeFactorPose2``
    at range 0 under ``L2WithDeadZone``), with its exact Hessian (``range_hessian``) where
    GTSAM's robust wrapper reweights a Gauss-Newton one; the minimum is the same.
- * Linear algebra: the normal equations' pattern is fixed for one active edge set, so
-   PARDISO's ordering (METIS) and symbolic analysis run once per stage and each lambda try
-   or iteration is only a numeric refactorisation. Lambda follows Nielsen's rule, which
-   rejects few steps (each rejection costs a factorisation). Large systems are factorised
-   in single precision, each step refined in double to the double step (``_DampedSystem``).
+ * Linear algebra: the normal equations' pattern is fixed for one active edge set, so the
+   sparse Cholesky's ordering (METIS; AMD for CHOLMOD on small systems) and symbolic analysis
+   run once per stage and each lambda try or iteration is only a numeric refactorisation.
+   Lambda follows Nielsen's rule, which rejects few steps (each rejection costs a
+   factorisation). PARDISO factorises large systems in single precision, each step refined in
+   double to the double step (``_DampedSystem``).
  * Convergence: the error's relative decrease, or (``shape_tol_m``) a step that barely changes
    the map's shape: held by one pose, a large map's last iterations only turn it about that pose.
 
