@@ -129,8 +129,8 @@ class OptimizerConfig(_Strict):
         "auto: pardiso where MKL loads, else cholmod",
     )
     threads: int = Field(
-        0, ge=0, description="threads of the sparse Cholesky (PARDISO's MKL, CHOLMOD's BLAS); 0 = the library's default: "
-        "every core, or MKL_NUM_THREADS / OPENBLAS_NUM_THREADS (survey-batch workers: 1)",
+        0, ge=0, description="threads of PARDISO's factorisation (MKL); 0 = MKL's default: every core, or "
+        "MKL_NUM_THREADS (survey-batch workers: 1). CHOLMOD runs on one (cvxopt's BLAS is single-threaded)",
     )
     factor_precision: Literal["auto", "single", "double"] = Field(
         "auto",
@@ -142,6 +142,16 @@ class OptimizerConfig(_Strict):
     single_above_variables: int = Field(
         40_000, ge=0, description="factor_precision=auto: single precision above this many unknowns (3 per solved pose; "
         "paper size 4: 27k, size 8: 54k)",
+    )
+    ordering: Literal["auto", "metis", "amd"] = Field(
+        "auto",
+        description="solver=cholmod: the factorisation's fill-reducing ordering; metis: nested dissection "
+        "(GTSAM's METIS) of the pose graph; amd: CHOLMOD's approximate minimum degree; auto: metis from "
+        "metis_above_variables unknowns on, amd below (PARDISO orders by its own METIS)",
+    )
+    metis_above_variables: int = Field(
+        20_000, ge=0, description="ordering=auto: METIS from this many unknowns on (3 per solved pose; paper size 4: "
+        "27k), where its smaller factor saves more than loading GTSAM costs",
     )
     blas_threads: int = Field(
         1, ge=0, description="OpenBLAS threads (numpy's and scipy's) during a survey; 0 = OpenBLAS's default: every "

@@ -311,22 +311,16 @@ def test_lm_with_the_single_precision_factorisation_reaches_the_double_minimum()
 
 
 @needs_pardiso
-def test_auto_precision_factorises_in_single_only_above_the_variable_count(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_auto_precision_factorises_in_single_only_above_the_variable_count() -> None:
     problem = build_problem(two_walks(), CFG)
     graph, _ = pose_graph(problem, CFG)
     active = np.ones(len(problem.wifi_pairs), bool)
-    seen: list[bool] = []
-
-    class Spy(S._DampedSystem):
-        def __init__(self, ne: S._NormalEquations, threads: int, single: bool, backend: str = "pardiso") -> None:
-            seen.append(single)
-            super().__init__(ne, threads, single, backend)
-
-    monkeypatch.setattr(S, "_DampedSystem", Spy)
     n = 3 * len(graph.variables)
+    seen = []
     for precision, above in (("auto", n - 1), ("auto", n), ("double", 0), ("single", 10 * n)):
-        S.levenberg_marquardt(graph, problem.init_xyh, active, S.LMSettings(precision=precision, single_above_variables=above))
-    assert seen == [True, False, False, True]
+        settings = S.LMSettings(backend="pardiso", precision=precision, single_above_variables=above)
+        seen.append(S.levenberg_marquardt(graph, problem.init_xyh, active, settings).factor.precision)
+    assert seen == ["single", "double", "double", "single"]
 
 
 def test_range_factors_between_carried_points_have_the_numerical_jacobians() -> None:
@@ -371,3 +365,103 @@ def test_a_magnetic_pair_between_skipped_steps_rides_on_the_kept_ones() -> None:
         c, s = np.cos(dr[k, 2]), np.sin(dr[k, 2])
         np.testing.assert_allclose(dr[k, :2] + np.column_stack([c * o[:, 0] - s * o[:, 1], s * o[:, 0] + c * o[:, 1]]),
                                    dr[n, :2], atol=1e-12)
+
+
+def _star_and_scraps(rng: np.random.Generator) -> tuple[S._NormalEquations, np.ndarray]:
+    """Normal equations of 3x3 blocks: a 40-pose chain with a hub tied to every pose (one component),
+    a 3-pose chain, and a pose with no factor to another (a prior only): the shapes a survey's
+    components take, down to a walk that nothing links."""
+    chain = np.arange(1, 40)
+    va = np.concatenate([chain - 1, np.zeros(39, np.int64), [41, 42], [43]])
+    vb = np.concatenate([chain, chain, [42, 43], [-1]])
+    va[40:78] = 0
+    ne = S._NormalEquations(44, va, vb)
+    m = len(va)
+    J = rng.normal(size=(m, 3, 3))
+    tr = lambda a: np.transpose(a, (0, 2, 1))
+    zero = np.zeros((m, 3))
+    H, _ = ne.assemble(tr(J) @ J, tr(J) @ J, -(tr(J) @ J), zero, zero)
+    H[ne.diag_pos] += 1.0
+    return ne, H
+
+
+def test_nested_dissection_orders_every_unknown_with_each_pose_kept_whole() -> None:
+    ne, _ = _star_and_scraps(np.random.default_rng(7))
+    perm = C.nested_dissection(ne.indptr, ne.indices)  # GTSAM's METIS crashes on the lonely pose if handed it
+    assert np.array_equal(np.sort(perm), np.arange(ne.n))
+    blocks = perm.reshape(-1, 3)
+    assert np.all(blocks % 3 == [0, 1, 2]) and np.all(np.diff(blocks, axis=1) == 1)
+    assert np.array_equal(perm, C.nested_dissection(ne.indptr, ne.indices))  # deterministic (METIS seed)
+    with pytest.raises(ValueError, match="multiple of the block size"):
+        C.nested_dissection(ne.indptr[:-1], ne.indices[: ne.indptr[-2]])
+
+
+@needs_cholmod
+def test_cholmod_factorises_in_the_given_ordering_even_where_amd_would_fill_less(monkeypatch: pytest.MonkeyPatch) -> None:
+    """CHOLMOD left to itself compares a given ordering with its AMD and keeps the one that fills
+    less; the back end must factorise in the ordering it is given. Here the hub first (a dense
+    factor, where AMD puts it last), and CHOLMOD's postorder off so that its permutation is
+    exactly the one factorised in."""
+    monkeypatch.setattr(C, "_POSTORDER", False)
+    ne, H = _star_and_scraps(np.random.default_rng(8))
+    hub_first = np.arange(ne.n)
+    f = C.sparse_cholesky("cholmod", ne.indptr, ne.indices, perm=hub_first)
+    f.factor(H)
+    assert np.array_equal(f.permutation(), hub_first)
+    amd = C.sparse_cholesky("cholmod", ne.indptr, ne.indices)
+    amd.factor(H)
+    assert not np.array_equal(amd.permutation(), hub_first)  # AMD would not have kept it
+    b = np.random.default_rng(9).normal(size=ne.n)
+    np.testing.assert_allclose(f.solve(b), amd.solve(b), rtol=1e-9, atol=1e-12)
+
+
+@needs_cholmod
+def test_the_default_back_end_factorises_in_the_nested_dissection_order(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without MKL (the default install) the LM factorises with CHOLMOD in GTSAM's METIS order from
+    ``metis_above_variables`` unknowns on (the default config's 20,000: paper size 4 and up), in
+    AMD's below; the result says which, and the answer is the same."""
+    def no_mkl() -> None:
+        raise OSError("MKL runtime (libmkl_rt) not found")
+
+    monkeypatch.setattr(C, "_mkl_runtime", no_mkl)
+    monkeypatch.setattr(C, "_POSTORDER", False)
+    opt = CFG.optimizer
+    assert (opt.solver, opt.ordering, opt.metis_above_variables) == ("auto", "auto", 20_000)
+    problem = build_problem(two_walks(), CFG)
+    graph, _ = pose_graph(problem, CFG)
+    active = np.ones(len(problem.wifi_pairs), bool)
+    made: list = []
+
+    class Spy(C._Cholmod):
+        def free(self) -> None:
+            made.append(self.permutation())  # CHOLMOD's, read before the LM frees the factor
+            super().free()
+
+    monkeypatch.setattr(C, "_Cholmod", Spy)
+    n = 3 * len(graph.variables)
+    runs = {}
+    for above in (n, n + 1):
+        made.clear()
+        runs[above] = S.levenberg_marquardt(graph, problem.init_xyh, active, S.LMSettings(metis_above_variables=above))
+        ne = S._Objective(graph, active, problem.init_xyh).normal
+        if above == n:
+            assert np.array_equal(made[0], C.nested_dissection(ne.indptr, ne.indices))
+    assert runs[n].factor == S.FactorInfo("cholmod", "metis", "double")
+    assert runs[n + 1].factor == S.FactorInfo("cholmod", "amd", "double")
+    assert runs[n].iterations == runs[n + 1].iterations
+    assert abs(runs[n].error - runs[n + 1].error) <= 1e-9 * runs[n].error
+    np.testing.assert_allclose(runs[n].xyh, runs[n + 1].xyh, atol=1e-7)
+
+
+@needs_cholmod
+def test_without_metis_cholmod_orders_by_amd_and_says_so(monkeypatch: pytest.MonkeyPatch, caplog) -> None:
+    def no_metis(*_args, **_kwargs):
+        raise RuntimeError("GTSAM built without METIS")
+
+    monkeypatch.setattr(S, "nested_dissection", no_metis)
+    problem = build_problem(two_walks(), CFG)
+    graph, _ = pose_graph(problem, CFG)
+    active = np.ones(len(problem.wifi_pairs), bool)
+    res = S.levenberg_marquardt(graph, problem.init_xyh, active, S.LMSettings(backend="cholmod", ordering="metis"))
+    assert res.converged and res.factor == S.FactorInfo("cholmod", "amd", "double")
+    assert "METIS ordering unavailable (GTSAM built without METIS): CHOLMOD orders by AMD" in caplog.text

@@ -118,6 +118,7 @@ def build_report(
             "initial_error": al.initial_error,
             "final_error": al.final_error,
             "converged": al.converged,
+            **al.solver,
         },
         "timings_s": {k: round(v, 4) for k, v in timings.items()},
     }

@@ -107,7 +107,7 @@ def survey(
     typer.echo(
         f"{report_main_map_counts(r)}; frame {r['frame']}; {r['nodes']:,} poses, "
         f"{r['edges']['wifi']:,} WiFi edges; LM {r['optimizer']['iterations']} iterations "
-        f"(converged: {r['optimizer']['converged']}), error {r['optimizer']['initial_error']:.4g} -> "
+        f"(converged: {r['optimizer']['converged']}){_solver_phrase(r['optimizer'])}, error {r['optimizer']['initial_error']:.4g} -> "
         f"{r['optimizer']['final_error']:.4g}; {r['timings_s']['total']:.2f} s"
     )
     ev = r.get("evaluation")
@@ -120,6 +120,15 @@ def survey(
         )
     _echo_update(r.get("update"))
     typer.echo(f"outputs in {out}")
+
+
+def _solver_phrase(opt: dict) -> str:
+    """" with cholmod (metis ordering, double precision)": the optimiser report.json names, as the log does."""
+    if "solver" not in opt:
+        return ""
+    from graphslam.core.survey.graph import describe_solver
+
+    return f" with {describe_solver(opt)}"
 
 
 def _echo_update(u: Optional[dict]) -> None:

@@ -64,6 +64,9 @@ def _run_once(data: Path, out: Path, pythonpath: str | None, config: Path | None
         "iterations": rep["optimizer"]["iterations"],
         "edges": rep["edges"]["wifi"],
         "landmark_mean_m": rep.get("evaluation", {}).get("landmarks", {}).get("mean_m"),
+        # the optimiser report.json names, e.g. "cholmod metis double" ("" before it named one)
+        "backend": " ".join(str(rep["optimizer"][k]) for k in ("solver", "ordering", "factor_precision", "linear_solver")
+                            if k in rep["optimizer"]),
     }
 
 
@@ -80,6 +83,7 @@ def _summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "iterations": runs[-1]["iterations"],
         "edges": runs[-1]["edges"],
         "landmark_mean_m": runs[-1]["landmark_mean_m"],
+        "backend": runs[-1].get("backend", ""),
     }
 
 

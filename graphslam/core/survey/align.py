@@ -33,6 +33,8 @@ from graphslam.core.survey.heading_split import ComponentSplit, split_by_heading
 from graphslam.core.survey.edges import WifiEdges, propose_edges, window_thresholds
 from graphslam.core.survey.graph import (
     dead_reckoned_nodes,
+    describe_solver,
+    gtsam_linear_solver,
     gtsam_lm,
     native_graph,
     pose_graph,
@@ -104,6 +106,10 @@ class Alignment:
     reference_map: RadioMap | None = None  # the surveyed map component 0 is placed on (site frame)
     anchor_pairs: NDArray[np.int64] | None = None  # (E, 2) its WiFi edges: (step node, reference fingerprint)
     unused_reference: RadioMap | None = None  # a reference map given that no walk registers onto
+    # the optimiser that solved it: {"solver": "cholmod" | "pardiso", "ordering": "metis" | "amd",
+    # "factor_precision": "single" | "double"} for the vectorised LM, {"solver": "gtsam", "linear_solver":
+    # "cholesky" | "pcg"} for GTSAM's; empty: nothing was optimised
+    solver: dict[str, str] = field(default_factory=dict)
 
     def links_by_component(self) -> list[dict[str, int]]:
         """Per component (0 first): what links its walks, by kind — WiFi edges and magnetic links
@@ -528,6 +534,8 @@ def solve(
                 backend=cfg.optimizer.solver,
                 precision=cfg.optimizer.factor_precision,
                 single_above_variables=cfg.optimizer.single_above_variables,
+                ordering=cfg.optimizer.ordering,
+                metis_above_variables=cfg.optimizer.metis_above_variables,
             )
         else:
             if len(problem.anchor_pairs):
@@ -562,6 +570,7 @@ def solve(
     xyh = init_xyh.copy()
     initial_error = objective(xyh)
     converged = False
+    solver: dict[str, str] = {}
     prev_active: NDArray | None = None
     for stage, radius in enumerate(_saturation_radii(cfg, problem.method)):
         d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
@@ -584,9 +593,13 @@ def solve(
             res = S.levenberg_marquardt(pg, np.concatenate([xyh, anchors]), active, settings, hook)
             converged = res.converged
             xyh = res.xyh[:n_steps]
+            if res.factor is not None:
+                solver = {"solver": res.factor.backend, "ordering": res.factor.ordering,
+                          "factor_precision": res.factor.precision}
         else:
             values, converged = gtsam_lm(imu_graph, wifi_factors, values, active, cfg, hook)
             xyh = values_to_xyh(values, init_xyh)
+            solver = {"solver": "gtsam", "linear_solver": gtsam_linear_solver(cfg, values.size())}
         if chains is not None:
             xyh = expand(xyh, dr_xyh, chains)
         if problem.free is not None:  # --update: outside the neighbourhood, the previous solution
@@ -595,6 +608,8 @@ def solve(
         prev_active = active
     timings["optimise"] = time.perf_counter() - t
     task.end()
+    if solver:
+        log.info("optimised with %s", describe_solver(solver))
     final_error = objective(xyh)
 
     d = np.linalg.norm(xyh[problem.wifi_pairs[:, 0], :2] - xyh[problem.wifi_pairs[:, 1], :2], axis=1)
@@ -633,6 +648,7 @@ def solve(
         frame_name=problem.frame_name,
         control_digest=problem.control_digest,
         control_points=problem.control_points,
+        solver=solver,
         used_edges=incremental.pairs_in(
             np.column_stack([fp.node[problem.edges.i], fp.node[problem.edges.j]]), problem.wifi_pairs, len(xyh)
         ),

@@ -245,6 +245,20 @@ def solved_magnetic_pairs(problem: Problem) -> NDArray[np.int64]:
     return problem.magnetic_pairs[problem.free[problem.magnetic_pairs].any(axis=1)]
 
 
+def describe_solver(solver: dict[str, str]) -> str:
+    """One phrase for ``Alignment.solver``, the same in the log and the command's summary, e.g.
+    "cholmod (metis ordering, double precision)" or "gtsam (pcg)"."""
+    if solver.get("solver") == "gtsam":
+        return f"gtsam ({solver.get('linear_solver', '?')})"
+    return f"{solver['solver']} ({solver['ordering']} ordering, {solver['factor_precision']} precision)"
+
+
+def gtsam_linear_solver(cfg: GraphSlamConfig, n_poses: int) -> str:
+    """``optimizer.linear_solver`` resolved for GTSAM's LM over ``n_poses`` poses: "cholesky" or "pcg"."""
+    solver = cfg.optimizer.linear_solver
+    return "pcg" if solver == "pcg" or (solver == "auto" and n_poses > cfg.optimizer.pcg_above_poses) else "cholesky"
+
+
 def lm_params(cfg: GraphSlamConfig, n_poses: int = 0) -> gtsam.LevenbergMarquardtParams:
     """LM settings. Direct multifrontal Cholesky is fastest on surveys of a few thousand fingerprint
     poses; beyond that the WiFi edges, which tie every revisited place together, make elimination
@@ -256,8 +270,7 @@ def lm_params(cfg: GraphSlamConfig, n_poses: int = 0) -> gtsam.LevenbergMarquard
     params.setRelativeErrorTol(cfg.optimizer.relative_error_tol)
     params.setAbsoluteErrorTol(cfg.optimizer.absolute_error_tol)
     params.setOrderingType("METIS")
-    solver = cfg.optimizer.linear_solver
-    if solver == "pcg" or (solver == "auto" and n_poses > cfg.optimizer.pcg_above_poses):
+    if gtsam_linear_solver(cfg, n_poses) == "pcg":
         params.setLinearSolverType("ITERATIVE")
         pcg = gtsam.PCGSolverParameters()
         pcg.preconditioner = gtsam.BlockJacobiPreconditionerParameters()

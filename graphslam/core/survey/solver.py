@@ -14,11 +14,12 @@ the analysis reused (PARDISO, CHOLMOD: ``graphslam.core.common.cholesky``) refac
  * WiFi range: r = max(d - d_min, 0) / sigma, d = |p_a - p_b| (GTSAM's ``RangeFactorPose2``
    at range 0 under ``L2WithDeadZone``), with its exact Hessian (``range_hessian``) where
    GTSAM's robust wrapper reweights a Gauss-Newton one; the minimum is the same.
- * Linear algebra: the normal equations' pattern is fixed for one active edge set, so
-   PARDISO's ordering (METIS) and symbolic analysis run once per stage and each lambda try
-   or iteration is only a numeric refactorisation. Lambda follows Nielsen's rule, which
-   rejects few steps (each rejection costs a factorisation). Large systems are factorised
-   in single precision, each step refined in double to the double step (``_DampedSystem``).
+ * Linear algebra: the normal equations' pattern is fixed for one active edge set, so the
+   sparse Cholesky's ordering (METIS; AMD for CHOLMOD on small systems) and symbolic analysis
+   run once per stage and each lambda try or iteration is only a numeric refactorisation.
+   Lambda follows Nielsen's rule, which rejects few steps (each rejection costs a
+   factorisation). PARDISO factorises large systems in single precision, each step refined in
+   double to the double step (``_DampedSystem``).
  * Convergence: the error's relative decrease, or (``shape_tol_m``) a step that barely changes
    the map's shape: held by one pose, a large map's last iterations only turn it about that pose.
 
@@ -35,7 +36,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 
-from graphslam.core.common.cholesky import backend_for, pardiso_available, sparse_cholesky  # noqa: F401 (re-exported)
+from graphslam.core.common.cholesky import (  # noqa: F401 (re-exported)
+    backend_for, nested_dissection, pardiso_available, sparse_cholesky,
+)
 from graphslam.core.types import wrap_angle
 from graphslam.errors import SolverError
 
@@ -90,6 +93,20 @@ class LMSettings:
     # ``single_above_variables`` unknowns on, where the cheaper factorisation outweighs the refinement's solves
     precision: Literal["auto", "single", "double"] = "auto"
     single_above_variables: int = 40_000
+    # CHOLMOD's fill-reducing ordering: "metis" (nested dissection), "amd", or "auto": METIS from
+    # ``metis_above_variables`` unknowns on, where its fill saves more than GTSAM's import costs
+    ordering: Literal["auto", "metis", "amd"] = "auto"
+    metis_above_variables: int = 20_000
+
+
+@dataclass(frozen=True)
+class FactorInfo:
+    """The sparse Cholesky an LM run factorised with (the last factorisation's, after any switch
+    from single to double precision)."""
+
+    backend: str  # "pardiso" or "cholmod"
+    ordering: str  # fill-reducing ordering: "metis" (nested dissection) or "amd"
+    precision: str  # "single" (refined in double) or "double"
 
 
 @dataclass(frozen=True, eq=False)
@@ -100,6 +117,7 @@ class LMResult:
     initial_error: float
     error: float
     converged: bool  # a tolerance was met (not the iteration cap, not a lambda stall)
+    factor: FactorInfo | None = None  # None: nothing was factorised
 
 
 def sqrt_information(cov: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -278,12 +296,28 @@ class _NormalEquations:
         keys = np.concatenate([np.arange(n_vars) * (n_vars + 1), (lo * n_vars + hi)[both]])
         blocks, inv = np.unique(keys, return_inverse=True)
         self.n_blocks = len(blocks)
-        nf = len(va)
-        self.slot_aa = _slot(blocks, va * (n_vars + 1), va >= 0)
-        self.slot_bb = _slot(blocks, vb * (n_vars + 1), vb >= 0)
-        self.slot_ab = np.full(nf, -1, np.int64)
-        self.slot_ab[both] = inv[n_vars:]
-        self.swap = va > vb  # the (min, max) block is J_b^T J_a when a is the larger index
+        slot_aa = _slot(blocks, va * (n_vars + 1), va >= 0)
+        slot_bb = _slot(blocks, vb * (n_vars + 1), vb >= 0)
+        slot_ab = np.full(len(va), -1, np.int64)
+        slot_ab[both] = inv[n_vars:]
+        # entry index (slot * 9 + row * 3 + col) in the blocks of each entry of each factor's block;
+        # the (min, max) block is J_b^T J_a, i.e. J_a^T J_b transposed, when a is the larger index;
+        # entries of a held end (slot -1) go to a bin past the end that the assembly drops. Kept
+        # from one assembly to the next: an assembly is then three bincounts over the factors'
+        # blocks as they come (no index arithmetic, no concatenated copy of every block)
+        e9 = np.arange(9)
+        e9t = (3 * e9) % 9 + e9 // 3  # (r, c) -> (c, r)
+        self._trash = self.n_blocks * 9
+        self._idx = []
+        for slot, swap in ((slot_aa, None), (slot_bb, None), (slot_ab, va > vb)):
+            idx = slot[:, None] * 9 + (e9 if swap is None else np.where(swap[:, None], e9t, e9))
+            idx[slot < 0] = self._trash + e9
+            self._idx.append(idx.ravel())
+        self._gidx = []
+        for v in (va, vb):
+            gi = 3 * v[:, None] + np.arange(3)
+            gi[v < 0] = self.n + np.arange(3)
+            self._gidx.append(gi.ravel())
         bi, bj = blocks // n_vars, blocks % n_vars
         r, c = np.divmod(np.arange(9), 3)
         rows = (3 * bi[:, None] + r[None, :]).ravel()
@@ -299,19 +333,13 @@ class _NormalEquations:
     def assemble(self, aa: NDArray, bb: NDArray, ab: NDArray, ga: NDArray, gb: NDArray) -> tuple[NDArray, NDArray]:
         """(CSR data of J^T J's upper triangle, J^T r) from per-factor blocks J_a^T J_a, J_b^T J_b,
         J_a^T J_b (F, 3, 3) and gradients J_a^T r, J_b^T r (F, 3)."""
-        ab = np.where(self.swap[:, None, None], np.transpose(ab, (0, 2, 1)), ab)
-        e9 = np.arange(9)
-        idx, wts = [], []
-        for slot, blk in ((self.slot_aa, aa), (self.slot_bb, bb), (self.slot_ab, ab)):
-            ok = slot >= 0
-            idx.append((slot[ok, None] * 9 + e9).ravel())
-            wts.append(blk[ok].reshape(-1))
-        H = np.bincount(np.concatenate(idx), np.concatenate(wts), minlength=self.n_blocks * 9)[self.gather]
-        g = np.zeros(self.n)
-        for v, gv in ((self.va, ga), (self.vb, gb)):
-            ok = v >= 0
-            g += np.bincount((3 * v[ok, None] + np.arange(3)).ravel(), gv[ok].ravel(), minlength=self.n)
-        return H, g
+        size = self._trash + 9
+        blocks = np.bincount(self._idx[0], np.ascontiguousarray(aa).reshape(-1), minlength=size)
+        for idx, blk in zip(self._idx[1:], (bb, ab)):
+            blocks += np.bincount(idx, np.ascontiguousarray(blk).reshape(-1), minlength=size)
+        g = np.bincount(self._gidx[0], np.ascontiguousarray(ga).reshape(-1), minlength=self.n + 3)
+        g += np.bincount(self._gidx[1], np.ascontiguousarray(gb).reshape(-1), minlength=self.n + 3)
+        return blocks[self.gather], g[: self.n]
 
 
 def _slot(blocks: NDArray, keys: NDArray, ok: NDArray) -> NDArray:
@@ -332,19 +360,21 @@ class _DampedSystem:
     REFINE_TOL = 1e-10  # relative residual |b - A x| / |b| at which a refined solve stops
     MAX_REFINE = 12
 
-    def __init__(self, ne: _NormalEquations, threads: int, single: bool, backend: str = "pardiso") -> None:
+    def __init__(self, ne: _NormalEquations, threads: int, single: bool, backend: str = "pardiso",
+                 perm: NDArray[np.int64] | None = None) -> None:
         self._ne = ne
         self._threads = threads
         self._backend = backend
+        self._perm = perm
         self._single = single and backend == "pardiso"  # CHOLMOD factorises in double only
-        self._factor = sparse_cholesky(backend, ne.indptr, ne.indices, threads, single=self._single)
+        self._factor = sparse_cholesky(backend, ne.indptr, ne.indices, threads, single=self._single, perm=perm)
         self._data: NDArray = np.zeros(0)
         self.fallbacks = 0  # switches to double precision (diagnostics, tests)
 
     def _to_double(self) -> None:
         log.debug("single-precision factorisation not accurate enough here: double from now on")
         self._factor.free()
-        self._factor = sparse_cholesky(self._backend, self._ne.indptr, self._ne.indices, self._threads)
+        self._factor = sparse_cholesky(self._backend, self._ne.indptr, self._ne.indices, self._threads, perm=self._perm)
         self._single = False
         self.fallbacks += 1
         self._factor.factor(self._data)
@@ -385,6 +415,11 @@ class _DampedSystem:
             p = z + (rz / rz_prev) * p
         self._to_double()  # float32 cannot resolve this matrix
         return self._factor.solve(b)
+
+    @property
+    def single(self) -> bool:
+        """Factorising in single precision (now: a matrix float32 could not resolve switches to double)."""
+        return self._single
 
     def free(self) -> None:
         self._factor.free()
@@ -509,8 +544,21 @@ def levenberg_marquardt(
         return LMResult(xyh.copy(), 0, 0, err, err, True)
     ne = obj.normal
     single = settings.precision == "single" or (settings.precision == "auto" and ne.n > settings.single_above_variables)
-    solver = _DampedSystem(ne, settings.threads, single, backend_for(settings.backend))
-    log.debug("LM over %d unknowns, factorisation in %s precision", ne.n, "single" if single else "double")
+    backend = backend_for(settings.backend)
+    ordering = "metis"  # PARDISO's own (iparm[1] = 2)
+    if backend == "cholmod":
+        ordering = settings.ordering
+        if ordering == "auto":
+            ordering = "metis" if ne.n >= settings.metis_above_variables else "amd"
+    perm = None
+    if backend == "cholmod" and ordering == "metis":
+        try:
+            perm = nested_dissection(ne.indptr, ne.indices)
+        except (RuntimeError, ValueError, ImportError) as e:  # a GTSAM built without METIS: slower, not wrong
+            log.warning("METIS ordering unavailable (%s): CHOLMOD orders by AMD", e)
+            ordering = "amd"
+    solver = _DampedSystem(ne, settings.threads, single, backend, perm)
+    log.debug("LM over %d unknowns: %s, %s ordering, %s precision", ne.n, backend, ordering, "single" if single else "double")
     H, grad, err = obj.linearise(v)
     initial = err
     lam = settings.lambda_initial
@@ -564,7 +612,8 @@ def levenberg_marquardt(
         solver.free()
     out = xyh.copy()
     out[graph.variables] = v.reshape(-1, 3)
-    return LMResult(out, it, factorizations, initial, err, converged)
+    info = FactorInfo(backend, ordering, "single" if solver.single else "double")
+    return LMResult(out, it, factorizations, initial, err, converged, info)
 
 
 def nonrigid_rms(x0: NDArray, y0: NDArray, x1: NDArray, y1: NDArray) -> float:

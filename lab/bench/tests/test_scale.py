@@ -61,7 +61,9 @@ def test_the_baseline_runs_its_own_code_even_from_inside_this_checkout(tmp_path:
     pkg = tmp_path / "base" / "graphslam"
     pkg.mkdir(parents=True)
     (pkg / "__init__.py").write_text("")
-    report = {"timings_s": {"total": 0.0}, "optimizer": {"final_error": 0.0, "iterations": 4242}, "edges": {"wifi": 0}}
+    report = {"timings_s": {"total": 0.0}, "edges": {"wifi": 0},
+              "optimizer": {"final_error": 0.0, "iterations": 4242, "solver": "cholmod", "ordering": "metis",
+                            "factor_precision": "double"}}
     (pkg / "__main__.py").write_text(
         "import json, pathlib, sys\n"
         "out = pathlib.Path(sys.argv[sys.argv.index('--out') + 1]); out.mkdir(parents=True, exist_ok=True)\n"
@@ -69,7 +71,7 @@ def test_the_baseline_runs_its_own_code_even_from_inside_this_checkout(tmp_path:
     )
     monkeypatch.chdir(Path(__file__).resolve().parents[3])
     run = _run_once(tmp_path / "data", tmp_path / "out", str(tmp_path / "base"), None)
-    assert run["iterations"] == 4242
+    assert run["iterations"] == 4242 and run["backend"] == "cholmod metis double"
 
 
 def test_rounds_go_round_robin_over_the_sizes(tmp_path: Path, monkeypatch) -> None:
