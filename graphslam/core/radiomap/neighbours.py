@@ -336,3 +336,48 @@ def nearest(d: NDArray[np.float64], k: int) -> tuple[NDArray[np.int64], NDArray[
         idx = np.pad(idx, ((0, 0), (0, k - k_eff)), constant_values=-1)
         dist = np.pad(dist, ((0, 0), (0, k - k_eff)), constant_values=np.inf)
     return idx, dist
+
+
+def pair_eq9(
+    ref: FingerprintMatrix, ref_sq: NDArray[np.float64], ref_n: NDArray[np.float64], q_indptr: NDArray[np.int64], q_indices: NDArray[np.int64],
+    q_data: NDArray[np.float64], q_extra_sq: NDArray[np.float64], q_extra_n: NDArray[np.int64],
+    idx: NDArray[np.int64],
+) -> NDArray[np.float64]:
+    """(Q, k) eq. 9 distances (dB) of each query to the references ``idx`` (Q, k) lists for it (``inf``
+    where -1): a query's stored entries (csr arrays ``q_indptr``, ``q_indices`` ascending per row,
+    ``q_data``; its readings of APs outside the index in ``q_extra_*``) against each reference row,
+    the shared APs found by one ``searchsorted`` over (pair, AP) keys: no Python loop, no matrix.
+    ``ref_sq``, ``ref_n``: the references' squared norms and APs heard (``DistanceEngine``'s)."""
+    n_q, k = idx.shape
+    out = np.full((n_q, k), np.inf)
+    pair_q, pair_j = np.nonzero(idx >= 0)
+    if not len(pair_q):
+        return out
+    refs = idx[pair_q, pair_j]
+    n_aps = ref.n_aps
+    rv = ref.values
+    q_len = np.diff(q_indptr)[pair_q]
+    r_len = np.diff(rv.indptr)[refs]
+    pair_ids = np.arange(len(pair_q))
+
+    def entries(starts: NDArray[np.int64], lens: NDArray[np.int64]) -> NDArray[np.int64]:
+        return np.repeat(starts - (np.cumsum(lens) - lens), lens) + np.arange(int(lens.sum()))
+
+    qe = entries(q_indptr[:-1][pair_q], q_len)
+    re = entries(rv.indptr[:-1][refs], r_len)
+    q_key = np.repeat(pair_ids, q_len) * n_aps + q_indices[qe]
+    r_key = np.repeat(pair_ids, r_len) * n_aps + rv.indices[re]  # ascending when each row's columns are
+    if len(r_key) > 1 and not (np.diff(r_key) >= 0).all():
+        o = np.argsort(r_key, kind="stable")
+        r_key, re = r_key[o], re[o]
+    pos = np.minimum(np.searchsorted(r_key, q_key), max(len(r_key) - 1, 0))
+    hit = (r_key[pos] == q_key) if len(r_key) else np.zeros(len(q_key), bool)
+    hit_pair = np.repeat(pair_ids, q_len)[hit]
+    dot = np.bincount(hit_pair, weights=q_data[qe][hit] * rv.data[re][pos[hit]], minlength=len(pair_q))
+    common = np.bincount(hit_pair, minlength=len(pair_q))
+    q_sq = np.bincount(np.repeat(pair_ids, q_len), weights=q_data[qe] ** 2, minlength=len(pair_q)) + q_extra_sq[pair_q]
+    num = q_sq + ref_sq[refs] - 2.0 * dot
+    den = q_len + q_extra_n[pair_q] + ref_n[refs] - common
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out[pair_q, pair_j] = np.sqrt(np.maximum(num, 0.0) / den)
+    return out
