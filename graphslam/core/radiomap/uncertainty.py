@@ -29,6 +29,15 @@ Why the second set: calibrated on covered scans alone, the 95 % circles of walks
 from the map held 58 % of the truths (IPIN 2023 floor -2, leave one route out); docs/radio_map.md
 gives the figures per floor.
 
+The same pass measures the outside test (``knn_types.OutsideTest``): whether an answer comes from a
+place the map's walks have not been, from its ``KnnResult.rss_diff_db`` (the mean eq. 9 distance
+from the query to its neighbours). Its covered scans are those of the covered set within
+``NEAR_M`` of another walk's fingerprint; its *outside* set, the same scans located also without
+every fingerprint within ``OUTSIDE_RADIUS_M`` of each (a disc around the scan, not the walk's path:
+a map whose walks all follow one path keeps something to locate on). The threshold flags
+``FALSE_ALARM`` of the covered scans; the outside sigma holds 95 % of the outside scans' errors.
+Why eq. 9's distance and not the Sørensen score, and why a sample of 24 walks: lab/journal/coverage.md.
+
 Frames and units: the radio map's frame, metres.
 """
 
