@@ -65,7 +65,7 @@ DEFAULT_FLOOR_M = 2.0
 UNCOVERED_RADIUS_M = 5.0  # the uncovered set: map fingerprints this close to the walk's path removed
 UNCOVERED_WEIGHT = 0.4  # an uncovered scan's weight in the bins' quantiles (a covered one: 1)
 SCORE_BINS = 5  # quantile bins of the calibration scans' scores
-OUTSIDE_RADIUS_M = 10.0  # the outside set: map fingerprints this close to the walk's path removed
+OUTSIDE_RADIUS_M = 10.0  # the outside set: map fingerprints this close to the scan removed
 NEAR_M = 3.0  # the outside test's covered scans: within this of another walk's fingerprint
 FALSE_ALARM = 0.05  # share of those the outside test flags
 
@@ -113,9 +113,9 @@ def calibrate_uncertainty(
     other walks (covered) and again without the fingerprints within ``uncovered_radius_m`` of its
     walk (uncovered); ``bins`` score bins (1: one scale for all, the covered set's, and no uncovered
     set). The outside test (``OutsideTest``): the covered scans within ``near_m`` of another walk's
-    fingerprint against the same scans located without the fingerprints within ``outside_radius_m``
-    of their walk, flagging ``false_alarm`` of the former (``outside_radius_m`` 0: none). None for a
-    map of one walk, or when no scan can be located among the others."""
+    fingerprint against the same scans located also without the fingerprints within
+    ``outside_radius_m`` of each, flagging ``false_alarm`` of the former (``outside_radius_m`` 0: no
+    test). None for a map of one walk, or when no scan can be located among the others."""
     if not (math.isfinite(floor_m) and floor_m > 0):
         raise ConfigError(f"kNN uncertainty: floor_m must be a positive number of metres, got {floor_m}")
     if not (math.isfinite(uncovered_radius_m) and uncovered_radius_m >= 0 and uncovered_weight >= 0 and bins >= 1):
