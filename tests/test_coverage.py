@@ -79,9 +79,15 @@ def test_answers_from_where_the_map_has_not_walked_are_flagged_and_get_a_wide_si
     assert calibrate_uncertainty(line, outside_radius_m=0.0).outside is None
 
 
-def test_the_statistic_is_the_rss_difference_to_the_neighbours_on_every_search_path(line: RadioMap) -> None:
+@pytest.mark.parametrize("dense_cells", [0, 1 << 16])  # the pairs by keys (many queries) / dense (a few)
+def test_the_statistic_is_the_rss_difference_to_the_neighbours_on_every_search_path(
+    line: RadioMap, dense_cells: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """``rss_diff_db``: the mean eq. 9 distance (dB) from the query to its neighbours, whatever the
     metric and the search (the few-query path, blocks, the IVF index), unknown APs counted as eq. 9 does."""
+    import graphslam.core.radiomap.neighbours as nb_mod
+
+    monkeypatch.setattr(nb_mod, "PAIR_DENSE_MAX_CELLS", dense_cells)
     qs = _queries(np.arange(0.0, 120.0, 3.0))
     qs[0] = dict(qs[0], **{"0a:00:00:00:00:01": -50.0})  # an AP the map never heard
     full = KnnLocator(line, KnnConfig(metric="eq9", k=len(line), index="exact"))
