@@ -13,6 +13,10 @@ A query is *invalid* (flagged, or ``QueryError`` with ``strict=True``) when no
 reference fingerprint shares ``min_common`` APs with it; in particular when none of
 its APs is known to the map.
 
+Each answer also carries ``rss_diff_db``, the mean eq. 9 distance from the query to its neighbours
+(``neighbours.pair_eq9``: the pairs only), what the map's outside test reads
+(``knn_types.OutsideTest``).
+
 The configuration and the answers (``KnnConfig``, ``KnnResult``) are in
 ``graphslam.core.radiomap.knn_types``, re-exported here.
 """
