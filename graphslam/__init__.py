@@ -73,7 +73,7 @@ _EXPORTS: dict[str, str] = {
     "show_progress": "graphslam.app.progress",
     "POWED_EXPONENT": "graphslam.core.radiomap.neighbours",
     "tracking_pipeline": "graphslam.core.tracking.tracker:",
-    **{n: "graphslam.app.tracking_bench" for n in ("Variant", "floor_plan_area", "held_out_folds", "interpolate_cov", "oracle_radio_map", "score_walks", "standard_variants", "tracking_real", "walk_landmarks")},
+    **{n: "graphslam.app.tracking_bench" for n in ("Variant", "crowdsourced_map", "floor_plan_area", "held_out_folds", "interpolate_cov", "oracle_radio_map", "score_walks", "standard_variants", "tracking_real", "walk_landmarks")},
     "load_previous": "graphslam.app.update",
     **{n: "graphslam.cli.options" for n in ("parse_lags", "parse_metric", "parse_smoothers")},
     "run_app": "graphslam.cli",

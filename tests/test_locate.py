@@ -54,7 +54,8 @@ def test_locate_cli_writes_positions_csv(tmp_path: Path) -> None:
     assert res.exit_code == 0, res.output
     summary = json.loads(res.output.strip().splitlines()[-1])
     picture = str(out.with_suffix(".png"))  # the answers drawn beside the CSV (graphslam.app.pictures)
-    assert summary == {"out": str(out), "frame": "aligned", "sessions": 2, "scans": 4, "located": 3, "unlocated": 1, "picture": picture,
+    assert summary == {"out": str(out), "frame": "aligned", "sessions": 2, "scans": 4, "located": 3, "unlocated": 1,
+                       "outside": None, "picture": picture,
                        "uncertainty": None}  # a map of one walk: nothing to calibrate sigma_m on
     with out.open() as fh:
         rows = list(csv.DictReader(fh))

@@ -63,6 +63,26 @@ def test_tracking_real_scores_knn_and_the_tracker_on_the_same_landmarks(folder):
     assert row["vs_knn_sorensen"] == pytest.approx(row["mean_m"] / s["knn:sorensen"]["mean_m"] - 1.0, abs=2e-3)
     folds = res["oracle"]["per_fold"]
     assert [f["test_walks"] for f in folds] == [2, 2] and all("fixed-lag:1_mean_m" in f for f in folds)
+    # coverage: the share of landmarks at steps flagged outside the map's walks, the others scored apart
+    assert 0.0 <= row["outside"] <= 1.0 and "outside" not in s["knn"]
+    rest = row["not_outside"]
+    assert rest["n"] == round((1.0 - row["outside"]) * row["n"]) and 0.0 <= rest.get("inside_95", 0.0) <= 1.0
+
+
+def test_the_crowdsourced_map_is_the_main_map_the_survey_writes(tmp_path):
+    """``radio_map.parquet`` holds component 0 only; the benchmark's crowdsourced map must too (the
+    other components' walks lie in frames of their own)."""
+    from graphslam.app.tracking_bench import crowdsourced_map
+    from graphslam.config import GraphSlamConfig
+    from graphslam.io.mcap_reader import read_survey
+    from graphslam.io.mcap_writer import write_session
+    from graphslam.sim import simulate
+
+    for s in simulate("museum", seed=1, size=0.3).survey.sessions:  # its survey leaves walks in other components
+        write_session(s, tmp_path / f"{s.session_id}.mcap")
+    rm, info = crowdsourced_map(read_survey([tmp_path]), GraphSlamConfig())
+    assert info["main_map"] < info["aligned"]
+    assert len(set(rm.session_ids.tolist())) == info["main_map"]
 
 
 def test_bench_tracking_real_rejects_an_unknown_map_kind(folder, capsys):

@@ -88,13 +88,17 @@ def test_locate_writes_sigma_and_the_service_answers_it(tmp_path: Path, walks: l
     assert "sigma_m" in POSITIONS_HEADER and run.as_dict()["uncertainty"]["scale"] == round(u.scale, 4)
     rows = list(csv.DictReader(open(tmp_path / "pos.csv")))
     ok = [r for r in rows if r["x"]]
-    assert ok and all(abs(float(r["sigma_m"]) - float(u.sigma(np.array([float(r["spread"])]), np.array([float(r["score"])]))[0]))
-                      < 2e-3 for r in ok)
+    def want(spread: float, score: float, outside: bool) -> float:  # an outside answer: at least the outside sigma
+        base = float(u.sigma(np.array([spread]), np.array([score]))[0])
+        return max(base, u.outside.sigma_m) if outside and u.outside is not None else base
+
+    assert ok and all(abs(float(r["sigma_m"]) - want(float(r["spread"]), float(r["score"]), r["outside"] == "1")) < 2e-3
+                      for r in ok)
     readings = dict(walks[-1].scans[3].readings)
     app = reloading_app(tmp_path / "map.parquet", None, k=3, search_processes=0)
     with start_background_server(app) as srv, httpx.Client(base_url=srv.url, timeout=30.0) as c:
         pos = c.post("/v1/locate", json={"readings": readings}).json()["positions"][0]
-    assert pos["sigma_m"] == pytest.approx(float(u.sigma(np.array([pos["spread"]]), np.array([pos["score"]]))[0]))
+    assert pos["sigma_m"] == pytest.approx(want(pos["spread"], pos["score"], pos["outside"]))
 
 
 def test_the_survey_radio_map_carries_the_calibration(tmp_path: Path) -> None:

@@ -20,8 +20,8 @@ from graphslam.names import DEFAULT_INDEX, DEFAULT_K, DEFAULT_METRIC
 log = logging.getLogger(__name__)
 
 POSITIONS_HEADER = (
-    "session_id", "t_ns", "x", "y", "score", "spread", "sigma_m", "n_neighbours", "n_known_aps", "floor", "building",
-    "status", "frame",
+    "session_id", "t_ns", "x", "y", "score", "spread", "sigma_m", "outside", "outside_score", "n_neighbours",
+    "n_known_aps", "floor", "building", "status", "frame",
 )
 
 
@@ -38,6 +38,8 @@ class LocateRun:
     uncertainty: KnnUncertainty | None = None  # of the answers' sigma_m (None: a map of one walk)
 
     def as_dict(self) -> dict[str, object]:
+        u = self.uncertainty
+        flags = u.outside_of(self.positions.result) if u is not None else None
         return {
             "out": None if self.out is None else str(self.out),
             "frame": self.radio_map_frame,
@@ -45,9 +47,14 @@ class LocateRun:
             "scans": self.n_scans,
             "located": self.n_located,
             "unlocated": self.n_scans - self.n_located,
-            "uncertainty": None if self.uncertainty is None else {
-                "scale": round(self.uncertainty.scale, 4), "floor_m": self.uncertainty.floor_m,
-                "map_coverage_95": round(self.uncertainty.coverage, 4), "measured_on": self.uncertainty.n,
+            "outside": None if flags is None else int(flags.sum()),  # located, but where the map's walks have not been
+            "uncertainty": None if u is None else {
+                "scale": round(u.scale, 4), "floor_m": u.floor_m,
+                "map_coverage_95": round(u.coverage, 4), "measured_on": u.n,
+                "outside": None if u.outside is None else {
+                    "above_db": round(u.outside.threshold_db, 3), "sigma_m": round(u.outside.sigma_m, 3),
+                    "map_detection": round(u.outside.detection, 4),
+                },
             },
         }
 
@@ -62,21 +69,29 @@ def position_rows(
     r = p.result
     floor = r.floor.tolist() if r.floor is not None else [""] * len(p)
     building = r.building.tolist() if r.building is not None else [""] * len(p)
-    sigma = uncertainty.sigma(r.spread, r.score).tolist() if uncertainty is not None else [math.nan] * len(p)
-    for sid, t, (x, y), s, sp, sg, nn, nk, f, b, st in zip(
-        p.session_ids.tolist(), p.t_ns.tolist(), r.xy.tolist(), r.score.tolist(), r.spread.tolist(), sigma,
-        r.n_neighbours.tolist(), r.n_known_aps.tolist(), floor, building, r.status.tolist(),
+    sigma = uncertainty.sigma_of(r).tolist() if uncertainty is not None else [math.nan] * len(p)
+    flags = uncertainty.outside_of(r) if uncertainty is not None else None
+    scores = uncertainty.outside_score_of(r) if uncertainty is not None else None
+    # outside: 1 / 0, empty for an unlocated scan or without an outside test
+    outside = [("" if not ok else int(f)) for f, ok in zip(flags.tolist(), r.valid.tolist())] if flags is not None else [""] * len(p)
+    score = scores.tolist() if scores is not None else [math.nan] * len(p)
+    for sid, t, (x, y), s, sp, sg, o, os_, nn, nk, f, b, st in zip(
+        p.session_ids.tolist(), p.t_ns.tolist(), r.xy.tolist(), r.score.tolist(), r.spread.tolist(), sigma, outside,
+        score, r.n_neighbours.tolist(), r.n_known_aps.tolist(), floor, building, r.status.tolist(),
     ):
-        yield (sid, t, _fmt(x, 4), _fmt(y, 4), _fmt(s, 4), _fmt(sp, 4), _fmt(sg, 3), nn, nk, f, b, st, frame)
+        yield (sid, t, _fmt(x, 4), _fmt(y, 4), _fmt(s, 4), _fmt(sp, 4), _fmt(sg, 3), o, _fmt(os_, 3), nn, nk, f, b, st, frame)
 
 
 def write_positions_csv(
     p: SurveyPositions, path: str | Path, uncertainty: KnnUncertainty | None = None, frame: str = ""
 ) -> Path:
-    """CSV ``session_id,t_ns,x,y,score,spread,sigma_m,n_neighbours,n_known_aps,floor,building,status,frame``,
-    written atomically. ``sigma_m``: the answer's calibrated uncertainty (``uncertainty``; the 95 %
-    circle has radius 2.448 sigma_m), empty without one. Unlocated scans keep their row with empty
-    x/y/score/spread/sigma_m. ``frame``: the radio map's frame name (the answers'), on every row."""
+    """CSV ``POSITIONS_HEADER``, written atomically. ``sigma_m``: the answer's calibrated uncertainty
+    (``uncertainty``; the 95 % circle has radius 2.448 sigma_m), empty without one; ``outside``: 1 when
+    the scan comes from a place the map's walks have not been (``OutsideTest``), else 0;
+    ``outside_score``: 0-1, the share of the map's own covered scans that matched closer (outside:
+    above 0.95); both empty without the test. Unlocated scans keep their row with empty
+    x/y/score/spread/sigma_m/outside/outside_score. ``frame``: the radio map's frame name (the
+    answers'), on every row."""
     import csv
 
     path = Path(path)

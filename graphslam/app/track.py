@@ -40,7 +40,7 @@ def config_path(out: str | Path) -> Path:
 
 TRACK_HEADER = (
     "session_id", "t_ns", "x", "y", "cov_xx", "cov_xy", "cov_yy", "vx", "vy", "theta", "theta_std", "hypothesis",
-    "frame",
+    "outside", "outside_score", "frame",
 )
 
 
@@ -62,22 +62,30 @@ class TrackRun:
             "aps_modelled": self.n_aps_modelled,
             "rssi_used": int(sum(t.n_rssi_used for t in self.tracks)),
             "rssi_gated": int(sum(t.n_rssi_gated for t in self.tracks)),
+            # steps where the map's walks have not been (None: the map has no outside test)
+            "outside_steps": None if any(t.outside is None for t in self.tracks) else int(sum(t.outside.sum() for t in self.tracks)),
         }
 
 
 def write_track_csv(tracks: Iterable[SessionTrack], path: str | Path, frame: str = "") -> Path:
-    """CSV (``TRACK_HEADER``), one row per step, written atomically. Units: m, m^2, m/s, rad;
-    ``frame``: the radio map's frame name, on every row."""
+    """CSV (``TRACK_HEADER``), one row per step, written atomically. Units: m, m^2, m/s, rad.
+    ``outside``: 1 at a step from a place the map's walks have not been (its covariance then at least
+    the map's outside sigma squared), else 0; ``outside_score``: 0-1 (outside above 0.95); both
+    empty when the map has no outside test (``core.tracking.tracker.with_outside``). ``frame``: the
+    radio map's frame name, on every row."""
     path = Path(path)
     with atomic_open(path, "w", encoding="utf-8", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(TRACK_HEADER)
         for tr in tracks:
-            for t, x, P, h in zip(tr.t_ns.tolist(), tr.x, tr.P, tr.hypothesis.tolist()):
+            n = len(tr.t_ns)
+            out = tr.outside.astype(int).tolist() if tr.outside is not None else [""] * n
+            score = [f"{v:.3f}" for v in tr.outside_score.tolist()] if tr.outside_score is not None else [""] * n
+            for t, x, P, h, o, sc in zip(tr.t_ns.tolist(), tr.x, tr.P, tr.hypothesis.tolist(), out, score):
                 w.writerow((
                     tr.session_id, t, f"{x[0]:.4f}", f"{x[1]:.4f}", f"{P[0, 0]:.5f}", f"{P[0, 1]:.5f}",
                     f"{P[1, 1]:.5f}", f"{x[2]:.4f}", f"{x[3]:.4f}", f"{math.remainder(x[6], 2 * math.pi):.5f}",
-                    f"{math.sqrt(max(P[6, 6], 0.0)):.5f}", h, frame,
+                    f"{math.sqrt(max(P[6, 6], 0.0)):.5f}", h, o, sc, frame,
                 ))
     return path
 

@@ -8,8 +8,10 @@ Per fold, the radio map is built from the training walks only, in one of two way
   landmarks, its scans at those positions (ground truth builds the map, as a perfect survey
   would; it never reaches the tracker);
 - ``crowdsourced``: the survey pipeline (``graphslam.app.survey.run_survey``) on the training
-  walks' files, its radio map put into the landmarks' frame by the evaluation's one SE(2) fit
-  (for scoring only: a rigid motion of the map changes neither kNN nor the tracker).
+  walks' files, its radio map as ``graphslam survey`` writes it (the main map, component 0: the
+  other components' walks are in frames of their own) put into the landmarks' frame by the
+  evaluation's one SE(2) fit (for scoring only: a rigid motion of the map changes neither kNN nor
+  the tracker).
 
 AP models are fitted from that map (``ApModels.fit``, as ``graphslam fit-aps``). Each held-out
 walk is then located scan by scan (``knn``: the fixes interpolated in time, as in every tracking
@@ -17,6 +19,9 @@ benchmark) and tracked by each variant (``graphslam.app.track``, positions inter
 in time). Errors at the walk's landmark times against the landmarks (m): mean, median, p75 (the
 IPIN competition's metric), p90. Calibration: the share of landmarks inside the tracker's
 reported 95 % position ellipse (squared Mahalanobis distance <= 5.991, chi-square with 2 dof).
+Coverage: the share of landmarks at steps the tracker flags outside the map's walks (``outside``:
+the step's latest scan, ``core.tracking.tracker.with_outside``) and the errors and ellipse coverage
+of the others (``not_outside``).
 With a floor plan (``floor_plan_area``: ``floor_image.png`` beside the walks, as on the ILC floors)
 the trackers on the oracle maps get its walkable area (``track --floor-plan``); kNN never does.
 """
@@ -120,7 +125,7 @@ def oracle_radio_map(walks: Sequence[Session]) -> RadioMap:
 
 def crowdsourced_map(walks: Sequence[Session], cfg: GraphSlamConfig) -> tuple[RadioMap, dict[str, Any]]:
     """The survey pipeline on the walks' files; the map in the landmark frame by one SE(2) fit."""
-    from graphslam.app.survey import run_survey
+    from graphslam.app.survey import main_alignment, run_survey
     from graphslam.app.survey_inputs import SurveyInputs
     from graphslam.core.survey.radio_maps import crowdsourced_radio_map
 
@@ -128,8 +133,10 @@ def crowdsourced_map(walks: Sequence[Session], cfg: GraphSlamConfig) -> tuple[Ra
     ev = res.evaluation
     if ev is None or ev.landmarks.n < 2:
         raise GraphSlamError("crowdsourced map: the survey placed fewer than 2 landmarks")
-    rm = crowdsourced_radio_map(res.survey, res.alignment, cfg, site_from_aligned=np.array(ev.site_from_aligned))
-    info = {"aligned": len(res.alignment.tracks), "walks": len(walks), "survey_landmark_mean_m": round(ev.landmarks.mean_m, 2)}
+    main = main_alignment(res.alignment)  # what radio_map.parquet holds: the evaluation's fit is of it too
+    rm = crowdsourced_radio_map(res.survey, main, cfg, site_from_aligned=np.array(ev.site_from_aligned))
+    info = {"aligned": len(res.alignment.tracks), "main_map": len(main.tracks), "walks": len(walks),
+            "survey_landmark_mean_m": round(ev.landmarks.mean_m, 2)}
     return rm, info
 
 
@@ -169,6 +176,9 @@ def score_walks(
             cov = interpolate_cov(tr.t_ns, tr.P, t)
             out[v.name]["err"].append(np.linalg.norm(err, axis=1))
             out[v.name]["inside"].append(ellipse_coverage(err, cov))
+            if tr.outside is not None:  # each landmark: the flag of the step at or before it
+                out[v.name].setdefault("outside", []).append(
+                    tr.outside[np.maximum(np.searchsorted(tr.t_ns, t, side="right") - 1, 0)])
             out[v.name].setdefault("d2", []).append(mahalanobis_sq(err, cov))
             out[v.name].setdefault("sd", []).append(np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1])))
             out[v.name].setdefault("t", []).append((t - w.steps.t_ns[0]) / 1e9)
@@ -259,6 +269,8 @@ def tracking_real(
             row: dict[str, Any] = error_stats(e)
             if d["inside"]:
                 row["inside_95"] = round(float(np.concatenate(d["inside"]).mean()), 3)
+            if d.get("outside") and len(d["outside"]) == len(d["inside"]):
+                row.update(_coverage_figures(e, np.concatenate(d["inside"]), np.concatenate(d["outside"])))
             row["s_per_walk"] = round(float(np.mean(d["s"])), 3) if d["s"] else None
             summary[v] = row
         for base in KNN_BASELINES:
@@ -269,6 +281,16 @@ def tracking_real(
         result[kind] = {"summary": summary, "per_fold": per_fold}
     result["time_s"] = round(time.perf_counter() - t_start, 1)
     return result
+
+
+def _coverage_figures(err: NDArray, inside: NDArray, outside: NDArray) -> dict[str, Any]:
+    """``outside``: the share of landmarks at steps flagged outside; ``not_outside``: the others' errors
+    and the share of them inside the 95 % ellipse."""
+    keep = ~outside.astype(bool)
+    rest: dict[str, Any] = error_stats(err[keep])
+    if keep.any():
+        rest["inside_95"] = round(float(inside[keep].mean()), 3)
+    return {"outside": round(float(outside.mean()), 3) if len(outside) else None, "not_outside": rest}
 
 
 def _describe(cfg: TrackConfig) -> str:

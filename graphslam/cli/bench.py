@@ -59,19 +59,24 @@ def bench_real(
 
 @bench_app.command("locate-real")
 def bench_locate_real(
-    folders: List[Path] = typer.Argument(..., help="Floor folders of real recordings with /landmarks."),
+    folders: List[Path] = typer.Argument(..., help="Floor folders of real recordings with /landmarks, or site folders of floors."),
     metrics: str = typer.Option("sorensen,eq9", help="kNN distances to compare, the first one scored for sigma_m too (sorensen, eq9)."),
     folds: Optional[int] = typer.Option(None, help="Seeded random folds (default: leave one route out when file names name routes, else 5)."),
     seed: int = typer.Option(0, help="Seed of the random folds."),
 ) -> None:
     """kNN positioning of held-out walks on the radio map of the other walks of their floor (placed
     by their landmarks: ground truth builds the map and scores): per metric mean / median / p90
-    error, and the share of errors inside the answers' 95 % circles (sigma_m). One JSON line per floor."""
-    from graphslam.app.locate_bench import locate_real_rows
+    error, the share of errors inside the answers' 95 % circles (sigma_m), and the share of answers
+    flagged outside among those far from / near the map's fingerprints. One JSON line per floor, then
+    a summary line over them."""
+    from graphslam.app.locate_bench import locate_real_rows, locate_real_summary
 
-    for row in locate_real_rows(folders, metrics=[m.strip() for m in metrics.split(",") if m.strip()],
-                                folds=folds, seed=seed):
+    names = [m.strip() for m in metrics.split(",") if m.strip()]
+    rows = []
+    for row in locate_real_rows(folders, metrics=names, folds=folds, seed=seed):
+        rows.append(row)
         typer.echo(json.dumps(row))
+    typer.echo(json.dumps(locate_real_summary(rows, names[0])))
 
 
 @bench_app.command("tracking-real")

@@ -23,7 +23,7 @@ Scan = Mapping[str, float]
 # One flush locates at most this many rows (pending requests beyond it go in the next pass):
 # bounds how long the event loop is held.
 MAX_FLUSH_ROWS = 64
-_ROW_FIELDS = ("xy", "score", "spread", "neighbours", "distances", "n_known_aps", "floor", "building")
+_ROW_FIELDS = ("xy", "score", "spread", "neighbours", "distances", "n_known_aps", "floor", "building", "rss_diff_db")
 
 
 def result_rows(res: KnnResult, lo: int, hi: int) -> KnnResult:

@@ -77,7 +77,18 @@ class Position(BaseModel):
     spread: float | None = Field(description="weighted RMS distance (m) of the neighbours' positions to the estimate")
     sigma_m: float | None = Field(
         None, description="the answer's uncertainty: sigma (m) of an isotropic 2-D Gaussian, calibrated on the map "
-        "(its walks left out one at a time); the 95 % circle has radius 2.448 sigma_m; null for a map of one walk",
+        "(its walks left out one at a time); the 95 % circle has radius 2.448 sigma_m; at least the map's "
+        "outside sigma when outside is true; null for a map of one walk",
+    )
+    outside: bool | None = Field(
+        None, description="true when the fingerprint comes from a place the map's walks have not been: its readings "
+        "differ from the neighbours' more than those of 95 % of the map's own scans where other walks have been "
+        "(measured on the map, without ground truth); null without that measurement (a map of one walk) and for a "
+        "fingerprint that cannot be located",
+    )
+    outside_score: float | None = Field(
+        None, description="0-1: the share of the map's own covered scans whose readings matched their neighbours "
+        "closer than this fingerprint's; outside is true above 0.95",
     )
     n_neighbours: int
     floor: str | None = None

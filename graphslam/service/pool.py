@@ -89,7 +89,7 @@ _ENCODER: ScanEncoder | None = None
 _SPLIT: PlaceSplit | None = None
 
 _Rows = tuple[NDArray, ...]
-_FIELDS = ("xy", "score", "spread", "neighbours", "distances", "n_known_aps", "floor", "building")
+_FIELDS = ("xy", "score", "spread", "neighbours", "distances", "n_known_aps", "floor", "building", "rss_diff_db")
 # A frame: the lengths of its two parts, a pickle ``(op, args)`` or ``(ok, result)``, then raw
 # bytes (a request body: sent as is, not copied into a pickle). A 0-length pickle asks a worker to exit.
 _HEADER = struct.Struct("!QQ")

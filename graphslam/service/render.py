@@ -41,23 +41,28 @@ def not_found(status: str, min_common: int = 1, where: str = "the radio map") ->
 
 def unlocated(error: dict[str, str]) -> dict[str, Any]:
     """The position object of a fingerprint that cannot be located: no position, and why."""
-    return {"x": None, "y": None, "score": None, "spread": None, "sigma_m": None, "n_neighbours": 0, "floor": None,
-            "building": None, "error": error}
+    return {"x": None, "y": None, "score": None, "spread": None, "sigma_m": None, "outside": None,
+            "outside_score": None, "n_neighbours": 0, "floor": None, "building": None, "error": error}
 
 
 def position_dicts(res: KnnResult, uncertainty: KnnUncertainty | None = None) -> list[dict[str, Any]]:
-    """One ``Position`` object per row of ``res``; ``sigma_m`` from ``uncertainty`` (None: null). A
-    row that could not be located has no position (nulls) and an ``error`` (``not_found``); the
-    others have no ``error`` key."""
+    """One ``Position`` object per row of ``res``; ``sigma_m``, ``outside`` and ``outside_score``
+    from ``uncertainty`` (None: null). A row that could not be located has no position (nulls) and
+    an ``error`` (``not_found``); the others have no ``error`` key."""
     n = len(res)
     floor = res.floor.tolist() if res.floor is not None else [""] * n
     building = res.building.tolist() if res.building is not None else [""] * n
-    sigma = uncertainty.sigma(res.spread, res.score).tolist() if uncertainty is not None else [None] * n
+    sigma = uncertainty.sigma_of(res).tolist() if uncertainty is not None else [None] * n
+    flags = uncertainty.outside_of(res) if uncertainty is not None else None
+    scores = uncertainty.outside_score_of(res) if uncertainty is not None else None
+    outside = flags.tolist() if flags is not None else [None] * n
+    outside_score = scores.tolist() if scores is not None else [None] * n
     rows = [
-        {"x": p[0], "y": p[1], "score": s, "spread": sp, "sigma_m": sg, "n_neighbours": nn, "floor": f or None,
-         "building": b or None}
-        for p, s, sp, sg, nn, f, b in zip(
-            res.xy.tolist(), res.score.tolist(), res.spread.tolist(), sigma, res.n_neighbours.tolist(), floor, building
+        {"x": p[0], "y": p[1], "score": s, "spread": sp, "sigma_m": sg, "outside": o, "outside_score": os_,
+         "n_neighbours": nn, "floor": f or None, "building": b or None}
+        for p, s, sp, sg, o, os_, nn, f, b in zip(
+            res.xy.tolist(), res.score.tolist(), res.spread.tolist(), sigma, outside, outside_score,
+            res.n_neighbours.tolist(), floor, building,
         )
     ]
     bad = np.flatnonzero(~res.valid)

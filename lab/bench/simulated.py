@@ -165,7 +165,7 @@ def fig8(
             default_e[name].append(ed[ok])
             u = calibrate_uncertainty(rm, KnnConfig(k=k))
             if u is not None:
-                inside[name].append(ed[ok] <= R95 * u.sigma(d.spread[ok], d.score[ok]))
+                inside[name].append(ed[ok] <= R95 * u.sigma_of(d)[ok])  # sigma_m as answered: outside ones widened
         per_seed.append(row)
     all_e = {n: np.concatenate(v) for n, v in errs.items()}
     out: dict[str, Any] = {

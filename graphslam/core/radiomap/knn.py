@@ -13,6 +13,10 @@ A query is *invalid* (flagged, or ``QueryError`` with ``strict=True``) when no
 reference fingerprint shares ``min_common`` APs with it; in particular when none of
 its APs is known to the map.
 
+Each answer also carries ``rss_diff_db``, the mean eq. 9 distance from the query to its neighbours
+(``neighbours.pair_eq9``: the pairs only), what the map's outside test reads
+(``knn_types.OutsideTest``).
+
 The configuration and the answers (``KnnConfig``, ``KnnResult``) are in
 ``graphslam.core.radiomap.knn_types``, re-exported here.
 """
@@ -50,6 +54,7 @@ from graphslam.core.radiomap.neighbours import (
     eq9_few,
     gather_block,
     nearest,
+    pair_eq9,
     sorensen_block,
     sorensen_few,
 )
@@ -190,7 +195,7 @@ class KnnLocator:
         idx = np.concatenate([p[0] for p in parts]) if parts else np.zeros((0, k), np.int64)
         dist = np.concatenate([p[1] for p in parts]) if parts else np.zeros((0, k))
         n_known = np.diff(q.values.indptr).astype(np.int64)
-        res = self._aggregate(idx, dist, n_known)
+        res = self._aggregate(idx, dist, n_known, q)
         err = strict_error(res, self.config.min_common) if strict else None
         if err is not None:
             raise err
@@ -208,7 +213,7 @@ class KnnLocator:
             idx, dist = self._ivf_few(q)
         else:
             idx, dist = self._block(q.matrix(self.radio_map))
-        res = self._aggregate(idx, dist, q.counts.astype(np.int64))
+        res = self._aggregate(idx, dist, q.counts.astype(np.int64), q)
         err = strict_error(res, cfg.min_common) if strict else None
         if err is not None:
             raise err
@@ -258,7 +263,31 @@ class KnnLocator:
         out[~np.asarray(res.valid)] = np.nan
         return out
 
-    def _aggregate(self, idx: NDArray[np.int64], dist: NDArray[np.float64], n_known: NDArray[np.int64]) -> KnnResult:
+    def rss_diff_db(self, q: FingerprintMatrix | FewQueries, idx: NDArray[np.int64], dist: NDArray[np.float64]) -> NDArray[np.float64]:
+        """(len(q),) ``KnnResult.rss_diff_db`` of the queries ``q`` whose neighbours are ``idx`` (their
+        distances ``dist``: eq. 9's already, when it is the metric). NaN where no neighbour."""
+        d = dist if self.config.metric == "eq9" else self._pair_eq9(q, idx)
+        ok = idx >= 0
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out = np.where(ok, d, 0.0).sum(axis=1) / ok.sum(axis=1)
+        out[~ok.any(axis=1)] = np.nan
+        return out
+
+    def _pair_eq9(self, q: FingerprintMatrix | FewQueries, idx: NDArray[np.int64]) -> NDArray[np.float64]:
+        eng = self.engine
+        if isinstance(q, FewQueries):
+            return pair_eq9(eng.ref, eng.ref_sq, eng.ref_n, q.indptr, q.indices, q.data, q.extra_sq,
+                            q.extra_n.astype(np.int64), idx)
+        v = q.values
+        return pair_eq9(eng.ref, eng.ref_sq, eng.ref_n, v.indptr, v.indices, v.data, q.extra_sq,
+                        np.asarray(q.extra_n, np.int64), idx)
+
+    def _aggregate(
+        self, idx: NDArray[np.int64], dist: NDArray[np.float64], n_known: NDArray[np.int64],
+        q: FingerprintMatrix | FewQueries | None = None,
+    ) -> KnnResult:
+        """The answers from each query's neighbours ``idx`` and distances ``dist``; with the queries
+        ``q``, their ``rss_diff_db`` too."""
         ok = idx >= 0
         safe = np.where(ok, idx, 0)
         if self.config.weighted:
@@ -286,6 +315,7 @@ class KnnLocator:
             floor=self._floors.vote(idx, w) if self._floors is not None else None,
             building=self._buildings.vote(idx, w) if self._buildings is not None else None,
             config=self.config,
+            rss_diff_db=None if q is None else self.rss_diff_db(q, idx, dist),
         )
 
 

@@ -1,6 +1,7 @@
 """The kNN's value types, shared by the locator (``graphslam.core.radiomap.knn``) and the
 calibration of its uncertainty (``graphslam.core.radiomap.uncertainty``): its configuration, its
-answers and the calibrated uncertainty of its answers.
+answers and the calibrated uncertainty of its answers, with the test that tells an answer from a
+place the map has not walked (``OutsideTest``).
 
 Frames and units: the radio map's frame, metres; distances in the metric's unit (eq. 9: dB;
 Sørensen: 0-1).
@@ -95,9 +96,12 @@ class KnnResult:
     floor: NDArray[np.str_] | None  # (Q,) weighted vote of the neighbours' labels, when the map has labels
     building: NDArray[np.str_] | None
     config: KnnConfig
+    # (Q,) mean eq. 9 distance (RMS dB difference) from the query to the neighbours used, whatever the
+    # metric: what ``OutsideTest`` tests (None: not measured)
+    rss_diff_db: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
-        for name in ("xy", "score", "spread", "neighbours", "distances", "n_known_aps", "floor", "building"):
+        for name in ("xy", "score", "spread", "neighbours", "distances", "n_known_aps", "floor", "building", "rss_diff_db"):
             a = getattr(self, name)
             if a is not None:
                 a.setflags(write=False)
@@ -123,6 +127,69 @@ class KnnResult:
         return s
 
 
+# ``OutsideTest.covered_db``: the covered scans' statistic at these quantile levels
+OUTSIDE_LEVELS = tuple(i / 20 for i in range(21))
+
+
+@dataclass(frozen=True)
+class OutsideTest:
+    """Whether a kNN answer comes from a place the map has not walked, from how far its query's
+    readings are from those of the fingerprints it rests on (``KnnResult.rss_diff_db``: the mean
+    eq. 9 distance, dB), measured on the map by ``graphslam.core.radiomap.uncertainty`` (its
+    docstring): the map's own scans where other walks have been (*covered*: within ``near_m`` of
+    another walk's fingerprint, located on the map without their walk) against the same scans
+    located without every fingerprint within ``radius_m`` of their walk (*outside*).
+
+    An answer is outside when its ``rss_diff_db`` is above all but ``false_alarm`` of the covered
+    scans' (``flags``); its outside score is the share of the covered scans that matched closer
+    (0-1, interpolated between ``OUTSIDE_LEVELS``): outside means a score above ``1 - false_alarm``.
+    An outside answer's sigma is at least ``sigma_m``: 95 % of the outside scans' errors lie within
+    2.448 ``sigma_m`` of their answers."""
+
+    covered_db: tuple[float, ...]  # the covered scans' rss_diff_db at ``OUTSIDE_LEVELS``, non-decreasing
+    sigma_m: float  # the least sigma of an outside answer (m)
+    detection: float  # share of the outside scans flagged (the map's own figure)
+    n_covered: int
+    n_outside: int
+    false_alarm: float = 0.05  # share of the covered scans flagged
+    radius_m: float = 10.0
+    near_m: float = 3.0
+
+    @property
+    def threshold_db(self) -> float:
+        """The ``rss_diff_db`` above which an answer is outside."""
+        return float(np.interp(1.0 - self.false_alarm, OUTSIDE_LEVELS, self.covered_db))
+
+    def flags(self, rss_diff_db: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Per answer: outside? (False for NaN: no answer)."""
+        with np.errstate(invalid="ignore"):
+            return np.asarray(rss_diff_db, float) > self.threshold_db
+
+    def scores(self, rss_diff_db: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Per answer: its outside score, 0-1 (NaN for NaN)."""
+        d = np.asarray(rss_diff_db, float)
+        return np.where(np.isfinite(d), np.interp(np.nan_to_num(d), self.covered_db, OUTSIDE_LEVELS), np.nan)
+
+    def as_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["covered_db"] = list(self.covered_db)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Any) -> "OutsideTest | None":
+        """From a radio map's metadata (``KnnUncertainty.as_dict``'s ``outside``); None when not a valid record."""
+        try:
+            t = cls(tuple(float(v) for v in d["covered_db"]), float(d["sigma_m"]), float(d["detection"]),
+                    int(d["n_covered"]), int(d["n_outside"]), float(d["false_alarm"]), float(d["radius_m"]),
+                    float(d["near_m"]))
+        except (KeyError, TypeError, ValueError):
+            return None
+        c = t.covered_db
+        ok = len(c) == len(OUTSIDE_LEVELS) and all(math.isfinite(v) for v in c) and all(a <= b for a, b in zip(c, c[1:]))
+        ok = ok and math.isfinite(t.sigma_m) and t.sigma_m > 0 and 0.0 < t.false_alarm < 1.0
+        return t if ok else None
+
+
 @dataclass(frozen=True)
 class KnnUncertainty:
     """``sigma = scale_b * sqrt(spread^2 + floor_m^2)`` for answers of the kNN it was measured with,
@@ -137,6 +204,7 @@ class KnnUncertainty:
     coverage: float = 0.95  # share of the covered scans' errors inside their 95 % circle
     score_edges: tuple[float, ...] = ()  # inner edges of the score bins, ascending
     scales: tuple[float, ...] = ()  # per bin (len(score_edges) + 1), non-decreasing; () = ``scale`` for all
+    outside: OutsideTest | None = None  # answers from places the map has not walked (None: not measured)
 
     def matches(self, config: KnnConfig) -> bool:
         """Measured with this kNN (metric, k, weights)? (Not ``min_common``: the calibration uses 1,
@@ -152,26 +220,53 @@ class KnnUncertainty:
         out = np.asarray(self.scales, float)[np.searchsorted(edges, np.nan_to_num(sc), side="right")]
         return np.where(np.isfinite(sc), out, self.scale)
 
-    def sigma(self, spread: NDArray[np.float64], score: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+    def sigma(
+        self, spread: NDArray[np.float64], score: NDArray[np.float64] | None = None,
+        rss_diff_db: NDArray[np.float64] | None = None,
+    ) -> NDArray[np.float64]:
         """Per answer: sigma (m, per axis) from its neighbours' spread and its score (``KnnResult``'s;
-        without scores, the covered scale). NaN spread stays NaN."""
+        without scores, the covered scale); with ``rss_diff_db``, at least ``outside.sigma_m`` for an
+        answer from outside the map's walks. NaN spread stays NaN."""
         s = np.asarray(spread, float)
-        return self.scale_for(score) * np.sqrt(s * s + self.floor_m**2)
+        out = self.scale_for(score) * np.sqrt(s * s + self.floor_m**2)
+        if self.outside is not None and rss_diff_db is not None:
+            out = np.where(self.outside.flags(rss_diff_db), np.maximum(out, self.outside.sigma_m), out)
+        return out
+
+    def sigma_of(self, res: "KnnResult") -> NDArray[np.float64]:
+        """``sigma`` of every answer of ``res``."""
+        return np.asarray(self.sigma(res.spread, res.score, res.rss_diff_db), float) * np.ones(len(res))
+
+    def outside_of(self, res: "KnnResult") -> NDArray[np.bool_] | None:
+        """Per answer of ``res``: from outside the map's walks? None when not measured (no test, or
+        answers without ``rss_diff_db``)."""
+        return None if self.outside is None or res.rss_diff_db is None else self.outside.flags(res.rss_diff_db)
+
+    def outside_score_of(self, res: "KnnResult") -> NDArray[np.float64] | None:
+        """Per answer of ``res``: its outside score (0-1; NaN: no answer); None as ``outside_of``."""
+        return None if self.outside is None or res.rss_diff_db is None else self.outside.scores(res.rss_diff_db)
 
     def as_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["score_edges"], d["scales"] = list(self.score_edges), list(self.scales)
+        d["outside"] = None if self.outside is None else self.outside.as_dict()
         return d
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "KnnUncertainty | None":
         """From a radio map's metadata; None when absent or not a valid record (a record without
-        score bins, as written before them, gives one scale for every answer)."""
+        score bins, as written before them, gives one scale for every answer; one without
+        ``outside``, no outside test)."""
         try:
             edges = tuple(float(v) for v in d.get("score_edges", ()))
             scales = tuple(float(v) for v in d.get("scales", ()))
+            outside = None
+            if d.get("outside") is not None:
+                outside = OutsideTest.from_dict(d["outside"])
+                if outside is None:
+                    return None
             u = cls(str(d["metric"]), int(d["k"]), bool(d["weighted"]), float(d["scale"]), float(d["floor_m"]),
-                    int(d["n"]), float(d.get("coverage", 0.95)), edges, scales)
+                    int(d["n"]), float(d.get("coverage", 0.95)), edges, scales, outside)
         except (KeyError, TypeError, ValueError):
             return None
         ok = math.isfinite(u.scale) and u.scale > 0 and math.isfinite(u.floor_m) and u.floor_m > 0

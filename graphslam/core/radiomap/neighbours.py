@@ -336,3 +336,64 @@ def nearest(d: NDArray[np.float64], k: int) -> tuple[NDArray[np.int64], NDArray[
         idx = np.pad(idx, ((0, 0), (0, k - k_eff)), constant_values=-1)
         dist = np.pad(dist, ((0, 0), (0, k - k_eff)), constant_values=np.inf)
     return idx, dist
+
+
+# ``pair_eq9`` holds a few queries dense over the map's APs up to this many cells (else it pairs keys)
+PAIR_DENSE_MAX_CELLS = 1 << 16
+
+
+def pair_eq9(
+    ref: FingerprintMatrix, ref_sq: NDArray[np.float64], ref_n: NDArray[np.float64], q_indptr: NDArray[np.int64],
+    q_indices: NDArray[np.int64], q_data: NDArray[np.float64], q_extra_sq: NDArray[np.float64],
+    q_extra_n: NDArray[np.int64], idx: NDArray[np.int64],
+) -> NDArray[np.float64]:
+    """(Q, k) eq. 9 distances (dB) of each query to the references ``idx`` (Q, k) lists for it (``inf``
+    where -1): a query's stored entries (csr arrays ``q_indptr``, ``q_indices``, ``q_data``; its
+    readings of APs outside the index in ``q_extra_*``) against each listed reference row; no Python
+    loop, no (Q, N) matrix. ``ref_sq``, ``ref_n``: the references' squared norms and APs heard
+    (``DistanceEngine``'s). A few queries are held dense over the map's APs and the references'
+    entries looked up in them (``PAIR_DENSE_MAX_CELLS``: the service's single fingerprints, ~3x less
+    fixed cost); more, each (pair, AP) key of the query's entries searched among the references'."""
+    n_q, k = idx.shape
+    out = np.full((n_q, k), np.inf)
+    pair_q, pair_j = np.nonzero(idx >= 0)
+    if not len(pair_q):
+        return out
+    refs = idx[pair_q, pair_j]
+    rv = ref.values
+    q_len = np.diff(q_indptr)
+    r_start = rv.indptr[refs]
+    r_len = rv.indptr[refs + 1] - r_start
+    re = _entries(r_start, r_len)
+    r_pair = np.repeat(np.arange(len(refs)), r_len)
+    n_aps = rv.shape[1]
+    if n_q * n_aps <= PAIR_DENSE_MAX_CELLS:
+        qd = np.zeros((n_q, n_aps))
+        qd[np.repeat(np.arange(n_q), q_len), q_indices] = q_data
+        qv = qd[pair_q[r_pair], rv.indices[re]]
+        dot = np.bincount(r_pair, weights=qv * rv.data[re], minlength=len(refs))
+        common = np.bincount(r_pair, weights=qv > 0, minlength=len(refs))
+        q_sq = np.einsum("ij,ij->i", qd, qd)
+    else:
+        qe = _entries(q_indptr[:-1][pair_q], q_len[pair_q])
+        q_pair = np.repeat(np.arange(len(refs)), q_len[pair_q])
+        q_key = q_pair * n_aps + q_indices[qe]
+        r_key = r_pair * n_aps + rv.indices[re]  # ascending when each row's columns are
+        if len(r_key) > 1 and not (np.diff(r_key) >= 0).all():
+            o = np.argsort(r_key, kind="stable")
+            r_key, re = r_key[o], re[o]
+        pos = np.minimum(np.searchsorted(r_key, q_key), max(len(r_key) - 1, 0))
+        hit = (r_key[pos] == q_key) if len(r_key) else np.zeros(len(q_key), bool)
+        dot = np.bincount(q_pair[hit], weights=q_data[qe][hit] * rv.data[re][pos[hit]], minlength=len(refs))
+        common = np.bincount(q_pair[hit], minlength=len(refs))
+        q_sq = np.bincount(np.repeat(np.arange(n_q), q_len), weights=q_data**2, minlength=n_q)
+    num = q_sq[pair_q] + q_extra_sq[pair_q] + ref_sq[refs] - 2.0 * dot
+    den = q_len[pair_q] + q_extra_n[pair_q] + ref_n[refs] - common
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out[pair_q, pair_j] = np.sqrt(np.maximum(num, 0.0) / den)
+    return out
+
+
+def _entries(starts: NDArray[np.int64], lens: NDArray[np.int64]) -> NDArray[np.int64]:
+    """The positions ``starts[i] .. starts[i] + lens[i] - 1`` of every i, concatenated."""
+    return np.repeat(starts - (np.cumsum(lens) - lens), lens) + np.arange(int(lens.sum()))

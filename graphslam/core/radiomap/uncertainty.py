@@ -29,11 +29,21 @@ Why the second set: calibrated on covered scans alone, the 95 % circles of walks
 from the map held 58 % of the truths (IPIN 2023 floor -2, leave one route out); docs/radio_map.md
 gives the figures per floor.
 
+The same pass measures the outside test (``knn_types.OutsideTest``): whether an answer comes from a
+place the map's walks have not been, from its ``KnnResult.rss_diff_db`` (the mean eq. 9 distance
+from the query to its neighbours). Its covered scans are those of the covered set within
+``NEAR_M`` of another walk's fingerprint; its *outside* set, the same scans located also without
+every fingerprint within ``OUTSIDE_RADIUS_M`` of each (a disc around the scan, not the walk's path:
+a map whose walks all follow one path keeps something to locate on). The threshold flags
+``FALSE_ALARM`` of the covered scans; the outside sigma holds 95 % of the outside scans' errors.
+Why eq. 9's distance and not the Sørensen score, and why a sample of 24 walks: lab/journal/coverage.md.
+
 Frames and units: the radio map's frame, metres.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Mapping
@@ -45,7 +55,7 @@ from scipy.spatial import cKDTree
 
 from graphslam.core.radiomap.fingerprints import FingerprintMatrix
 from graphslam.core.radiomap.knn import KnnLocator
-from graphslam.core.radiomap.knn_types import WEIGHT_EPS_DB, KnnConfig, KnnUncertainty
+from graphslam.core.radiomap.knn_types import OUTSIDE_LEVELS, WEIGHT_EPS_DB, KnnConfig, KnnUncertainty, OutsideTest
 from graphslam.core.radiomap.neighbours import nearest
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import ConfigError
@@ -55,6 +65,9 @@ DEFAULT_FLOOR_M = 2.0
 UNCOVERED_RADIUS_M = 5.0  # the uncovered set: map fingerprints this close to the walk's path removed
 UNCOVERED_WEIGHT = 0.4  # an uncovered scan's weight in the bins' quantiles (a covered one: 1)
 SCORE_BINS = 5  # quantile bins of the calibration scans' scores
+OUTSIDE_RADIUS_M = 10.0  # the outside set: map fingerprints this close to the scan removed
+NEAR_M = 3.0  # the outside test's covered scans: within this of another walk's fingerprint
+FALSE_ALARM = 0.05  # share of those the outside test flags
 
 
 def leave_one_session_out(
@@ -90,19 +103,25 @@ def leave_one_session_out(
 
 
 def calibrate_uncertainty(
-    rm: RadioMap, config: KnnConfig | None = None, *, floor_m: float = DEFAULT_FLOOR_M, max_queries: int = 300,
-    max_sessions: int = 12, seed: int = 0, uncovered_radius_m: float = UNCOVERED_RADIUS_M,
-    uncovered_weight: float = UNCOVERED_WEIGHT, bins: int = SCORE_BINS,
+    rm: RadioMap, config: KnnConfig | None = None, *, floor_m: float = DEFAULT_FLOOR_M, max_queries: int = 600,
+    max_sessions: int = 24, seed: int = 0, uncovered_radius_m: float = UNCOVERED_RADIUS_M,
+    uncovered_weight: float = UNCOVERED_WEIGHT, bins: int = SCORE_BINS, outside_radius_m: float = OUTSIDE_RADIUS_M,
+    near_m: float = NEAR_M, false_alarm: float = FALSE_ALARM,
 ) -> KnnUncertainty | None:
     """``KnnUncertainty`` of ``config`` on ``rm`` (module docstring): up to ``max_sessions`` walks
     (a seeded sample), up to ``max_queries`` of their scans in all, each located on the map of the
     other walks (covered) and again without the fingerprints within ``uncovered_radius_m`` of its
     walk (uncovered); ``bins`` score bins (1: one scale for all, the covered set's, and no uncovered
-    set). None for a map of one walk, or when no scan can be located among the others."""
+    set). The outside test (``OutsideTest``): the covered scans within ``near_m`` of another walk's
+    fingerprint against the same scans located also without the fingerprints within
+    ``outside_radius_m`` of each, flagging ``false_alarm`` of the former (``outside_radius_m`` 0: no
+    test). None for a map of one walk, or when no scan can be located among the others."""
     if not (math.isfinite(floor_m) and floor_m > 0):
         raise ConfigError(f"kNN uncertainty: floor_m must be a positive number of metres, got {floor_m}")
     if not (math.isfinite(uncovered_radius_m) and uncovered_radius_m >= 0 and uncovered_weight >= 0 and bins >= 1):
         raise ConfigError("kNN uncertainty: uncovered_radius_m and uncovered_weight must be >= 0 and bins >= 1")
+    if not (math.isfinite(outside_radius_m) and outside_radius_m >= 0 and near_m >= 0 and 0 < false_alarm < 1):
+        raise ConfigError("kNN uncertainty: outside_radius_m and near_m must be >= 0, false_alarm between 0 and 1")
     cfg = KnnConfig(k=(config or KnnConfig()).k, weighted=(config or KnnConfig()).weighted,
                     metric=(config or KnnConfig()).metric, index="exact")
     names, codes = np.unique(rm.session_ids, return_inverse=True)
@@ -121,17 +140,20 @@ def calibrate_uncertainty(
     heard = rm.fingerprints.values.tocoo()
     order = np.argsort(codes, kind="stable")
     first = np.searchsorted(codes[order], np.arange(len(names) + 1))
-    sets: dict[bool, list[tuple[NDArray, NDArray, NDArray]]] = {False: [], True: []}
+    tree = cKDTree(rm.xy)
+    # per set: (error norms, spreads, scores, near another walk, rss_diff_db) of the located scans
+    sets: dict[str, list[tuple[NDArray, NDArray, NDArray, NDArray, NDArray]]] = {"covered": [], "uncovered": [], "outside": []}
     for code in sessions:
         own_rows = order[first[code] : first[code + 1]]  # ascending: a stable sort of the codes
         rows = np.sort(rng.choice(own_rows, per, replace=False)) if len(own_rows) > per else own_rows
         own = codes == code
-        removed = {False: own}
+        removed = {"covered": own}
         if bins > 1 and uncovered_radius_m > 0:
-            near, _ = cKDTree(rm.xy[own_rows]).query(rm.xy, distance_upper_bound=uncovered_radius_m)
-            removed[True] = own | np.isfinite(near)
+            walk = cKDTree(rm.xy[own_rows])
+            removed["uncovered"] = own | np.isfinite(walk.query(rm.xy, distance_upper_bound=uncovered_radius_m)[0])
+        near = cKDTree(rm.xy[~own]).query(rm.xy[rows], distance_upper_bound=near_m)[0] <= near_m
         dropped = None
-        for uncovered, gone in removed.items():
+        for kind, gone in removed.items():
             drop = _heard_only_by(heard, gone, rm.fingerprints.n_aps)
             if dropped is None or not np.array_equal(drop, dropped):  # else the same query: its distances again
                 q = _without_columns(rm.fingerprints.rows(rows), drop)
@@ -139,25 +161,59 @@ def calibrate_uncertainty(
                 dropped = drop
             d = d_all.copy()
             d[:, gone] = np.inf
-            idx, dist = nearest(d, cfg.k)
-            res = loc._aggregate(idx, dist, np.diff(q.values.indptr).astype(np.int64))
-            ok = res.valid
-            sets[uncovered].append((np.linalg.norm(res.xy[ok] - rm.xy[rows[ok]], axis=1), res.spread[ok], res.score[ok]))
-    covered = [np.concatenate(v) for v in zip(*sets[False])]
+            sets[kind].append(_located(loc, q, d, rows, near, cfg.k, with_db=kind == "covered"))
+            if kind == "covered" and outside_radius_m > 0:
+                # outside: each scan without the fingerprints within outside_radius_m of it (the APs only
+                # they heard stay in the index, heard by no fingerprint left: as far for eq. 9)
+                disc = tree.query_ball_point(rm.xy[rows], r=outside_radius_m)
+                d[np.repeat(np.arange(len(rows)), [len(c) for c in disc]), np.concatenate(disc).astype(np.int64)] = np.inf
+                sets["outside"].append(_located(loc, q, d, rows, near, cfg.k, with_db=True))
+    if not sets["covered"]:
+        return None
+    covered = [np.concatenate(v) for v in zip(*sets["covered"])]
     if not len(covered[0]):
         return None
-    e, sp, _ = covered
+    e, sp = covered[0], covered[1]
     base = np.sqrt(sp**2 + floor_m**2)
     scale = max(float(np.quantile(e / (R95 * base), 0.95)), 1e-3)
     coverage = float(np.mean(e <= R95 * scale * base))
     n = len(e)
     edges: tuple[float, ...] = ()
     scales: tuple[float, ...] = ()
-    if sets[True]:
-        uncovered_set = [np.concatenate(v) for v in zip(*sets[True])]
+    if sets["uncovered"]:
+        uncovered_set = [np.concatenate(v) for v in zip(*sets["uncovered"])]
         n += len(uncovered_set[0])
-        edges, scales = _score_bins(covered, uncovered_set, floor_m, uncovered_weight, bins)
-    return KnnUncertainty(cfg.metric, cfg.k, cfg.weighted, scale, floor_m, n, coverage, edges, scales)
+        edges, scales = _score_bins(covered[:3], uncovered_set[:3], floor_m, uncovered_weight, bins)
+    outside = None
+    if sets["outside"]:
+        out_e, _, _, _, out_db = (np.concatenate(v) for v in zip(*sets["outside"]))
+        outside = _outside_test(covered[4][covered[3]], out_db, out_e, outside_radius_m, near_m, false_alarm)
+    return KnnUncertainty(cfg.metric, cfg.k, cfg.weighted, scale, floor_m, n, coverage, edges, scales, outside)
+
+
+def _located(
+    loc: KnnLocator, q: FingerprintMatrix, d: NDArray, rows: NDArray, near: NDArray, k: int, with_db: bool
+) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
+    """(error norms, spreads, scores, ``near``, rss_diff_db (zeros without ``with_db``)) of the queries
+    ``q`` (the map's fingerprints ``rows``) located by their distances ``d``, the located ones only."""
+    idx, dist = nearest(d, k)
+    res = loc._aggregate(idx, dist, np.diff(q.values.indptr).astype(np.int64), q if with_db else None)
+    ok = res.valid
+    db = res.rss_diff_db[ok] if res.rss_diff_db is not None else np.zeros(int(ok.sum()))
+    return np.linalg.norm(res.xy[ok] - loc.radio_map.xy[rows[ok]], axis=1), res.spread[ok], res.score[ok], near[ok], db
+
+
+def _outside_test(
+    covered: NDArray, outside: NDArray, outside_err: NDArray, radius_m: float, near_m: float, false_alarm: float
+) -> OutsideTest | None:
+    """``OutsideTest`` from the covered scans' ``rss_diff_db`` (those near another walk) and the
+    outside scans' ``rss_diff_db`` and error norms; None when either set is empty."""
+    if not len(covered) or not len(outside):
+        return None
+    t = OutsideTest(tuple(float(v) for v in np.quantile(covered, OUTSIDE_LEVELS)),
+                    max(float(np.quantile(outside_err, 0.95)) / R95, 1e-3), 0.0, len(covered), len(outside),
+                    false_alarm, radius_m, near_m)
+    return dataclasses.replace(t, detection=float(np.mean(t.flags(outside))))
 
 
 def _score_bins(
@@ -312,9 +368,10 @@ def with_uncertainty(rm: RadioMap, config: KnnConfig | None = None) -> RadioMap:
 
 def map_uncertainty(rm: RadioMap, config: KnnConfig) -> KnnUncertainty | None:
     """The calibration of ``config`` on ``rm``: the one its metadata records when measured with the
-    same kNN, else measured now (None for a map of one walk)."""
+    same kNN (and with the outside test: a record written before it is measured again), else measured
+    now (None for a map of one walk)."""
     stored = rm.metadata.get(METADATA_KEY)
-    if isinstance(stored, Mapping):
+    if isinstance(stored, Mapping) and "outside" in stored:
         u = KnnUncertainty.from_dict(stored)
         if u is not None and u.matches(config):
             return u
@@ -322,6 +379,6 @@ def map_uncertainty(rm: RadioMap, config: KnnConfig) -> KnnUncertainty | None:
 
 
 __all__ = [
-    "AccuracyCells", "KnnUncertainty", "METADATA_KEY", "R95", "calibrate_uncertainty", "expected_accuracy",
+    "AccuracyCells", "FALSE_ALARM", "KnnUncertainty", "METADATA_KEY", "NEAR_M", "OUTSIDE_RADIUS_M", "OutsideTest", "R95", "calibrate_uncertainty", "expected_accuracy",
     "leave_one_session_out", "map_uncertainty", "with_uncertainty",
 ]

@@ -61,6 +61,7 @@ from numpy.typing import NDArray
 from graphslam.core.progress import Task
 from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
 from graphslam.core.radiomap.radiomap import RadioMap
+from graphslam.core.radiomap.uncertainty import map_uncertainty
 from graphslam.core.tracking.apmodel import ApModels
 from graphslam.core.tracking.axes import WalkAxes
 from graphslam.core.tracking.filters import (
@@ -128,6 +129,9 @@ class SessionTrack:
     hypothesis: NDArray[np.int64]  # theta hypothesis reported at each step
     n_rssi_used: int  # of the hypothesis reported at the last step
     n_rssi_gated: int
+    # per step: from a place the map's walks have not been (``with_outside``); None: the map has no outside test
+    outside: NDArray[np.bool_] | None = None
+    outside_score: NDArray[np.float64] | None = None  # per step: 0-1 (``OutsideTest``)
 
     @property
     def xy(self) -> NDArray[np.float64]:
@@ -175,7 +179,10 @@ class Tracker:
         if area is not None:
             log.info("track: walkable area from the floor plan: %.0f %% of %.0f x %.0f m (%s)",
                      100 * area.fraction_walkable(), area.width_m, area.height_m, cfg.floor_plan.mode)
-        return cls(model, KnnLocator(rm, knn_config(cfg)), cfg, calibration, area)
+        locator = KnnLocator(rm, knn_config(cfg))
+        # the outside test of the fixes' kNN (``with_outside``): the map's stored calibration, else measured now
+        locator.uncertainty = map_uncertainty(rm, locator.config)
+        return cls(model, locator, cfg, calibration, area)
 
     def track(self, session: Session, progress: Task | None = None) -> SessionTrack:
         return track_session(session, self.model, self.locator, self.cfg, progress, self.area)
@@ -246,7 +253,32 @@ def track_session(
         x = tr.x.copy()
         x[:, :2] = area.snap(x[:, :2])  # covariance kept: the snap does not make the estimate surer
         tr = dataclasses.replace(tr, x=x)
-    return tr
+    return with_outside(tr, session, locator)
+
+
+def with_outside(tr: SessionTrack, session: Session, locator: KnnLocator) -> SessionTrack:
+    """``tr`` with each step's outside flag and score: those of the walk's latest scan at or before
+    the step (its first scan for the steps before it), by the outside test of ``locator.uncertainty``
+    (``graphslam.core.radiomap.knn_types.OutsideTest``); a scan the map cannot locate at all is
+    outside (score 1). An outside step's position covariance is widened to at least the test's
+    ``sigma_m`` squared in every direction: a step where the map has not walked does not claim a
+    small ellipse. ``tr`` as it is when the map has no outside test or the walk no scan."""
+    u = locator.uncertainty
+    if u is None or u.outside is None or not session.scans:
+        return tr
+    scans = sorted(session.scans, key=lambda sc: sc.t_ns)
+    res = locator.locate([sc.readings for sc in scans])
+    flags = np.where(res.valid, u.outside.flags(res.rss_diff_db), True)
+    scores = np.where(res.valid, u.outside.scores(res.rss_diff_db), 1.0)
+    j = np.maximum(np.searchsorted(np.array([sc.t_ns for sc in scans], np.int64), tr.t_ns, side="right") - 1, 0)
+    out, score = flags[j], scores[j]
+    P = tr.P
+    if out.any():
+        P = P.copy()
+        w, V = np.linalg.eigh(P[out, :2, :2])
+        w = np.maximum(w, u.outside.sigma_m**2)
+        P[out, :2, :2] = np.einsum("nij,nj,nkj->nik", V, w, V)
+    return dataclasses.replace(tr, P=P, outside=out, outside_score=score)
 
 
 def _track_session(
