@@ -187,7 +187,7 @@ def test_bench_real_surveys_the_crowd_on_the_floors_reference(floor: tuple, tmp_
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     row = next(r for r in rows if r.get("variant") == "reference_map")
     # the crowd: every walk but the one whose scans the reference holds verbatim
-    assert row["walks"] == 4 and row["main"] == 4 and row["frame"] == "site"
+    assert row["floor"] == "floor" and row["walks"] == 4 and row["main"] == 4 and row["frame"] == "site"
     assert row["reference_map"].endswith("reference_map.csv") and row["walks_over_6m"] == 0
     assert cli_main(["-q", "bench", "real", str(folder), "--variants", "reference_map", "--reference-map", "none"]) == 0
     assert not [r for r in map(json.loads, capsys.readouterr().out.splitlines()) if r.get("variant")]

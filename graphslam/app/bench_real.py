@@ -77,13 +77,14 @@ def real_floor_rows(
             if v == "reference_map":
                 if reference_map == "none" or not ref_file.is_file():
                     continue
-                plan.append((v, SurveyInputs(crowd_walks(folder, ref_file), reference_map=ref_file, picture=False)))
+                inputs = SurveyInputs(crowd_walks(folder, ref_file), reference_map=ref_file, picture=False)
+                plan.append((folder, v, inputs))
                 continue
             cp = cp_file if v == "control_points" else None
-            plan.append((v, SurveyInputs((folder,), control_points=cp, picture=False)))
+            plan.append((folder, v, SurveyInputs((folder,), control_points=cp, picture=False)))
     configs = {v: _variant_config(cfg, v) for v in variants}
-    for variant, inputs in progress_over(plan, "bench real", unit="surveys"):
-        yield _real_row(inputs, variant, configs[variant])
+    for folder, variant, inputs in progress_over(plan, "bench real", unit="surveys"):
+        yield _real_row(folder, inputs, variant, configs[variant])
 
 
 def real_floors(
@@ -131,8 +132,9 @@ def _variant_config(cfg: GraphSlamConfig, variant: str) -> GraphSlamConfig:
     return config_from_dict(data, f"bench real {variant}")
 
 
-def _real_row(inputs: SurveyInputs, variant: str, cfg: GraphSlamConfig) -> dict[str, Any]:
-    """One floor (``inputs``: its folder, no files written) surveyed under one variant, scored per component.
+def _real_row(folder: Path, inputs: SurveyInputs, variant: str, cfg: GraphSlamConfig) -> dict[str, Any]:
+    """One floor (``folder``; ``inputs``: its recordings, no files written) surveyed under one variant, scored
+    per component.
 
     ``main``: walks in component 0, first, with ``other_walks`` in ``other_components`` and
     ``unaligned`` (``main_map``: the same as ``graphslam survey``'s first line); ``main_mean_m``
@@ -147,7 +149,6 @@ def _real_row(inputs: SurveyInputs, variant: str, cfg: GraphSlamConfig) -> dict[
     from graphslam.app.survey import run_survey
     from graphslam.core.survey.evaluate import component_errors
 
-    folder = inputs.recordings[0]
     log.info("bench real: %s, %s", folder, variant)
     t = time.perf_counter()
     res = run_survey(inputs, cfg)
