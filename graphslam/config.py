@@ -247,6 +247,11 @@ class MagneticConfig(_Strict):
         4.0, gt=0, description="one magnetic factor every this much along a matched stretch (paper --size 12: every 2 m "
         "costs the factorisation a third more than every 4 m, for about the same accuracy)",
     )
+    partners_per_place: int = Field(
+        3, ge=1, description="each place (pair_every_m of a walk's path) keeps the magnetic factors of this many "
+        "best-scoring links (a pair stays when either end keeps it): a route walked n times would tie each place to "
+        "n - 1 others, factors growing with the square of the walks",
+    )
     window_sigma_m: float = Field(
         1.0, gt=0, description="precision of one matched window's alignment (IPIN 2023 floor -2: its node pairs lie "
         "0.45-0.55 m apart in truth, median, p90 1.2 m); a window's window_m / pair_every_m factors are one "

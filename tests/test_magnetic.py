@@ -115,7 +115,7 @@ def test_features_are_resampled_along_the_path_and_standing_still_is_one_place()
     assert np.all(np.diff(seq.path_m[:n0]) == pytest.approx(0.5))
 
 
-def test_links_place_walks_where_the_field_repeats_both_ways_and_need_a_loop() -> None:
+def test_links_place_walks_where_the_field_repeats_both_ways_and_a_contradicting_link_is_dropped() -> None:
     survey = corridor()
     links = _links(survey)
     assert len(links) >= 6  # five walks of one corridor: most pairs link
@@ -153,6 +153,29 @@ def test_links_place_walks_where_the_field_repeats_both_ways_and_need_a_loop() -
     from graphslam.core.common.geometry import fit_se2, se2_apply
 
     assert np.linalg.norm(se2_apply(fit_se2(placed, true_xy), placed) - true_xy, axis=1).mean() < 0.5
+
+
+def test_each_place_keeps_the_factors_of_its_best_links_and_a_pair_stays_when_either_end_keeps_it() -> None:
+    # five walks of one 40-m corridor, every step 1 m; every walk linked to every other, a pair every 4 m
+    n_walk, n_step = 5, 41
+    xy = np.tile(np.column_stack([np.arange(n_step, dtype=float), np.zeros(n_step)]), (n_walk, 1))
+    walk = np.repeat(np.arange(n_walk), n_step)
+    a, b = np.triu_indices(n_walk, 1)
+    score = np.linspace(0.95, 0.99, len(a))  # the last links score best
+    steps = np.arange(0, n_step, 4)
+    pair_link = np.repeat(np.arange(len(a)), len(steps))
+    nodes = np.column_stack([a[pair_link] * n_step + np.tile(steps, len(a)), b[pair_link] * n_step + np.tile(steps, len(a))])
+    links = M.MagneticLinks(a, b, np.zeros((len(a), 2)), np.full(len(a), 2), np.full(len(a), 2), score, pair_link, nodes)
+    keep = M.factor_pairs(links, xy, walk, 4.0, 2)
+    kept = set(map(tuple, np.column_stack([a, b])[np.unique(pair_link[keep])].tolist()))
+    # each walk's place keeps its two best partners; a pair kept by either end stays
+    best = {w: sorted((k for k in range(len(a)) if w in (a[k], b[k])), key=lambda k: -score[k])[:2] for w in range(n_walk)}
+    assert kept == {(int(a[k]), int(b[k])) for ks in best.values() for k in ks}
+    per_place = np.bincount(np.concatenate([nodes[keep, 0], nodes[keep, 1]]), minlength=len(xy))
+    assert per_place.max() <= 2 * 2 and len(kept) < len(a)
+    # every place of a kept link keeps its pair (the places are the walk's own, path from its start)
+    assert keep.sum() == len(kept) * len(steps)
+    assert M.factor_pairs(links, xy, walk, 4.0, n_walk).all()
 
 
 def test_the_threshold_comes_from_surrogates_and_unrelated_walks_do_not_link() -> None:

@@ -44,7 +44,7 @@ from graphslam.core.survey.graph import (
     values_to_xyh,
 )
 from graphslam.core.survey.initialise import Placement, connected_to, register_walks, se2_apply_poses
-from graphslam.core.survey.magnetic import MagneticLinks
+from graphslam.core.survey.magnetic import MagneticLinks, factor_pairs
 from graphslam.core.survey.reference import reference_links
 from graphslam.core.survey.problem import Problem
 from graphslam.core.types import PoseTrack, Survey
@@ -424,8 +424,11 @@ def build_problem(
         anchor_xy, anchor_pairs = a.xy, np.column_stack([node[keep], a.edge_j[keep]]).astype(np.int64)
     magnetic_pairs = np.zeros((0, 2), np.int64)
     if split is not None and split.magnetic is not None and len(split.magnetic):
-        pn = split.magnetic.pair_nodes
-        magnetic_pairs = pn[split.component[node_sess[pn[:, 0]]] == split.component[node_sess[pn[:, 1]]]]
+        mag = split.magnetic
+        pn = mag.pair_nodes
+        keep = split.component[node_sess[pn[:, 0]]] == split.component[node_sess[pn[:, 1]]]
+        keep &= factor_pairs(mag, dr_xyh[:, :2], node_sess, cfg.magnetic.pair_every_m, cfg.magnetic.partners_per_place)
+        magnetic_pairs = pn[keep]
     free = None
     if warm is not None:
         free = incremental.free_nodes(

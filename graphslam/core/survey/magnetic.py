@@ -30,7 +30,8 @@ the corridor walked, in whichever direction it is walked.
    windows run (parallel for a forward match, anti-parallel for a reversed one: else it is dropped);
    a link is at least ``min_windows`` matches, disjoint on both walks, agreeing on one translation
    within ``agree_m``. Its correspondences (sample pairs every ``pair_every_m`` along every agreeing
-   match, as step nodes) become the graph's magnetic factors.
+   match, as step nodes) become the graph's magnetic factors, at most ``partners_per_place`` a place
+   (``factor_pairs``).
 5. **Units** (``link_units``): walks the links connect are placed relative to each other as rigid
    bodies; a link the placement leaves more than ``agree_m`` apart is dropped.
 
@@ -539,6 +540,34 @@ def walk_links(
     return MagneticLinks(np.array(links_a, np.int64), np.array(links_b, np.int64), np.array(links_t),
                          np.array(links_n, np.int64), np.array(links_c, np.int64), np.array(links_s), link[u], nodes[u],
                          threshold, int(len(w)))
+
+
+def factor_pairs(
+    links: MagneticLinks, dr_xy: NDArray[np.float64], node_walk: NDArray[np.int64], place_m: float, per_place: int,
+) -> NDArray[np.bool_]:
+    """Which of ``links``' node pairs become factors: each place (``place_m`` of a walk's dead-reckoned
+    path; ``dr_xy``, ``node_walk``: every step node's) keeps the ``per_place`` pair ends there of the
+    best-scoring links, and a pair stays when either end's place keeps it. A route walked n times would otherwise tie each of its places to the
+    n - 1 others: factors growing with the square of the walks over one corridor (a crowd of 200
+    walks: as many magnetic factors as WiFi edges), where a few partners per place hold it as well."""
+    pn = links.pair_nodes
+    keep = np.zeros(len(pn), bool)
+    if not len(pn):
+        return keep
+    step = np.linalg.norm(np.diff(dr_xy, axis=0), axis=1) * (np.diff(node_walk) == 0)
+    path = np.concatenate([[0.0], np.cumsum(step)])
+    path -= np.maximum.accumulate(np.where(np.concatenate([[True], np.diff(node_walk) != 0]), path, -np.inf))  # per walk
+    bin_ = (path // place_m).astype(np.int64)
+    # both ends of every pair, ranked together at their place: best link first
+    end = pn.T.ravel()
+    pair = np.tile(np.arange(len(pn)), 2)
+    place = node_walk[end].astype(np.int64) * (int(bin_.max()) + 1) + bin_[end]
+    order = np.lexsort((links.pair_link[pair], -links.score[links.pair_link[pair]], place))
+    p = place[order]
+    first = np.concatenate([[True], p[1:] != p[:-1]])
+    rank = np.arange(len(p)) - np.maximum.accumulate(np.where(first, np.arange(len(p)), 0))
+    keep[pair[order[rank < per_place]]] = True
+    return keep
 
 
 def magnetic_links(
