@@ -1,0 +1,54 @@
+"""What a surveyed reference map gives a crowd and what it costs: the crowd walks of a floor (those
+the reference was not made from) surveyed alone, on the reference, on the reference with control
+points, and with control points alone, scored per component (ground truth only scores); then
+``graphslam survey`` of the crowd with and without ``--reference-map`` as whole processes,
+alternating, the median wall time of each.
+
+    python lab/survey/reference_cost.py ../shared/data/ipin2023/b100_f-2 [ROUNDS]
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from graphslam.app.bench_real import _real_row, crowd_walks
+from graphslam.app.survey_inputs import SurveyInputs
+from graphslam.config import load_config
+
+FIELDS = ("walks", "main_map", "main_mean_m", "main_site_mean_m", "walks_over_6m", "walks_over_10m", "frame")
+
+
+def main(folder: Path, rounds: int = 5) -> None:
+    ref, cp = folder / "reference_map.csv", folder / "control_points.csv"
+    crowd = crowd_walks(folder, ref)
+    cfg = load_config(None)
+    variants = {
+        "crowd alone": SurveyInputs(crowd, picture=False),
+        "reference": SurveyInputs(crowd, reference_map=ref, picture=False),
+        "reference + control points": SurveyInputs(crowd, reference_map=ref, control_points=cp, picture=False),
+        "control points": SurveyInputs(crowd, control_points=cp, picture=False),
+    }
+    for name, inputs in variants.items():
+        row = _real_row(folder, inputs, name, cfg)
+        print(json.dumps({"variant": name, **{k: row.get(k) for k in FIELDS}}), flush=True)
+    cli = [sys.executable, "-m", "graphslam", "-q", "survey", *map(str, crowd)]
+    walls: dict[str, list[float]] = {"crowd alone": [], "reference": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(rounds):
+            for name, extra in (("crowd alone", []), ("reference", ["--reference-map", str(ref)])):
+                t = time.perf_counter()
+                subprocess.run([*cli, "-o", f"{tmp}/{name}-{r}", *extra], check=True, stdout=subprocess.DEVNULL)
+                walls[name].append(time.perf_counter() - t)
+    med = {k: statistics.median(v) for k, v in walls.items()}
+    print(json.dumps({"wall_s_median": {k: round(v, 3) for k, v in med.items()}, "rounds": rounds,
+                      "reference_over_alone": round(med["reference"] / med["crowd alone"], 3)}))
+
+
+if __name__ == "__main__":
+    main(Path(sys.argv[1]), int(sys.argv[2]) if len(sys.argv) > 2 else 5)
