@@ -191,3 +191,51 @@ def test_bench_real_surveys_the_crowd_on_the_floors_reference(floor: tuple, tmp_
     assert row["reference_map"].endswith("reference_map.csv") and row["walks_over_6m"] == 0
     assert cli_main(["-q", "bench", "real", str(folder), "--variants", "reference_map", "--reference-map", "none"]) == 0
     assert not [r for r in map(json.loads, capsys.readouterr().out.splitlines()) if r.get("variant")]
+
+
+def test_edges_beyond_the_tight_gate_join_when_a_solve_brings_them_within_it(floor: tuple) -> None:
+    from dataclasses import replace
+
+    from graphslam.core.survey.align import _regated, build_problem
+    from graphslam.io.mcap_reader import read_recordings
+
+    _, files, ref, _ = floor
+    cfg = load_config()
+    problem = build_problem(read_recordings(files[1:]).survey, cfg, reference=read_reference_map(ref))
+    a, b, c, e = problem.fingerprints.node[[0, 1, 2, 3]]
+    xyh = problem.init_xyh.copy()
+    xyh[b, :2] = xyh[a, :2] + [1.0, 0.0]  # within the 6 m gate
+    xyh[e, :2] = xyh[c, :2] + [20.0, 0.0]  # beyond it
+    gated = replace(problem, gated_wifi_pairs=np.array([[a, b], [c, e]]), gated_anchor_pairs=np.zeros((0, 2), np.int64))
+    wider = _regated(gated, xyh, cfg)
+    assert wider is not None and wider.init_xyh is xyh
+    assert len(wider.wifi_pairs) == len(problem.wifi_pairs) + 1 and wider.wifi_pairs[-1].tolist() == [a, b]
+    assert wider.gated_wifi_pairs.tolist() == [[c, e]]  # a wrong edge stays out
+    # a reference edge likewise: node a within the gate of the reference fingerprint it names
+    r = int(np.argmin(np.linalg.norm(problem.anchor_xy - xyh[a, :2], axis=1)))
+    near = replace(gated, gated_wifi_pairs=np.zeros((0, 2), np.int64), gated_anchor_pairs=np.array([[a, r]]))
+    assert _regated(near, xyh, cfg).anchor_pairs[-1].tolist() == [a, r]
+    assert _regated(replace(gated, gated_wifi_pairs=np.array([[c, e]])), xyh, cfg) is None  # nothing joins: no pass
+
+
+def test_walks_that_drift_far_from_where_the_reference_places_them_are_bent_onto_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # the simulator's long office walks: placed rigidly on the reference, their far ends lie beyond the
+    # tight gate until a solve bends them; without the second pass the map is twice as far off
+    import graphslam.core.survey.align as align_mod
+    from graphslam.sim import simulate
+
+    survey = simulate("paper", seed=1, size=1).survey
+    ref = reference_csv(tmp_path / "reference_map.csv", survey, walk=0)
+    files = [write_session(s, tmp_path / f"{s.session_id}.mcap") for s in survey.sessions[1:]]
+
+    def landmark_mean() -> tuple[float, int]:
+        res = run_survey(SurveyInputs.from_paths(files, reference_map=ref, picture=False), load_config())
+        return res.evaluation.landmarks.mean_m, res.report["optimizer"]["stages"]
+
+    with_passes, stages = landmark_mean()
+    monkeypatch.setattr(align_mod, "_REGATE_ROUNDS", 0)
+    without, stages0 = landmark_mean()
+    assert stages > stages0
+    assert with_passes < 0.8 and with_passes < 0.6 * without

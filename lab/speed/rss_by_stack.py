@@ -12,7 +12,7 @@ import threading
 import time
 import traceback
 
-MIN_KB = 600_000
+MIN_KB = 600_000  # stacks below this are not printed
 
 
 def _rss_kb() -> int:
@@ -34,10 +34,10 @@ def main(argv: list[str]) -> None:
             time.sleep(0.01)
 
     threading.Thread(target=sample, daemon=True).start()
-    from graphslam.cli import main as graphslam_main
+    from graphslam import cli_main
 
     try:
-        graphslam_main(argv)
+        cli_main(argv)
     except SystemExit:
         pass
     for key, kb in list(peak.items()):

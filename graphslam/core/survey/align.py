@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Callable, Mapping
 
 import numpy as np
@@ -397,6 +397,7 @@ def build_problem(
     if split is not None:  # no WiFi edge between components: nothing the placement trusted links them
         use &= split.component[node_sess[ea]] == split.component[node_sess[eb]]
     wifi_pairs = np.column_stack([ea[use], eb[use]]).astype(np.int64)
+    gated_wifi = np.zeros((0, 2), np.int64)
     if split is not None:  # ... and within one, only edges the placement agrees with
         gap = np.linalg.norm(init_xyh[wifi_pairs[:, 0], :2] - init_xyh[wifi_pairs[:, 1], :2], axis=1)
         gate = np.full(len(gap), cfg.heading.wifi_gate_m)
@@ -405,6 +406,7 @@ def build_problem(
             tied = split.component[node_sess[wifi_pairs[:, 0]]] == 0
             gate[tied] = min(cfg.heading.wifi_gate_m, cfg.control_points.wifi_gate_m)
         keep = gap <= gate
+        gated = ~keep & (gap <= cfg.heading.wifi_gate_m)  # only the tight gate dropped them
         if warm is not None and warm.prev_edge_used is not None:
             # between walks solved before, the previous graph's choice (its gate saw the placement
             # then; the solution now would drop other edges and move the whole floor)
@@ -412,8 +414,11 @@ def build_problem(
             both_old = old_walk[node_sess[wifi_pairs[:, 0]]] & old_walk[node_sess[wifi_pairs[:, 1]]]
             prev = fp.node[incremental.previous_edge_rows(fp, warm)]
             keep[both_old] = incremental.pairs_in(wifi_pairs[both_old], prev[warm.prev_edge_used], len(init_xyh))
+            gated[:] = False  # an update keeps the previous choice
+        gated_wifi = wifi_pairs[gated] if (split.ties is not None or split.anchors is not None) else gated_wifi
         wifi_pairs = wifi_pairs[keep]
     anchor_xy, anchor_pairs = np.zeros((0, 2)), np.zeros((0, 2), np.int64)
+    gated_anchor = np.zeros((0, 2), np.int64)
     if split is not None and split.anchors is not None:
         # the reference's WiFi edges to component 0's walks that the placement puts within the gate
         a = split.anchors
@@ -422,6 +427,9 @@ def build_problem(
         gap = np.linalg.norm(init_xyh[node, :2] - a.xy[a.edge_j], axis=1)
         keep = on & (gap <= min(cfg.heading.wifi_gate_m, cfg.control_points.wifi_gate_m))
         anchor_xy, anchor_pairs = a.xy, np.column_stack([node[keep], a.edge_j[keep]]).astype(np.int64)
+        if warm is None:
+            gated_a = on & ~keep & (gap <= cfg.heading.wifi_gate_m)
+            gated_anchor = np.column_stack([node[gated_a], a.edge_j[gated_a]]).astype(np.int64)
     magnetic_pairs = np.zeros((0, 2), np.int64)
     if split is not None and split.magnetic is not None and len(split.magnetic):
         mag = split.magnetic
@@ -454,6 +462,8 @@ def build_problem(
         magnetic=None if split is None else split.magnetic,
         anchor_xy=anchor_xy,
         anchor_pairs=anchor_pairs,
+        gated_wifi_pairs=gated_wifi.astype(np.int64).reshape(-1, 2),
+        gated_anchor_pairs=gated_anchor,
         reference_map=reference if split is not None and split.anchors is not None else None,
         unused_reference=reference if split is not None and split.unused_reference else None,
         free=free,
@@ -517,41 +527,78 @@ def align(
     return solve(problem, cfg, progress, t0=t0)
 
 
+# passes of re-gating after the first solve (``solve``); on the simulator and IPIN the second adds little
+_REGATE_ROUNDS = 2
+
+
+def _regated(problem: Problem, xyh: NDArray, cfg: GraphSlamConfig) -> Problem | None:
+    """``problem`` with the gated edges that ``xyh`` (a solution) puts within the tight gate joined to its
+    WiFi and reference edges, from ``xyh``; None when none does. The placement of a walk tied at one place
+    is rigid and its dead reckoning drifts: far from the tie, right edges can lie beyond the gate until a
+    solve bends the walk; wrong ones stay beyond it."""
+    gate = min(cfg.heading.wifi_gate_m, cfg.control_points.wifi_gate_m)
+    gw, ga = problem.gated_wifi_pairs, problem.gated_anchor_pairs
+    near_w = np.linalg.norm(xyh[gw[:, 0], :2] - xyh[gw[:, 1], :2], axis=1) <= gate
+    near_a = np.linalg.norm(xyh[ga[:, 0], :2] - problem.anchor_xy[ga[:, 1]], axis=1) <= gate
+    if not (near_w.any() or near_a.any()):
+        return None
+    log.info("re-gating: %d WiFi and %d reference edges join after the solve", int(near_w.sum()), int(near_a.sum()))
+    return replace(
+        problem,
+        init_xyh=xyh,
+        wifi_pairs=np.concatenate([problem.wifi_pairs, gw[near_w]]),
+        anchor_pairs=np.concatenate([problem.anchor_pairs, ga[near_a]]),
+        gated_wifi_pairs=gw[~near_w],
+        gated_anchor_pairs=ga[~near_a],
+    )
+
+
 def solve(
     problem: Problem, cfg: GraphSlamConfig, progress: ProgressCallback | None = None, *, t0: float | None = None
 ) -> Alignment:
-    """Step 5: LM over a shrinking set of unsaturated WiFi edges (graduated saturation)."""
+    """Step 5: LM over a shrinking set of unsaturated WiFi edges (graduated saturation); then, where control
+    points or a reference map place component 0, the edges its placement had put beyond the tight gate
+    join once a solve brings them within it (``_regated``), and LM runs again on the wider graph."""
     t0 = time.perf_counter() if t0 is None else t0
     timings = dict(problem.timings_s)
     t = time.perf_counter()
-    with Task("build graph"):
-        pardiso = use_vectorised_solver(cfg, problem)
-        if pardiso:
-            pg, chains = pose_graph(problem, cfg)
-            settings = S.LMSettings(
-                max_iterations=cfg.optimizer.max_iterations,
-                relative_error_tol=cfg.optimizer.relative_error_tol,
-                absolute_error_tol=cfg.optimizer.absolute_error_tol,
-                shape_tol_m=cfg.optimizer.shape_tol_m,
-                threads=cfg.optimizer.threads,
-                backend=cfg.optimizer.solver,
-                precision=cfg.optimizer.factor_precision,
-                single_above_variables=cfg.optimizer.single_above_variables,
-                ordering=cfg.optimizer.ordering,
-                metis_above_variables=cfg.optimizer.metis_above_variables,
-            )
-        else:
-            if len(problem.anchor_pairs):
-                raise SolverError("a reference map is solved by graphslam's own LM (optimizer.solver auto, pardiso "
-                                  "or cholmod), not optimizer.solver gtsam")
-            imu_graph, wifi_factors, values, chains = native_graph(problem, cfg)
-    solved_pairs = problem.wifi_pairs if pardiso else solved_wifi_pairs(problem)
-    ea, eb = solved_pairs[:, 0], solved_pairs[:, 1]
-    mag_pairs = problem.magnetic_pairs if pardiso else solved_magnetic_pairs(problem)
-    ma, mb = mag_pairs[:, 0], mag_pairs[:, 1]
-    # a reference map's fingerprints: held nodes after the steps (node N + r), WiFi edges to them
+    placed_xyh = problem.init_xyh  # the placement (the output's initial poses, whatever the passes)
+    dr_xyh = dead_reckoned_nodes(problem.survey)[0]
     n_steps = len(problem.init_xyh)
-    ra, rb = problem.anchor_pairs[:, 0], n_steps + problem.anchor_pairs[:, 1]
+    pardiso = use_vectorised_solver(cfg, problem)
+    settings = S.LMSettings(
+        max_iterations=cfg.optimizer.max_iterations,
+        relative_error_tol=cfg.optimizer.relative_error_tol,
+        absolute_error_tol=cfg.optimizer.absolute_error_tol,
+        shape_tol_m=cfg.optimizer.shape_tol_m,
+        threads=cfg.optimizer.threads,
+        backend=cfg.optimizer.solver,
+        precision=cfg.optimizer.factor_precision,
+        single_above_variables=cfg.optimizer.single_above_variables,
+        ordering=cfg.optimizer.ordering,
+        metis_above_variables=cfg.optimizer.metis_above_variables,
+    )
+
+    def build(pb: Problem) -> tuple:
+        """The graph of ``pb`` and its range factors' end nodes: WiFi (ea, eb), magnetic (ma, mb), reference (ra, rb)."""
+        with Task("build graph"):
+            if pardiso:
+                pg, chains = pose_graph(pb, cfg)
+                native = None
+            else:
+                if len(pb.anchor_pairs):
+                    raise SolverError("a reference map is solved by graphslam's own LM (optimizer.solver auto, "
+                                      "pardiso or cholmod), not optimizer.solver gtsam")
+                pg = None
+                imu_graph, wifi_factors, values, chains = native_graph(pb, cfg)
+                native = (imu_graph, wifi_factors, values)
+        wp = pb.wifi_pairs if pardiso else solved_wifi_pairs(pb)
+        mp = pb.magnetic_pairs if pardiso else solved_magnetic_pairs(pb)
+        # a reference map's fingerprints: held nodes after the steps (node N + r), WiFi edges to them
+        return (pg, chains, native, wp[:, 0], wp[:, 1], mp[:, 0], mp[:, 1],
+                pb.anchor_pairs[:, 0], n_steps + pb.anchor_pairs[:, 1])
+
+    pg, chains, native, ea, eb, ma, mb, ra, rb = build(problem)
     anchors = np.column_stack([problem.anchor_xy, np.zeros(len(problem.anchor_xy))])
     timings["build_graph"] = time.perf_counter() - t
 
@@ -562,57 +609,71 @@ def solve(
 
     def objective(xyh: NDArray) -> float:
         d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
-        imu = S.between_error(pg, xyh) + S.unary_error(pg, xyh) if pardiso else imu_graph.error(values)
+        imu = S.between_error(pg, xyh) + S.unary_error(pg, xyh) if pardiso else native[0].error(values)
         dm = np.linalg.norm(xyh[ma, :2] - xyh[mb, :2], axis=1)
         dr = np.linalg.norm(xyh[ra, :2] - anchors[rb - n_steps, :2], axis=1)
         return float(imu + F.fuzzy_cost(d, cfg.wifi).sum() + F.magnetic_cost(dm, cfg.magnetic).sum()
                      + F.fuzzy_cost(dr, cfg.wifi).sum())
 
-    init_xyh = problem.init_xyh
-    dr_xyh = dead_reckoned_nodes(problem.survey)[0]
-    xyh = init_xyh.copy()
+    xyh = problem.init_xyh.copy()
+    values = native[2] if native is not None else None
     initial_error = objective(xyh)
     converged = False
     solver: dict[str, str] = {}
     prev_active: NDArray | None = None
-    for stage, radius in enumerate(_saturation_radii(cfg, problem.method)):
-        d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
-        dm = np.linalg.norm(xyh[ma, :2] - xyh[mb, :2], axis=1)
-        dr = np.linalg.norm(xyh[ra, :2] - anchors[rb - n_steps, :2], axis=1)
-        # magnetic pairs saturate at their own d_max, shrinking in step with the WiFi edges' radius
-        active = np.concatenate([d <= radius, dm <= radius * cfg.magnetic.d_max_m / cfg.wifi.d_max_m, dr <= radius])
-        if prev_active is not None and np.array_equal(active, prev_active) and converged:
-            continue  # LM already converged on exactly this graph
-        n_active = int(active[:len(d)].sum())  # WiFi edges (the records' and the progress line's count)
+    radii = _saturation_radii(cfg, problem.method)
+    stage = 0
+    for regate_round in range(1 + _REGATE_ROUNDS):
+        if regate_round:  # the edges this solution brings within the gate join; LM again at the final radius
+            wider = _regated(problem, xyh, cfg)
+            if wider is None:
+                break
+            problem = wider
+            pg, chains, native, ea, eb, ma, mb, ra, rb = build(problem)
+            values = native[2] if native is not None else None
+            radii, prev_active = radii[-1:], None
+        for radius in radii:
+            this_stage, stage = stage, stage + 1  # a skipped stage keeps its number
+            d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
+            dm = np.linalg.norm(xyh[ma, :2] - xyh[mb, :2], axis=1)
+            dr = np.linalg.norm(xyh[ra, :2] - anchors[rb - n_steps, :2], axis=1)
+            # magnetic pairs saturate at their own d_max, shrinking in step with the WiFi edges' radius
+            active = np.concatenate([d <= radius, dm <= radius * cfg.magnetic.d_max_m / cfg.wifi.d_max_m, dr <= radius])
+            if prev_active is not None and np.array_equal(active, prev_active) and converged:
+                continue  # LM already converged on exactly this graph
+            n_active = int(active[:len(d)].sum())  # WiFi edges (the records' and the progress line's count)
 
-        def hook(it: int, before: float, after: float, _s: int = stage, _n: int = n_active) -> None:
-            rec = IterationRecord(_s, int(it), float(before), float(after), _n)
-            records.append(rec)
-            task.advance(info=f"stage {_s}, error {after:.4g}, {_n:,} WiFi edges")
-            if progress is not None:
-                progress(rec)
+            def hook(it: int, before: float, after: float, _s: int = this_stage, _n: int = n_active) -> None:
+                rec = IterationRecord(_s, int(it), float(before), float(after), _n)
+                records.append(rec)
+                task.advance(info=f"stage {_s}, error {after:.4g}, {_n:,} WiFi edges")
+                if progress is not None:
+                    progress(rec)
 
-        if pardiso:
-            res = S.levenberg_marquardt(pg, np.concatenate([xyh, anchors]), active, settings, hook)
-            converged = res.converged
-            xyh = res.xyh[:n_steps]
-            if res.factor is not None:
-                solver = {"solver": res.factor.backend, "ordering": res.factor.ordering,
-                          "factor_precision": res.factor.precision}
-        else:
-            values, converged = gtsam_lm(imu_graph, wifi_factors, values, active, cfg, hook)
-            xyh = values_to_xyh(values, init_xyh)
-            solver = {"solver": "gtsam", "linear_solver": gtsam_linear_solver(cfg, values.size())}
-        if chains is not None:
-            xyh = expand(xyh, dr_xyh, chains)
-        if problem.free is not None:  # --update: outside the neighbourhood, the previous solution
-            xyh = np.where(problem.free[:, None], xyh, init_xyh)
-        snapshots.append((stage, xyh.copy()))
-        prev_active = active
+            if pardiso:
+                res = S.levenberg_marquardt(pg, np.concatenate([xyh, anchors]), active, settings, hook)
+                converged = res.converged
+                xyh = res.xyh[:n_steps]
+                if res.factor is not None:
+                    solver = {"solver": res.factor.backend, "ordering": res.factor.ordering,
+                              "factor_precision": res.factor.precision}
+            else:
+                values, converged = gtsam_lm(native[0], native[1], values, active, cfg, hook)
+                xyh = values_to_xyh(values, problem.init_xyh)
+                solver = {"solver": "gtsam", "linear_solver": gtsam_linear_solver(cfg, values.size())}
+            if chains is not None:
+                xyh = expand(xyh, dr_xyh, chains)
+            if problem.free is not None:  # --update: outside the neighbourhood, the previous solution
+                xyh = np.where(problem.free[:, None], xyh, problem.init_xyh)
+            snapshots.append((this_stage, xyh.copy()))
+            prev_active = active
     timings["optimise"] = time.perf_counter() - t
     task.end()
     if solver:
         log.info("optimised with %s", describe_solver(solver))
+    init_xyh = placed_xyh
+    if pardiso and problem.init_xyh is not placed_xyh:  # the wider graph's error at the placement, comparable
+        initial_error = objective(placed_xyh)
     final_error = objective(xyh)
 
     d = np.linalg.norm(xyh[problem.wifi_pairs[:, 0], :2] - xyh[problem.wifi_pairs[:, 1], :2], axis=1)

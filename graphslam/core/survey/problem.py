@@ -55,6 +55,10 @@ class Problem:
     anchor_xy: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
     anchor_pairs: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), np.int64))
     reference_map: RadioMap | None = None  # the reference map itself (its fingerprints join the output map)
+    # the tied component's WiFi edges (and reference edges) the placement put beyond the tight gate
+    # (``control_points.wifi_gate_m``) but within the headings' one: they join when a solve brings them within it
+    gated_wifi_pairs: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    gated_anchor_pairs: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), np.int64))
     unused_reference: RadioMap | None = None  # a reference map given that no walk registers onto (not used)
     # --update: nodes re-solved; the others keep init_xyh (their previous solution).
     # None: every node of an included walk is a variable (a full solve).
