@@ -406,7 +406,8 @@ def build_problem(
             tied = split.component[node_sess[wifi_pairs[:, 0]]] == 0
             gate[tied] = min(cfg.heading.wifi_gate_m, cfg.control_points.wifi_gate_m)
         keep = gap <= gate
-        gated = ~keep & (gap <= cfg.heading.wifi_gate_m)  # only the tight gate dropped them
+        # only the tight gate dropped them (an update keeps the previous solve's choice: none)
+        gated = ~keep & (gap <= cfg.heading.wifi_gate_m) & (warm is None)
         if warm is not None and warm.prev_edge_used is not None:
             # between walks solved before, the previous graph's choice (its gate saw the placement
             # then; the solution now would drop other edges and move the whole floor)
@@ -414,7 +415,6 @@ def build_problem(
             both_old = old_walk[node_sess[wifi_pairs[:, 0]]] & old_walk[node_sess[wifi_pairs[:, 1]]]
             prev = fp.node[incremental.previous_edge_rows(fp, warm)]
             keep[both_old] = incremental.pairs_in(wifi_pairs[both_old], prev[warm.prev_edge_used], len(init_xyh))
-            gated[:] = False  # an update keeps the previous choice
         gated_wifi = wifi_pairs[gated] if (split.ties is not None or split.anchors is not None) else gated_wifi
         wifi_pairs = wifi_pairs[keep]
     anchor_xy, anchor_pairs = np.zeros((0, 2)), np.zeros((0, 2), np.int64)
