@@ -78,6 +78,11 @@ def test_every_survey_output_names_the_reports_frame(surveys: dict, kind: str) -
     # the radio map's metadata (what locate, serve, track and fit-aps read it by)
     meta = json.loads(pq.read_schema(d / "radio_map.parquet").metadata[b"graphslam.radio_map"])
     assert meta["frame"] == frame
+    # the magnetic map beside it (the simulated walks carry the field; the UWB crowd's may not)
+    mag = d / "magnetic_map.parquet"
+    assert mag.is_file() or kind == "uwb"
+    if mag.is_file():
+        assert json.loads(pq.read_schema(mag).metadata[b"graphslam.magnetic_map"])["frame"] == frame
     # trajectories.csv: component 0 in the report's frame, on every row
     assert _csv_frames(d / "trajectories.csv") == {frame}
     with open(d / "aligned.mcap", "rb") as fh:
@@ -89,7 +94,7 @@ def test_every_survey_output_names_the_reports_frame(surveys: dict, kind: str) -
     assert not _other_frames_named(text["Title"], frame), text["Title"]
     # plot's radio_map.png (and survey.png redrawn from the folder)
     assert run_cli(["-q", "plot", str(d), "--recordings", str(rec)]) == 0
-    for name in ("radio_map.png", "survey.png"):
+    for name in ("radio_map.png", "survey.png") + (("magnetic_map.png",) if mag.is_file() else ()):
         text = _png(d / name)
         assert text["frame"] == frame and f"{frame} frame" in text["Title"], (name, text)
         assert not _other_frames_named(text["Title"], frame), (name, text["Title"])

@@ -48,7 +48,7 @@ def magnetic_map_picture(
     pic = Picture(size_px, title_lines=[
         f"magnetic map: {len(mm):,} samples of {mm.n_walks} walks; {frame}; {cell:g} m cells, Gaussian kernel "
         f"{h:g} m; each walk's device offset removed (µT)"
-    ])
+    ], frame="site" if T is not None else mm.frame)
     w, hgt = size_px
     half = w // 2
     x0, x1, y0, y1 = grid.extent
