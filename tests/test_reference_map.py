@@ -230,12 +230,14 @@ def test_walks_that_drift_far_from_where_the_reference_places_them_are_bent_onto
     ref = reference_csv(tmp_path / "reference_map.csv", survey, walk=0)
     files = [write_session(s, tmp_path / f"{s.session_id}.mcap") for s in survey.sessions[1:]]
 
-    def landmark_mean() -> tuple[float, int]:
+    def landmark_mean() -> tuple[float, int, dict]:
         res = run_survey(SurveyInputs.from_paths(files, reference_map=ref, picture=False), load_config())
-        return res.evaluation.landmarks.mean_m, res.report["optimizer"]["stages"]
+        opt = res.report["optimizer"]
+        return res.evaluation.landmarks.mean_m, opt["stages"], opt["regated_edges"]
 
-    with_passes, stages = landmark_mean()
+    with_passes, stages, regated = landmark_mean()
     monkeypatch.setattr(align_mod, "_REGATE_ROUNDS", 0)
-    without, stages0 = landmark_mean()
-    assert stages > stages0
+    without, stages0, regated0 = landmark_mean()
+    assert stages > stages0 and regated0 == {"wifi": 0, "reference": 0}
+    assert regated["wifi"] > 0 and regated["reference"] > 0  # the report says what joined
     assert with_passes < 0.8 and with_passes < 0.6 * without

@@ -118,6 +118,8 @@ def build_report(
             "initial_error": al.initial_error,
             "final_error": al.final_error,
             "converged": al.converged,
+            # edges of the tied component that joined once a solve brought them within the gate
+            "regated_edges": {"wifi": al.regated_edges[0], "reference": al.regated_edges[1]},
             **al.solver,
         },
         "timings_s": {k: round(v, 4) for k, v in timings.items()},

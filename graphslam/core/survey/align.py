@@ -106,6 +106,8 @@ class Alignment:
     reference_map: RadioMap | None = None  # the surveyed map component 0 is placed on (site frame)
     anchor_pairs: NDArray[np.int64] | None = None  # (E, 2) its WiFi edges: (step node, reference fingerprint)
     unused_reference: RadioMap | None = None  # a reference map given that no walk registers onto
+    # WiFi and reference edges that joined after a solve brought them within the tight gate (``_regated``)
+    regated_edges: tuple[int, int] = (0, 0)
     # the optimiser that solved it: {"solver": "cholmod" | "pardiso", "ordering": "metis" | "amd",
     # "factor_precision": "single" | "double"} for the vectorised LM, {"solver": "gtsam", "linear_solver":
     # "cholesky" | "pcg"} for GTSAM's; empty: nothing was optimised
@@ -623,11 +625,14 @@ def solve(
     prev_active: NDArray | None = None
     radii = _saturation_radii(cfg, problem.method)
     stage = 0
+    regated = (0, 0)
     for regate_round in range(1 + _REGATE_ROUNDS):
         if regate_round:  # the edges this solution brings within the gate join; LM again at the final radius
             wider = _regated(problem, xyh, cfg)
             if wider is None:
                 break
+            regated = (regated[0] + len(wider.wifi_pairs) - len(problem.wifi_pairs),
+                       regated[1] + len(wider.anchor_pairs) - len(problem.anchor_pairs))
             problem = wider
             pg, chains, native, ea, eb, ma, mb, ra, rb = build(problem)
             values = native[2] if native is not None else None
@@ -722,4 +727,5 @@ def solve(
         reference_map=problem.reference_map,
         anchor_pairs=problem.anchor_pairs if problem.reference_map is not None else None,
         unused_reference=problem.unused_reference,
+        regated_edges=regated,
     )
