@@ -159,10 +159,14 @@ def test_survey_cli_writes_every_output(tmp_path: Path, capsys: pytest.CaptureFi
     cfg_file.write_text("wifi:\n  d_min_m: 0.5\n")
     out = tmp_path / "out"
     main(["survey", str(tmp_path / "in"), "--out", str(out), "--config", str(cfg_file), "--no-progress"])
-    assert capsys.readouterr().out.startswith("main map: 2 of 2 walks; 0 in 0 other components; 0 unaligned; frame aligned")
+    printed = capsys.readouterr().out
+    assert printed.startswith("main map: 2 of 2 walks; 0 in 0 other components; 0 unaligned; frame aligned")
     lines = (out / "trajectories.csv").read_text().splitlines()
     assert lines[0] == "session_id,t_ns,x,y,heading,component,frame" and len(lines) == 1 + 300 + 260
     report = json.loads((out / "report.json").read_text())
+    # the summary's edge counts are the report's: those in the graph, of those proposed
+    in_graph = sum(report["edges"]["wifi_states"].values())
+    assert f"{in_graph:,} of {report['edges']['wifi']:,} WiFi edges in the graph" in printed
     assert report["aligned_sessions"] == 2 and report["edges"]["wifi"] > 0
     assert report["optimizer"]["final_error"] < report["optimizer"]["initial_error"]
     assert report["evaluation"]["landmarks"]["mean_m"] < 0.5

@@ -106,7 +106,9 @@ def survey(
 
     typer.echo(
         f"{report_main_map_counts(r)}; frame {r['frame']}; {r['nodes']:,} poses, "
-        f"{r['edges']['wifi']:,} WiFi edges; LM {r['optimizer']['iterations']} iterations "
+        # the edges in the graph (every state) of the edges proposed: the gates and components leave some out
+        f"{sum(r['edges']['wifi_states'].values()):,} of {r['edges']['wifi']:,} WiFi edges in the graph; "
+        f"LM {r['optimizer']['iterations']} iterations "
         f"(converged: {r['optimizer']['converged']}){_solver_phrase(r['optimizer'])}, error {r['optimizer']['initial_error']:.4g} -> "
         f"{r['optimizer']['final_error']:.4g}; {r['timings_s']['total']:.2f} s"
     )
