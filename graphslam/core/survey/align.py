@@ -399,7 +399,7 @@ def build_problem(
     if split is not None:  # no WiFi edge between components: nothing the placement trusted links them
         use &= split.component[node_sess[ea]] == split.component[node_sess[eb]]
     wifi_pairs = np.column_stack([ea[use], eb[use]]).astype(np.int64)
-    gated_wifi = np.zeros((0, 2), np.int64)
+    gated_wifi = np.zeros((0, 2), np.int64)  # see Problem.gated_wifi_pairs
     if split is not None:  # ... and within one, only edges the placement agrees with
         gap = np.linalg.norm(init_xyh[wifi_pairs[:, 0], :2] - init_xyh[wifi_pairs[:, 1], :2], axis=1)
         gate = np.full(len(gap), cfg.heading.wifi_gate_m)
@@ -417,7 +417,7 @@ def build_problem(
             both_old = old_walk[node_sess[wifi_pairs[:, 0]]] & old_walk[node_sess[wifi_pairs[:, 1]]]
             prev = fp.node[incremental.previous_edge_rows(fp, warm)]
             keep[both_old] = incremental.pairs_in(wifi_pairs[both_old], prev[warm.prev_edge_used], len(init_xyh))
-        gated_wifi = wifi_pairs[gated] if (split.ties is not None or split.anchors is not None) else gated_wifi
+        gated_wifi = wifi_pairs[gated]  # empty unless the tight gate applied (ties or a reference)
         wifi_pairs = wifi_pairs[keep]
     anchor_xy, anchor_pairs = np.zeros((0, 2)), np.zeros((0, 2), np.int64)
     gated_anchor = np.zeros((0, 2), np.int64)
@@ -464,7 +464,7 @@ def build_problem(
         magnetic=None if split is None else split.magnetic,
         anchor_xy=anchor_xy,
         anchor_pairs=anchor_pairs,
-        gated_wifi_pairs=gated_wifi.astype(np.int64).reshape(-1, 2),
+        gated_wifi_pairs=gated_wifi.reshape(-1, 2),
         gated_anchor_pairs=gated_anchor,
         reference_map=reference if split is not None and split.anchors is not None else None,
         unused_reference=reference if split is not None and split.unused_reference else None,
