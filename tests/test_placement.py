@@ -240,3 +240,26 @@ def test_each_rows_best_matches_are_its_k_largest_positive_similarities(k: int) 
         for r in range(rows):
             want = sorted((-float(block[r, j]), j) for j in range(cols) if block[r, j] > 0)[:k]
             assert ci[ri == r].tolist() == [j for _, j in want]
+
+
+def test_votes_taken_a_chunk_of_rotations_at_a_time_equal_one_pass(monkeypatch: pytest.MonkeyPatch) -> None:
+    # the vote grid is built a few rotations at a time (bounded temporaries): the sums, the grid's extent
+    # and so the placement and its runner-up must be exactly those of one pass over every rotation
+    import graphslam.core.survey.placement as placement
+
+    rng = np.random.default_rng(11)
+    src = rng.uniform(-30, 30, (200, 2))
+    theta, t = 0.7, np.array([12.0, -5.0])
+    c, s = np.cos(theta), np.sin(theta)
+    dst = src @ np.array([[c, s], [-s, c]]) + t + rng.normal(0, 0.5, (200, 2))
+    dst[:40] = rng.uniform(-60, 60, (40, 2))  # wrong matches spread the grid
+    w = rng.uniform(0.2, 1.0, 200)
+    params = GrowthParams()
+    thetas = np.radians(np.arange(0.0, 360.0, 3.0))
+    one_pass = placement.hough_se2(src, dst, w, params), placement.hough_profile(src, dst, w, thetas, params)
+    monkeypatch.setattr(placement, "_CHUNK", 450)  # two rotations per chunk, the last one short
+    chunked = placement.hough_se2(src, dst, w, params), placement.hough_profile(src, dst, w, thetas, params)
+    np.testing.assert_array_equal(chunked[0][0], one_pass[0][0])
+    assert chunked[0][1:] == one_pass[0][1:]
+    np.testing.assert_array_equal(chunked[1], one_pass[1])
+    np.testing.assert_allclose(one_pass[0][0], [*t, theta], atol=1.0)

@@ -124,8 +124,7 @@ def hough_se2(
     else:
         k = int(np.floor(params.rotation_window_deg / params.rotation_step_deg))
         thetas = np.radians(np.arange(-k, k + 1) * params.rotation_step_deg)
-    rot = _rotate(src_xy, thetas)  # (R, M, 2)
-    votes, lo, cell, shape = _vote_grid(rot, dst_xy, weight, params)
+    votes, lo, cell, shape = _vote_grid(src_xy, thetas, dst_xy, weight, params)
     n_rot = len(thetas)
     per_rot = votes.reshape(n_rot, -1)
     best_cell = per_rot.argmax(axis=1)
@@ -136,7 +135,11 @@ def hough_se2(
     T = cand[r0]
     # runner-up: best other rotation's peak that moves the walk, or the best cell of the same
     # rotation outside the distinct radius
-    moved = np.linalg.norm(rot[np.arange(n_rot)] + cand[:, None, :2] - (rot[r0] + T[:2])[None], axis=2).mean(1)
+    at_best = _rotate(src_xy, thetas[r0:r0 + 1])[0] + T[:2]
+    moved = np.empty(n_rot)
+    for a, b in _chunks(n_rot, len(src_xy)):
+        rot = _rotate(src_xy, thetas[a:b])
+        moved[a:b] = np.linalg.norm(rot + cand[a:b, None, :2] - at_best[None], axis=2).mean(1)
     others = best_val[moved > params.distinct_m]
     second = float(others.max()) if len(others) else 0.0
     grid = votes[r0].copy()
@@ -147,26 +150,52 @@ def hough_se2(
     return T, float(best_val[r0]), second
 
 
+_CHUNK = 1 << 16  # rotated points per pass: temporaries stay in cache instead of fresh pages
+
+
+def _chunks(n_rot: int, n_points: int) -> list[tuple[int, int]]:
+    """Rotation ranges of at most ``_CHUNK`` rotated points (at least one rotation each)."""
+    step = max(1, _CHUNK // max(n_points, 1))
+    return [(a, min(n_rot, a + step)) for a in range(0, n_rot, step)]
+
+
 def _vote_grid(
-    rot: NDArray, dst_xy: NDArray, weight: NDArray, params: GrowthParams
+    src_xy: NDArray, thetas: NDArray, dst_xy: NDArray, weight: NDArray, params: GrowthParams
 ) -> tuple[NDArray, NDArray, float, NDArray]:
-    """(votes (R, nx, ny) blurred, grid origin, cell, shape): each rotated source point votes, with its
-    weight, for the translation that puts it on its destination; per cell_m^2 of translation."""
-    t = dst_xy[None] - rot  # translation that brings each pair together, per rotation
-    lo = t.reshape(-1, 2).min(0) - 3.0 * params.blur_m
-    hi = t.reshape(-1, 2).max(0) + 3.0 * params.blur_m
+    """(votes (R, nx, ny) blurred, grid origin, cell, shape): each source point rotated by each of
+    ``thetas`` votes, with its weight, for the translation that puts it on its destination; per
+    cell_m^2 of translation. Rotations are taken a chunk at a time (same sums, bounded temporaries)."""
+    n_rot = len(thetas)
+    chunks = _chunks(n_rot, len(src_xy))
+    c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
+    sx, sy, dx, dy = src_xy[:, 0], src_xy[:, 1], dst_xy[:, 0], dst_xy[:, 1]
+
+    def translations(a: int, b: int) -> tuple[NDArray, NDArray]:  # (b - a, M) each, x and y apart (contiguous)
+        return dx - (c[a:b] * sx - s[a:b] * sy), dy - (s[a:b] * sx + c[a:b] * sy)
+
+    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
+    for a, b in chunks:  # the translations' extent
+        tx, ty = translations(a, b)
+        lo = np.minimum(lo, [tx.min(), ty.min()])
+        hi = np.maximum(hi, [tx.max(), ty.max()])
+    lo, hi = lo - 3.0 * params.blur_m, hi + 3.0 * params.blur_m
     shape = np.ceil((hi - lo) / params.cell_m).astype(int) + 1
-    n_rot = len(rot)
     if n_rot * shape[0] * shape[1] > params.max_grid_cells:
         # very spread votes: coarser cells keep the grid bounded (resolution degrades, memory does not)
         cell = params.cell_m * np.sqrt(n_rot * shape[0] * shape[1] / params.max_grid_cells)
     else:
         cell = params.cell_m
     shape = np.ceil((hi - lo) / cell).astype(int) + 1
-    g = np.floor((t - lo) / cell).astype(np.int64)
-    flat = (np.arange(n_rot)[:, None] * shape[0] + g[..., 0]) * shape[1] + g[..., 1]
-    votes = np.bincount(flat.ravel(), weights=np.broadcast_to(weight, flat.shape).ravel(),
-                        minlength=n_rot * shape[0] * shape[1]).reshape(n_rot, shape[0], shape[1])
+    per = int(shape[0] * shape[1])
+    votes = np.empty((n_rot, per))
+    for a, b in chunks:
+        tx, ty = translations(a, b)
+        gx = np.floor((tx - lo[0]) / cell).astype(np.int64)
+        gy = np.floor((ty - lo[1]) / cell).astype(np.int64)
+        flat = (np.arange(b - a)[:, None] * shape[0] + gx) * shape[1] + gy
+        votes[a:b] = np.bincount(flat.ravel(), weights=np.broadcast_to(weight, flat.shape).ravel(),
+                                 minlength=(b - a) * per).reshape(b - a, per)
+    votes = votes.reshape(n_rot, shape[0], shape[1])
     votes = gaussian_filter(votes, sigma=(0.0, params.blur_m / cell, params.blur_m / cell), mode="constant", truncate=3.0)
     # per cell_m^2 of translation, so support and margins mean the same whatever cell a wide grid took
     votes *= (params.cell_m / cell) ** 2
@@ -175,7 +204,7 @@ def _vote_grid(
 
 def hough_profile(src_xy: NDArray, dst_xy: NDArray, weight: NDArray, thetas: NDArray, params: GrowthParams) -> NDArray:
     """Per rotation of ``thetas``: the best translation's blurred vote (``hough_se2``'s grid)."""
-    votes, _, _, _ = _vote_grid(_rotate(src_xy, thetas), dst_xy, weight, params)
+    votes, _, _, _ = _vote_grid(src_xy, thetas, dst_xy, weight, params)
     return votes.reshape(len(thetas), -1).max(axis=1)
 
 
@@ -199,36 +228,37 @@ def refine_rigid(
     col = np.full(len(transforms), -1, np.int64)
     col[free] = np.arange(len(free))
     sa, sb = scan_session[i], scan_session[j]
-    pa, pb = scan_xy[i], scan_xy[j]
+    # x and y apart: contiguous 1-D arrays (reductions over a length-2 axis cost more than the maths)
+    pax, pay, pbx, pby = scan_xy[i, 0], scan_xy[i, 1], scan_xy[j, 0], scan_xy[j, 1]
     c2 = params.refine_scale_m**2
 
-    def place(T: NDArray, s: NDArray, p: NDArray) -> tuple[NDArray, NDArray]:
-        c, sn = np.cos(T[s, 2]), np.sin(T[s, 2])
-        xy = np.column_stack([c * p[:, 0] - sn * p[:, 1] + T[s, 0], sn * p[:, 0] + c * p[:, 1] + T[s, 1]])
-        d_theta = np.column_stack([-sn * p[:, 0] - c * p[:, 1], c * p[:, 0] - sn * p[:, 1]])
-        return xy, d_theta
+    def place(T: NDArray, cw: NDArray, sw: NDArray, s: NDArray, px: NDArray, py: NDArray) -> tuple[NDArray, ...]:
+        c, sn = cw[s], sw[s]  # the walks' cos / sin of rotation, per match
+        return (c * px - sn * py + T[s, 0], sn * px + c * py + T[s, 1],  # position
+                -sn * px - c * py, c * px - sn * py)  # d position / d theta
 
     # in the matches' units (w e^2, m^2, for gaps well inside the Cauchy scale): a walk's rotation
     # prior weighs as much as one full-weight match whose gap is c * theta / sigma
     prior_w = None if rotation_sigma is None else c2 / rotation_sigma[free] ** 2
 
-    def cost(T: NDArray) -> tuple[float, NDArray, NDArray, NDArray]:
-        qa, da = place(T, sa, pa)
-        qb, db = place(T, sb, pb)
-        r = qa - qb
-        e2 = (r * r).sum(1)
-        f = float((w * c2 * np.log1p(e2 / c2)).sum())
+    def cost(T: NDArray) -> tuple[float, tuple[NDArray, ...]]:
+        cw, sw = np.cos(T[:, 2]), np.sin(T[:, 2])
+        qax, qay, dax, day = place(T, cw, sw, sa, pax, pay)
+        qbx, qby, dbx, dby = place(T, cw, sw, sb, pbx, pby)
+        rx, ry = qax - qbx, qay - qby
+        e2 = rx * rx + ry * ry
+        f = float(np.dot(w, np.log1p(e2 / c2))) * c2
         if prior_w is not None:
             f += float((prior_w * T[free, 2] ** 2).sum())
-        return f, r, da, db
+        return f, (dax, day, dbx, dby, rx, ry, e2)
 
     T = transforms.copy()
-    f, r, da, db = cost(T)
+    f, lin = cost(T)
     lam = 1e-6
-    ka, kb = col[sa], col[sb]  # column block of each match's walks (-1: held)
+    normal_equations = _NormalEquations(len(free), col[sa], col[sb])  # column block of each match's walks (-1: held)
     for _ in range(params.refine_max_evaluations):
-        irls = w / (1.0 + (r * r).sum(1) / c2)  # Cauchy weight of each match
-        H, g = _normal_equations(len(free), ka, kb, da, db, r, irls)
+        irls = w / (1.0 + lin[6] / c2)  # Cauchy weight of each match
+        H, g = normal_equations(*lin[:6], irls)
         if prior_w is not None:  # the rotation prior (H, g in the same half-gradient units as the matches')
             H[3 * np.arange(len(free)) + 2, 3 * np.arange(len(free)) + 2] += prior_w
             g[3 * np.arange(len(free)) + 2] += prior_w * T[free, 2]
@@ -236,7 +266,7 @@ def refine_rigid(
             step = np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-9), -g)
             T_new = T.copy()
             T_new[free] += step.reshape(-1, 3)
-            f_new, r_new, da_new, db_new = cost(T_new)
+            f_new, lin_new = cost(T_new)
             if f_new <= f:
                 break
             lam *= 10.0
@@ -244,51 +274,71 @@ def refine_rigid(
                 return T
         lam = max(lam / 10.0, 1e-9)
         converged = f - f_new <= 1e-9 * max(f, 1.0) or np.abs(step).max() < 1e-4
-        T, f, r, da, db = T_new, f_new, r_new, da_new, db_new
+        T, f, lin = T_new, f_new, lin_new
         if converged:
             break
     return T
 
 
-def _normal_equations(
-    n_free: int, ka: NDArray, kb: NDArray, da: NDArray, db: NDArray, r: NDArray, wt: NDArray
-) -> tuple[NDArray, NDArray]:
+class _NormalEquations:
     """J^T W J (3F x 3F) and J^T W r of the matches' 2-D gaps, summed per pair of walks.
 
     Match m's gap r = p_a - p_b has d r / d(x, y, theta) = s [I | d] with s = +1, d = d_a for walk a
     and s = -1, d = d_b for walk b (``d``: d p / d theta); a held walk (column -1) has no block.
     J_1^T J_2 = s_1 s_2 [[1, 0, d_2x], [0, 1, d_2y], [d_1x, d_1y, d_1 . d_2]]: six sums per pair of
-    walks, one ``bincount`` each over the matches (O(matches), no sparse matrix)."""
-    n = 3 * n_free
-    F2 = n_free * n_free
-    H = np.zeros((n_free, n_free, 3, 3))
-    g = np.zeros((n_free, 3))
-    sides = ((ka, da, 1.0), (kb, db, -1.0))
-    for k1, d1, s1 in sides:
-        ok1 = k1 >= 0
-        k, d, w, rr = k1[ok1], d1[ok1], s1 * wt[ok1], r[ok1]
-        g[:, 0] += np.bincount(k, weights=w * rr[:, 0], minlength=n_free)
-        g[:, 1] += np.bincount(k, weights=w * rr[:, 1], minlength=n_free)
-        g[:, 2] += np.bincount(k, weights=w * (d[:, 0] * rr[:, 0] + d[:, 1] * rr[:, 1]), minlength=n_free)
-        for k2, d2, s2 in sides:
-            ok = ok1 & (k2 >= 0)
-            if not ok.any():
-                continue
-            pair = k1[ok] * n_free + k2[ok]
-            ww, e1, e2 = s1 * s2 * wt[ok], d1[ok], d2[ok]
+    walks. The matches' walks are fixed over a refinement, so every (side, side) term of every match
+    is indexed once here and each evaluation is one ``bincount`` per sum (O(matches), no sparse matrix)."""
 
-            def acc(v: NDArray) -> NDArray:
-                return np.bincount(pair, weights=v, minlength=F2).reshape(n_free, n_free)
+    def __init__(self, n_free: int, ka: NDArray, kb: NDArray) -> None:
+        m = len(ka)
+        self.n_free = n_free
+        k = np.concatenate([ka, kb])  # side rows: a-sides then b-sides
+        sign = np.concatenate([np.ones(m), -np.ones(m)])
+        match = np.concatenate([np.arange(m), np.arange(m)])
+        free = np.flatnonzero(k >= 0)
+        self.g_k, self.g_row, self.g_sign, self.g_match = k[free], free, sign[free], match[free]
+        row1, row2 = [], []
+        for s1 in (0, m):
+            for s2 in (0, m):
+                both = np.flatnonzero((k[s1:s1 + m] >= 0) & (k[s2:s2 + m] >= 0))
+                row1.append(both + s1)
+                row2.append(both + s2)
+        self.row1, self.row2 = np.concatenate(row1), np.concatenate(row2)
+        self.h_sign, self.h_match = sign[self.row1] * sign[self.row2], match[self.row1]
+        self.pair = k[self.row1] * n_free + k[self.row2]
 
-            one = acc(ww)
-            H[:, :, 0, 0] += one
-            H[:, :, 1, 1] += one
-            H[:, :, 0, 2] += acc(ww * e2[:, 0])
-            H[:, :, 1, 2] += acc(ww * e2[:, 1])
-            H[:, :, 2, 0] += acc(ww * e1[:, 0])
-            H[:, :, 2, 1] += acc(ww * e1[:, 1])
-            H[:, :, 2, 2] += acc(ww * (e1[:, 0] * e2[:, 0] + e1[:, 1] * e2[:, 1]))
-    return H.transpose(0, 2, 1, 3).reshape(n, n), g.reshape(n)
+    def __call__(self, dax: NDArray, day: NDArray, dbx: NDArray, dby: NDArray, rx: NDArray, ry: NDArray,
+                 wt: NDArray) -> tuple[NDArray, NDArray]:
+        """(H, g) at one linearisation: ``d*``: d p / d theta of each match's ends, ``r*``: its gap."""
+        nf = self.n_free
+        dx, dy = np.concatenate([dax, dbx]), np.concatenate([day, dby])
+
+        def acc(index: NDArray, v: NDArray, n: int) -> NDArray:
+            return np.bincount(index, weights=v, minlength=n)
+
+        ww = self.h_sign * wt[self.h_match]
+        e1x, e1y, e2x, e2y = dx[self.row1], dy[self.row1], dx[self.row2], dy[self.row2]
+        H = np.zeros((nf, nf, 3, 3))
+        one = acc(self.pair, ww, nf * nf).reshape(nf, nf)
+        H[:, :, 0, 0] = one
+        H[:, :, 1, 1] = one
+        H[:, :, 0, 2] = acc(self.pair, ww * e2x, nf * nf).reshape(nf, nf)
+        H[:, :, 1, 2] = acc(self.pair, ww * e2y, nf * nf).reshape(nf, nf)
+        H[:, :, 2, 0] = acc(self.pair, ww * e1x, nf * nf).reshape(nf, nf)
+        H[:, :, 2, 1] = acc(self.pair, ww * e1y, nf * nf).reshape(nf, nf)
+        H[:, :, 2, 2] = acc(self.pair, ww * (e1x * e2x + e1y * e2y), nf * nf).reshape(nf, nf)
+        w = self.g_sign * wt[self.g_match]
+        wrx, wry = w * rx[self.g_match], w * ry[self.g_match]
+        g = np.column_stack([acc(self.g_k, wrx, nf), acc(self.g_k, wry, nf),
+                             acc(self.g_k, wrx * dx[self.g_row] + wry * dy[self.g_row], nf)])
+        return H.transpose(0, 2, 1, 3).reshape(3 * nf, 3 * nf), g.reshape(3 * nf)
+
+
+def _normal_equations(
+    n_free: int, ka: NDArray, kb: NDArray, da: NDArray, db: NDArray, r: NDArray, wt: NDArray
+) -> tuple[NDArray, NDArray]:
+    """``_NormalEquations(n_free, ka, kb)``, evaluated once (``d*``, ``r``: (M, 2))."""
+    return _NormalEquations(n_free, ka, kb)(da[:, 0], da[:, 1], db[:, 0], db[:, 1], r[:, 0], r[:, 1], wt)
 
 
 def grow_placement(

@@ -25,7 +25,7 @@ and by the site's rotation.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -132,15 +132,17 @@ def site_rotation(
     bounds = np.flatnonzero(np.concatenate([[True], np.diff(u[order]) != 0, [True]]))
     groups = [order[g0:g1] for g0, g1 in zip(bounds[:-1], bounds[1:]) if g1 - g0 >= 3]
 
-    def profile(thetas: NDArray) -> NDArray:
+    def profile(thetas: NDArray, p: GrowthParams) -> NDArray:
         total = np.zeros(len(thetas))
         for sel in groups:
-            total += hough_profile(unit_xy[links.match_i[sel]], links.xy[links.match_j[sel]], w[sel], thetas, params)
+            total += hough_profile(unit_xy[links.match_i[sel]], links.xy[links.match_j[sel]], w[sel], thetas, p)
         return total
 
     coarse = np.radians(np.arange(0.0, 360.0, 3.0))
-    c0 = coarse[int(np.argmax(profile(coarse)))]
+    # the coarse pass only picks the fine pass's window: a quarter of the cells (twice as coarse), as
+    # the 3-degree step already smears a unit's far fingerprints by metres; the blur is most of its cost
+    c0 = coarse[int(np.argmax(profile(coarse, replace(params, max_grid_cells=params.max_grid_cells // 4))))]
     fine = c0 + np.radians(np.arange(-4.0, 4.01, 0.5))
-    total = profile(fine)
+    total = profile(fine, params)
     best = int(np.argmax(total))
     return float(np.arctan2(np.sin(fine[best]), np.cos(fine[best]))), float(total[best])
