@@ -197,6 +197,34 @@ def test_top_matches_dense_and_sparse_products_agree(monkeypatch: pytest.MonkeyP
     assert len(m) == 4 * n and not (mixed[m.i] == mixed[m.j]).any()
 
 
+@pytest.mark.parametrize("cells", [10**9, 0])  # the dense float32 product, the sparse one
+def test_matches_between_two_sets_are_each_rows_most_similar_of_the_other(
+    monkeypatch: pytest.MonkeyPatch, cells: int
+) -> None:
+    # a crowd's fingerprints against a reference's: each crowd row's k most similar reference rows that
+    # share an access point, largest first, ties to the lower row, with their float64 similarity
+    import graphslam.core.radiomap.similarity as sim
+
+    rng = np.random.default_rng(9)
+    na, nb, a = 150, 70, 12
+    rssi = np.where(rng.random((na + nb, a)) < 0.5, rng.uniform(-95, -40, (na + nb, a)), np.nan)
+    rssi[na + 5] = rssi[na + 6]  # two identical reference rows: a tie, to the lower one
+    rssi[3] = np.nan
+    rssi[3, 0] = -50.0
+    rssi[na:, 0] = np.nan  # crowd row 3 shares no access point with the reference: no match
+    pc = PowerCosine.of(FingerprintMatrix.from_dense(rssi, tuple(f"ap{i}" for i in range(a))), 10.0)
+    monkeypatch.setattr(sim, "DENSE_MAX_CELLS", cells)
+    k = 4
+    m = sim.top_matches_between(PowerCosine(pc.unit[:na], 10.0), PowerCosine(pc.unit[na:], 10.0), k, block_rows=32)
+    full = (pc.unit[:na] @ pc.unit[na:].T).toarray()
+    for i in range(na):
+        want = [j for j in np.lexsort((np.arange(nb), -full[i])) if full[i, j] > 0][:k]
+        got = m.j[m.i == i]
+        assert list(got) == want if cells == 0 else set(got) == set(want), i
+        np.testing.assert_allclose(m.similarity[m.i == i], full[i, got], atol=1e-12)
+    assert 3 not in m.i
+
+
 def test_an_updates_rows_get_the_partners_of_the_whole_survey(monkeypatch: pytest.MonkeyPatch) -> None:
     # ``top_matches(rows=...)`` (an update's new walks against every fingerprint) takes the same
     # products and the same own-walk mask as the whole survey's: the same partners for those rows,
@@ -221,10 +249,10 @@ def test_an_updates_rows_get_the_partners_of_the_whole_survey(monkeypatch: pytes
 
 @pytest.mark.parametrize("k", [1, 3, 5, 9])
 def test_each_rows_best_matches_are_its_k_largest_positive_similarities(k: int) -> None:
-    """``_row_top_k`` (a bound from column groups' maxima, then a sort of the few values above it)
+    """``row_top_k`` (a bound from column groups' maxima, then a sort of the few values above it)
     against the definition: each row's k largest positive values, largest first, ties to the lower
     column; rows narrower or sparser than k, all ties, and zero or masked (-1) rows included."""
-    from graphslam.core.radiomap.similarity import TOP_K_GROUP, _row_top_k
+    from graphslam.core.radiomap.similarity import TOP_K_GROUP, row_top_k
 
     rng = np.random.default_rng(k)
     for trial in range(60):
@@ -236,7 +264,7 @@ def test_each_rows_best_matches_are_its_k_largest_positive_similarities(k: int) 
         block[0, : cols // 2] = -1.0
         if rows > 1:
             block[1] = 0.0
-        ri, ci = _row_top_k(block, k)
+        ri, ci = row_top_k(block, k)
         for r in range(rows):
             want = sorted((-float(block[r, j]), j) for j in range(cols) if block[r, j] > 0)[:k]
             assert ci[ri == r].tolist() == [j for _, j in want]

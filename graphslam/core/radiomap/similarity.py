@@ -105,7 +105,7 @@ class PowerCosine:
                     block[r0 - a:r1 - a, g0:g1] = -1.0
             else:
                 block[group[a:b, None] == group[None, :]] = -1.0
-            ri, ci = _row_top_k(block, k)
+            ri, ci = row_top_k(block, k)
             out_i.append(ri + a)
             out_j.append(ci)
         i, j = np.concatenate(out_i), np.concatenate(out_j)
@@ -137,27 +137,55 @@ class PowerCosine:
                     block[np.flatnonzero(group[r] == label)[:, None], np.arange(g0, g1)] = -1.0
             else:
                 block[group[r][:, None] == group[None, :]] = -1.0
-            ri, ci = _row_top_k(block, k)
+            ri, ci = row_top_k(block, k)
             out_i.append(r[ri])
             out_j.append(ci)
         i, j = np.concatenate(out_i), np.concatenate(out_j)
         return Matches(i, j, self.pairs(i, j))
 
 
-# Columns per group of ``_row_top_k``'s first pass.
+def top_matches_between(a: PowerCosine, b: PowerCosine, k: int, *, block_rows: int = 512) -> Matches:
+    """For every fingerprint of ``a``, its ``k`` most similar fingerprints of ``b`` (both over one AP
+    index; ``j`` indexes ``b``), sharing at least one access point: ``top_matches``' products (one
+    float32 BLAS product per block where both fill a dense matrix) and its choice of partners."""
+    if a.unit.shape[1] != b.unit.shape[1]:
+        raise ValueError("top_matches_between: both sets must be over one AP index")
+    k = int(min(k, len(b)))
+    if len(a) == 0 or k <= 0:
+        z = np.zeros(0, np.int64)
+        return Matches(z, z, np.zeros(0))
+    ua, _ = a._operands()
+    ub, ubt = b._operands()
+    if (ua is None) != (ub is None):  # one dense, one not: both as the sparse product
+        ua, ubt = None, b.unit.T.tocsc()
+    step = max(1, min(block_rows, MAX_BLOCK_CELLS // max(len(b), 1)))
+    out_i, out_j = [], []
+    for r0 in range(0, len(a), step):
+        r1 = min(len(a), r0 + step)
+        block = ua[r0:r1] @ ubt if ua is not None else (a.unit[r0:r1] @ ubt).toarray()
+        ri, ci = row_top_k(block, k)
+        out_i.append(ri + r0)
+        out_j.append(ci)
+    i, j = np.concatenate(out_i), np.concatenate(out_j)
+    # the chosen partners' similarities in float64 from the sparse rows, as ``pairs``
+    return Matches(i, j, np.asarray(a.unit[i].multiply(b.unit[j]).sum(axis=1)).ravel())
+
+
+# Columns per group of ``row_top_k``'s first pass.
 TOP_K_GROUP = 64
 
 
-def _row_top_k(block: NDArray, k: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+def row_top_k(block: NDArray, k: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """(row, column) of each row's ``k`` largest positive values (a partner that shares no access
     point is no match), per row largest first, ties to the lower column.
 
     Why not ``argpartition`` of every row: it cost ~19 ms per block of 71 x 28k (paper size 12, 8.6 s
     of the survey). The k-th largest of the rows' maxima over groups of ``TOP_K_GROUP`` columns is at
     most the row's k-th largest value (k groups hold a value at least that large), so the values at
-    or above it hold the answer, and they are few: only those are sorted."""
+    or above it hold the answer, and they are few: only those are sorted. Narrower groups where the
+    columns are few, so that there are 4k of them (with fewer than k every positive value is sorted)."""
     r, n = block.shape
-    g = TOP_K_GROUP
+    g = max(1, min(TOP_K_GROUP, n // (4 * max(k, 1))))
     groups = -(-n // g)
     gmax = np.empty((r, groups), block.dtype)
     full = n // g

@@ -33,7 +33,7 @@ from scipy import sparse
 
 from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix
 from graphslam.core.radiomap.radiomap import RadioMap
-from graphslam.core.radiomap.similarity import Matches, PowerCosine
+from graphslam.core.radiomap.similarity import Matches, PowerCosine, row_top_k, top_matches_between
 from graphslam.core.survey.placement import GrowthParams, hough_profile
 
 log = logging.getLogger(__name__)
@@ -78,39 +78,26 @@ def reference_links(
     c, r = on_index(crowd, bssids), on_index(ref.fingerprints, bssids)
     # placement matches: power cosine of crowd rows against reference rows, top k per crowd row
     pc = PowerCosine.of(FingerprintMatrix(bssids, sparse.vstack([c.values, r.values]).tocsr(), c.missing_dbm), scale_db)
-    u = pc.unit
-    cu, ru = u[: len(c)], u[len(c):].T.tocsc()
-    k = int(min(matches_per_fingerprint, len(r)))
-    mi, mj, ms = [], [], []
+    top = top_matches_between(PowerCosine(pc.unit[: len(c)], scale_db), PowerCosine(pc.unit[len(c):], scale_db),
+                              matches_per_fingerprint)
     ei, ej, ed = [], [], []
     engine = DistanceEngine(r)
     cap = max(1, max_per_fingerprint)
     for a in range(0, len(c), block_rows):
         b = min(len(c), a + block_rows)
-        sim = (cu[a:b] @ ru).toarray()
-        top = np.argpartition(-sim, k - 1, axis=1)[:, :k] if k < sim.shape[1] else np.tile(np.arange(sim.shape[1]), (b - a, 1))
-        rows = np.repeat(np.arange(a, b), top.shape[1])
-        s = sim[np.arange(b - a)[:, None], top].ravel()
-        keep = s > 0
-        mi.append(rows[keep])
-        mj.append(top.ravel()[keep])
-        ms.append(s[keep])
-        # edges: below the crowd row's own threshold, the nearest few
+        # edges: below the crowd row's own threshold, the nearest few (ties to the lower reference row)
         d, _ = engine.block(c.rows(slice(a, b)), min_common=min_common_aps)
         thr = thresholds[a:b]
         d = np.where(np.isfinite(thr)[:, None] & (d < thr[:, None]), d, np.inf)
-        m = min(cap, d.shape[1])
-        near = np.argpartition(d, m - 1, axis=1)[:, :m] if m < d.shape[1] else np.tile(np.arange(d.shape[1]), (b - a, 1))
-        dn = d[np.arange(b - a)[:, None], near]
-        ok = np.isfinite(dn)
-        ei.append(np.repeat(np.arange(a, b), near.shape[1])[ok.ravel()])
-        ej.append(near.ravel()[ok.ravel()])
-        ed.append(dn.ravel()[ok.ravel()])
+        ri, ci = row_top_k(1.0 / (1.0 + d), min(cap, d.shape[1]))  # nearest first; inf -> 0: no edge
+        ei.append(ri + a)
+        ej.append(ci)
+        ed.append(d[ri, ci])
 
     def cat(parts: list, dtype: object) -> NDArray:
         return np.concatenate(parts).astype(dtype) if parts else np.zeros(0, dtype)
 
-    out = ReferenceLinks(np.asarray(ref.xy, float), cat(mi, np.int64), cat(mj, np.int64), cat(ms, np.float64),
+    out = ReferenceLinks(np.asarray(ref.xy, float), top.i, top.j, top.similarity,
                          cat(ei, np.int64), cat(ej, np.int64), cat(ed, np.float64))
     log.info("reference map: %d fingerprints; %d placement matches and %d edges from the crowd's %d fingerprints",
              len(out), len(out.match_i), len(out.edge_i), len(c))
