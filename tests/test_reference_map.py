@@ -20,7 +20,7 @@ from graphslam.core.types import Survey
 from graphslam.errors import InputError
 from graphslam.io.mcap_writer import write_session
 from graphslam.io.radiomap_io import read_radio_map
-from graphslam.io.reference_map import read_reference_map
+from graphslam.io.reference_map import _parsed_checked, _parsed_fast, read_reference_map
 
 
 def reference_csv(path: Path, survey: Survey, walk: int = 0) -> Path:
@@ -57,6 +57,32 @@ def test_the_reference_csv_is_read_as_a_site_map(floor: tuple) -> None:
     assert rm.frame == "site" and len(rm) == len(survey.sessions[0].scans)
     assert set(rm.session_ids.tolist()) == {"reference"} and rm.metadata["fingerprint_ids"][:2] == ["fp0", "fp1"]
     np.testing.assert_allclose(rm.xy[0], survey.sessions[0].ground_truth.xy[0], atol=0.5)
+
+
+def test_a_well_formed_reference_is_read_in_bulk_as_line_by_line(floor: tuple, tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    # Arrow's reading (a large survey) must give what the checked line-by-line reading gives: ids in order
+    # of first appearance, positions, every fingerprint's readings in file order, BSSIDs stripped
+    _, _, ref, _ = floor
+    tricky = tmp_path / "tricky.csv"
+    tricky.write_bytes(b'\xef\xbb\xbffingerprint_id,x,y,bssid,rssi_dbm\n"b 1",1.5,2e1,"aa:bb ",-50\n\n'
+                       b'z,0,-0.0,aa:bb,-70\nb 1,1.5,20,cc,-6.25E1\n')
+    for path in (ref, tricky):
+        fast, checked = _parsed_fast(path), _parsed_checked(path)
+        assert fast is not None
+        assert fast[0] == checked[0] and fast[2] == checked[2]
+        np.testing.assert_array_equal(fast[1], checked[1])
+    assert fast[0] == ["b 1", "z"] and fast[2][0] == {"aa:bb": -50.0, "cc": -62.5}
+    # what Arrow does not take but Python's float() does (digits grouped by "_") is read line by line
+    grouped = tmp_path / "grouped.csv"
+    grouped.write_text("fingerprint_id,x,y,bssid,rssi_dbm\n0,1_5,2,aa,-50\n")
+    assert _parsed_fast(grouped) is None and read_reference_map(grouped).xy.tolist() == [[15.0, 2.0]]
+    # a file of at least BULK_MIN_BYTES takes the bulk reading alone
+    import graphslam.io.reference_map as reference_map
+
+    monkeypatch.setattr(reference_map, "BULK_MIN_BYTES", 0)
+    monkeypatch.setattr(reference_map, "_parsed_checked", None)
+    assert read_reference_map(tricky).metadata["fingerprint_ids"] == ["b 1", "z"]
 
 
 def test_the_crowd_is_placed_on_the_reference_in_the_site_frame(floor: tuple, tmp_path: Path) -> None:
@@ -118,6 +144,7 @@ def test_a_bad_reference_file_is_one_line_and_exit_2(floor: tuple, tmp_path: Pat
     _, files, _, _ = floor
     bad = tmp_path / "bad.csv"
     bad.write_text(body)
+    assert _parsed_fast(bad) is None  # the line-by-line reading names the line and field
     with pytest.raises(InputError, match=field):
         read_reference_map(bad)
     out = tmp_path / "out"
