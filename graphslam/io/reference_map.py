@@ -62,7 +62,11 @@ def _from_csv(path: Path, min_rssi_dbm: float, missing_dbm: float) -> RadioMap:
     # a large well-formed file parsed by Arrow (a professional survey can hold millions of readings:
     # ~4x the line parser's speed); anything it does not take, or the checks below find, is read again
     # line by line for the error (or accepted there: Python's float() takes a little more than Arrow's)
-    parsed = _parsed_fast(path) if path.stat().st_size >= BULK_MIN_BYTES else None
+    try:
+        big = path.stat().st_size >= BULK_MIN_BYTES
+    except OSError:  # gone since it was found: the line parser says so
+        big = False
+    parsed = _parsed_fast(path) if big else None
     order, xy, readings = parsed if parsed is not None else _parsed_checked(path)
     return RadioMap.from_scans(
         readings, xy, session_ids=REFERENCE_SESSION,
@@ -81,8 +85,14 @@ def _parsed_fast(path: Path) -> tuple[list[str], np.ndarray, list[dict[str, floa
     types = {"fingerprint_id": pa.string(), "x": pa.float64(), "y": pa.float64(), "bssid": pa.string(),
              "rssi_dbm": pa.float64()}
     try:
+        data = path.read_bytes()
+    except OSError:
+        return None
+    if b'"' in data or b"\x00" in data:  # quoting (Arrow takes some the strict line parser refuses), NUL
+        return None
+    try:
         table = pacsv.read_csv(
-            path, read_options=pacsv.ReadOptions(encoding="utf8"),
+            pa.BufferReader(data), read_options=pacsv.ReadOptions(encoding="utf8"),
             convert_options=pacsv.ConvertOptions(column_types=types, strings_can_be_null=False,
                                                  quoted_strings_can_be_null=False),
         )
