@@ -116,11 +116,18 @@ class PowerCosine:
         """(dense float32 fingerprints or None, the right-hand side of the block products): one float32
         BLAS product per block where the fingerprints fill ``DENSE_MIN_FILL`` of a dense matrix of at
         most ``DENSE_MAX_CELLS`` (module docstring), else the sparse product."""
-        cells = len(self) * self.unit.shape[1]
-        if cells <= DENSE_MAX_CELLS and self.unit.nnz >= DENSE_MIN_FILL * cells:
-            u = self.unit.toarray().astype(np.float32)
+        u = self._dense()
+        if u is not None:
             return u, np.ascontiguousarray(u.T)
         return None, self.unit.T.tocsc()
+
+    def _dense(self) -> NDArray[np.float32] | None:
+        """The fingerprints as a dense float32 matrix where they fill ``DENSE_MIN_FILL`` of one of at most
+        ``DENSE_MAX_CELLS``, else None (``_operands``)."""
+        cells = len(self) * self.unit.shape[1]
+        if cells <= DENSE_MAX_CELLS and self.unit.nnz >= DENSE_MIN_FILL * cells:
+            return self.unit.toarray().astype(np.float32)
+        return None
 
     def _top_of_rows(self, group: NDArray[np.int64], k: int, rows: NDArray[np.int64], block_rows: int) -> Matches:
         """``top_matches`` of some rows against every fingerprint (an update's new walks)."""
@@ -154,7 +161,7 @@ def top_matches_between(a: PowerCosine, b: PowerCosine, k: int, *, block_rows: i
     if len(a) == 0 or k <= 0:
         z = np.zeros(0, np.int64)
         return Matches(z, z, np.zeros(0))
-    ua, _ = a._operands()
+    ua = a._dense()  # the left side row blocks only: no transposed copy
     ub, ubt = b._operands()
     if (ua is None) != (ub is None):  # one dense, one not: both as the sparse product
         ua, ubt = None, b.unit.T.tocsc()
