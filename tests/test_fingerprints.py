@@ -60,6 +60,22 @@ def test_min_common_and_blocks() -> None:
     np.testing.assert_array_equal(np.vstack([b[1] for b in blocks]), d3)
 
 
+@pytest.mark.parametrize("dense", [True, False])
+def test_pairs_below_are_the_block_entries_below_each_rows_limit(dense: bool) -> None:
+    scans = random_scans(70, 90, seed=11)
+    fm = FingerprintMatrix.from_scans(scans)
+    eng = DistanceEngine(fm, dense_threshold=0.0 if dense else 1.1)
+    d, _ = eng.block(fm, min_common=2)
+    limit = np.quantile(d[np.isfinite(d)], np.linspace(0.0, 0.3, len(fm)))
+    limit[[3, 9]] = np.nan, np.inf  # NaN: no pair; inf: every pair sharing enough APs
+    ri, ci, dv = eng.pairs_below(fm, limit, min_common=2)
+    want_r, want_c = np.nonzero(d < np.where(np.isnan(limit), -np.inf, limit)[:, None])
+    np.testing.assert_array_equal(ri, want_r)
+    np.testing.assert_array_equal(ci, want_c)
+    np.testing.assert_allclose(dv, d[want_r, want_c], rtol=1e-12)
+    assert 3 not in ri and (ri == 9).sum() == np.isfinite(d[9]).sum()
+
+
 def test_readings_below_floor_are_dropped() -> None:
     fm = FingerprintMatrix.from_scans([{"a": -50.0, "b": -105.0}], min_rssi_dbm=-100.0)
     assert fm.bssids == ("a",) and fm.heard.tolist() == [1]

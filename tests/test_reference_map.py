@@ -272,3 +272,35 @@ def test_walks_that_drift_far_from_where_the_reference_places_them_are_bent_onto
     assert stages > stages0 and regated0 == {"wifi": 0, "reference": 0}
     assert regated["wifi"] > 0 and regated["reference"] > 0  # the report says what joined
     assert with_passes < 0.8 and with_passes < 0.6 * without
+
+
+def test_a_regating_pass_another_follows_stops_early_and_the_last_converges(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # a pass whose solution only chooses the next pass's edges stops at _REGATE_PASS_ITERATIONS; when
+    # nothing more joins after it, LM finishes on its graph: the output is converged either way
+    import graphslam.core.survey.align as align_mod
+    from graphslam.sim import simulate
+
+    survey = simulate("paper", seed=1, size=1).survey
+    ref = reference_csv(tmp_path / "reference_map.csv", survey, walk=0)
+    files = [write_session(s, tmp_path / f"{s.session_id}.mcap") for s in survey.sessions[1:]]
+    monkeypatch.setattr(align_mod, "_REGATE_PASS_ITERATIONS", 1)
+
+    def passes() -> tuple[list[int], bool]:
+        al = run_survey(SurveyInputs.from_paths(files, reference_map=ref, picture=False), load_config()).alignment
+        stages = [r.stage for r in al.iterations]
+        return [stages.count(s) for s in sorted(set(stages))], al.converged
+
+    counts, converged = passes()
+    assert converged and counts[-2] == 1 and counts[-1] >= 1  # the first pass capped, the second to the end
+    real = align_mod._regated
+    calls = []
+
+    def once(*args: object) -> object:  # the second re-gating finds nothing: the capped pass is finished
+        calls.append(1)
+        return real(*args) if len(calls) == 1 else None
+
+    monkeypatch.setattr(align_mod, "_regated", once)
+    counts_once, converged_once = passes()
+    assert converged_once and len(calls) == 2 and counts_once[-2] == 1 and len(counts_once) == len(counts)

@@ -183,9 +183,9 @@ class DistanceEngine:
             self.ref_vT = v.T.tocsr().astype(np.float64)
             self.ref_bT = b.T.tocsr().astype(np.float32)
 
-    def block(self, q: FingerprintMatrix, *, min_common: int = 1) -> tuple[NDArray, NDArray]:
-        """(distances float64, common-AP counts float32), each (len(q), len(ref)). Pairs with fewer
-        than ``min_common`` shared APs get distance ``inf``."""
+    def _terms(self, q: FingerprintMatrix) -> tuple[NDArray, NDArray, NDArray]:
+        """(sum of squared differences float64, union size float32, common-AP counts float32), each
+        (len(q), len(ref)): eq. 9 is sqrt(first / second)."""
         if q.bssids is not self.ref.bssids and q.bssids != self.ref.bssids:
             raise ValueError("query and reference fingerprints use different AP indices")
         if self.dense:
@@ -206,6 +206,12 @@ class DistanceEngine:
         np.maximum(num, 0.0, out=num)
         den = self.ref_n.astype(np.float32)[None, :] - common
         den += q.heard.astype(np.float32)[:, None]
+        return num, den, common
+
+    def block(self, q: FingerprintMatrix, *, min_common: int = 1) -> tuple[NDArray, NDArray]:
+        """(distances float64, common-AP counts float32), each (len(q), len(ref)). Pairs with fewer
+        than ``min_common`` shared APs get distance ``inf``."""
+        num, den, common = self._terms(q)
         bad = den <= 0
         if min_common > 0:
             bad |= common < min_common
@@ -215,14 +221,34 @@ class DistanceEngine:
         num[bad] = np.inf
         return num, common
 
+    def pairs_below(
+        self, q: FingerprintMatrix, limit: NDArray[np.float64], *, min_common: int = 1
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
+        """(query row, reference row, distance) of the pairs whose eq. 9 distance is below their query
+        row's ``limit`` (len(q),; NaN: none) and that share at least ``min_common`` APs, row-major:
+        ``block``'s finite entries below the limit, without the square root and division of every
+        pair (the test is num < limit^2 * den; the distances of the pairs kept only)."""
+        num, den, common = self._terms(q)
+        lim = np.asarray(limit, np.float64)
+        with np.errstate(invalid="ignore"):  # an infinite limit times an empty union: NaN, no pair
+            ok = num < (lim * lim)[:, None] * den
+        ok &= den > 0
+        if min_common > 0:
+            ok &= common >= min_common
+        ri, ci = np.nonzero(ok)
+        return ri.astype(np.int64), ci.astype(np.int64), np.sqrt(num[ri, ci] / den[ri, ci])
+
+    def rows_per_block(self, block_rows: int | None = None) -> int:
+        """Query rows per block: at most ``block_rows`` and, above 16 rows, ``MAX_BLOCK_CELLS`` cells."""
+        cap = max(16, MAX_BLOCK_CELLS // max(1, len(self.ref)))
+        return min(block_rows, cap) if block_rows else cap
+
     def iter_blocks(
         self, q: FingerprintMatrix, *, min_common: int = 1, block_rows: int | None = None
     ) -> Iterator[tuple[int, NDArray, NDArray]]:
         """Yield ``(first_row, distances, common)`` over row blocks of ``q``: at most ``block_rows`` rows
         and, above 16 rows, ``MAX_BLOCK_CELLS`` cells each."""
-        n_ref = max(1, len(self.ref))
-        cap = max(16, MAX_BLOCK_CELLS // n_ref)
-        rows = min(block_rows, cap) if block_rows else cap
+        rows = self.rows_per_block(block_rows)
         for start in range(0, len(q), rows):
             d, c = self.block(q.rows(slice(start, start + rows)), min_common=min_common)
             yield start, d, c

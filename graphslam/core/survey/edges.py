@@ -198,11 +198,15 @@ def _exact_candidates(
 ) -> Iterator[tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]]:
     """(row, column, distance) of every pair below the row's threshold, one row block at a time."""
     engine = DistanceEngine(fp.fingerprints)
-    with Task("edges", total=len(fp), unit="fingerprints") as task:
-        for start, d, _ in engine.iter_blocks(fp.fingerprints, min_common=min_common, block_rows=block_rows):
-            task.advance(len(d))
-            ri, ci = np.nonzero(d < thresholds[start : start + len(d)][:, None])
-            yield ri + start, ci.astype(np.int64), d[ri, ci]
+    n = len(fp)
+    rows = engine.rows_per_block(block_rows)
+    with Task("edges", total=n, unit="fingerprints") as task:
+        for start in range(0, n, rows):
+            stop = min(n, start + rows)
+            ri, ci, d = engine.pairs_below(fp.fingerprints.rows(slice(start, stop)), thresholds[start:stop],
+                                           min_common=min_common)
+            task.advance(stop - start)
+            yield ri + start, ci, d
 
 
 def _ivf_candidates(

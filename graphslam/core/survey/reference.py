@@ -33,7 +33,8 @@ from scipy import sparse
 
 from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix
 from graphslam.core.radiomap.radiomap import RadioMap
-from graphslam.core.radiomap.similarity import Matches, PowerCosine, row_top_k, top_matches_between
+from graphslam.core.radiomap.similarity import Matches, PowerCosine, top_matches_between
+from graphslam.core.survey.edges import nearest_per_row
 from graphslam.core.survey.placement import GrowthParams, hough_profile
 
 log = logging.getLogger(__name__)
@@ -82,17 +83,15 @@ def reference_links(
                               matches_per_fingerprint)
     ei, ej, ed = [], [], []
     engine = DistanceEngine(r)
-    cap = max(1, max_per_fingerprint)
+    limit = np.where(np.isfinite(thresholds), thresholds, np.nan)  # no threshold (NaN or inf): no edge
     for a in range(0, len(c), block_rows):
         b = min(len(c), a + block_rows)
         # edges: below the crowd row's own threshold, the nearest few (ties to the lower reference row)
-        d, _ = engine.block(c.rows(slice(a, b)), min_common=min_common_aps)
-        thr = thresholds[a:b]
-        d = np.where(np.isfinite(thr)[:, None] & (d < thr[:, None]), d, np.inf)
-        ri, ci = row_top_k(1.0 / (1.0 + d), min(cap, d.shape[1]))  # nearest first; inf -> 0: no edge
+        ri, ci, d = engine.pairs_below(c.rows(slice(a, b)), limit[a:b], min_common=min_common_aps)
+        ri, ci, d = nearest_per_row(ri, ci, d, max(1, max_per_fingerprint))
         ei.append(ri + a)
         ej.append(ci)
-        ed.append(d[ri, ci])
+        ed.append(d)
 
     def cat(parts: list, dtype: object) -> NDArray:
         return np.concatenate(parts).astype(dtype) if parts else np.zeros(0, dtype)
