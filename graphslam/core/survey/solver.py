@@ -558,7 +558,8 @@ def levenberg_marquardt(
             log.warning("METIS ordering unavailable (%s): CHOLMOD orders by AMD", e)
             ordering = "amd"
     solver = _DampedSystem(ne, settings.threads, single, backend, perm)
-    log.debug("LM over %d unknowns: %s, %s ordering, %s precision", ne.n, backend, ordering, "single" if single else "double")
+    log.debug("LM over %d unknowns: %s, %s ordering, %s precision", ne.n, backend, ordering,
+              "single" if solver.single else "double")  # CHOLMOD factorises in double whatever was asked
     H, grad, err = obj.linearise(v)
     initial = err
     lam = settings.lambda_initial
