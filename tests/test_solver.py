@@ -454,6 +454,53 @@ def test_the_default_back_end_factorises_in_the_nested_dissection_order(monkeypa
 
 
 @needs_cholmod
+def test_one_metis_ordering_per_graph_serves_every_active_set(monkeypatch: pytest.MonkeyPatch) -> None:
+    """LM's calls on one graph differ only in their active range edges: the graph's ordering (of every
+    factor, all edges active) is computed once and CHOLMOD factorises each call in it, with the answer
+    of the call's own ordering; ``solve`` orders once per graph, never per call."""
+    monkeypatch.setattr(C, "_POSTORDER", False)
+    problem = build_problem(two_walks(), CFG)
+    graph, _ = pose_graph(problem, CFG)
+    metis = S.LMSettings(backend="cholmod", ordering="metis")
+    perm = S.graph_ordering(graph, metis)
+    every = np.ones(len(graph.range_pairs), bool)
+    ne = S._Objective(graph, every, problem.init_xyh).normal
+    assert np.array_equal(perm, C.nested_dissection(ne.indptr, ne.indices))
+    assert S.graph_ordering(graph, replace(metis, ordering="amd")) is None
+    assert S.graph_ordering(graph, replace(metis, backend="pardiso")) is None
+    made: list = []
+
+    class Spy(C._Cholmod):
+        def free(self) -> None:
+            made.append(self.permutation())
+            super().free()
+
+    monkeypatch.setattr(C, "_Cholmod", Spy)
+    half = np.arange(len(every)) % 2 == 0
+    given = S.levenberg_marquardt(graph, problem.init_xyh, half, metis, perm=perm)
+    assert np.array_equal(made[0], perm)
+    own = S.levenberg_marquardt(graph, problem.init_xyh, half, metis)
+    assert not np.array_equal(made[-1], perm)  # the half graph's own ordering differs: the test can tell
+    assert abs(given.error - own.error) <= 1e-9 * own.error
+    np.testing.assert_allclose(given.xyh, own.xyh, atol=1e-7)
+    calls = {"graph": 0, "call": 0}
+    real_graph, real_call = S.graph_ordering, S.nested_dissection
+
+    def count(key: str, f):  # noqa: ANN202
+        def wrapped(*a, **k):  # noqa: ANN002, ANN003, ANN202
+            calls[key] += 1
+            return f(*a, **k)
+        return wrapped
+
+    monkeypatch.setattr(S, "graph_ordering", count("graph", real_graph))
+    monkeypatch.setattr(S, "nested_dissection", count("call", real_call))
+    cfg = CFG.model_copy(update={"optimizer": CFG.optimizer.model_copy(
+        update={"solver": "cholmod", "ordering": "metis"})})
+    al = solve(build_problem(two_walks(), cfg), cfg)
+    assert al.iterations and calls == {"graph": 1, "call": 0}
+
+
+@needs_cholmod
 def test_without_metis_cholmod_orders_by_amd_and_says_so(monkeypatch: pytest.MonkeyPatch, caplog) -> None:
     def no_metis(*_args, **_kwargs):
         raise RuntimeError("GTSAM built without METIS")

@@ -239,17 +239,24 @@ def nested_dissection(indptr: NDArray[np.int32], indices: NDArray[np.int32], blo
     Connected components are ordered one after the other, METIS on each of at least
     ``_METIS_MIN_BLOCKS`` blocks, the smaller ones (single poses, short chains: no fill to save) as
     they come; GTSAM's METIS crashes the process on a pose without neighbours."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     n = len(indptr) - 1
     if n % block:
         raise ValueError(f"nested_dissection: order {n} is not a multiple of the block size {block}")
-    m = n // block
     rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr)) // block
-    cols = np.asarray(indices, np.int64) // block
-    off = rows != cols
-    keys = np.unique(rows[off] * m + cols[off])  # block edges (i < j: upper triangle), once each
+    return block_nested_dissection(n // block, rows, np.asarray(indices, np.int64) // block, block)
+
+
+def block_nested_dissection(
+    m: int, a: NDArray[np.int64], b: NDArray[np.int64], block: int = 3
+) -> NDArray[np.int64]:
+    """``nested_dissection`` of the graph of ``m`` blocks whose edges are (``a``, ``b``) (either order,
+    repeats and self-loops allowed): the permutation of the ``block * m`` scalar unknowns."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    off = lo != hi
+    keys = np.unique(lo[off] * m + hi[off])  # block edges (i < j), once each
     bi, bj = keys // m, keys % m
     n_comp, label = connected_components(coo_matrix((np.ones(len(bi)), (bi, bj)), shape=(m, m)), directed=False)
     by_comp = np.argsort(label, kind="stable")

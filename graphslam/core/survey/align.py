@@ -605,6 +605,7 @@ def solve(
                 pb.anchor_pairs[:, 0], n_steps + pb.anchor_pairs[:, 1])
 
     pg, chains, native, ea, eb, ma, mb, ra, rb = build(problem)
+    perm = S.graph_ordering(pg, settings) if pardiso else None  # CHOLMOD's, one per graph
     anchors = np.column_stack([problem.anchor_xy, np.zeros(len(problem.anchor_xy))])
     timings["build_graph"] = time.perf_counter() - t
 
@@ -642,6 +643,7 @@ def solve(
                            regated[1] + len(wider.anchor_pairs) - len(problem.anchor_pairs))
                 problem = wider
                 pg, chains, native, ea, eb, ma, mb, ra, rb = build(problem)
+                perm = S.graph_ordering(pg, settings) if pardiso else None
                 values = native[2] if native is not None else None
                 if regate_round < _REGATE_ROUNDS:  # another pass follows: a few iterations choose its edges
                     lm = replace(settings, max_iterations=min(settings.max_iterations, _REGATE_PASS_ITERATIONS))
@@ -666,7 +668,7 @@ def solve(
                     progress(rec)
 
             if pardiso:
-                res = S.levenberg_marquardt(pg, np.concatenate([xyh, anchors]), active, lm, hook)
+                res = S.levenberg_marquardt(pg, np.concatenate([xyh, anchors]), active, lm, hook, perm=perm)
                 converged = res.converged
                 capped = lm is not settings and not converged and res.iterations >= lm.max_iterations
                 xyh = res.xyh[:n_steps]
