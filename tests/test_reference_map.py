@@ -249,17 +249,23 @@ def test_edges_beyond_the_tight_gate_join_when_a_solve_brings_them_within_it(flo
     assert _regated(replace(gated, gated_wifi_pairs=np.array([[c, e]])), xyh, cfg) is None  # nothing joins: no pass
 
 
+def _paper_walks_and_reference(tmp_path: Path) -> tuple[list[Path], Path]:
+    """``paper`` seed 1's walks 1-4 as recordings and walk 0's scans at their true places as the reference."""
+    from graphslam.sim import simulate
+
+    survey = simulate("paper", seed=1, size=1).survey
+    ref = reference_csv(tmp_path / "reference_map.csv", survey, walk=0)
+    return [write_session(s, tmp_path / f"{s.session_id}.mcap") for s in survey.sessions[1:]], ref
+
+
 def test_walks_that_drift_far_from_where_the_reference_places_them_are_bent_onto_it(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # the simulator's long office walks: placed rigidly on the reference, their far ends lie beyond the
     # tight gate until a solve bends them; without the second pass the map is twice as far off
     import graphslam.core.survey.align as align_mod
-    from graphslam.sim import simulate
 
-    survey = simulate("paper", seed=1, size=1).survey
-    ref = reference_csv(tmp_path / "reference_map.csv", survey, walk=0)
-    files = [write_session(s, tmp_path / f"{s.session_id}.mcap") for s in survey.sessions[1:]]
+    files, ref = _paper_walks_and_reference(tmp_path)
 
     def landmark_mean() -> tuple[float, int, dict]:
         res = run_survey(SurveyInputs.from_paths(files, reference_map=ref, picture=False), load_config())
@@ -280,11 +286,8 @@ def test_a_regating_pass_another_follows_stops_early_and_the_last_converges(
     # a pass whose solution only chooses the next pass's edges stops at _REGATE_PASS_ITERATIONS; when
     # nothing more joins after it, LM finishes on its graph: the output is converged either way
     import graphslam.core.survey.align as align_mod
-    from graphslam.sim import simulate
 
-    survey = simulate("paper", seed=1, size=1).survey
-    ref = reference_csv(tmp_path / "reference_map.csv", survey, walk=0)
-    files = [write_session(s, tmp_path / f"{s.session_id}.mcap") for s in survey.sessions[1:]]
+    files, ref = _paper_walks_and_reference(tmp_path)
     monkeypatch.setattr(align_mod, "_REGATE_PASS_ITERATIONS", 1)
 
     def passes() -> tuple[list[int], bool]:
