@@ -496,16 +496,18 @@ def walk_links(
         size = near.sum(axis=1)
         best: list[int] = []
         members = np.zeros(0, np.int64)
-        ga, gb = s_lo[idx], s_hi[idx]
-        for c0 in np.argsort(-size, kind="stable"):  # the largest agreeing sets first
+        # Python ints: the greedy loop below runs ~1M times on a 60-walk survey, on a few matches each
+        ga, gb = s_lo[idx].tolist(), s_hi[idx].tolist()
+        for c0 in np.argsort(-size, kind="stable").tolist():  # the largest agreeing sets first
             if size[c0] <= len(best):
                 break  # no smaller set can hold more disjoint matches
             agree = np.flatnonzero(near[c0])  # ascending index = descending score
             chosen: list[int] = []
-            for q in agree:
+            for q in agree.tolist():
                 # a match holds a stretch of both walks: independent matches overlap on neither
-                if not chosen or (np.all(np.abs(ga[chosen] - ga[q]) >= L) and np.all(np.abs(gb[chosen] - gb[q]) >= L)):
-                    chosen.append(int(q))
+                a, b = ga[q], gb[q]
+                if all(abs(ga[x] - a) >= L and abs(gb[x] - b) >= L for x in chosen):
+                    chosen.append(q)
             if len(chosen) > len(best):
                 best, members = chosen, agree
         if len(best) < p.min_windows:
