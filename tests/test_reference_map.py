@@ -20,6 +20,7 @@ from graphslam.core.types import Survey
 from graphslam.errors import InputError
 from graphslam.io.mcap_writer import write_session
 from graphslam.io.radiomap_io import read_radio_map
+from graphslam.core.radiomap.fingerprints import FingerprintMatrix
 from graphslam.io.reference_map import _parsed_checked, _parsed_fast, read_reference_map
 
 
@@ -67,12 +68,24 @@ def test_a_well_formed_reference_is_read_in_bulk_as_line_by_line(floor: tuple, t
     tricky = tmp_path / "tricky.csv"
     tricky.write_bytes(b'\xef\xbb\xbffingerprint_id,x,y,bssid,rssi_dbm\r\nb 1,1.5,2e1,aa:bb ,-50\r\n\r\n'
                        b'z,0,-0.0,aa:bb,-70\r\nb 1,1.5,20,cc,-6.25E1\r\n')
+    def readings(parsed: tuple) -> list[dict]:  # each fingerprint's readings, in the order the columns give
+        ids, _, row, code, names, rssi = parsed
+        out: list[dict] = [{} for _ in ids]
+        for r, c, v in zip(row.tolist(), code.tolist(), rssi.tolist()):
+            out[r][names[c]] = v
+        return out
+
     for path in (ref, tricky):
         fast, checked = _parsed_fast(path), _parsed_checked(path)
         assert fast is not None
-        assert fast[0] == checked[0] and fast[2] == checked[2]
+        assert fast[0] == checked[0] and readings(fast) == readings(checked)
+        assert [list(d) for d in readings(fast)] == [list(d) for d in readings(checked)]  # file order within one
         np.testing.assert_array_equal(fast[1], checked[1])
-    assert fast[0] == ["b 1", "z"] and fast[2][0] == {"aa:bb": -50.0, "cc": -62.5}
+        # the columns give the matrix the readings' mappings give
+        by_columns, by_mappings = read_reference_map(path).fingerprints, FingerprintMatrix.from_scans(readings(fast))
+        assert by_columns.bssids == by_mappings.bssids and (by_columns.values != by_mappings.values).nnz == 0
+        np.testing.assert_array_equal(by_columns.values.indptr, by_mappings.values.indptr)
+    assert fast[0] == ["b 1", "z"] and readings(fast)[0] == {"aa:bb": -50.0, "cc": -62.5}
     # quoting is left to the strict line parser (Arrow reads '"ab"x' as abx, the line parser refuses it)
     quoted = tmp_path / "quoted.csv"
     quoted.write_text('fingerprint_id,x,y,bssid,rssi_dbm\n"b 1",1.5,2,"aa",-50\n')

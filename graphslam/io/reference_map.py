@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from graphslam.core.radiomap.fingerprints import FingerprintMatrix
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import GraphSlamError, InputError
 
@@ -67,18 +68,22 @@ def _from_csv(path: Path, min_rssi_dbm: float, missing_dbm: float) -> RadioMap:
     except OSError:  # gone since it was found: the line parser says so
         big = False
     parsed = _parsed_fast(path) if big else None
-    order, xy, readings = parsed if parsed is not None else _parsed_checked(path)
-    return RadioMap.from_scans(
-        readings, xy, session_ids=REFERENCE_SESSION,
-        t_ns=np.zeros(len(order), np.int64), frame="site",
-        metadata={"kind": "reference", "source": str(path), "fingerprint_ids": order},
-        missing_dbm=missing_dbm, min_rssi_dbm=min_rssi_dbm,
+    order, xy, row, code, names, rssi = parsed if parsed is not None else _parsed_checked(path)
+    fm = FingerprintMatrix.from_readings(row, code, names, rssi, len(order), missing_dbm=missing_dbm,
+                                         min_rssi_dbm=min_rssi_dbm)
+    return RadioMap.from_fingerprints(
+        fm, xy, session_ids=REFERENCE_SESSION, t_ns=np.zeros(len(order), np.int64), frame="site",
+        metadata={"kind": "reference", "source": str(path), "fingerprint_ids": order}, min_rssi_dbm=min_rssi_dbm,
     )
 
 
-def _parsed_fast(path: Path) -> tuple[list[str], np.ndarray, list[dict[str, float]]] | None:
-    """(fingerprint ids in order of first appearance, their positions, their readings) of a well-formed
-    file, the same as ``_parsed_checked`` gives; None for anything else."""
+# (fingerprint ids in order of first appearance, their positions (F, 2), and one entry per reading, grouped
+# by fingerprint in that order, in file order within one: its fingerprint, its BSSID as names[code], its dBm)
+Parsed = tuple[list[str], np.ndarray, np.ndarray, np.ndarray, list[str], np.ndarray]
+
+
+def _parsed_fast(path: Path) -> Parsed | None:
+    """``Parsed`` of a well-formed file, the same as ``_parsed_checked`` gives; None for anything else."""
     import pyarrow as pa
     from pyarrow import csv as pacsv
 
@@ -124,16 +129,11 @@ def _parsed_fast(path: Path) -> tuple[list[str], np.ndarray, list[dict[str, floa
     if not (np.array_equal(x, x[first][fid]) and np.array_equal(y, y[first][fid])):
         return None  # two positions for one fingerprint
     rows = np.argsort(fid, kind="stable")  # readings grouped by fingerprint (first appearance), in file order
-    bounds = np.searchsorted(fid[rows], np.arange(len(ids) + 1))
-    b_all = [stripped[k] for k in bcode[rows].tolist()]
-    r_all = rssi[rows].tolist()
-    readings = [dict(zip(b_all[a:b], r_all[a:b])) for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist())]
-    return ids, np.column_stack([x[first], y[first]]), readings
+    return ids, np.column_stack([x[first], y[first]]), fid[rows], bkey[rows], list(key), rssi[rows]
 
 
-def _parsed_checked(path: Path) -> tuple[list[str], np.ndarray, list[dict[str, float]]]:
-    """``_parsed_fast``'s result, line by line: an ``InputError`` naming the line and field of the first
-    thing wrong."""
+def _parsed_checked(path: Path) -> Parsed:
+    """``Parsed``, line by line: an ``InputError`` naming the line and field of the first thing wrong."""
     order: list[str] = []
     where: dict[str, tuple[float, float, int]] = {}  # id -> (x, y, first line)
     readings: dict[str, dict[str, float]] = {}
@@ -174,7 +174,15 @@ def _parsed_checked(path: Path) -> tuple[list[str], np.ndarray, list[dict[str, f
         raise InputError(path, f"not a readable CSV file ({type(e).__name__}: {e})") from None
     if not order:
         raise InputError(path, "no fingerprint: the file has a header and no rows")
-    return order, np.array([where[f][:2] for f in order], float), [readings[f] for f in order]
+    code_of: dict[str, int] = {}
+    row, code, rssi = [], [], []
+    for k, f in enumerate(order):
+        for b, v in readings[f].items():
+            row.append(k)
+            code.append(code_of.setdefault(b, len(code_of)))
+            rssi.append(v)
+    return (order, np.array([where[f][:2] for f in order], float), np.array(row, np.int64), np.array(code, np.int64),
+            list(code_of), np.array(rssi, np.float64))
 
 
 def _number(path: Path, line: int, name: str, text: str) -> float:

@@ -109,6 +109,34 @@ class FingerprintMatrix:
         return cls(bssids, m, missing_dbm, extra_sq, extra_n)
 
     @classmethod
+    def from_readings(
+        cls,
+        row: NDArray[np.int64],
+        code: NDArray[np.int64],
+        names: Sequence[str],
+        rssi: NDArray[np.float64],
+        n: int,
+        *,
+        missing_dbm: float = DEFAULT_MISSING_DBM,
+        min_rssi_dbm: float = DEFAULT_MIN_RSSI_DBM,
+    ) -> "FingerprintMatrix":
+        """``from_scans`` of ``n`` scans given as columns, one entry per reading: its scan (``row``), its
+        BSSID (``names[code]``, at most once per scan) and dBm: the same matrix, without a mapping per scan
+        (a professional survey's millions of readings)."""
+        floor = max(min_rssi_dbm, missing_dbm + 1e-6)
+        rssi = np.asarray(rssi, np.float64)
+        kept = ~(rssi < floor)  # as scan_arrays: what does not compare is kept
+        code = np.asarray(code, np.int64)[kept]
+        used = np.unique(code).tolist()
+        bssids = tuple(sorted({names[c] for c in used}))  # every AP heard, sorted, as from_scans
+        col = {b: i for i, b in enumerate(bssids)}
+        col_of = np.full(len(names), -1, np.int64)
+        col_of[used] = [col[names[c]] for c in used]
+        m = sparse.csr_matrix((rssi[kept] - missing_dbm, (np.asarray(row, np.int64)[kept], col_of[code])),
+                              shape=(n, len(bssids)))
+        return cls(bssids, m, missing_dbm, np.zeros(n, np.float64), np.zeros(n, np.int64))
+
+    @classmethod
     def from_dense(
         cls, rssi: NDArray, bssids: Sequence[str], *, missing_dbm: float = DEFAULT_MISSING_DBM,
         min_rssi_dbm: float = DEFAULT_MIN_RSSI_DBM,
