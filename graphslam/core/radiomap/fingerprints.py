@@ -253,9 +253,9 @@ class DistanceEngine:
         self, q: FingerprintMatrix, limit: NDArray[np.float64], *, min_common: int = 1
     ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
         """(query row, reference row, distance) of the pairs whose eq. 9 distance is below their query
-        row's ``limit`` (len(q),; NaN: none) and that share at least ``min_common`` APs, row-major:
-        ``block``'s finite entries below the limit, without the square root and division of every
-        pair (the test is num < limit^2 * den; the distances of the pairs kept only)."""
+        row's ``limit`` (one per row of ``q``; NaN: no pair) and that share at least ``min_common`` APs,
+        row-major: ``block``'s finite entries below the limit, without the square root and division of
+        every pair (the test is num < limit^2 * den; the distances of the pairs kept only)."""
         num, den, common = self._terms(q)
         lim = np.asarray(limit, np.float64)
         with np.errstate(invalid="ignore"):  # an infinite limit times an empty union: NaN, no pair

@@ -632,7 +632,7 @@ def solve(
     stage = 0
     regated = (0, 0)
     capped = False  # the last LM call stopped at _REGATE_PASS_ITERATIONS
-    for regate_round in range(1 + _REGATE_ROUNDS + 1):
+    for regate_round in range(1 + _REGATE_ROUNDS + 1):  # the last: only to finish a capped pass
         lm = settings
         if regate_round:  # the edges this solution brings within the gate join; LM again at the final radius
             wider = _regated(problem, xyh, cfg) if regate_round <= _REGATE_ROUNDS else None

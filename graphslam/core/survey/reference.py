@@ -33,7 +33,7 @@ from scipy import sparse
 
 from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix
 from graphslam.core.radiomap.radiomap import RadioMap
-from graphslam.core.radiomap.similarity import Matches, PowerCosine, top_matches_between
+from graphslam.core.radiomap.similarity import PowerCosine, top_matches_between
 from graphslam.core.survey.edges import nearest_per_row
 from graphslam.core.survey.placement import GrowthParams, hough_profile
 

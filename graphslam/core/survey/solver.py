@@ -534,8 +534,8 @@ def graph_ordering(graph: PoseGraph, settings: LMSettings) -> NDArray[np.int64] 
     """One METIS ordering for every LM call on ``graph`` (``levenberg_marquardt``'s ``perm``), of the
     pattern of all its factors, every range edge active; None unless CHOLMOD orders by METIS here (or
     METIS is unavailable: each call then orders for itself). Why: the calls differ only in which range
-    edges are active, and any ordering is exact, its fill that of a subset of this pattern; METIS cost
-    0.6 s a call on a 200-walk survey (89k unknowns), four calls."""
+    edges are active; any ordering gives the exact factor, and a call's pattern, a subset of this one,
+    fills no more under it. METIS cost 0.6 s a call on a 200-walk survey (89k unknowns), four calls."""
     n_vars = len(graph.variables)
     if backend_for(settings.backend) != "cholmod" or _cholmod_ordering(settings, 3 * n_vars) != "metis":
         return None
