@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 
-from graphslam.core.radiomap.fingerprints import FingerprintMatrix
+from graphslam.core.radiomap.fingerprints import FingerprintMatrix, heard_floor
 from graphslam.core.radiomap.knn import KnnLocator
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import ConfigError, QueryError
@@ -71,7 +71,7 @@ class ScanEncoder:
         self.bssids = radio_map.bssids
         self.index = {b: j for j, b in enumerate(radio_map.bssids)}
         self.missing_dbm = radio_map.missing_dbm
-        self.floor = max(radio_map.min_rssi_dbm, radio_map.missing_dbm + 1e-6)  # as FingerprintMatrix.encode
+        self.floor = heard_floor(radio_map.min_rssi_dbm, radio_map.missing_dbm)  # as FingerprintMatrix.encode
 
     def encode(self, flat: FlatScans, rows: NDArray[np.int64]) -> FingerprintMatrix:
         """Row i of the result is ``flat.scans[rows[i]]``."""

@@ -33,6 +33,12 @@ DEFAULT_MIN_RSSI_DBM = -100.0
 MAX_BLOCK_CELLS = 2_000_000
 
 
+def heard_floor(min_rssi_dbm: float, missing_dbm: float) -> float:
+    """The weakest reading kept (dBm): ``min_rssi_dbm``, and always above ``missing_dbm`` (a reading
+    at the "not heard" level is no reading)."""
+    return max(min_rssi_dbm, missing_dbm + 1e-6)
+
+
 @dataclass(frozen=True, eq=False)
 class FingerprintMatrix:
     """N fingerprints over an AP index. Rows are scans; see module docstring for the encoding."""
@@ -86,7 +92,7 @@ class FingerprintMatrix:
         other APs go to ``extra_sq``/``extra_n``; otherwise the index is every AP seen,
         sorted.
         """
-        floor = max(min_rssi_dbm, missing_dbm + 1e-6)
+        floor = heard_floor(min_rssi_dbm, missing_dbm)
         if bssids is None:
             bssids = sorted({b for s in scans for b, r in s.items() if r >= floor})
         return cls.encode(scans, tuple(bssids), {b: i for i, b in enumerate(bssids)}, missing_dbm, min_rssi_dbm)
@@ -123,7 +129,7 @@ class FingerprintMatrix:
         """``from_scans`` of ``n`` scans given as columns, one entry per reading: its scan (``row``), its
         BSSID (``names[code]``, at most once per scan) and dBm: the same matrix, without a mapping per scan
         (a professional survey's millions of readings)."""
-        floor = max(min_rssi_dbm, missing_dbm + 1e-6)
+        floor = heard_floor(min_rssi_dbm, missing_dbm)
         rssi = np.asarray(rssi, np.float64)
         kept = ~(rssi < floor)  # as scan_arrays: what does not compare is kept
         code = np.asarray(code, np.int64)[kept]
@@ -143,7 +149,7 @@ class FingerprintMatrix:
     ) -> "FingerprintMatrix":
         """From an (N, A) dBm array where NaN (or anything below ``min_rssi_dbm``) means not heard."""
         a = np.asarray(rssi, dtype=float)
-        floor = max(min_rssi_dbm, missing_dbm + 1e-6)
+        floor = heard_floor(min_rssi_dbm, missing_dbm)
         heard = np.isfinite(a) & (a >= floor)
         v = np.where(heard, a - missing_dbm, 0.0)
         return cls(tuple(bssids), sparse.csr_matrix(v), missing_dbm)
@@ -165,7 +171,7 @@ def scan_arrays(
     """``FingerprintMatrix.encode``'s arrays before the matrix: (rows, cols, shifted values) of the
     readings of indexed APs, in scan order, and per scan ``extra_sq``, ``extra_n``. Also what
     ``knn``'s few-query path encodes (no sparse matrix: its construction dominates one query)."""
-    floor = max(min_rssi_dbm, missing_dbm + 1e-6)
+    floor = heard_floor(min_rssi_dbm, missing_dbm)
     n = len(scans)
     counts = np.fromiter((len(s) for s in scans), np.int64, n)
     total = int(counts.sum())

@@ -32,7 +32,7 @@ from typing import Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix
+from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix, heard_floor
 from graphslam.core.radiomap.ivf import IvfIndex
 from graphslam.core.radiomap.knn_types import (
     DEFAULT_IVF_PROBES,
@@ -249,7 +249,7 @@ class KnnLocator:
         rm = self.radio_map
         fm = rm.encode(scans)
         known = np.asarray(self._sorensen.powed(fm).sum(axis=1), float).ravel()
-        floor = max(rm.min_rssi_dbm, rm.missing_dbm + 1e-6)
+        floor = heard_floor(rm.min_rssi_dbm, rm.missing_dbm)
         unknown = np.array([
             float(self._sorensen.powed_values(np.array(
                 [v - rm.missing_dbm for b, v in sc.items() if rm.column(b) is None and v >= floor], float)).sum())

@@ -27,6 +27,7 @@ from graphslam.core.radiomap.fingerprints import (
     DEFAULT_MIN_RSSI_DBM,
     DEFAULT_MISSING_DBM,
     FingerprintMatrix,
+    heard_floor,
     scan_arrays,
 )
 from graphslam.core.types import frozen_array
@@ -283,7 +284,7 @@ class RadioMap:
         index = self._index
         col_map = np.array([index.get(b, -1) for b in fm.bssids], dtype=np.int64)
         coo = fm.values.tocoo()
-        keep = coo.data >= max(self.min_rssi_dbm, self.missing_dbm + 1e-6) - self.missing_dbm
+        keep = coo.data >= heard_floor(self.min_rssi_dbm, self.missing_dbm) - self.missing_dbm
         rows, cols, data = coo.row[keep], col_map[coo.col[keep]], coo.data[keep]
         known = cols >= 0
         n = len(fm)
