@@ -77,6 +77,22 @@ def test_cached_walks_are_the_parsed_walks(walks: Path, tmp_path: Path) -> None:
     assert again.survey.sessions[1].uwb_ranges is not None
 
 
+def test_both_reads_keep_one_object_per_bssid_and_per_rss_value(walks: Path, tmp_path: Path) -> None:
+    """A large survey holds every reading in its scans' dicts: a BSSID string and an RSS float per
+    reading would be ~90 MiB at 200 walks. Parsed and cached walks both share them."""
+    parsed = read_recordings([walks / "walks"])
+    write_recording_cache(tmp_path / CACHE_FILE, parsed.survey, parsed.keys)
+    again = read_recordings([walks / "walks"], read_recording_cache(tmp_path / CACHE_FILE))
+    assert again.cached == 4
+    for survey in (parsed.survey, again.survey):
+        items = [kv for w in survey for s in w.scans for kv in s.readings.items()]
+        assert len(items) > 10 * len({b for b, _ in items})  # APs heard again and again
+        assert len({id(b) for b, _ in items}) == len({b for b, _ in items})  # interned: one per survey
+        for w in survey:  # values: one object per value and walk
+            values = [v for s in w.scans for v in s.readings.values()]
+            assert len({id(v) for v in values}) == len(set(values)) < len(values) / 10
+
+
 def test_a_changed_or_renamed_file_is_parsed(walks: Path, tmp_path: Path) -> None:
     parsed = read_recordings([walks / "walks"])
     write_recording_cache(tmp_path / CACHE_FILE, parsed.survey, parsed.keys)

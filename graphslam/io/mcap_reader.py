@@ -15,6 +15,7 @@ import gc
 import json
 import logging
 import math
+import sys
 from contextlib import contextmanager
 from dataclasses import dataclass
 from itertools import chain
@@ -25,7 +26,9 @@ import numpy as np
 import orjson
 
 from graphslam.core.progress import progress_over
-from graphslam.core.types import HeadingTrack, LandmarkMark, MagneticTrack, PoseTrack, Scan, Session, Survey, wrap_angle
+from graphslam.core.types import (
+    HeadingTrack, LandmarkMark, MagneticTrack, PoseTrack, Scan, Session, Survey, shared_floats, wrap_angle,
+)
 from graphslam.errors import InputError
 from graphslam.io.mcap_container import DamagedMcap, McapContents, TopicMessages, read_mcap
 from graphslam.io import uwb_io
@@ -291,8 +294,9 @@ def _scans_fast(objs: list[dict]) -> tuple[np.ndarray, list[dict[str, float]]] |
     values = _finite(rssi)
     if t is None or values is None or not set(map(type, bssids)) <= {str} or "" in bssids:
         return None
+    bssids = list(map(sys.intern, bssids))
     out: list[dict[str, float]] = []
-    vals = values.tolist()
+    vals = shared_floats(values)
     i = 0
     for r in readings:
         j = i + len(r)
@@ -326,7 +330,7 @@ def _scan(p: _Parse, msg: dict) -> tuple[int, dict[str, float]]:
             v = math.nan
         if not math.isfinite(v):
             raise p.fail(f"readings[{j}].rssi", f"missing or non-finite rssi: {value!r}")
-        r[bssid] = max(v, r.get(bssid, -math.inf))
+        r[sys.intern(bssid)] = max(v, r.get(bssid, -math.inf))
     return t, r
 
 

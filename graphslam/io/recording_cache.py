@@ -47,7 +47,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 import graphslam
-from graphslam.core.types import HeadingTrack, LandmarkMark, MagneticTrack, PoseTrack, Scan, Session, Survey, UwbRanges
+from graphslam.core.types import (
+    HeadingTrack, LandmarkMark, MagneticTrack, PoseTrack, Scan, Session, Survey, UwbRanges, shared_floats,
+)
 from graphslam.io.atomic import atomic_open
 
 log = logging.getLogger(__name__)
@@ -115,7 +117,7 @@ class RecordingCache:
         r_off = a["read_off"][c.start : c.stop + 1].tolist()
         r0, r1 = r_off[0], r_off[-1]
         aps = list(map(self._aps.__getitem__, a["read_ap"][r0:r1].tolist()))
-        rssi = a["rssi"][r0:r1].tolist()
+        rssi = shared_floats(a["rssi"][r0:r1])
         scans = tuple(Scan._validated(t, dict(zip(aps[q0 - r0 : q1 - r0], rssi[q0 - r0 : q1 - r0])))
                       for t, q0, q1 in zip(a["scan_t"][c].tolist(), r_off[:-1], r_off[1:]))
         return Session(
