@@ -7,7 +7,7 @@ import pytest
 
 from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix, rss_distance
 from graphslam.core.radiomap.knn import KnnConfig, KnnLocator
-from graphslam.core.radiomap.neighbours import candidate_block, gather_block
+from graphslam.core.radiomap.neighbours import candidate_block, gather_block, nearest
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import ConfigError, QueryError, RadioMapError
 
@@ -354,3 +354,26 @@ def test_few_query_path_equals_the_batch_path(metric: str, index: str, n_aps: in
     assert str(few.value) == str(batch.value)
     with pytest.raises(QueryError, match="non-finite"):
         loc.locate([{refs[0].popitem()[0]: float("inf")}])
+
+
+def test_nearest_is_each_rows_k_smallest_finite_entries_ties_to_the_lower_column() -> None:
+    """``nearest`` against its definition: per row the k smallest finite entries by (value, column),
+    then -1 / inf; on blocks of many ties (few distinct values), infinite and NaN entries, rows with
+    no finite entry, and k above the number of columns."""
+    rng = np.random.default_rng(0)
+    for trial in range(600):
+        b, n, k = int(rng.integers(1, 6)), int(rng.integers(1, 400)), int(rng.integers(1, 12))
+        d = rng.integers(0, int(rng.integers(1, 20)), (b, n)).astype(float)
+        d[rng.random((b, n)) < rng.random() * 0.8] = np.inf
+        d[rng.random((b, n)) < (0.05 if trial % 3 == 0 else 0.0)] = np.nan
+        if trial % 5 == 0:
+            d[int(rng.integers(0, b))] = np.inf
+        idx, dist = nearest(d, k)
+        assert idx.shape == dist.shape == (b, k) and idx.dtype == np.int64
+        for r in range(b):
+            cols = np.flatnonzero(np.isfinite(d[r]))
+            cols = cols[np.lexsort((cols, d[r, cols]))][:k]
+            want = np.full(k, -1)
+            want[: len(cols)] = cols
+            np.testing.assert_array_equal(idx[r], want)
+            np.testing.assert_array_equal(dist[r], np.where(want >= 0, d[r, np.maximum(want, 0)], np.inf))

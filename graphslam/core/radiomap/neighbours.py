@@ -305,36 +305,48 @@ def _sorensen_dense_sums(
     return both.ravel(), common.ravel()
 
 
+# Columns per group of ``nearest``'s first pass.
+NEAREST_GROUP = 64
+
+
 def nearest(d: NDArray[np.float64], k: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-    """Rows' k smallest entries, nearest first (ties by index); non-finite -> index -1."""
+    """Rows' k smallest entries, nearest first (ties by index); non-finite -> index -1.
+
+    Why not ``argpartition`` of every row: ~3.7x the time on a block of 600 x 24k (the radio map
+    calibration's, paper size 12). The k-th smallest of a row's minima over groups of
+    ``NEAREST_GROUP`` columns is at least the row's k-th smallest value (k groups hold a value at most
+    that large), so the finite entries at or below it hold the answer, ties at the k-th value included,
+    and they are few: only those are sorted (``row_top_k``'s device). Narrower groups where the
+    columns are few, so that there are 4k of them."""
     b, n = d.shape
+    dtype = d.dtype if np.issubdtype(d.dtype, np.floating) else np.float64
+    idx = np.full((b, k), -1, np.int64)
+    dist = np.full((b, k), np.inf, dtype)
     k_eff = min(k, n)
-    if k_eff == 0:
-        return np.full((b, k), -1, np.int64), np.full((b, k), np.inf)
-    if k_eff < n:
-        idx = np.argpartition(d, k_eff - 1, axis=1)[:, :k_eff]
-        dist = np.take_along_axis(d, idx, axis=1)
-        # argpartition picks any of several references tied at the k-th distance; take the
-        # lowest rows instead, so answers do not depend on k, block size or threads.
-        tau = dist.max(axis=1)
-        fin = np.isfinite(tau)
-        straddle = fin & ((d == tau[:, None]).sum(axis=1) > (dist == tau[:, None]).sum(axis=1))
-        for r in np.flatnonzero(straddle):  # rare: only rows with ties across the boundary
-            below = np.flatnonzero(d[r] < tau[r])
-            tied = np.flatnonzero(d[r] == tau[r])[: k_eff - len(below)]
-            idx[r] = np.concatenate([below, tied])
+    if k_eff == 0 or b == 0:
+        return idx, dist
+    g = max(1, min(NEAREST_GROUP, n // (4 * k_eff)))
+    full, groups = n // g, -(-n // g)
+    if groups > k_eff:
+        gmin = np.empty((b, groups), dtype)
+        if full:  # fmin: a NaN (no distance) is no group's minimum
+            gmin[:, :full] = np.fmin.reduce(d[:, : full * g].reshape(b, full, g), axis=2)
+        if full < groups:
+            gmin[:, full] = np.fmin.reduce(d[:, full * g :], axis=1)
+        tau = np.partition(gmin, k_eff - 1, axis=1)[:, k_eff - 1]
+        tau[~(tau < np.inf)] = np.inf  # fewer than k finite groups: every finite entry is a candidate
     else:
-        idx = np.broadcast_to(np.arange(n), (b, n)).copy()
-    dist = np.take_along_axis(d, idx, axis=1)
-    order = np.lexsort((idx, dist), axis=1)
-    idx = np.take_along_axis(idx, order, axis=1).astype(np.int64)
-    dist = np.take_along_axis(dist, order, axis=1)
-    bad = ~np.isfinite(dist)
-    idx[bad] = -1
-    dist[bad] = np.inf
-    if k_eff < k:
-        idx = np.pad(idx, ((0, 0), (0, k - k_eff)), constant_values=-1)
-        dist = np.pad(dist, ((0, 0), (0, k - k_eff)), constant_values=np.inf)
+        tau = np.full(b, np.inf, dtype)
+    ri, ci = np.nonzero(d <= tau[:, None])
+    v = d[ri, ci]
+    fin = np.isfinite(v)
+    ri, ci, v = ri[fin], ci[fin], v[fin]
+    o = np.lexsort((ci, v, ri))
+    ri, ci, v = ri[o], ci[o], v[o]
+    rank = np.arange(len(ri)) - np.searchsorted(ri, ri, side="left")
+    keep = rank < k_eff
+    idx[ri[keep], rank[keep]] = ci[keep]
+    dist[ri[keep], rank[keep]] = v[keep]
     return idx, dist
 
 
