@@ -280,6 +280,13 @@ def test_sorensen_dense_blocks_equal_the_postings_bit_for_bit(min_common: int, m
     assert len(calls) == 4
     assert np.array_equal(loc.distances(queries), neighbours.sorensen_block(loc._sorensen, queries, min_common))
     _assert_same_answers(a, b)
+    # the dense path with the reference rows densified per block, not from the kept dense copy
+    assert loc._sorensen._dense is not None
+    monkeypatch.setattr(neighbours, "SORENSEN_DENSE_MIN_FILL", 0.0)
+    monkeypatch.setattr(neighbours, "DENSE_REFS_MAX_CELLS", 0)
+    fresh = KnnLocator(rm, KnnConfig(k=5, index="exact", min_common=min_common), block_cells=20 * n, threads=1)
+    _assert_same_answers(a, fresh.locate(queries))
+    assert fresh._sorensen._dense is None and len(calls) == 8
 
 
 def test_sorensen_weighs_a_reading_by_its_strength_where_eq9_charges_a_fixed_gap() -> None:
