@@ -355,10 +355,13 @@ def nearest(d: NDArray[np.float64], k: int) -> tuple[NDArray[np.int64], NDArray[
         if full < groups:
             gmin[:, full] = np.fmin.reduce(d[:, full * g :], axis=1)
         tau = np.partition(gmin, k_eff - 1, axis=1)[:, k_eff - 1]
-        tau[~(tau < np.inf)] = np.inf  # fewer than k finite groups: every finite entry is a candidate
     else:
         tau = np.full(b, np.inf, dtype)
-    ri, ci = np.nonzero(d <= tau[:, None])
+    cand = d <= tau[:, None]
+    few = ~(tau < np.inf)  # fewer than k finite groups: every finite entry is a candidate, no other
+    if few.any():
+        cand[few] = np.isfinite(d[few])
+    ri, ci = np.nonzero(cand)
     v = d[ri, ci]
     fin = np.isfinite(v)
     ri, ci, v = ri[fin], ci[fin], v[fin]
