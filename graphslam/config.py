@@ -160,10 +160,18 @@ class OptimizerConfig(_Strict):
     )
     linear_solver: Literal["auto", "cholesky", "pcg"] = Field(
         "auto",
-        description="solver=gtsam only. cholesky: multifrontal, METIS; pcg: block-Jacobi PCG (large surveys); auto: "
-        "pcg above pcg_above_poses",
+        description="how each damped system is solved. cholesky: a sparse Cholesky factorisation (solver=gtsam: "
+        "multifrontal, METIS); pcg: preconditioned conjugate gradients (the vectorised LM: a spanning tree of the "
+        "pose graph factorised as the preconditioner, no fill, each step to the direct step's accuracy; "
+        "solver=gtsam: block-Jacobi); auto: pcg from pcg_above_variables unknowns on (solver=gtsam: above "
+        "pcg_above_poses pose variables)",
     )
-    pcg_above_poses: int = Field(6000, ge=0, description="auto switches to pcg above this many pose variables")
+    pcg_above_variables: int = Field(
+        10_000, ge=0, description="linear_solver=auto, the vectorised LM: pcg from this many unknowns on (3 per "
+        "solved pose; paper size 1: 7k, size 4: 27k)",
+    )
+    pcg_above_poses: int = Field(6000, ge=0, description="solver=gtsam, linear_solver=auto: pcg above this many pose "
+                                 "variables")
     compress_chains: bool = Field(
         True, description="solve only fingerprint poses (IMU chains between them composed exactly), restore the rest"
     )

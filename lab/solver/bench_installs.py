@@ -58,7 +58,7 @@ def run_once(python: str, data: Path, out: Path, extra: list[str]) -> dict:
         "cpu_s": usage.ru_utime + usage.ru_stime,
         "peak_rss_mb": usage.ru_maxrss / 1024,
         "optimise_s": rep["timings_s"].get("align.optimise"),
-        "solver": " ".join(str(opt.get(k)) for k in ("solver", "ordering", "factor_precision") if k in opt),
+        "solver": " ".join(str(opt.get(k)) for k in ("solver", "linear_solver", "ordering", "factor_precision") if k in opt),
         "iterations": opt["iterations"],
         "final_error": opt["final_error"],
         "landmark_mean_m": rep.get("evaluation", {}).get("landmarks", {}).get("mean_m"),

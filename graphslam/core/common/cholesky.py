@@ -136,7 +136,7 @@ class _Cholmod:
     whichever fills less, an analysis that costs time and leaves the choice to CHOLMOD."""
 
     def __init__(self, indptr: NDArray[np.int32], indices: NDArray[np.int32], threads: int = 0,
-                 perm: NDArray[np.int64] | None = None) -> None:
+                 perm: NDArray[np.int64] | None = None, simplicial: bool = False) -> None:
         import cvxopt
         from cvxopt import cholmod
 
@@ -148,22 +148,38 @@ class _Cholmod:
         cols = cvxopt.matrix(np.repeat(np.arange(self._n, dtype=np.int64), np.diff(indptr)))
         self._a = cvxopt.spmatrix(cvxopt.matrix(np.ones(len(indices))), rows, cols, (self._n, self._n))
         self._threads = threads
-        cholmod.options.clear()
-        cholmod.options["supernodal"] = 2  # supernodal: BLAS-3 on the dense fronts
-        cholmod.options["postorder"] = _POSTORDER
+        self._simplicial = simplicial
+        # cholmod.options is the module's, read by every call: each factorisation sets its own
+        self._options = {"supernodal": 0 if simplicial else 2, "postorder": _POSTORDER}
+        if perm is not None:
+            self._options["nmethods"] = 1  # this ordering, no other tried
+        self._set_options()
         if perm is None:
             self._factor = cholmod.symbolic(self._a, uplo="L")
         else:
-            cholmod.options["nmethods"] = 1  # this ordering, no other tried
             self._factor = cholmod.symbolic(self._a, p=cvxopt.matrix(np.asarray(perm, np.int64)), uplo="L")
+
+    def _set_options(self) -> None:
+        # supernodal 2: BLAS-3 on the dense fronts; 0: LDL' column by column, for a factor with no fill
+        # (a tree's), where a supernode's fixed cost would outweigh its few entries
+        self._cholmod.options.clear()
+        self._cholmod.options.update(self._options)
 
     def factor(self, data: NDArray) -> None:
         self._a.V = self._cvxopt.matrix(np.ascontiguousarray(data, np.float64))
+        self._set_options()
         try:
             with _blas_threads(self._threads):
                 self._cholmod.numeric(self._a, self._factor)
         except ArithmeticError as e:  # not positive definite
             raise np.linalg.LinAlgError(f"CHOLMOD: {e}") from None
+        if self._simplicial:
+            # LDL' goes through a matrix that is not positive definite where no pivot is zero: refused as
+            # LL' is, by D's pivots (1 / D: solve D x = 1)
+            inv_d = self._cvxopt.matrix(np.ones(self._n))
+            self._cholmod.solve(self._factor, inv_d, sys=6)
+            if not (np.array(inv_d) > 0).all():
+                raise np.linalg.LinAlgError("CHOLMOD: not positive definite (a non-positive pivot of D)")
 
     def solve(self, b: NDArray) -> NDArray[np.float64]:
         x = self._cvxopt.matrix(np.ascontiguousarray(b, np.float64))
@@ -297,13 +313,14 @@ def _metis(m: int, a: NDArray[np.int64], b: NDArray[np.int64]) -> NDArray[np.int
 
 def sparse_cholesky(
     backend: str, indptr: NDArray[np.int32], indices: NDArray[np.int32], threads: int = 0, single: bool = False,
-    perm: NDArray[np.int64] | None = None,
+    perm: NDArray[np.int64] | None = None, simplicial: bool = False,
 ):  # -> _Pardiso | _Cholmod
     """A factorisation of the upper-triangle CSR pattern (``indptr``, ``indices``) by ``backend``
     (``pardiso`` or ``cholmod``; ``single``: PARDISO only, float32 factor; ``perm``: CHOLMOD only,
-    the fill-reducing ordering, else its AMD; PARDISO orders by its own METIS)."""
+    the fill-reducing ordering, else its AMD; PARDISO orders by its own METIS; ``simplicial``:
+    CHOLMOD only, LDL' column by column instead of supernodes: for a pattern that barely fills)."""
     if backend == "pardiso":
         return _Pardiso(indptr, indices, threads, single=single)
     if backend == "cholmod":
-        return _Cholmod(indptr, indices, threads, perm=perm)
+        return _Cholmod(indptr, indices, threads, perm=perm, simplicial=simplicial)
     raise ValueError(f"unknown sparse Cholesky back end {backend!r}; use {', '.join(BACKENDS)}")

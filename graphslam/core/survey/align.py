@@ -108,9 +108,10 @@ class Alignment:
     unused_reference: RadioMap | None = None  # a reference map given that no walk registers onto
     # WiFi and reference edges that joined after a solve brought them within the tight gate (``_regated``)
     regated_edges: tuple[int, int] = (0, 0)
-    # the optimiser that solved it: {"solver": "cholmod" | "pardiso", "ordering": "metis" | "amd",
-    # "factor_precision": "single" | "double"} for the vectorised LM, {"solver": "gtsam", "linear_solver":
-    # "cholesky" | "pcg"} for GTSAM's; empty: nothing was optimised
+    # the optimiser that solved it (the last LM call's way): the vectorised LM's {"solver": "cholmod" |
+    # "pardiso", "linear_solver": "cholesky", "ordering": "metis" | "amd", "factor_precision": "single" |
+    # "double"} or {..., "linear_solver": "pcg", "preconditioner": "spanning tree"} (``FactorInfo.as_dict``),
+    # {"solver": "gtsam", "linear_solver": "cholesky" | "pcg"} for GTSAM's; empty: nothing was optimised
     solver: dict[str, str] = field(default_factory=dict)
 
     def links_by_component(self) -> list[dict[str, int]]:
@@ -583,6 +584,8 @@ def solve(
         single_above_variables=cfg.optimizer.single_above_variables,
         ordering=cfg.optimizer.ordering,
         metis_above_variables=cfg.optimizer.metis_above_variables,
+        linear_solver=cfg.optimizer.linear_solver,
+        pcg_above_variables=cfg.optimizer.pcg_above_variables,
     )
 
     def build(pb: Problem) -> tuple:
@@ -673,8 +676,7 @@ def solve(
                 capped = lm is not settings and not converged and res.iterations >= lm.max_iterations
                 xyh = res.xyh[:n_steps]
                 if res.factor is not None:
-                    solver = {"solver": res.factor.backend, "ordering": res.factor.ordering,
-                              "factor_precision": res.factor.precision}
+                    solver = res.factor.as_dict()
             else:
                 values, converged = gtsam_lm(native[0], native[1], values, active, cfg, hook)
                 xyh = values_to_xyh(values, problem.init_xyh)

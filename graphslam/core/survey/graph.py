@@ -250,6 +250,8 @@ def describe_solver(solver: dict[str, str]) -> str:
     "cholmod (metis ordering, double precision)" or "gtsam (pcg)"."""
     if solver.get("solver") == "gtsam":
         return f"gtsam ({solver.get('linear_solver', '?')})"
+    if solver.get("linear_solver") == "pcg":
+        return f"{solver['solver']} (conjugate gradients, spanning-tree preconditioner)"
     return f"{solver['solver']} ({solver['ordering']} ordering, {solver['factor_precision']} precision)"
 
 

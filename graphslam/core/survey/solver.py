@@ -1,4 +1,4 @@
-"""Levenberg-Marquardt for the paper's pose graph: vectorised factors, a sparse direct solver.
+"""Levenberg-Marquardt for the paper's pose graph: vectorised factors, sparse linear algebra.
 
 The same objective as the GTSAM graph of ``graphslam.core.survey.factors`` (IMU-between
 factors with GTSAM's Pose2 Logmap error, the dead-zone WiFi range factors), solved by an
@@ -20,6 +20,11 @@ the analysis reused (PARDISO, CHOLMOD: ``graphslam.core.common.cholesky``) refac
    Lambda follows Nielsen's rule, which rejects few steps (each rejection costs a
    factorisation). PARDISO factorises large systems in single precision, each step refined in
    double to the double step (``_DampedSystem``).
+ * Large systems (``linear_solver``: from ``pcg_above_variables`` unknowns on) are solved by
+   conjugate gradients preconditioned by a spanning tree of the pose graph (``_TreeSystem``,
+   ``graphslam.core.common.pcg``) to the same relative residual: no factor of the whole matrix,
+   whose fill is what a large survey's time and memory went to (paper size 12: optimise 3.2 s and
+   438 MiB peak, against 17.1 s and 917 MiB by CHOLMOD's factorisation; docs/benchmarks.md).
  * Convergence: the error's relative decrease, or (``shape_tol_m``) a step that barely changes
    the map's shape: held by one pose, a large map's last iterations only turn it about that pose.
 
@@ -37,8 +42,9 @@ from numpy.typing import NDArray
 from scipy import sparse
 
 from graphslam.core.common.cholesky import (  # noqa: F401 (re-exported)
-    backend_for, block_nested_dissection, nested_dissection, pardiso_available, sparse_cholesky,
+    backend_for, block_nested_dissection, cholmod_available, nested_dissection, pardiso_available, sparse_cholesky,
 )
+from graphslam.core.common.pcg import conjugate_gradients, spanning_tree_blocks
 from graphslam.core.types import wrap_angle
 from graphslam.errors import SolverError
 
@@ -97,16 +103,29 @@ class LMSettings:
     # ``metis_above_variables`` unknowns on, where its fill saves more than GTSAM's import costs
     ordering: Literal["auto", "metis", "amd"] = "auto"
     metis_above_variables: int = 20_000
+    # how each damped system is solved: "cholesky" (a direct factorisation), "pcg" (conjugate gradients
+    # preconditioned by a spanning tree of the pose graph, ``_TreeSystem``), or "auto": pcg from
+    # ``pcg_above_variables`` unknowns on, where the factor's fill outweighs the iterations
+    linear_solver: Literal["auto", "cholesky", "pcg"] = "auto"
+    pcg_above_variables: int = 10_000
 
 
 @dataclass(frozen=True)
 class FactorInfo:
-    """The sparse Cholesky an LM run factorised with (the last factorisation's, after any switch
-    from single to double precision)."""
+    """How an LM run solved its damped systems (the last one's way, after any switch from single to
+    double precision or from conjugate gradients to the direct factorisation)."""
 
-    backend: str  # "pardiso" or "cholmod"
-    ordering: str  # fill-reducing ordering: "metis" (nested dissection) or "amd"
+    backend: str  # "pardiso" or "cholmod": the sparse Cholesky (of the preconditioner, for pcg)
+    ordering: str  # the direct factorisation's fill-reducing ordering: "metis" (nested dissection), "amd"; pcg: ""
     precision: str  # "single" (refined in double) or "double"
+    linear_solver: str = "cholesky"  # "cholesky" (direct) or "pcg" (spanning-tree preconditioned)
+
+    def as_dict(self) -> dict[str, str]:
+        """report.json's ``optimizer`` entries (``graph.describe_solver`` phrases them)."""
+        if self.linear_solver == "pcg":
+            return {"solver": self.backend, "linear_solver": "pcg", "preconditioner": "spanning tree"}
+        return {"solver": self.backend, "linear_solver": "cholesky", "ordering": self.ordering,
+                "factor_precision": self.precision}
 
 
 @dataclass(frozen=True, eq=False)
@@ -319,6 +338,7 @@ class _NormalEquations:
             gi[v < 0] = self.n + np.arange(3)
             self._gidx.append(gi.ravel())
         bi, bj = blocks // n_vars, blocks % n_vars
+        self.block_lo, self.block_hi = bi, bj  # block rows of each 3x3 block (lo <= hi)
         r, c = np.divmod(np.arange(9), 3)
         rows = (3 * bi[:, None] + r[None, :]).ravel()
         cols = (3 * bj[:, None] + c[None, :]).ravel()
@@ -326,6 +346,7 @@ class _NormalEquations:
         order = np.lexsort((cols[keep], rows[keep]))
         self.gather = np.flatnonzero(keep)[order]  # block-entry index of each CSR entry
         rr, cc = rows[keep][order], cols[keep][order]
+        self.rows = rr.astype(np.int64)  # row of each CSR entry
         self.indptr = np.searchsorted(rr, np.arange(self.n + 1)).astype(np.int32)
         self.indices = cc.astype(np.int32)
         self.diag_pos = self.indptr[:-1].astype(np.int64)  # first entry of each row is its diagonal
@@ -394,25 +415,11 @@ class _DampedSystem:
             return x
         # conjugate gradients in double, preconditioned by the float32 factorisation: as many
         # float32 solves as plain refinement needs on a well-conditioned matrix, far fewer late in LM
-        tol = self.REFINE_TOL * float(np.linalg.norm(b))
-        r = b - _sym_matvec(self._ne, self._data, x)
-        if float(np.linalg.norm(r)) <= tol:
+        x, _, ok = conjugate_gradients(lambda y: _sym_matvec(self._ne, self._data, y), b, self._factor.solve,
+                                       tol=self.REFINE_TOL * float(np.linalg.norm(b)),
+                                       max_iterations=self.MAX_REFINE, x0=x)
+        if ok:
             return x
-        z = self._factor.solve(r)
-        p, rz = z, float(r @ z)
-        for _ in range(self.MAX_REFINE):
-            Ap = _sym_matvec(self._ne, self._data, p)
-            pAp = float(p @ Ap)
-            if not pAp > 0:
-                break
-            alpha = rz / pAp
-            x = x + alpha * p
-            r = r - alpha * Ap
-            if float(np.linalg.norm(r)) <= tol:
-                return x
-            z = self._factor.solve(r)
-            rz, rz_prev = float(r @ z), rz
-            p = z + (rz / rz_prev) * p
         self._to_double()  # float32 cannot resolve this matrix
         return self._factor.solve(b)
 
@@ -423,6 +430,88 @@ class _DampedSystem:
 
     def free(self) -> None:
         self._factor.free()
+
+
+class _TreeSystem:
+    """Solves the damped normal equations by conjugate gradients preconditioned by a spanning tree of
+    the pose graph (``graphslam.core.common.pcg``), the tree's matrix factorised by ``backend`` (no
+    fill: a large survey's memory is then the matrix's, not a factor's). Each solve runs to a relative
+    residual of ``TOL`` (the direct solve's step, to rounding: the same answers). A matrix the
+    iterations do not resolve within ``MAX_ITERATIONS`` is handed to the direct factorisation
+    (``direct`` builds it): not positive definite, it raises as the direct solver would (LM damps
+    more); otherwise the direct factorisation solves this stage from then on."""
+
+    TOL = _DampedSystem.REFINE_TOL
+    MAX_ITERATIONS = 400
+
+    def __init__(self, ne: _NormalEquations, threads: int, backend: str, direct: Callable[[], _DampedSystem]) -> None:
+        self._ne = ne
+        self._threads = threads
+        self._backend = backend
+        self._make_direct = direct
+        self._direct: _DampedSystem | None = None
+        self._entry_block = ne.gather // 9  # the 3x3 block of each CSR entry
+        self._mask: NDArray[np.bool_] | None = None
+        self._pre = None  # the tree's factorisation
+        self._data: NDArray = np.zeros(0)
+        self.iterations = 0  # conjugate-gradient iterations, all solves (diagnostics, the log)
+        self.fallbacks = 0  # switches to the direct factorisation
+
+    @property
+    def single(self) -> bool:
+        return self._direct is not None and self._direct.single
+
+    @property
+    def iterative(self) -> bool:
+        """Solving by conjugate gradients (else the direct factorisation took over)."""
+        return self._direct is None
+
+    def factor(self, data: NDArray[np.float64]) -> None:
+        if self._direct is not None:
+            self._direct.factor(data)
+            return
+        ne = self._ne
+        self._data = data
+        weight = np.sqrt(np.bincount(self._entry_block, data * data, minlength=len(ne.block_lo)))
+        keep = spanning_tree_blocks(ne.n // 3, ne.block_lo, ne.block_hi, weight)[self._entry_block]
+        if self._mask is None or not np.array_equal(keep, self._mask):  # a new tree: a new analysis
+            if self._pre is not None:
+                self._pre.free()
+            indptr = np.concatenate([[0], np.cumsum(np.bincount(ne.rows[keep], minlength=ne.n))]).astype(np.int32)
+            self._pre = sparse_cholesky(self._backend, indptr, ne.indices[keep], self._threads, simplicial=True)
+            self._mask = keep
+        self._pre.factor(data[keep])  # P >= A / 2: positive definite wherever A is
+        # the whole symmetric matrix, once: each iteration's product is then one pass over it
+        U = sparse.csr_matrix((data, ne.indices, ne.indptr), shape=(ne.n, ne.n))
+        full = (U + sparse.triu(U, 1, format="csr").T).tocsr()
+        self._matvec = full.__matmul__
+
+    def solve(self, b: NDArray[np.float64]) -> NDArray[np.float64]:
+        if self._direct is not None:
+            return self._direct.solve(b)
+        x, it, ok = conjugate_gradients(self._matvec, b, self._pre.solve, tol=self.TOL * float(np.linalg.norm(b)),
+                                        max_iterations=self.MAX_ITERATIONS)
+        self.iterations += it
+        if ok:
+            return x
+        direct = self._make_direct()
+        try:
+            direct.factor(self._data)
+        except np.linalg.LinAlgError:
+            direct.free()
+            raise  # not positive definite: LM damps more, and the tree goes on
+        log.debug("conjugate gradients did not resolve this matrix in %d iterations: the direct factorisation "
+                  "from now on", it)
+        self._pre.free()
+        self._direct, self._pre = direct, None
+        self.fallbacks += 1
+        return direct.solve(b)
+
+    def free(self) -> None:
+        if self._pre is not None:
+            self._pre.free()
+        if self._direct is not None:
+            self._direct.free()
 
 
 # --- Levenberg-Marquardt ------------------------------------------------------------------
@@ -530,6 +619,13 @@ def _cholmod_ordering(settings: LMSettings, n: int) -> str:
     return "metis" if n >= settings.metis_above_variables else "amd"
 
 
+def _iterative(settings: LMSettings, n: int) -> bool:
+    """Whether ``n`` unknowns are solved by conjugate gradients (``settings.linear_solver``, ``auto`` by size)."""
+    if settings.linear_solver != "auto":
+        return settings.linear_solver == "pcg"
+    return n >= settings.pcg_above_variables
+
+
 def graph_ordering(graph: PoseGraph, settings: LMSettings) -> NDArray[np.int64] | None:
     """One METIS ordering for every LM call on ``graph`` (``levenberg_marquardt``'s ``perm``), of the
     pattern of all its factors, every range edge active; None unless CHOLMOD orders by METIS here (or
@@ -537,7 +633,8 @@ def graph_ordering(graph: PoseGraph, settings: LMSettings) -> NDArray[np.int64] 
     edges are active; any ordering gives the exact factor, and a call's pattern, a subset of this one,
     fills no more under it. METIS cost 0.6 s a call on a 200-walk survey (89k unknowns), four calls."""
     n_vars = len(graph.variables)
-    if backend_for(settings.backend) != "cholmod" or _cholmod_ordering(settings, 3 * n_vars) != "metis":
+    if (backend_for(settings.backend) != "cholmod" or _cholmod_ordering(settings, 3 * n_vars) != "metis"
+            or _iterative(settings, 3 * n_vars)):  # conjugate gradients factorise no such matrix
         return None
     var_of = np.full(graph.n_nodes, -1, np.int64)
     var_of[graph.variables] = np.arange(n_vars)
@@ -574,21 +671,33 @@ def levenberg_marquardt(
         return LMResult(xyh.copy(), 0, 0, err, err, True)
     ne = obj.normal
     single = settings.precision == "single" or (settings.precision == "auto" and ne.n > settings.single_above_variables)
-    backend = backend_for(settings.backend)
+    iterative = _iterative(settings, ne.n)
+    # auto: a tree's factor has no front for PARDISO's threads or float32 to speed up, and CHOLMOD's simplicial
+    # solves, called every iteration, cost less than PARDISO's (paper size 6: optimise 1.5 vs 1.7-1.8 s)
+    backend = "cholmod" if iterative and settings.backend == "auto" and cholmod_available() else \
+        backend_for(settings.backend)
     ordering = "metis"  # PARDISO's own (iparm[1] = 2)
     if backend == "cholmod":
         ordering = _cholmod_ordering(settings, ne.n)
-    if backend != "cholmod" or ordering != "metis" or (perm is not None and len(perm) != ne.n):
-        perm = None
-    elif perm is None:
-        try:
-            perm = nested_dissection(ne.indptr, ne.indices)
-        except (RuntimeError, ValueError, ImportError) as e:  # a GTSAM built without METIS: slower, not wrong
-            log.warning("METIS ordering unavailable (%s): CHOLMOD orders by AMD", e)
-            ordering = "amd"
-    solver = _DampedSystem(ne, settings.threads, single, backend, perm)
-    log.debug("LM over %d unknowns: %s, %s ordering, %s precision", ne.n, backend, ordering,
-              "single" if solver.single else "double")  # CHOLMOD factorises in double whatever was asked
+
+    def direct(perm: NDArray[np.int64] | None = perm) -> _DampedSystem:
+        nonlocal ordering
+        if backend != "cholmod" or ordering != "metis" or (perm is not None and len(perm) != ne.n):
+            perm = None
+        elif perm is None:
+            try:
+                perm = nested_dissection(ne.indptr, ne.indices)
+            except (RuntimeError, ValueError, ImportError) as e:  # a GTSAM built without METIS: slower, not wrong
+                log.warning("METIS ordering unavailable (%s): CHOLMOD orders by AMD", e)
+                ordering = "amd"
+        return _DampedSystem(ne, settings.threads, single, backend, perm)
+
+    solver: _DampedSystem | _TreeSystem = _TreeSystem(ne, settings.threads, backend, direct) if iterative else direct()
+    if iterative:
+        log.debug("LM over %d unknowns: %s, conjugate gradients, spanning-tree preconditioner", ne.n, backend)
+    else:
+        log.debug("LM over %d unknowns: %s, %s ordering, %s precision", ne.n, backend, ordering,
+                  "single" if solver.single else "double")  # CHOLMOD factorises in double whatever was asked
     H, grad, err = obj.linearise(v)
     initial = err
     lam = settings.lambda_initial
@@ -642,7 +751,13 @@ def levenberg_marquardt(
         solver.free()
     out = xyh.copy()
     out[graph.variables] = v.reshape(-1, 3)
-    info = FactorInfo(backend, ordering, "single" if solver.single else "double")
+    if isinstance(solver, _TreeSystem):
+        log.debug("conjugate gradients: %d iterations in %d factorisations%s", solver.iterations, factorizations,
+                  "" if solver.iterative else ", then the direct factorisation")
+    if isinstance(solver, _TreeSystem) and solver.iterative:
+        info = FactorInfo(backend, "", "double", "pcg")
+    else:
+        info = FactorInfo(backend, ordering, "single" if solver.single else "double")
     return LMResult(out, it, factorizations, initial, err, converged, info)
 
 
