@@ -498,9 +498,14 @@ def walk_links(
         members = np.zeros(0, np.int64)
         # Python ints: the greedy loop below runs ~1M times on a 60-walk survey, on a few matches each
         ga, gb = s_lo[idx].tolist(), s_hi[idx].tolist()
+        seen: set[bytes] = set()  # agreeing sets already chosen from: the same set, the same choice
         for c0 in np.argsort(-size, kind="stable").tolist():  # the largest agreeing sets first
             if size[c0] <= len(best):
                 break  # no smaller set can hold more disjoint matches
+            key = near[c0].tobytes()
+            if key in seen:
+                continue
+            seen.add(key)
             agree = np.flatnonzero(near[c0])  # ascending index = descending score
             chosen: list[int] = []
             for q in agree.tolist():
