@@ -126,7 +126,7 @@ class OptimizerConfig(_Strict):
         "auto",
         description="the vectorised LM (own factors, the sparse Cholesky's analysis reused) with pardiso: MKL PARDISO "
         "(the fast extra, x86-64) or cholmod: SuiteSparse CHOLMOD (cvxopt); gtsam: GTSAM's LevenbergMarquardtOptimizer; "
-        "auto: pardiso where MKL loads, else cholmod",
+        "auto: pardiso where MKL loads, else cholmod (the spanning tree of linear_solver pcg: cholmod)",
     )
     threads: int = Field(
         0, ge=0, description="threads of PARDISO's factorisation (MKL); 0 = MKL's default: every core, or "
@@ -134,7 +134,8 @@ class OptimizerConfig(_Strict):
     )
     factor_precision: Literal["auto", "single", "double"] = Field(
         "auto",
-        description="solver=pardiso: precision of the factorisation; single: float32 Cholesky, each step refined in "
+        description="solver=pardiso, a direct factorisation (linear_solver cholesky, or auto below pcg_above_variables): "
+        "its precision; single: float32 Cholesky, each step refined in "
         "double (PCG) to a 1e-10 relative residual, i.e. the double step (double on a matrix float32 cannot resolve); "
         "auto: single above single_above_variables unknowns, where the cheaper factorisation outweighs the refinement's "
         "solves (docs/method.md); CHOLMOD factorises in double",
@@ -145,7 +146,8 @@ class OptimizerConfig(_Strict):
     )
     ordering: Literal["auto", "metis", "amd"] = Field(
         "auto",
-        description="solver=cholmod: the factorisation's fill-reducing ordering; metis: nested dissection "
+        description="solver=cholmod, a direct factorisation (linear_solver cholesky, or auto below "
+        "pcg_above_variables): its fill-reducing ordering; metis: nested dissection "
         "(GTSAM's METIS) of the pose graph; amd: CHOLMOD's approximate minimum degree; auto: metis from "
         "metis_above_variables unknowns on, amd below (PARDISO orders by its own METIS)",
     )

@@ -111,16 +111,42 @@ def test_a_matrix_the_iterations_do_not_resolve_goes_to_the_direct_factorisation
     assert not tree.iterative and tree.fallbacks == 1 and len(made) == 1
     tree.factor(H)  # ...and direct for the rest of the stage
     np.testing.assert_array_equal(tree.solve(b), want)
-    # not positive definite: raised as the direct solver does (LM damps more), and the iterations go on
+    # a tree that is not positive definite: refused as the direct factorisation refuses its matrix
     bad = H.copy()
     bad[ne.diag_pos[:3]] = -1.0
     tree = S._TreeSystem(ne, 1, "cholmod", direct)
     with pytest.raises(np.linalg.LinAlgError):
         tree.factor(bad)
-        tree.solve(b)
-    assert tree.fallbacks == 0
     for f in (exact, tree, *made):
         f.free()
+
+
+@needs_cholmod
+def test_a_matrix_that_is_not_positive_definite_raises_from_the_solve_and_the_iterations_go_on() -> None:
+    """Three poses, every pair tied: the tree (the two heavier pairs) is positive definite, the matrix
+    is not. Conjugate gradients meet its negative curvature, the direct factorisation refuses it, and
+    the solve raises (the LM's signal to damp more) with the tree kept for the next matrix."""
+    ne = S._NormalEquations(3, np.array([0, 1, 0]), np.array([1, 2, 2]))
+    eye = np.broadcast_to(np.eye(3), (3, 3, 3))
+    zero = np.zeros((3, 3))
+    A, _ = ne.assemble(0.5 * eye, 0.5 * eye, np.array([0.6, -0.5, 0.6])[:, None, None] * eye, zero, zero)
+    dense = _dense(ne, A)
+    lam, vec = np.linalg.eigh(dense)
+    assert lam[0] < 0  # the matrix is indefinite...
+    made = []
+
+    def direct() -> S._DampedSystem:
+        made.append(S._DampedSystem(ne, 1, False, "cholmod"))
+        return made[-1]
+
+    tree = S._TreeSystem(ne, 1, "cholmod", direct)
+    tree.factor(A)  # ...its tree is not
+    P = _dense(ne, np.where(tree._mask, A, 0.0))
+    assert np.linalg.eigvalsh(P).min() > 0
+    with pytest.raises(np.linalg.LinAlgError):
+        tree.solve(P @ vec[:, 0])  # the first direction is the negative eigenvector
+    assert tree.iterative and tree.fallbacks == 0 and len(made) == 1
+    tree.free()
 
 
 @needs_cholmod
@@ -146,3 +172,14 @@ def test_auto_solves_by_conjugate_gradients_from_the_variable_count_on() -> None
         update={"solver": "cholmod", "linear_solver": "pcg"})})
     al = solve(build_problem(two_walks(), cfg), cfg)
     assert al.solver == {"solver": "cholmod", "linear_solver": "pcg", "preconditioner": "spanning tree"}
+
+
+def test_where_the_iterations_give_up_lm_goes_on_with_auto_s_direct_factorisation(monkeypatch: pytest.MonkeyPatch) -> None:
+    problem = build_problem(two_walks(), CFG)
+    graph, _ = pose_graph(problem, CFG)
+    active = np.ones(len(problem.wifi_pairs), bool)
+    want = S.levenberg_marquardt(graph, problem.init_xyh, active, S.LMSettings(linear_solver="cholesky"))
+    monkeypatch.setattr(S._TreeSystem, "MAX_ITERATIONS", 1)
+    got = S.levenberg_marquardt(graph, problem.init_xyh, active, S.LMSettings(linear_solver="pcg"))
+    assert got.factor.linear_solver == "cholesky" and got.factor.backend == S.backend_for("auto")
+    assert got.factor == want.factor and abs(got.error - want.error) <= 1e-9 * max(1.0, want.error)

@@ -10,10 +10,12 @@ norm of its block): a tree's matrix factorises with no fill, in time and memory 
 poses. The subgraph preconditioner of Dellaert, Carlson, Ila, Ni and Thorpe (IROS 2010) in its
 simplest form.
 
-Why it is safe: ``P`` is ``A`` with each left-out pair's term ``[[A_aa, A_ab], [A_ba, A_bb]]`` replaced
-by ``[[A_aa, 0], [0, A_bb]]``, which is at least half of it (their difference, ``[[A_aa, -A_ab],
-[-A_ba, A_bb]]``, is the term with one pose's sign flipped: positive semi-definite). So ``P >= A / 2``
-and ``P`` is positive definite wherever ``A`` is; conjugate gradients in ``P``'s norm converge as
+Why it is safe: every factor's term is positive semi-definite (Gauss-Newton's ``J^T J``, the range
+factors' exact Hessian ``[[H, -H], [-H, H]]`` with ``H >= 0``; the damping sits on the diagonal blocks,
+all kept). ``P`` is ``A`` with each left-out pair's summed term ``S = [[S_aa, S_ab], [S_ba, S_bb]]``
+replaced by ``[[S_aa, 0], [0, S_bb]]``, which is at least half of it (their difference, ``[[S_aa, -S_ab],
+[-S_ba, S_bb]]``, is ``S`` with one pose's sign flipped: positive semi-definite). So ``P >= A / 2`` and
+``P`` is positive definite wherever ``A`` is; conjugate gradients in ``P``'s norm converge as
 ``A``'s condition number relative to ``P`` allows (80-100 iterations to a relative residual of 1e-10
 with the magnetic pairs, ~25 without, on every survey measured, 27k to 168k unknowns:
 docs/benchmarks.md).
@@ -67,17 +69,20 @@ def conjugate_gradients(
 def spanning_tree_blocks(
     n_vars: int, block_lo: NDArray[np.int64], block_hi: NDArray[np.int64], block_weight: NDArray[np.float64],
 ) -> NDArray[np.bool_]:
-    """Per block (``block_lo[i] <= block_hi[i]``, block rows; diagonal blocks have ``lo == hi``): kept
-    in the preconditioner. Every diagonal block, and the off-diagonal blocks of a maximum spanning
-    tree (a forest, on a disconnected graph) of the graph whose edges they are, weighted by
-    ``block_weight`` (> 0; a block of weight 0 joins no tree)."""
+    """Per block (``block_lo[i] <= block_hi[i]``, block rows, each pair once; diagonal blocks have
+    ``lo == hi``): kept in the preconditioner. Every diagonal block, and the off-diagonal blocks of a
+    maximum spanning tree (a forest, on a disconnected graph) of the graph whose edges they are,
+    weighted by ``block_weight`` (a block of weight 0 or NaN joins no tree)."""
     keep = block_lo == block_hi
     off = np.flatnonzero(~keep & (block_weight > 0))
     if not len(off):
         return keep
-    # minimum_spanning_tree over 1 / weight: the heaviest blocks first; each edge's position rides along
-    # as the order of its (lo, hi) key among the sorted keys
-    g = sparse.csr_matrix((1.0 / block_weight[off], (block_lo[off], block_hi[off])), shape=(n_vars, n_vars))
+    # a spanning tree depends only on the weights' order: minimum_spanning_tree over their ranks,
+    # heaviest first (1, 2, ...: no overflow of 1 / weight, no zero that scipy would take for no edge);
+    # each edge's block found again by the order of its (lo, hi) key among the sorted keys
+    rank = np.empty(len(off))
+    rank[np.argsort(-block_weight[off], kind="stable")] = np.arange(1, len(off) + 1)
+    g = sparse.csr_matrix((rank, (block_lo[off], block_hi[off])), shape=(n_vars, n_vars))
     t = minimum_spanning_tree(g).tocoo()
     lo, hi = np.minimum(t.row, t.col).astype(np.int64), np.maximum(t.row, t.col).astype(np.int64)
     keys = block_lo[off] * n_vars + block_hi[off]

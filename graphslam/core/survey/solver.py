@@ -3,7 +3,7 @@
 The same objective as the GTSAM graph of ``graphslam.core.survey.factors`` (IMU-between
 factors with GTSAM's Pose2 Logmap error, the dead-zone WiFi range factors), solved by an
 LM loop whose every step is a handful of numpy array operations over all factors plus one
-sparse Cholesky factorisation. Why not GTSAM's own LM: on the WiFi graph its multifrontal
+sparse solve (a Cholesky factorisation, or conjugate gradients on large systems). Why not GTSAM's own LM: on the WiFi graph its multifrontal
 elimination redoes the symbolic work at every try of lambda, where a sparse Cholesky with
 the analysis reused (PARDISO, CHOLMOD: ``graphslam.core.common.cholesky``) refactorises only.
 
@@ -24,7 +24,7 @@ the analysis reused (PARDISO, CHOLMOD: ``graphslam.core.common.cholesky``) refac
    conjugate gradients preconditioned by a spanning tree of the pose graph (``_TreeSystem``,
    ``graphslam.core.common.pcg``) to the same relative residual: no factor of the whole matrix,
    whose fill is what a large survey's time and memory went to (paper size 12: optimise 3.2 s and
-   438 MiB peak, against 17.1 s and 917 MiB by CHOLMOD's factorisation; docs/benchmarks.md).
+   439 MiB peak, against 17.1 s and 917 MiB by CHOLMOD's factorisation; docs/benchmarks.md).
  * Convergence: the error's relative decrease, or (``shape_tol_m``) a step that barely changes
    the map's shape: held by one pose, a large map's last iterations only turn it about that pose.
 
@@ -672,10 +672,10 @@ def levenberg_marquardt(
     ne = obj.normal
     single = settings.precision == "single" or (settings.precision == "auto" and ne.n > settings.single_above_variables)
     iterative = _iterative(settings, ne.n)
+    backend = backend_for(settings.backend)  # the direct factorisation's (and a fallback's)
     # auto: a tree's factor has no front for PARDISO's threads or float32 to speed up, and CHOLMOD's simplicial
     # solves, called every iteration, cost less than PARDISO's (paper size 6: optimise 1.5 vs 1.7-1.8 s)
-    backend = "cholmod" if iterative and settings.backend == "auto" and cholmod_available() else \
-        backend_for(settings.backend)
+    tree_backend = "cholmod" if settings.backend == "auto" and cholmod_available() else backend
     ordering = "metis"  # PARDISO's own (iparm[1] = 2)
     if backend == "cholmod":
         ordering = _cholmod_ordering(settings, ne.n)
@@ -692,9 +692,10 @@ def levenberg_marquardt(
                 ordering = "amd"
         return _DampedSystem(ne, settings.threads, single, backend, perm)
 
-    solver: _DampedSystem | _TreeSystem = _TreeSystem(ne, settings.threads, backend, direct) if iterative else direct()
+    solver: _DampedSystem | _TreeSystem = _TreeSystem(ne, settings.threads, tree_backend, direct) if iterative else \
+        direct()
     if iterative:
-        log.debug("LM over %d unknowns: %s, conjugate gradients, spanning-tree preconditioner", ne.n, backend)
+        log.debug("LM over %d unknowns: %s, conjugate gradients, spanning-tree preconditioner", ne.n, tree_backend)
     else:
         log.debug("LM over %d unknowns: %s, %s ordering, %s precision", ne.n, backend, ordering,
                   "single" if solver.single else "double")  # CHOLMOD factorises in double whatever was asked
@@ -755,7 +756,7 @@ def levenberg_marquardt(
         log.debug("conjugate gradients: %d iterations in %d factorisations%s", solver.iterations, factorizations,
                   "" if solver.iterative else ", then the direct factorisation")
     if isinstance(solver, _TreeSystem) and solver.iterative:
-        info = FactorInfo(backend, "", "double", "pcg")
+        info = FactorInfo(tree_backend, "", "double", "pcg")
     else:
         info = FactorInfo(backend, ordering, "single" if solver.single else "double")
     return LMResult(out, it, factorizations, initial, err, converged, info)
