@@ -76,6 +76,28 @@ def test_pairs_below_are_the_block_entries_below_each_rows_limit(dense: bool) ->
     assert 3 not in ri and (ri == 9).sum() == np.isfinite(d[9]).sum()
 
 
+def test_pairs_below_keep_the_pairs_a_hair_below_the_limit() -> None:
+    """The dense set's one-product prefilter (float32) must pass every pair the element-wise test does,
+    those within rounding of their limit too: limits a relative 1e-9 above and below chosen pairs."""
+    scans = random_scans(60, 50, seed=13)
+    fm = FingerprintMatrix.from_scans(scans)
+    eng = DistanceEngine(fm, dense_threshold=0.0)
+    sparse_eng = DistanceEngine(fm, dense_threshold=1.1)
+    d, _ = eng.block(fm, min_common=1)
+    rng = np.random.default_rng(0)
+    pick = np.array([rng.choice(np.flatnonzero(np.isfinite(row) & (row > 0))) for row in d])
+    at = d[np.arange(len(d)), pick]
+    for factor, kept in ((1.0 + 1e-9, True), (1.0 - 1e-9, False)):
+        limit = at * factor
+        ri, ci, dv = eng.pairs_below(fm, limit, min_common=1)
+        hit = set(zip(ri.tolist(), ci.tolist()))
+        assert all(((i, int(j)) in hit) is kept for i, j in enumerate(pick))
+        want = sparse_eng.pairs_below(fm, limit, min_common=1)
+        np.testing.assert_array_equal(ri, want[0])
+        np.testing.assert_array_equal(ci, want[1])
+        np.testing.assert_allclose(dv, want[2], rtol=1e-12)
+
+
 def test_readings_below_floor_are_dropped() -> None:
     fm = FingerprintMatrix.from_scans([{"a": -50.0, "b": -105.0}], min_rssi_dbm=-100.0)
     assert fm.bssids == ("a",) and fm.heard.tolist() == [1]
