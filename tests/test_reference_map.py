@@ -320,3 +320,28 @@ def test_a_regating_pass_another_follows_stops_early_and_the_last_converges(
     monkeypatch.setattr(align_mod, "_regated", once)
     counts_once, converged_once = passes()
     assert converged_once and len(calls) == 2 and counts_once[-2] == 1 and len(counts_once) == len(counts)
+
+
+def test_with_gated_edges_the_final_radius_runs_on_the_regated_graph(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # the first round stops before the final saturation radius when a placement left edges beyond the
+    # gate: its stage on the narrower graph would be solved again at once; when nothing joins, the
+    # final radius still runs, on the graph as it is
+    import graphslam.core.survey.align as align_mod
+
+    files, ref = _paper_walks_and_reference(tmp_path)
+
+    def stages() -> tuple[list[int], list[int], bool]:
+        al = run_survey(SurveyInputs.from_paths(files, reference_map=ref, picture=False), load_config()).alignment
+        first = {}
+        for r in al.iterations:
+            first.setdefault(r.stage, r.active_edges)
+        return sorted(first), [first[s] for s in sorted(first)], al.converged
+
+    order, active, converged = stages()
+    assert converged and len(order) >= 2
+    assert active[1] > active[0]  # the second LM call already holds the joined edges
+    monkeypatch.setattr(align_mod, "_regated", lambda *args: None)
+    order_none, active_none, converged_none = stages()
+    assert converged_none and len(order_none) == 2 and active_none[1] <= active_none[0]

@@ -565,7 +565,9 @@ def solve(
 ) -> Alignment:
     """Step 5: LM over a shrinking set of unsaturated WiFi edges (graduated saturation); then, where control
     points or a reference map place component 0, the edges its placement had put beyond the tight gate
-    join once a solve brings them within it (``_regated``), and LM runs again on the wider graph."""
+    join once a solve brings them within it (``_regated``), and LM runs again on the wider graph (the
+    first solve then stops before the final radius: at it, the narrower graph's solution would be
+    replaced at once; paper size 12 with a reference, 13 -> 10 iterations)."""
     t0 = time.perf_counter() if t0 is None else t0
     timings = dict(problem.timings_s)
     t = time.perf_counter()
@@ -631,7 +633,11 @@ def solve(
     converged = False
     solver: dict[str, str] = {}
     prev_active: NDArray | None = None
-    radii = _saturation_radii(cfg, problem.method)
+    all_radii = _saturation_radii(cfg, problem.method)
+    # edges a placement put beyond the gate: the first round stops before the final radius, which the
+    # re-gated graph's passes run (a converged final stage on the narrower graph would be re-solved at once)
+    final_pending = len(all_radii) > 1 and bool(len(problem.gated_wifi_pairs) or len(problem.gated_anchor_pairs))
+    radii = all_radii[:-1] if final_pending else all_radii
     stage = 0
     regated = (0, 0)
     capped = False  # the last LM call stopped at _REGATE_PASS_ITERATIONS
@@ -639,7 +645,7 @@ def solve(
         lm = settings
         if regate_round:  # the edges this solution brings within the gate join; LM again at the final radius
             wider = _regated(problem, xyh, cfg) if regate_round <= _REGATE_ROUNDS else None
-            if wider is None and not capped:
+            if wider is None and not capped and not final_pending:
                 break
             if wider is not None:
                 regated = (regated[0] + len(wider.wifi_pairs) - len(problem.wifi_pairs),
@@ -650,8 +656,8 @@ def solve(
                 values = native[2] if native is not None else None
                 if regate_round < _REGATE_ROUNDS:  # another pass follows: a few iterations choose its edges
                     lm = replace(settings, max_iterations=min(settings.max_iterations, _REGATE_PASS_ITERATIONS))
-            # else: nothing more joins the capped pass's graph: LM finishes it
-            radii, prev_active = radii[-1:], None
+            # else: nothing more joins the capped pass's graph (or the final radius is still to run): LM finishes it
+            radii, prev_active, final_pending = all_radii[-1:], None, False
         for radius in radii:
             this_stage, stage = stage, stage + 1  # a skipped stage keeps its number
             d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
