@@ -1,4 +1,4 @@
-"""What the core sub-packages share: SE(2) geometry and the odometry (IMU-between) factors.
+"""What the core sub-packages share: SE(2) geometry, the odometry (IMU-between) factors and array helpers.
 
 The core sub-packages depend in one direction: ``common`` (and ``types``, ``progress``,
 ``summary``) <- ``radiomap`` <- ``uwb`` <- ``survey``; ``tracking`` sits beside ``survey`` on

@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 
+from graphslam.core.common.arrays import nonzero_2d
 from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix
 from graphslam.core.radiomap.radiomap import RadioMap
 
@@ -361,7 +362,7 @@ def nearest(d: NDArray[np.float64], k: int) -> tuple[NDArray[np.int64], NDArray[
     few = ~(tau < np.inf)  # fewer than k finite groups: every finite entry is a candidate, no other
     if few.any():
         cand[few] = np.isfinite(d[few])
-    ri, ci = np.nonzero(cand)
+    ri, ci = nonzero_2d(cand)
     v = d[ri, ci]
     fin = np.isfinite(v)
     ri, ci, v = ri[fin], ci[fin], v[fin]

@@ -31,6 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 
+from graphslam.core.common.arrays import nonzero_2d
 from graphslam.core.radiomap.fingerprints import MAX_BLOCK_CELLS, FingerprintMatrix
 
 DENSE_MAX_CELLS = 20_000_000  # N x A of the dense float32 path (80 MB)
@@ -202,7 +203,7 @@ def row_top_k(block: NDArray, k: int) -> tuple[NDArray[np.int64], NDArray[np.int
         gmax[:, full] = block[:, full * g :].max(axis=1)
     tiny = np.finfo(block.dtype).tiny
     tau = np.maximum(np.partition(gmax, groups - k, axis=1)[:, groups - k], tiny) if groups >= k else np.full(r, tiny)
-    ri, ci = np.nonzero(block >= tau[:, None])
+    ri, ci = nonzero_2d(block >= tau[:, None])
     v = block[ri, ci]
     o = np.lexsort((ci, -v, ri))
     ri, ci = ri[o], ci[o]

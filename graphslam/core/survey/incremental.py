@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from scipy import sparse
 
 from graphslam.config import EdgeConfig
+from graphslam.core.common.arrays import nonzero_2d
 from graphslam.core.radiomap.fingerprints import DistanceEngine
 from graphslam.core.survey.association import FingerprintNodes
 from graphslam.core.survey.edges import WifiEdges, _row_distances, nearest_per_row
@@ -251,14 +252,14 @@ def update_edges(fp: FingerprintNodes, thresholds: NDArray[np.float64], warm: Wa
             ok = d < thresholds[rows][:, None]
             ok[np.arange(len(rows)), rows] = False
             _exclude_same_walk(ok, rows, fp, t_s, cfg)
-            ri, ci = np.nonzero(ok)
+            ri, ci = nonzero_2d(ok)
             candidates += len(ri)
             ki.append(rows[ri])
             kj.append(ci)
             kd.append(d[ri, ci])
             # old row -> new column: the transposed block (eq. 9 is symmetric); other walks, no exclusion
             back = (d < thresholds[None, :]) & ~new_row[None, :]
-            ri, ci = np.nonzero(back)
+            ri, ci = nonzero_2d(back)
             candidates += len(ri)
             di.append(ci)
             dj.append(rows[ri])
