@@ -36,12 +36,13 @@ changed; vote grids are bounded by the map's extent / ``cell_m``.
 from __future__ import annotations
 
 import logging
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 from graphslam.config import GraphSlamConfig
 from graphslam.core.progress import Task
@@ -49,6 +50,16 @@ from graphslam.core.radiomap.similarity import Matches
 from graphslam.core.survey.initialise import se2_apply
 
 log = logging.getLogger(__name__)
+
+_POOLS: list[ThreadpoolController] = []  # the thread pools loaded, scanned once: a scan costs ~0.6 ms per join
+
+
+def _one_thread() -> AbstractContextManager[object]:
+    """A context holding every BLAS / OpenMP pool at one thread (the joins' 3W x 3W systems: threads only
+    add overhead)."""
+    if not _POOLS:
+        _POOLS.append(ThreadpoolController())
+    return _POOLS[0].limit(limits=1)
 
 
 @dataclass(frozen=True)
@@ -445,7 +456,7 @@ def grow_placement(
             else:  # the new walk alone on the map (its matches; the others held)
                 moved = np.array([b])
                 inside &= (si == b) | (sj == b)
-            with threadpool_limits(1):  # 3W x 3W systems: threads only add overhead
+            with _one_thread():
                 T = refine_rigid(T, moved, held, scan_session, scan_xy, mi[inside], mj[inside], mw[inside], params,
                                  rotation_sigma)
             for s in moved:
@@ -456,7 +467,7 @@ def grow_placement(
     if placed.sum() > last_full:  # local refinements since the last joint one
         walks = np.flatnonzero(placed)
         inside = placed[si] & placed[sj]
-        with threadpool_limits(1):
+        with _one_thread():
             T = refine_rigid(T, walks, held, scan_session, scan_xy, mi[inside], mj[inside], mw[inside], params,
                              rotation_sigma)
         for s in walks:
