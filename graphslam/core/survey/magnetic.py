@@ -497,8 +497,13 @@ def walk_links(
         size = near.sum(axis=1)
         best: list[int] = []
         members = np.zeros(0, np.int64)
-        # Python ints: the greedy loop below runs ~1M times on a 60-walk survey, on a few matches each
-        ga, gb = s_lo[idx].tolist(), s_hi[idx].tolist()
+        # a match holds a stretch of both walks: two matches are independent when they overlap on neither.
+        # Each match's conflicts as one Python int (bit x: match x overlaps it): the greedy loop below runs
+        # ~1M times on a 60-walk survey, one shift and mask per match
+        ga, gb = s_lo[idx], s_hi[idx]
+        conflict = (np.abs(ga[:, None] - ga[None]) < L) | (np.abs(gb[:, None] - gb[None]) < L)
+        packed = np.packbits(conflict, axis=1, bitorder="little")
+        bits = [int.from_bytes(row.tobytes(), "little") for row in packed]
         seen: set[bytes] = set()  # agreeing sets already chosen from: the same set, the same choice
         for c0 in np.argsort(-size, kind="stable").tolist():  # the largest agreeing sets first
             if size[c0] <= len(best):
@@ -509,11 +514,11 @@ def walk_links(
             seen.add(key)
             agree = np.flatnonzero(near[c0])  # ascending index = descending score
             chosen: list[int] = []
+            blocked = 0  # matches overlapping a chosen one
             for q in agree.tolist():
-                # a match holds a stretch of both walks: independent matches overlap on neither
-                a, b = ga[q], gb[q]
-                if all(abs(ga[x] - a) >= L and abs(gb[x] - b) >= L for x in chosen):
+                if not (blocked >> q) & 1:
                     chosen.append(q)
+                    blocked |= bits[q]
             if len(chosen) > len(best):
                 best, members = chosen, agree
         if len(best) < p.min_windows:
