@@ -6,6 +6,7 @@ with every run's outputs (``config.yaml``).
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
@@ -13,6 +14,8 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from graphslam.errors import ConfigError
+
+log = logging.getLogger(__name__)
 
 
 M = TypeVar("M", bound=BaseModel)
@@ -117,39 +120,23 @@ class OptimizerConfig(_Strict):
     relative_error_tol: float = Field(1e-4, gt=0)
     absolute_error_tol: float = Field(1e-5, ge=0)
     shape_tol_m: float = Field(
-        0.005, ge=0, description="the vectorised LM (solver pardiso / cholmod): converged once an LM step moves the poses "
+        0.005, ge=0, description="the vectorised LM (solver auto / cholmod): converged once an LM step moves the poses "
         "by less than this (rms, metres) beyond one rigid motion of the whole map (which no output but the frame "
         "depends on) and lowers the error by less than 10x relative_error_tol; 0: off",
     )
     outer_iterations: int = Field(6, ge=1, description="re-evaluations of the saturated (d > d_max) edge set")
-    solver: Literal["auto", "pardiso", "cholmod", "gtsam"] = Field(
+    solver: Literal["auto", "cholmod", "gtsam"] = Field(
         "auto",
-        description="the vectorised LM (own factors, the sparse Cholesky's analysis reused) with pardiso: MKL PARDISO "
-        "(the fast extra, x86-64) or cholmod: SuiteSparse CHOLMOD (cvxopt); gtsam: GTSAM's LevenbergMarquardtOptimizer; "
-        "auto: pardiso where MKL loads, else cholmod (the spanning tree of linear_solver pcg: cholmod)",
-    )
-    threads: int = Field(
-        0, ge=0, description="threads of PARDISO's factorisation (MKL); 0 = MKL's default: every core, or "
-        "MKL_NUM_THREADS (survey-batch workers: 1). CHOLMOD runs on one (cvxopt's BLAS is single-threaded)",
-    )
-    factor_precision: Literal["auto", "single", "double"] = Field(
-        "auto",
-        description="solver=pardiso, a direct factorisation (linear_solver cholesky, or auto below pcg_above_variables): "
-        "its precision; single: float32 Cholesky, each step refined in "
-        "double (PCG) to a 1e-10 relative residual, i.e. the double step (double on a matrix float32 cannot resolve); "
-        "auto: single above single_above_variables unknowns, where the cheaper factorisation outweighs the refinement's "
-        "solves (docs/method.md); CHOLMOD factorises in double",
-    )
-    single_above_variables: int = Field(
-        40_000, ge=0, description="factor_precision=auto: single precision above this many unknowns (3 per solved pose; "
-        "paper size 4: 27k, size 8: 54k)",
+        description="auto or cholmod: the vectorised LM (own factors; SuiteSparse CHOLMOD through cvxopt, the "
+        "sparse Cholesky's analysis reused, or the spanning tree of linear_solver pcg); gtsam: GTSAM's "
+        "LevenbergMarquardtOptimizer",
     )
     ordering: Literal["auto", "metis", "amd"] = Field(
         "auto",
-        description="solver=cholmod, a direct factorisation (linear_solver cholesky, or auto below "
+        description="the vectorised LM's direct factorisation (linear_solver cholesky, or auto below "
         "pcg_above_variables): its fill-reducing ordering; metis: nested dissection "
         "(GTSAM's METIS) of the pose graph; amd: CHOLMOD's approximate minimum degree; auto: metis from "
-        "metis_above_variables unknowns on, amd below (PARDISO orders by its own METIS)",
+        "metis_above_variables unknowns on, amd below",
     )
     metis_above_variables: int = Field(
         20_000, ge=0, description="ordering=auto: METIS from this many unknowns on (3 per solved pose; paper size 4: "
@@ -158,7 +145,7 @@ class OptimizerConfig(_Strict):
     blas_threads: int = Field(
         1, ge=0, description="OpenBLAS threads (numpy's and scipy's) during a survey; 0 = OpenBLAS's default: every "
         "core, or OPENBLAS_NUM_THREADS. 1: the survey's many small products do not pay for waking the other "
-        "threads. The sparse Cholesky keeps `threads`",
+        "threads",
     )
     linear_solver: Literal["auto", "cholesky", "pcg"] = Field(
         "auto",
@@ -177,6 +164,28 @@ class OptimizerConfig(_Strict):
     compress_chains: bool = Field(
         True, description="solve only fingerprint poses (IMU chains between them composed exactly), restore the rest"
     )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _without_pardiso(cls, data: Any) -> Any:
+        """A configuration written when MKL PARDISO was a solver (a previous survey's config.yaml): its own
+        keys are ignored and ``solver: pardiso`` solves by CHOLMOD, each with a warning. PARDISO gave a
+        survey nothing CHOLMOD does not (docs/benchmarks.md) for a ~1 GB dependency."""
+        if not isinstance(data, dict):
+            return data
+        data = dict(data)
+        for key in REMOVED_OPTIMIZER_KEYS:
+            if key in data:
+                del data[key]
+                log.warning("optimizer.%s: MKL PARDISO is no longer a solver; the key is ignored", key)
+        if data.get("solver") == "pardiso":
+            data["solver"] = "cholmod"
+            log.warning("optimizer.solver pardiso: MKL PARDISO is no longer a solver; CHOLMOD solves")
+        return data
+
+
+# optimizer keys of MKL PARDISO, accepted and ignored (``OptimizerConfig._without_pardiso``)
+REMOVED_OPTIMIZER_KEYS = ("threads", "factor_precision", "single_above_variables")
 
 
 class PlacementConfig(_Strict):

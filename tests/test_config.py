@@ -26,6 +26,21 @@ def test_unknown_key_is_an_error(tmp_path: Path) -> None:
     assert str(p) in str(e.value) and "wifi.dmax" in str(e.value)
 
 
+def test_a_configuration_naming_mkl_pardiso_loads_with_a_warning_per_key(tmp_path: Path, caplog) -> None:
+    # a previous survey's config.yaml from when PARDISO was a solver: its keys ignored, solver pardiso is CHOLMOD
+    p = tmp_path / "c.yaml"
+    p.write_text("optimizer:\n  solver: pardiso\n  threads: 2\n  factor_precision: single\n"
+                 "  single_above_variables: 1000\n  max_iterations: 7\n")
+    c = load_config(p)
+    assert c.optimizer.solver == "cholmod" and c.optimizer.max_iterations == 7
+    assert c.optimizer == GraphSlamConfig().optimizer.model_copy(update={"solver": "cholmod", "max_iterations": 7})
+    for key in ("threads", "factor_precision", "single_above_variables", "solver pardiso"):
+        assert f"optimizer.{key}" in caplog.text
+    p.write_text("optimizer:\n  solver: mkl\n")
+    with pytest.raises(ConfigError, match="optimizer.solver"):  # anything else stays an error
+        load_config(p)
+
+
 def test_partial_file_merges_over_defaults(tmp_path: Path) -> None:
     p = tmp_path / "c.yaml"
     p.write_text("wifi:\n  d_min_m: 3\n")

@@ -94,11 +94,10 @@ def test_unary_factors_equal_gtsams_and_their_jacobians_the_numerical_ones() -> 
         np.testing.assert_allclose(num_p, (np.eye(2)[:, i] if i < 2 else np.zeros(2))[None, :] / psig[:, None], atol=1e-6)
 
 
-@pytest.mark.skipif(not S.pardiso_available(), reason="MKL PARDISO not available on this platform")
 def test_both_back_ends_reach_the_same_minimum_with_heading_priors() -> None:
     sv = survey_with_headings(3)
     sols = []
-    for solver in ("pardiso", "gtsam"):
+    for solver in ("cholmod", "gtsam"):
         # converged tightly: with a loose heading prior the minimum is flat, and each back end stops elsewhere on it
         opt = CFG.optimizer.model_copy(update={"solver": solver, "relative_error_tol": 1e-9, "shape_tol_m": 0.0})
         cfg = CFG.model_copy(update={"optimizer": opt})

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import sparse
 from test_align import CFG, two_walks
-from test_solver import BACKENDS, _chain_system, needs_cholmod
+from test_solver import _chain_system, needs_cholmod
 
 from graphslam.core.common.pcg import conjugate_gradients, spanning_tree_blocks
 from graphslam.core.survey import solver as S
@@ -70,18 +70,18 @@ def test_the_tree_preconditioner_is_at_least_half_the_matrix_and_preconditions_i
     assert ok and tree_it < diag_it
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_lm_by_conjugate_gradients_reaches_the_direct_minimum(backend: str) -> None:
+@needs_cholmod
+def test_lm_by_conjugate_gradients_reaches_the_direct_minimum() -> None:
     problem = build_problem(two_walks(), CFG)
     graph, _ = pose_graph(problem, CFG)
     active = np.ones(len(problem.wifi_pairs), bool)
-    direct, pcg = (S.levenberg_marquardt(graph, problem.init_xyh, active, S.LMSettings(backend=backend, linear_solver=ls))
+    direct, pcg = (S.levenberg_marquardt(graph, problem.init_xyh, active, S.LMSettings(linear_solver=ls))
                    for ls in ("cholesky", "pcg"))
     assert direct.converged and pcg.converged and pcg.iterations == direct.iterations
     assert abs(pcg.error - direct.error) <= 1e-9 * max(1.0, direct.error)
     np.testing.assert_allclose(pcg.xyh, direct.xyh, atol=1e-7)
-    assert pcg.factor == S.FactorInfo(backend, "", "double", "pcg")
-    assert pcg.factor.as_dict() == {"solver": backend, "linear_solver": "pcg", "preconditioner": "spanning tree"}
+    assert pcg.factor == S.FactorInfo("", "pcg")
+    assert pcg.factor.as_dict() == {"solver": "cholmod", "linear_solver": "pcg", "preconditioner": "spanning tree"}
     assert direct.factor.linear_solver == "cholesky"
 
 
@@ -90,22 +90,22 @@ def test_a_matrix_the_iterations_do_not_resolve_goes_to_the_direct_factorisation
     rng = np.random.default_rng(5)
     ne, H = _chain_system(rng, 80, 1e6)
     b = rng.normal(size=ne.n)
-    exact = S._DampedSystem(ne, 1, False, "cholmod")
+    exact = S._DampedSystem(ne)
     exact.factor(H)
     want = exact.solve(b)
     made = []
 
     def direct() -> S._DampedSystem:
-        made.append(S._DampedSystem(ne, 1, False, "cholmod"))
+        made.append(S._DampedSystem(ne))
         return made[-1]
 
-    tree = S._TreeSystem(ne, 1, "cholmod", direct)
+    tree = S._TreeSystem(ne, direct)
     tree.factor(H)
     got = tree.solve(b)
     assert tree.iterative and tree.iterations > 0 and not made  # resolved by the iterations
     assert np.linalg.norm(S._sym_matvec(ne, H, got) - b) <= 1e-10 * np.linalg.norm(b) * 1.0001
     monkeypatch.setattr(S._TreeSystem, "MAX_ITERATIONS", 2)
-    tree = S._TreeSystem(ne, 1, "cholmod", direct)
+    tree = S._TreeSystem(ne, direct)
     tree.factor(H)
     np.testing.assert_array_equal(tree.solve(b), want)  # the very same direct solve
     assert not tree.iterative and tree.fallbacks == 1 and len(made) == 1
@@ -114,7 +114,7 @@ def test_a_matrix_the_iterations_do_not_resolve_goes_to_the_direct_factorisation
     # a tree that is not positive definite: refused as the direct factorisation refuses its matrix
     bad = H.copy()
     bad[ne.diag_pos[:3]] = -1.0
-    tree = S._TreeSystem(ne, 1, "cholmod", direct)
+    tree = S._TreeSystem(ne, direct)
     with pytest.raises(np.linalg.LinAlgError):
         tree.factor(bad)
     for f in (exact, tree, *made):
@@ -136,10 +136,10 @@ def test_a_matrix_that_is_not_positive_definite_raises_from_the_solve_and_the_it
     made = []
 
     def direct() -> S._DampedSystem:
-        made.append(S._DampedSystem(ne, 1, False, "cholmod"))
+        made.append(S._DampedSystem(ne))
         return made[-1]
 
-    tree = S._TreeSystem(ne, 1, "cholmod", direct)
+    tree = S._TreeSystem(ne, direct)
     tree.factor(A)  # ...its tree is not
     P = _dense(ne, np.where(tree._mask, A, 0.0))
     assert np.linalg.eigvalsh(P).min() > 0
@@ -159,14 +159,10 @@ def test_auto_solves_by_conjugate_gradients_from_the_variable_count_on() -> None
     n = 3 * len(graph.variables)
     seen = []
     for ls, above in (("auto", n), ("auto", n + 1), ("cholesky", 0), ("pcg", 10 * n)):
-        settings = S.LMSettings(backend="cholmod", ordering="metis", linear_solver=ls, pcg_above_variables=above)
+        settings = S.LMSettings(ordering="metis", linear_solver=ls, pcg_above_variables=above)
         seen.append((S.levenberg_marquardt(graph, problem.init_xyh, active, settings).factor.linear_solver,
                      S.graph_ordering(graph, settings) is None))
     assert seen == [("pcg", True), ("cholesky", False), ("cholesky", False), ("pcg", True)]
-    # auto: the tree factorised by CHOLMOD (simplicial) even where PARDISO loads; the direct factor by auto's own
-    auto = [S.levenberg_marquardt(graph, problem.init_xyh, active, S.LMSettings(linear_solver=ls)).factor.backend
-            for ls in ("pcg", "cholesky")]
-    assert auto == ["cholmod", S.backend_for("auto")]
     # the survey reports it, in report.json's words
     cfg = CFG.model_copy(update={"optimizer": CFG.optimizer.model_copy(
         update={"solver": "cholmod", "linear_solver": "pcg"})})
@@ -174,12 +170,12 @@ def test_auto_solves_by_conjugate_gradients_from_the_variable_count_on() -> None
     assert al.solver == {"solver": "cholmod", "linear_solver": "pcg", "preconditioner": "spanning tree"}
 
 
-def test_where_the_iterations_give_up_lm_goes_on_with_auto_s_direct_factorisation(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_where_the_iterations_give_up_lm_goes_on_with_the_direct_factorisation(monkeypatch: pytest.MonkeyPatch) -> None:
     problem = build_problem(two_walks(), CFG)
     graph, _ = pose_graph(problem, CFG)
     active = np.ones(len(problem.wifi_pairs), bool)
     want = S.levenberg_marquardt(graph, problem.init_xyh, active, S.LMSettings(linear_solver="cholesky"))
     monkeypatch.setattr(S._TreeSystem, "MAX_ITERATIONS", 1)
     got = S.levenberg_marquardt(graph, problem.init_xyh, active, S.LMSettings(linear_solver="pcg"))
-    assert got.factor.linear_solver == "cholesky" and got.factor.backend == S.backend_for("auto")
+    assert got.factor.linear_solver == "cholesky"
     assert got.factor == want.factor and abs(got.error - want.error) <= 1e-9 * max(1.0, want.error)

@@ -329,7 +329,7 @@ def _legacy_inputs(
 @contextlib.contextmanager
 def _openblas_threads(n: int) -> Iterator[None]:
     """Within: OpenBLAS (numpy's and scipy's, whatever their build's prefix) at ``n`` threads;
-    ``n`` = 0 leaves it. MKL (the factorisation's, ``optimizer.threads``) is not touched."""
+    ``n`` = 0 leaves it."""
     if n <= 0:
         yield
         return

@@ -1,15 +1,15 @@
 #!/usr/bin/env python3
 """`graphslam survey` of one simulated survey by several installs (Python interpreters of different
-environments, e.g. `pip install .` against `pip install ".[fast]"`), alternating run by run.
+environments, e.g. two trees, or `pip install .` against an install with another back end), alternating
+run by run.
 
-Why: the default install and the `fast` extra differ in their sparse Cholesky (CHOLMOD against
-MKL PARDISO); on a shared machine only a side-by-side run, each install taking turns (in reversed
-order every other round), compares them. Per install: medians of wall, CPU (user + sys) and the
+Why: on a shared machine only a side-by-side run, each install taking turns (in reversed order every
+other round), compares them. Per install: medians of wall, CPU (user + sys) and the
 optimise stage, peak RSS (the survey process's own, ``wait4``), the back end report.json names,
 LM iterations, final error, landmark mean; the ratios to the first install; the load average.
 
-    python lab/solver/bench_installs.py --python default=/tmp/venv-default/bin/python \\
-        --python fast=/tmp/venv-fast/bin/python --scenario paper --size 12 --runs 3
+    python lab/solver/bench_installs.py --python new=/tmp/venv-new/bin/python \\
+        --python old=/tmp/venv-old/bin/python --scenario paper --size 12 --runs 3
     python lab/solver/bench_installs.py ... --scenario crowd --walks 200 --minutes 2,8 --seed 5
 
 The survey is simulated once, by the interpreter running this script (`graphslam.sim`), into a

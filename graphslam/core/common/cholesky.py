@@ -1,130 +1,18 @@
 """Sparse Cholesky of a symmetric positive-definite matrix given by its upper triangle (CSR), for the
 vectorised Levenberg-Marquardt's damped normal equations: the fill-reducing ordering and the
-symbolic factorisation once per pattern, then numeric refactorisations and solves.
+symbolic factorisation once per pattern, then numeric refactorisations and solves
+(``factor(data)``, ``solve(b)``, ``free()``).
 
-Two back ends, the same interface (``factor(data)``, ``solve(b)``, ``free()``):
-
-- ``cholmod``: SuiteSparse CHOLMOD (supernodal, double precision, one thread: cvxopt's BLAS is a
-  single-threaded build) through ``cvxopt``, a dependency: its wheels cover every platform GTSAM's
-  do (Linux x86-64 and ARM, macOS). Its ordering: ``nested_dissection`` (GTSAM's METIS) where given,
-  else CHOLMOD's AMD;
-- ``pardiso``: MKL PARDISO (METIS ordering; optionally single precision) through MKL's runtime
-  library, the ``fast`` extra (``pip install "graphslam[fast]"``: the ``mkl`` wheel, x86-64 only).
-
-``backend_for("auto")`` takes PARDISO where MKL loads, else CHOLMOD. Pure maths on arrays.
+SuiteSparse CHOLMOD (supernodal, or simplicial for a pattern that barely fills; double precision, one
+thread: cvxopt's BLAS is a single-threaded build) through ``cvxopt``, a dependency: its wheels cover
+every platform GTSAM's do (Linux x86-64 and ARM, macOS). Its ordering: ``nested_dissection`` (GTSAM's
+METIS) where given, else CHOLMOD's AMD. Pure maths on arrays.
 """
 
 from __future__ import annotations
 
-import contextlib
-from pathlib import Path
-from typing import Iterator
-
 import numpy as np
 from numpy.typing import NDArray
-
-BACKENDS = ("pardiso", "cholmod")
-
-_MKL: list = []  # the loaded MKL runtime, once per process
-
-
-def _mkl_runtime():  # -> ctypes.CDLL (imported lazily)
-    """MKL's single dynamic library, as the ``mkl`` wheel installs it (``<prefix>/lib``).
-
-    Looked up by file name first: ``ctypes.util.find_library`` runs ldconfig and a compiler,
-    and pypardiso's import does that search at import time."""
-    if _MKL:
-        return _MKL[0]
-    import ctypes
-    import ctypes.util
-    import glob
-    import site
-    import sys
-
-    dirs = [Path(sys.prefix) / "lib", Path(site.getuserbase()) / "lib", Path(sys.prefix) / "Library" / "bin"]
-    names = ("libmkl_rt.so*", "libmkl_rt*.dylib", "mkl_rt*.dll")
-    found = sorted(p for d in dirs for n in names for p in glob.glob(str(d / n)))
-    lib_path = found[-1] if found else ctypes.util.find_library("mkl_rt")
-    if lib_path is None:
-        raise OSError('MKL runtime (libmkl_rt) not found: pip install "graphslam[fast]"')
-    lib = ctypes.CDLL(lib_path)
-    i32p = ctypes.POINTER(ctypes.c_int32)
-    lib.pardiso.argtypes = [ctypes.POINTER(ctypes.c_int64)] + [i32p] * 5 + [ctypes.c_void_p, i32p, i32p, i32p, i32p,
-                                                                             i32p, i32p, ctypes.c_void_p,
-                                                                             ctypes.c_void_p, i32p]
-    lib.pardiso.restype = None
-    _MKL.append(lib)
-    return lib
-class _Pardiso:
-    """MKL PARDISO for a symmetric positive-definite matrix (upper triangle, CSR): the ordering
-    (METIS nested dissection) and symbolic factorisation once, then numeric refactorisations."""
-
-    def __init__(
-        self, indptr: NDArray[np.int32], indices: NDArray[np.int32], threads: int = 0, single: bool = False
-    ) -> None:
-        self._lib = _mkl_runtime()
-        self._n = len(indptr) - 1
-        self._ia = (indptr + 1).astype(np.int32)  # PARDISO's default: one-based indices
-        self._ja = (indices + 1).astype(np.int32)
-        self._dtype = np.float32 if single else np.float64
-        self._a = np.zeros(len(indices), self._dtype)
-        self._pt = np.zeros(64, np.int64)  # PARDISO's internal handle
-        # iparm[0] = 1: the entries set here, every other one 0 (MKL's default for a real SPD matrix)
-        self._iparm = np.zeros(64, np.int32)
-        self._iparm[0] = 1
-        self._iparm[1] = 2  # fill-reducing ordering: METIS nested dissection (the default)
-        self._iparm[9] = 8  # pivot perturbation 1e-8 (the default; an SPD matrix is not pivoted)
-        self._iparm[17] = -1  # report the factor's non-zeros (the default)
-        # two-level factorisation (faster on large factors, the same solution to rounding)
-        self._iparm[23] = 1
-        self._iparm[27] = int(single)  # matrix, right-hand side and solution in single precision
-        self._threads = threads
-        self._live = False
-        self._call(11, self._none(), self._none())  # analysis
-        self._live = True
-
-    def _call(self, phase: int, b: NDArray, x: NDArray) -> None:
-        import ctypes
-
-        i32 = ctypes.c_int32
-        err = i32(0)
-        lib = self._lib
-        # thread-local MKL thread count when one is set (a busy machine: OpenMP spin-waits cost more than they gain)
-        prev = lib.MKL_Set_Num_Threads_Local(self._threads) if self._threads > 0 else None
-        try:
-            lib.pardiso(
-                self._pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
-                ctypes.byref(i32(1)), ctypes.byref(i32(1)), ctypes.byref(i32(2)),  # maxfct, mnum, mtype: real SPD
-                ctypes.byref(i32(phase)), ctypes.byref(i32(self._n)),
-                self._a.ctypes.data, self._ia.ctypes.data_as(ctypes.POINTER(i32)),
-                self._ja.ctypes.data_as(ctypes.POINTER(i32)), None, ctypes.byref(i32(1)),
-                self._iparm.ctypes.data_as(ctypes.POINTER(i32)), ctypes.byref(i32(0)),
-                b.ctypes.data, x.ctypes.data, ctypes.byref(err),
-            )
-        finally:
-            if prev is not None:
-                lib.MKL_Set_Num_Threads_Local(prev)
-        if err.value != 0:  # e.g. -4: zero pivot, the matrix is not positive definite
-            raise np.linalg.LinAlgError(f"PARDISO phase {phase} failed with error {err.value}")
-
-    def _none(self) -> NDArray:
-        return np.zeros(1, self._dtype)
-
-    def factor(self, data: NDArray) -> None:
-        self._a[:] = data
-        self._call(22, self._none(), self._none())
-
-    def solve(self, b: NDArray) -> NDArray[np.float64]:
-        b = np.ascontiguousarray(b, dtype=self._dtype)
-        x = np.zeros_like(b)
-        self._call(33, b, x)
-        return x.astype(np.float64, copy=False)
-
-    def free(self) -> None:
-        if self._live:
-            self._live = False
-            self._call(-1, self._none(), self._none())
-
 
 
 class _Cholmod:
@@ -135,7 +23,7 @@ class _Cholmod:
     ordering is used as it is (``nmethods`` 1): by default CHOLMOD would also try AMD and keep
     whichever fills less, an analysis that costs time and leaves the choice to CHOLMOD."""
 
-    def __init__(self, indptr: NDArray[np.int32], indices: NDArray[np.int32], threads: int = 0,
+    def __init__(self, indptr: NDArray[np.int32], indices: NDArray[np.int32],
                  perm: NDArray[np.int64] | None = None, simplicial: bool = False) -> None:
         import cvxopt
         from cvxopt import cholmod
@@ -147,7 +35,6 @@ class _Cholmod:
         rows = cvxopt.matrix(np.asarray(indices, np.int64))
         cols = cvxopt.matrix(np.repeat(np.arange(self._n, dtype=np.int64), np.diff(indptr)))
         self._a = cvxopt.spmatrix(cvxopt.matrix(np.ones(len(indices))), rows, cols, (self._n, self._n))
-        self._threads = threads
         self._simplicial = simplicial
         # cholmod.options is the module's, read by every call: each factorisation sets its own
         self._options = {"supernodal": 0 if simplicial else 2, "postorder": _POSTORDER}
@@ -169,8 +56,7 @@ class _Cholmod:
         self._a.V = self._cvxopt.matrix(np.ascontiguousarray(data, np.float64))
         self._set_options()
         try:
-            with _blas_threads(self._threads):
-                self._cholmod.numeric(self._a, self._factor)
+            self._cholmod.numeric(self._a, self._factor)
         except ArithmeticError as e:  # not positive definite
             raise np.linalg.LinAlgError(f"CHOLMOD: {e}") from None
         if self._simplicial:
@@ -183,8 +69,7 @@ class _Cholmod:
 
     def solve(self, b: NDArray) -> NDArray[np.float64]:
         x = self._cvxopt.matrix(np.ascontiguousarray(b, np.float64))
-        with _blas_threads(self._threads):
-            self._cholmod.solve(self._factor, x)
+        self._cholmod.solve(self._factor, x)
         return np.array(x, np.float64).ravel()
 
     def permutation(self) -> NDArray[np.int64]:
@@ -202,33 +87,6 @@ class _Cholmod:
 # supernodes: paper size 12's factorisation 1.6-2.0 s against 2.1-3.4 s without)
 _POSTORDER = True
 
-_BLAS: list = []  # threadpoolctl's view of the OpenBLAS builds loaded (cvxopt's among them), once
-
-
-@contextlib.contextmanager
-def _blas_threads(n: int) -> Iterator[None]:
-    """Within: every OpenBLAS loaded (cvxopt's bundled one runs CHOLMOD's supernodes) at ``n``
-    threads; 0 leaves them as they are."""
-    if n <= 0:
-        yield
-        return
-    if not _BLAS:
-        from threadpoolctl import ThreadpoolController
-
-        _BLAS.append(ThreadpoolController().select(internal_api="openblas"))
-    with _BLAS[0].limit(limits=n):
-        yield
-
-
-def pardiso_available() -> bool:
-    """MKL PARDISO loads (the ``fast`` extra: the ``mkl`` wheel, for x86-64 Linux, Windows and macOS)."""
-    try:
-        _mkl_runtime()
-    except OSError:
-        return False
-    return True
-
-
 def cholmod_available() -> bool:
     """cvxopt's CHOLMOD imports (a dependency; absent only from a broken install)."""
     try:
@@ -236,13 +94,6 @@ def cholmod_available() -> bool:
     except ImportError:
         return False
     return True
-
-
-def backend_for(name: str) -> str:
-    """``auto``: PARDISO where MKL loads, else CHOLMOD; a named back end as it is."""
-    if name != "auto":
-        return name
-    return "pardiso" if pardiso_available() else "cholmod"
 
 
 def nested_dissection(indptr: NDArray[np.int32], indices: NDArray[np.int32], block: int = 3) -> NDArray[np.int64]:
@@ -312,15 +163,10 @@ def _metis(m: int, a: NDArray[np.int64], b: NDArray[np.int64]) -> NDArray[np.int
 
 
 def sparse_cholesky(
-    backend: str, indptr: NDArray[np.int32], indices: NDArray[np.int32], threads: int = 0, single: bool = False,
-    perm: NDArray[np.int64] | None = None, simplicial: bool = False,
-):  # -> _Pardiso | _Cholmod
-    """A factorisation of the upper-triangle CSR pattern (``indptr``, ``indices``) by ``backend``
-    (``pardiso`` or ``cholmod``; ``single``: PARDISO only, float32 factor; ``perm``: CHOLMOD only,
-    the fill-reducing ordering, else its AMD; PARDISO orders by its own METIS; ``simplicial``:
-    CHOLMOD only, LDL' column by column instead of supernodes: for a pattern that barely fills)."""
-    if backend == "pardiso":
-        return _Pardiso(indptr, indices, threads, single=single)
-    if backend == "cholmod":
-        return _Cholmod(indptr, indices, threads, perm=perm, simplicial=simplicial)
-    raise ValueError(f"unknown sparse Cholesky back end {backend!r}; use {', '.join(BACKENDS)}")
+    indptr: NDArray[np.int32], indices: NDArray[np.int32], perm: NDArray[np.int64] | None = None,
+    simplicial: bool = False,
+) -> _Cholmod:
+    """A CHOLMOD factorisation of the upper-triangle CSR pattern (``indptr``, ``indices``): ``perm`` the
+    fill-reducing ordering, else its AMD; ``simplicial``: LDL' column by column instead of supernodes, for
+    a pattern that barely fills."""
+    return _Cholmod(indptr, indices, perm=perm, simplicial=simplicial)

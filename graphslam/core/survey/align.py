@@ -108,9 +108,9 @@ class Alignment:
     unused_reference: RadioMap | None = None  # a reference map given that no walk registers onto
     # WiFi and reference edges that joined after a solve brought them within the tight gate (``_regated``)
     regated_edges: tuple[int, int] = (0, 0)
-    # the optimiser that solved it (the last LM call's way): the vectorised LM's {"solver": "cholmod" |
-    # "pardiso", "linear_solver": "cholesky", "ordering": "metis" | "amd", "factor_precision": "single" |
-    # "double"} or {..., "linear_solver": "pcg", "preconditioner": "spanning tree"} (``FactorInfo.as_dict``),
+    # the optimiser that solved it (the last LM call's way): the vectorised LM's {"solver": "cholmod",
+    # "linear_solver": "cholesky", "ordering": "metis" | "amd"} or {..., "linear_solver": "pcg",
+    # "preconditioner": "spanning tree"} (``FactorInfo.as_dict``),
     # {"solver": "gtsam", "linear_solver": "cholesky" | "pcg"} for GTSAM's; empty: nothing was optimised
     solver: dict[str, str] = field(default_factory=dict)
 
@@ -574,16 +574,12 @@ def solve(
     placed_xyh = problem.init_xyh  # the placement (the output's initial poses, whatever the passes)
     dr_xyh = dead_reckoned_nodes(problem.survey)[0]
     n_steps = len(problem.init_xyh)
-    pardiso = use_vectorised_solver(cfg, problem)
+    vectorised = use_vectorised_solver(cfg, problem)
     settings = S.LMSettings(
         max_iterations=cfg.optimizer.max_iterations,
         relative_error_tol=cfg.optimizer.relative_error_tol,
         absolute_error_tol=cfg.optimizer.absolute_error_tol,
         shape_tol_m=cfg.optimizer.shape_tol_m,
-        threads=cfg.optimizer.threads,
-        backend=cfg.optimizer.solver,
-        precision=cfg.optimizer.factor_precision,
-        single_above_variables=cfg.optimizer.single_above_variables,
         ordering=cfg.optimizer.ordering,
         metis_above_variables=cfg.optimizer.metis_above_variables,
         linear_solver=cfg.optimizer.linear_solver,
@@ -593,24 +589,24 @@ def solve(
     def build(pb: Problem) -> tuple:
         """The graph of ``pb`` and its range factors' end nodes: WiFi (ea, eb), magnetic (ma, mb), reference (ra, rb)."""
         with Task("build graph"):
-            if pardiso:
+            if vectorised:
                 pg, chains = pose_graph(pb, cfg)
                 native = None
             else:
                 if len(pb.anchor_pairs):
-                    raise SolverError("a reference map is solved by graphslam's own LM (optimizer.solver auto, "
-                                      "pardiso or cholmod), not optimizer.solver gtsam")
+                    raise SolverError("a reference map is solved by graphslam's own LM (optimizer.solver auto "
+                                      "or cholmod), not optimizer.solver gtsam")
                 pg = None
                 imu_graph, wifi_factors, values, chains = native_graph(pb, cfg)
                 native = (imu_graph, wifi_factors, values)
-        wp = pb.wifi_pairs if pardiso else solved_wifi_pairs(pb)
-        mp = pb.magnetic_pairs if pardiso else solved_magnetic_pairs(pb)
+        wp = pb.wifi_pairs if vectorised else solved_wifi_pairs(pb)
+        mp = pb.magnetic_pairs if vectorised else solved_magnetic_pairs(pb)
         # a reference map's fingerprints: held nodes after the steps (node N + r), WiFi edges to them
         return (pg, chains, native, wp[:, 0], wp[:, 1], mp[:, 0], mp[:, 1],
                 pb.anchor_pairs[:, 0], n_steps + pb.anchor_pairs[:, 1])
 
     pg, chains, native, ea, eb, ma, mb, ra, rb = build(problem)
-    perm = S.graph_ordering(pg, settings) if pardiso else None  # CHOLMOD's, one per graph
+    perm = S.graph_ordering(pg, settings) if vectorised else None  # CHOLMOD's, one per graph
     anchors = np.column_stack([problem.anchor_xy, np.zeros(len(problem.anchor_xy))])
     timings["build_graph"] = time.perf_counter() - t
 
@@ -621,7 +617,7 @@ def solve(
 
     def objective(xyh: NDArray) -> float:
         d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
-        imu = S.between_error(pg, xyh) + S.unary_error(pg, xyh) if pardiso else native[0].error(values)
+        imu = S.between_error(pg, xyh) + S.unary_error(pg, xyh) if vectorised else native[0].error(values)
         dm = np.linalg.norm(xyh[ma, :2] - xyh[mb, :2], axis=1)
         dr = np.linalg.norm(xyh[ra, :2] - anchors[rb - n_steps, :2], axis=1)
         return float(imu + F.fuzzy_cost(d, cfg.wifi).sum() + F.magnetic_cost(dm, cfg.magnetic).sum()
@@ -652,7 +648,7 @@ def solve(
                            regated[1] + len(wider.anchor_pairs) - len(problem.anchor_pairs))
                 problem = wider
                 pg, chains, native, ea, eb, ma, mb, ra, rb = build(problem)
-                perm = S.graph_ordering(pg, settings) if pardiso else None
+                perm = S.graph_ordering(pg, settings) if vectorised else None
                 values = native[2] if native is not None else None
                 if regate_round < _REGATE_ROUNDS:  # another pass follows: a few iterations choose its edges
                     lm = replace(settings, max_iterations=min(settings.max_iterations, _REGATE_PASS_ITERATIONS))
@@ -676,7 +672,7 @@ def solve(
                 if progress is not None:
                     progress(rec)
 
-            if pardiso:
+            if vectorised:
                 res = S.levenberg_marquardt(pg, np.concatenate([xyh, anchors]), active, lm, hook, perm=perm)
                 converged = res.converged
                 capped = lm is not settings and not converged and res.iterations >= lm.max_iterations
@@ -698,7 +694,7 @@ def solve(
     if solver:
         log.info("optimised with %s", describe_solver(solver))
     init_xyh = placed_xyh
-    if pardiso and problem.init_xyh is not placed_xyh:  # the wider graph's error at the placement, comparable
+    if vectorised and problem.init_xyh is not placed_xyh:  # the wider graph's error at the placement, comparable
         initial_error = objective(placed_xyh)
     final_error = objective(xyh)
 

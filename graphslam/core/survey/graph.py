@@ -223,7 +223,7 @@ def point_priors(problem: Problem, cfg: GraphSlamConfig) -> tuple[NDArray, NDArr
 
 def use_vectorised_solver(cfg: GraphSlamConfig, problem: Problem | None = None) -> bool:
     """``optimizer.solver``: the vectorised LM (``solver.py``) unless gtsam is asked for; its sparse
-    Cholesky is PARDISO where MKL loads, else CHOLMOD (``core.common.cholesky``). A local re-solve
+    Cholesky is CHOLMOD (``core.common.cholesky``). A local re-solve
     (--update: ``problem.free``) and a survey with UWB range factors always take GTSAM's: only
     ``native_graph`` builds those factors."""
     if problem is not None and (problem.free is not None or problem.uwb is not None):
@@ -247,12 +247,12 @@ def solved_magnetic_pairs(problem: Problem) -> NDArray[np.int64]:
 
 def describe_solver(solver: dict[str, str]) -> str:
     """One phrase for ``Alignment.solver``, the same in the log and the command's summary, e.g.
-    "cholmod (metis ordering, double precision)" or "gtsam (pcg)"."""
+    "cholmod (metis ordering)" or "gtsam (pcg)"."""
     if solver.get("solver") == "gtsam":
         return f"gtsam ({solver.get('linear_solver', '?')})"
     if solver.get("linear_solver") == "pcg":
         return f"{solver['solver']} (conjugate gradients, spanning-tree preconditioner)"
-    return f"{solver['solver']} ({solver['ordering']} ordering, {solver['factor_precision']} precision)"
+    return f"{solver['solver']} ({solver['ordering']} ordering)"
 
 
 def gtsam_linear_solver(cfg: GraphSlamConfig, n_poses: int) -> str:

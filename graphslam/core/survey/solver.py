@@ -5,7 +5,7 @@ factors with GTSAM's Pose2 Logmap error, the dead-zone WiFi range factors), solv
 LM loop whose every step is a handful of numpy array operations over all factors plus one
 sparse solve (a Cholesky factorisation, or conjugate gradients on large systems). Why not GTSAM's own LM: on the WiFi graph its multifrontal
 elimination redoes the symbolic work at every try of lambda, where a sparse Cholesky with
-the analysis reused (PARDISO, CHOLMOD: ``graphslam.core.common.cholesky``) refactorises only.
+the analysis reused (CHOLMOD: ``graphslam.core.common.cholesky``) refactorises only.
 
  * Variables: (x, y, theta) of every kept node except the reference node, which is held
    fixed (the paper's invariant reference pose; GTSAM's 1e-6 prior, exactly).
@@ -18,8 +18,7 @@ the analysis reused (PARDISO, CHOLMOD: ``graphslam.core.common.cholesky``) refac
    sparse Cholesky's ordering (METIS; AMD for CHOLMOD on small systems) and symbolic analysis
    run once per stage and each lambda try or iteration is only a numeric refactorisation.
    Lambda follows Nielsen's rule, which rejects few steps (each rejection costs a
-   factorisation). PARDISO factorises large systems in single precision, each step refined in
-   double to the double step (``_DampedSystem``).
+   factorisation).
  * Large systems (``linear_solver``: from ``pcg_above_variables`` unknowns on) are solved by
    conjugate gradients preconditioned by a spanning tree of the pose graph (``_TreeSystem``,
    ``graphslam.core.common.pcg``) to the same relative residual: no factor of the whole matrix,
@@ -42,7 +41,7 @@ from numpy.typing import NDArray
 from scipy import sparse
 
 from graphslam.core.common.cholesky import (  # noqa: F401 (re-exported)
-    backend_for, block_nested_dissection, cholmod_available, nested_dissection, pardiso_available, sparse_cholesky,
+    block_nested_dissection, cholmod_available, nested_dissection, sparse_cholesky,
 )
 from graphslam.core.common.pcg import conjugate_gradients, spanning_tree_blocks
 from graphslam.core.types import wrap_angle
@@ -93,12 +92,6 @@ class LMSettings:
     # converged once a step moves the poses by less than this (rms, metres) beyond one rigid motion and
     # lowers the error by less than 10x relative_error_tol; 0: off
     shape_tol_m: float = 0.0
-    threads: int = 0  # MKL threads of the factorisation (0: MKL's default, i.e. MKL_NUM_THREADS or every core)
-    backend: str = "auto"  # sparse Cholesky: pardiso, cholmod, or auto (pardiso where MKL loads)
-    # of the factorisation: "single" refines each solve in double (``_DampedSystem``); "auto": single from
-    # ``single_above_variables`` unknowns on, where the cheaper factorisation outweighs the refinement's solves
-    precision: Literal["auto", "single", "double"] = "auto"
-    single_above_variables: int = 40_000
     # CHOLMOD's fill-reducing ordering: "metis" (nested dissection), "amd", or "auto": METIS from
     # ``metis_above_variables`` unknowns on, where its fill saves more than GTSAM's import costs
     ordering: Literal["auto", "metis", "amd"] = "auto"
@@ -112,20 +105,17 @@ class LMSettings:
 
 @dataclass(frozen=True)
 class FactorInfo:
-    """How an LM run solved its damped systems (the last one's way, after any switch from single to
-    double precision or from conjugate gradients to the direct factorisation)."""
+    """How an LM run solved its damped systems (the last one's way, after any switch from conjugate
+    gradients to the direct factorisation): CHOLMOD, directly or as the preconditioner's factor."""
 
-    backend: str  # "pardiso" or "cholmod": the sparse Cholesky (of the preconditioner, for pcg)
     ordering: str  # the direct factorisation's fill-reducing ordering: "metis" (nested dissection), "amd"; pcg: ""
-    precision: str  # "single" (refined in double) or "double"
     linear_solver: str = "cholesky"  # "cholesky" (direct) or "pcg" (spanning-tree preconditioned)
 
     def as_dict(self) -> dict[str, str]:
         """report.json's ``optimizer`` entries (``graph.describe_solver`` phrases them)."""
         if self.linear_solver == "pcg":
-            return {"solver": self.backend, "linear_solver": "pcg", "preconditioner": "spanning tree"}
-        return {"solver": self.backend, "linear_solver": "cholesky", "ordering": self.ordering,
-                "factor_precision": self.precision}
+            return {"solver": "cholmod", "linear_solver": "pcg", "preconditioner": "spanning tree"}
+        return {"solver": "cholmod", "linear_solver": "cholesky", "ordering": self.ordering}
 
 
 @dataclass(frozen=True, eq=False)
@@ -368,65 +358,19 @@ def _slot(blocks: NDArray, keys: NDArray, ok: NDArray) -> NDArray:
 
 
 class _DampedSystem:
-    """Solves the damped normal equations (upper triangle ``data`` on the pattern of ``ne``).
+    """Solves the damped normal equations (upper triangle ``data`` on the pattern of ``ne``) by a CHOLMOD
+    factorisation (``perm``: its fill-reducing ordering, else AMD)."""
 
-    ``single``: PARDISO factorises in single precision and each solve is refined by conjugate
-    gradients in float64, preconditioned by that factor, to a relative residual of
-    ``REFINE_TOL`` (the double solve's step, to rounding). Why: the factorisation is the large
-    survey's floor (most of an iteration) and float32 halves its memory traffic; the refinement
-    costs 2-6 triangular solves. A
-    matrix whose refinement does not converge (too ill-conditioned for float32), or that
-    float32 does not find positive definite, is solved in double from then on in this stage."""
+    TOL = 1e-10  # relative residual |b - A x| / |b| the conjugate gradients stop at (``_TreeSystem``)
 
-    REFINE_TOL = 1e-10  # relative residual |b - A x| / |b| at which a refined solve stops
-    MAX_REFINE = 12
-
-    def __init__(self, ne: _NormalEquations, threads: int, single: bool, backend: str = "pardiso",
-                 perm: NDArray[np.int64] | None = None) -> None:
-        self._ne = ne
-        self._threads = threads
-        self._backend = backend
-        self._perm = perm
-        self._single = single and backend == "pardiso"  # CHOLMOD factorises in double only
-        self._factor = sparse_cholesky(backend, ne.indptr, ne.indices, threads, single=self._single, perm=perm)
-        self._data: NDArray = np.zeros(0)
-        self.fallbacks = 0  # switches to double precision (diagnostics, tests)
-
-    def _to_double(self) -> None:
-        log.debug("single-precision factorisation not accurate enough here: double from now on")
-        self._factor.free()
-        self._factor = sparse_cholesky(self._backend, self._ne.indptr, self._ne.indices, self._threads, perm=self._perm)
-        self._single = False
-        self.fallbacks += 1
-        self._factor.factor(self._data)
+    def __init__(self, ne: _NormalEquations, perm: NDArray[np.int64] | None = None) -> None:
+        self._factor = sparse_cholesky(ne.indptr, ne.indices, perm=perm)
 
     def factor(self, data: NDArray[np.float64]) -> None:
-        self._data = data
-        try:
-            self._factor.factor(data)
-        except np.linalg.LinAlgError:
-            if not self._single:
-                raise
-            self._to_double()  # raises LinAlgError itself when double does not find it positive definite
+        self._factor.factor(data)
 
     def solve(self, b: NDArray[np.float64]) -> NDArray[np.float64]:
-        x = self._factor.solve(b)
-        if not self._single:
-            return x
-        # conjugate gradients in double, preconditioned by the float32 factorisation: as many
-        # float32 solves as plain refinement needs on a well-conditioned matrix, far fewer late in LM
-        x, _, ok = conjugate_gradients(lambda y: _sym_matvec(self._ne, self._data, y), b, self._factor.solve,
-                                       tol=self.REFINE_TOL * float(np.linalg.norm(b)),
-                                       max_iterations=self.MAX_REFINE, x0=x)
-        if ok:
-            return x
-        self._to_double()  # float32 cannot resolve this matrix
         return self._factor.solve(b)
-
-    @property
-    def single(self) -> bool:
-        """Factorising in single precision (now: a matrix float32 could not resolve switches to double)."""
-        return self._single
 
     def free(self) -> None:
         self._factor.free()
@@ -434,20 +378,18 @@ class _DampedSystem:
 
 class _TreeSystem:
     """Solves the damped normal equations by conjugate gradients preconditioned by a spanning tree of
-    the pose graph (``graphslam.core.common.pcg``), the tree's matrix factorised by ``backend`` (no
-    fill: a large survey's memory is then the matrix's, not a factor's). Each solve runs to a relative
+    the pose graph (``graphslam.core.common.pcg``), the tree's matrix factorised by CHOLMOD, simplicial
+    (no fill: a large survey's memory is then the matrix's, not a factor's). Each solve runs to a relative
     residual of ``TOL`` (the direct solve's step, to rounding: the same answers). A matrix the
     iterations do not resolve within ``MAX_ITERATIONS`` is handed to the direct factorisation
     (``direct`` builds it): not positive definite, it raises as the direct solver would (LM damps
     more); otherwise the direct factorisation solves this stage from then on."""
 
-    TOL = _DampedSystem.REFINE_TOL
+    TOL = _DampedSystem.TOL
     MAX_ITERATIONS = 400
 
-    def __init__(self, ne: _NormalEquations, threads: int, backend: str, direct: Callable[[], _DampedSystem]) -> None:
+    def __init__(self, ne: _NormalEquations, direct: Callable[[], _DampedSystem]) -> None:
         self._ne = ne
-        self._threads = threads
-        self._backend = backend
         self._make_direct = direct
         self._direct: _DampedSystem | None = None
         self._entry_block = ne.gather // 9  # the 3x3 block of each CSR entry
@@ -456,10 +398,6 @@ class _TreeSystem:
         self._data: NDArray = np.zeros(0)
         self.iterations = 0  # conjugate-gradient iterations, all solves (diagnostics, the log)
         self.fallbacks = 0  # switches to the direct factorisation
-
-    @property
-    def single(self) -> bool:
-        return self._direct is not None and self._direct.single
 
     @property
     def iterative(self) -> bool:
@@ -478,7 +416,7 @@ class _TreeSystem:
             if self._pre is not None:
                 self._pre.free()
             indptr = np.concatenate([[0], np.cumsum(np.bincount(ne.rows[keep], minlength=ne.n))]).astype(np.int32)
-            self._pre = sparse_cholesky(self._backend, indptr, ne.indices[keep], self._threads, simplicial=True)
+            self._pre = sparse_cholesky(indptr, ne.indices[keep], simplicial=True)
             self._mask = keep
         self._pre.factor(data[keep])  # P >= A / 2: positive definite wherever A is
         # the whole symmetric matrix, once: each iteration's product is then one pass over it
@@ -633,9 +571,8 @@ def graph_ordering(graph: PoseGraph, settings: LMSettings) -> NDArray[np.int64] 
     edges are active; any ordering gives the exact factor, and a call's pattern, a subset of this one,
     fills no more under it. METIS cost 0.6 s a call on a 200-walk survey (89k unknowns), four calls."""
     n_vars = len(graph.variables)
-    if (backend_for(settings.backend) != "cholmod" or _cholmod_ordering(settings, 3 * n_vars) != "metis"
-            or _iterative(settings, 3 * n_vars)):  # conjugate gradients factorise no such matrix
-        return None
+    if _cholmod_ordering(settings, 3 * n_vars) != "metis" or _iterative(settings, 3 * n_vars):
+        return None  # (conjugate gradients factorise no such matrix)
     var_of = np.full(graph.n_nodes, -1, np.int64)
     var_of[graph.variables] = np.arange(n_vars)
     pairs = np.concatenate([graph.between_pairs, graph.range_pairs]).reshape(-1, 2)
@@ -670,19 +607,12 @@ def levenberg_marquardt(
         err = obj.error(v)
         return LMResult(xyh.copy(), 0, 0, err, err, True)
     ne = obj.normal
-    single = settings.precision == "single" or (settings.precision == "auto" and ne.n > settings.single_above_variables)
     iterative = _iterative(settings, ne.n)
-    backend = backend_for(settings.backend)  # the direct factorisation's (and a fallback's)
-    # auto: a tree's factor has no front for PARDISO's threads or float32 to speed up, and CHOLMOD's simplicial
-    # solves, called every iteration, cost less than PARDISO's (paper size 6: optimise 1.5 vs 1.7-1.8 s)
-    tree_backend = "cholmod" if settings.backend == "auto" and cholmod_available() else backend
-    ordering = "metis"  # PARDISO's own (iparm[1] = 2)
-    if backend == "cholmod":
-        ordering = _cholmod_ordering(settings, ne.n)
+    ordering = _cholmod_ordering(settings, ne.n)
 
     def direct(perm: NDArray[np.int64] | None = perm) -> _DampedSystem:
         nonlocal ordering
-        if backend != "cholmod" or ordering != "metis" or (perm is not None and len(perm) != ne.n):
+        if ordering != "metis" or (perm is not None and len(perm) != ne.n):
             perm = None
         elif perm is None:
             try:
@@ -690,15 +620,14 @@ def levenberg_marquardt(
             except (RuntimeError, ValueError, ImportError) as e:  # a GTSAM built without METIS: slower, not wrong
                 log.warning("METIS ordering unavailable (%s): CHOLMOD orders by AMD", e)
                 ordering = "amd"
-        return _DampedSystem(ne, settings.threads, single, backend, perm)
+        return _DampedSystem(ne, perm)
 
-    solver: _DampedSystem | _TreeSystem = _TreeSystem(ne, settings.threads, tree_backend, direct) if iterative else \
+    solver: _DampedSystem | _TreeSystem = _TreeSystem(ne, direct) if iterative else \
         direct()
     if iterative:
-        log.debug("LM over %d unknowns: %s, conjugate gradients, spanning-tree preconditioner", ne.n, tree_backend)
+        log.debug("LM over %d unknowns: conjugate gradients, spanning-tree preconditioner (CHOLMOD)", ne.n)
     else:
-        log.debug("LM over %d unknowns: %s, %s ordering, %s precision", ne.n, backend, ordering,
-                  "single" if solver.single else "double")  # CHOLMOD factorises in double whatever was asked
+        log.debug("LM over %d unknowns: CHOLMOD, %s ordering", ne.n, ordering)
     H, grad, err = obj.linearise(v)
     initial = err
     lam = settings.lambda_initial
@@ -756,9 +685,9 @@ def levenberg_marquardt(
         log.debug("conjugate gradients: %d iterations in %d factorisations%s", solver.iterations, factorizations,
                   "" if solver.iterative else ", then the direct factorisation")
     if isinstance(solver, _TreeSystem) and solver.iterative:
-        info = FactorInfo(tree_backend, "", "double", "pcg")
+        info = FactorInfo("", "pcg")
     else:
-        info = FactorInfo(backend, ordering, "single" if solver.single else "double")
+        info = FactorInfo(ordering)
     return LMResult(out, it, factorizations, initial, err, converged, info)
 
 

@@ -63,7 +63,7 @@ def test_the_baseline_runs_its_own_code_even_from_inside_this_checkout(tmp_path:
     (pkg / "__init__.py").write_text("")
     report = {"timings_s": {"total": 0.0}, "edges": {"wifi": 0},
               "optimizer": {"final_error": 0.0, "iterations": 4242, "solver": "cholmod", "ordering": "metis",
-                            "factor_precision": "double"}}
+                            "linear_solver": "cholesky"}}
     (pkg / "__main__.py").write_text(
         "import json, pathlib, sys\n"
         "out = pathlib.Path(sys.argv[sys.argv.index('--out') + 1]); out.mkdir(parents=True, exist_ok=True)\n"
@@ -71,7 +71,7 @@ def test_the_baseline_runs_its_own_code_even_from_inside_this_checkout(tmp_path:
     )
     monkeypatch.chdir(Path(__file__).resolve().parents[3])
     run = _run_once(tmp_path / "data", tmp_path / "out", str(tmp_path / "base"), None)
-    assert run["iterations"] == 4242 and run["backend"] == "cholmod metis double"
+    assert run["iterations"] == 4242 and run["backend"] == "cholmod metis cholesky"
 
 
 def test_rounds_go_round_robin_over_the_sizes(tmp_path: Path, monkeypatch) -> None:
@@ -105,7 +105,7 @@ def test_rounds_go_round_robin_over_the_sizes(tmp_path: Path, monkeypatch) -> No
     assert res["growth_exponent_new"] == 1.0  # walls 1 and 4 at sizes 1 and 4
 
 
-def test_solvers_take_turns_and_are_compared_with_pardiso(tmp_path: Path, monkeypatch) -> None:
+def test_solvers_take_turns_and_are_compared_with_cholmod(tmp_path: Path, monkeypatch) -> None:
     import graphslam as gs
     from lab.bench import scale as bench_scale
 
@@ -118,16 +118,16 @@ def test_solvers_take_turns_and_are_compared_with_pardiso(tmp_path: Path, monkey
     def fake_run(data: Path, out: Path, base: str | None, config: Path | None) -> dict:
         name = config.read_text().split("solver: ")[1].strip()
         calls.append(name)
-        wall = {"gtsam": 9.0, "cholmod": 3.0, "pardiso": 2.0}[name]
+        wall = {"gtsam": 9.0, "auto": 3.0, "cholmod": 2.0}[name]
         return {"wall": wall, "cpu": wall, "stages": {"total": wall, "align.optimise": wall / 2}, "rss_mb": 1.0,
                 "final_error": 1.0, "iterations": 3, "edges": 0, "landmark_mean_m": 0.5}
 
     monkeypatch.setattr(gs, "simulate", lambda *a, **k: _Fake())
     monkeypatch.setattr(bench_scale, "_run_once", fake_run)
-    row = bench_scale.solvers("paper", 0, 4.0, ["gtsam", "cholmod", "pardiso"], 2)
-    assert calls == ["gtsam", "cholmod", "pardiso", "pardiso", "cholmod", "gtsam"]
-    assert row["wall_vs_pardiso"] == {"gtsam": 4.5, "cholmod": 1.5, "pardiso": 1.0}
-    assert row["optimise_vs_pardiso"]["cholmod"] == 1.5 and row["cholmod"]["runs"] == 2
+    row = bench_scale.solvers("paper", 0, 4.0, ["gtsam", "auto", "cholmod"], 2)
+    assert calls == ["gtsam", "auto", "cholmod", "cholmod", "auto", "gtsam"]
+    assert row["wall_vs_cholmod"] == {"gtsam": 4.5, "auto": 1.5, "cholmod": 1.0}
+    assert row["optimise_vs_cholmod"]["auto"] == 1.5 and row["auto"]["runs"] == 2
 
 
 def test_unknown_solvers_are_one_line_errors(capsys: pytest.CaptureFixture[str]) -> None:
