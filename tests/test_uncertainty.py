@@ -221,6 +221,9 @@ def test_a_walks_own_aps_leave_the_index_as_on_a_map_without_it() -> None:
     want = others.reindex(rm.fingerprints.rows(np.array([0, 1])))
     assert np.allclose(q.extra_sq, want.extra_sq) and np.array_equal(q.extra_n, want.extra_n) and q.extra_n[0] == 1
     assert np.array_equal(q.values.toarray()[:, [rm.column("a"), rm.column("b")]], want.values.toarray())
+    # a query that hears none of the columns dropped is itself (no copy)
+    third = rm.fingerprints.rows(np.array([2, 3]))
+    assert _without_columns(third, owner) is third
 
 
 def test_a_worse_score_never_gets_a_narrower_circle_and_old_records_still_read(walks: list) -> None:

@@ -153,10 +153,11 @@ def calibrate_uncertainty(
             removed["uncovered"] = own | np.isfinite(walk.query(rm.xy, distance_upper_bound=uncovered_radius_m)[0])
         near = cKDTree(rm.xy[~own]).query(rm.xy[rows], distance_upper_bound=near_m)[0] <= near_m
         dropped = None
+        own_q = rm.fingerprints.rows(rows)
         for kind, gone in removed.items():
             drop = _heard_only_by(heard, gone, rm.fingerprints.n_aps)
             if dropped is None or not np.array_equal(drop, dropped):  # else the same query: its distances again
-                q = _without_columns(rm.fingerprints.rows(rows), drop)
+                q = _without_columns(own_q, drop)
                 d_all = loc.distances(q)
                 dropped = drop
             d = d_all.copy()
@@ -246,13 +247,19 @@ def _heard_only_by(heard: sparse.coo_matrix, gone: NDArray[np.bool_], n_aps: int
 
 def _without_columns(q: FingerprintMatrix, drop: NDArray[np.bool_]) -> FingerprintMatrix:
     """``q`` with the readings of the AP columns ``drop`` moved outside the index (``extra_*``), as
-    ``RadioMap.reindex`` does for APs a map does not know."""
-    v = q.values.tocoo()
-    out = drop[v.col]
+    ``RadioMap.reindex`` does for APs a map does not know; ``q`` itself when it has none of them (the
+    calibration's usual case: a walk rarely hears an AP no other walk does)."""
+    v = q.values
+    out = drop[v.indices]
+    if not out.any():
+        return q
     n = len(q)
-    extra_sq = q.extra_sq + np.bincount(v.row[out], weights=v.data[out] ** 2, minlength=n)
-    extra_n = q.extra_n + np.bincount(v.row[out], minlength=n).astype(np.int64)
-    kept = sparse.csr_matrix((v.data[~out], (v.row[~out], v.col[~out])), shape=v.shape)
+    row = np.repeat(np.arange(n), np.diff(v.indptr))
+    extra_sq = q.extra_sq + np.bincount(row[out], weights=v.data[out] ** 2, minlength=n)
+    extra_n = q.extra_n + np.bincount(row[out], minlength=n).astype(np.int64)
+    keep = ~out
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(row[keep], minlength=n))])
+    kept = sparse.csr_matrix((v.data[keep], v.indices[keep], indptr), shape=v.shape)
     return FingerprintMatrix(q.bssids, kept, q.missing_dbm, extra_sq, extra_n)
 
 
