@@ -286,6 +286,16 @@ def test_a_state_without_components_or_with_other_control_points_means_a_full_re
     cfg = GraphSlamConfig()
     assert previous.frame == "earth" and previous.component is not None and previous.edge_used is not None
     assert mismatch(previous, survey, cfg) is None
+    # a state written when MKL PARDISO was a solver: its keys, and solver pardiso, are no difference
+    prev_cfg = json.loads(previous.config_json)
+    prev_cfg["optimizer"].update(threads=2, factor_precision="single", single_above_variables=40000)
+    assert mismatch(replace(previous, config_json=json.dumps(prev_cfg)), survey, cfg) is None
+    prev_cfg["optimizer"]["solver"] = "pardiso"
+    cholmod = cfg.model_copy(update={"optimizer": cfg.optimizer.model_copy(update={"solver": "cholmod"})})
+    assert mismatch(replace(previous, config_json=json.dumps(prev_cfg)), survey, cholmod) is None
+    assert "optimizer.solver 'pardiso' -> 'gtsam'" in mismatch(
+        replace(previous, config_json=json.dumps(prev_cfg)), survey,
+        cfg.model_copy(update={"optimizer": cfg.optimizer.model_copy(update={"solver": "gtsam"})}))
     assert "control points differ" in mismatch(previous, survey, cfg, {"a": (0.0, 0.0)})
     with np.load(state) as z:
         old = {k: z[k] for k in z.files if k not in ("component", "frame", "control_digest", "edge_used")}

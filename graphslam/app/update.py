@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 
-from graphslam.config import GraphSlamConfig
+from graphslam.config import REMOVED_OPTIMIZER_KEYS, GraphSlamConfig
 
 if TYPE_CHECKING:
     from graphslam.core.radiomap.radiomap import RadioMap
@@ -38,7 +38,8 @@ log = logging.getLogger(__name__)
 
 # Config sections and settings that do not change the solution a previous output holds.
 _NOT_COMPARED = ("update",)
-_NOT_COMPARED_KEYS = {("optimizer", "threads"), ("optimizer", "blas_threads")}  # summation order only
+# summation order only; and MKL PARDISO's keys, which a previous state may carry (its solution is CHOLMOD's to rounding)
+_NOT_COMPARED_KEYS = {("optimizer", "blas_threads")} | {("optimizer", k) for k in REMOVED_OPTIMIZER_KEYS}
 
 
 def load_previous(previous_dir: str | Path) -> PreviousSolution:
@@ -94,7 +95,8 @@ def _config_diff(prev: dict[str, Any], cfg: GraphSlamConfig) -> list[str]:
                 continue
             if section == "optimizer" and key == "reference_session" and b.get(key) is None:
                 continue  # not set now: the previous reference walk is kept (same frame)
-            if a.get(key) != b.get(key):
+            was = "cholmod" if (section, key, a.get(key)) == ("optimizer", "solver", "pardiso") else a.get(key)
+            if was != b.get(key):
                 out.append(f"{section}.{key} {a.get(key)!r} -> {b.get(key)!r}")
     return out
 
