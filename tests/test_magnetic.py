@@ -155,6 +155,23 @@ def test_links_place_walks_where_the_field_repeats_both_ways_and_a_contradicting
     assert np.linalg.norm(se2_apply(fit_se2(placed, true_xy), placed) - true_xy, axis=1).mean() < 0.5
 
 
+def test_the_greedy_choice_on_bit_sets_is_the_choice_on_window_starts(monkeypatch: pytest.MonkeyPatch) -> None:
+    # every pair of walks by one path, then by the other: the same links, windows and node pairs
+    survey = corridor()
+    monkeypatch.setattr(M, "GREEDY_BITS_ABOVE", 0)
+    bits = _links(survey)
+    monkeypatch.setattr(M, "GREEDY_BITS_ABOVE", 10**9)
+    starts = _links(survey)
+    assert len(bits) >= 6 and (bits.windows >= 3).all()
+    for f in ("a", "b", "translation", "windows", "candidates", "score", "pair_link", "pair_nodes"):
+        np.testing.assert_array_equal(getattr(bits, f), getattr(starts, f))
+    # a choice where the greedy order matters: match 0 overlaps 1 on the first walk, 2 overlaps 1 on the second
+    ga, gb, L = [0, 5, 20], [0, 30, 25], 10
+    for b in (M._overlap_bits(np.array(ga), np.array(gb), L), None):
+        assert M._independent([0, 1, 2], ga, gb, L, b) == [0, 2]
+        assert M._independent([1, 0, 2], ga, gb, L, b) == [1]
+
+
 def test_each_place_keeps_the_factors_of_its_best_links_and_a_pair_stays_when_either_end_keeps_it() -> None:
     # five walks of one 40-m corridor, every step 1 m; every walk linked to every other, a pair every 4 m
     n_walk, n_step = 5, 41

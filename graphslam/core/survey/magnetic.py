@@ -497,13 +497,11 @@ def walk_links(
         size = near.sum(axis=1)
         best: list[int] = []
         members = np.zeros(0, np.int64)
-        # a match holds a stretch of both walks: two matches are independent when they overlap on neither.
-        # Each match's conflicts as one Python int (bit x: match x overlaps it): the greedy loop below runs
-        # ~1M times on a 60-walk survey, one shift and mask per match
+        # a match holds a stretch of both walks: two matches are independent when they overlap on neither
+        # (``_independent``); a pair of many matches has each match's overlaps as one bit set
         ga, gb = s_lo[idx], s_hi[idx]
-        conflict = (np.abs(ga[:, None] - ga[None]) < L) | (np.abs(gb[:, None] - gb[None]) < L)
-        packed = np.packbits(conflict, axis=1, bitorder="little")
-        bits = [int.from_bytes(row.tobytes(), "little") for row in packed]
+        bits = _overlap_bits(ga, gb, L) if len(idx) > GREEDY_BITS_ABOVE else None
+        ga_l, gb_l = ga.tolist(), gb.tolist()
         seen: set[bytes] = set()  # agreeing sets already chosen from: the same set, the same choice
         for c0 in np.argsort(-size, kind="stable").tolist():  # the largest agreeing sets first
             if size[c0] <= len(best):
@@ -513,12 +511,7 @@ def walk_links(
                 continue
             seen.add(key)
             agree = np.flatnonzero(near[c0])  # ascending index = descending score
-            chosen: list[int] = []
-            blocked = 0  # matches overlapping a chosen one
-            for q in agree.tolist():
-                if not (blocked >> q) & 1:
-                    chosen.append(q)
-                    blocked |= bits[q]
+            chosen = _independent(agree.tolist(), ga_l, gb_l, L, bits)
             if len(chosen) > len(best):
                 best, members = chosen, agree
         if len(best) < p.min_windows:
@@ -553,6 +546,39 @@ def walk_links(
     return MagneticLinks(np.array(links_a, np.int64), np.array(links_b, np.int64), np.array(links_t),
                          np.array(links_n, np.int64), np.array(links_c, np.int64), np.array(links_s), link[u], nodes[u],
                          threshold, int(len(w)))
+
+
+# matches of one pair of walks above which the greedy choice runs on bit sets (``_overlap_bits``): their
+# construction costs more than it saves on the many pairs of a few matches (a crowd of 200: 11.7k pairs;
+# 8, 16, 32, 64 measured there and at paper size 12)
+GREEDY_BITS_ABOVE = 16
+
+
+def _overlap_bits(ga: NDArray[np.int64], gb: NDArray[np.int64], L: int) -> list[int]:
+    """Per match, the matches it overlaps (on either walk: window starts less than ``L`` apart) as the
+    bits of one Python int (bit x: match x; itself included)."""
+    conflict = (np.abs(ga[:, None] - ga[None]) < L) | (np.abs(gb[:, None] - gb[None]) < L)
+    packed = np.packbits(conflict, axis=1, bitorder="little")
+    return [int.from_bytes(row.tobytes(), "little") for row in packed]
+
+
+def _independent(agree: list[int], ga: list[int], gb: list[int], L: int, bits: list[int] | None) -> list[int]:
+    """Greedily, in ``agree``'s order (best score first), the matches overlapping none chosen before
+    (window starts ``ga``, ``gb`` on the two walks, ``L`` long); ``bits``: ``_overlap_bits``, or None to
+    compare the starts (the same choice)."""
+    chosen: list[int] = []
+    if bits is not None:
+        blocked = 0  # matches overlapping a chosen one
+        for q in agree:
+            if not (blocked >> q) & 1:
+                chosen.append(q)
+                blocked |= bits[q]
+        return chosen
+    for q in agree:
+        a, b = ga[q], gb[q]
+        if all(abs(ga[x] - a) >= L and abs(gb[x] - b) >= L for x in chosen):
+            chosen.append(q)
+    return chosen
 
 
 def factor_pairs(
