@@ -361,8 +361,6 @@ class _DampedSystem:
     """Solves the damped normal equations (upper triangle ``data`` on the pattern of ``ne``) by a CHOLMOD
     factorisation (``perm``: its fill-reducing ordering, else AMD)."""
 
-    TOL = 1e-10  # relative residual |b - A x| / |b| the conjugate gradients stop at (``_TreeSystem``)
-
     def __init__(self, ne: _NormalEquations, perm: NDArray[np.int64] | None = None) -> None:
         self._factor = sparse_cholesky(ne.indptr, ne.indices, perm=perm)
 
@@ -385,7 +383,7 @@ class _TreeSystem:
     (``direct`` builds it): not positive definite, it raises as the direct solver would (LM damps
     more); otherwise the direct factorisation solves this stage from then on."""
 
-    TOL = _DampedSystem.TOL
+    TOL = 1e-10  # relative residual |b - A x| / |b| a solve stops at
     MAX_ITERATIONS = 400
 
     def __init__(self, ne: _NormalEquations, direct: Callable[[], _DampedSystem]) -> None:
