@@ -209,12 +209,13 @@ def test_a_walks_own_aps_leave_the_index_as_on_a_map_without_it() -> None:
     scans = [{"a": -50.0, "solo": -40.0}, {"a": -60.0, "b": -70.0}, {"b": -65.0}, {"a": -55.0, "b": -75.0}]
     rm = RadioMap.from_scans(scans, np.zeros((4, 2)), session_ids=["w1", "w1", "w2", "w2"], t_ns=np.arange(4),
                              frame="f")
-    heard = rm.fingerprints.values.tocoo()
-    alone = _heard_only_by(heard, np.array([True, True, False, False]), rm.fingerprints.n_aps)
+    values = rm.fingerprints.values
+    heard = np.bincount(values.indices, minlength=rm.fingerprints.n_aps)
+    alone = _heard_only_by(values, heard, np.array([True, True, False, False]))
     assert {rm.bssids[j]: bool(o) for j, o in enumerate(alone)} == {"a": False, "b": False, "solo": True}
     # the second walk and the first walk's second scan removed: "b" is heard by nobody left, "solo" still is
     gone = np.array([False, True, True, True])
-    assert {rm.bssids[j] for j in np.flatnonzero(_heard_only_by(heard, gone, rm.fingerprints.n_aps))} == {"b"}
+    assert {rm.bssids[j] for j in np.flatnonzero(_heard_only_by(values, heard, gone))} == {"b"}
     owner = alone
     q = _without_columns(rm.fingerprints.rows(np.array([0, 1])), owner)
     others = RadioMap.from_scans(scans[2:], np.zeros((2, 2)), session_ids=["w2", "w2"], t_ns=np.arange(2), frame="f")
@@ -224,6 +225,36 @@ def test_a_walks_own_aps_leave_the_index_as_on_a_map_without_it() -> None:
     # a query that hears none of the columns dropped is itself (no copy)
     third = rm.fingerprints.rows(np.array([2, 3]))
     assert _without_columns(third, owner) is third
+
+
+def test_a_wider_removal_searches_again_exactly_the_scans_it_changes() -> None:
+    """Distances after dropping other AP columns, from the ones before, equal a search from scratch,
+    whichever way the dropped set changes; a row hearing no changed column is not searched again."""
+    from graphslam.core.radiomap.uncertainty import _distances_again, _without_columns
+
+    scans = [{"a": -50.0, "b": -60.0}, {"a": -55.0, "c": -45.0}, {"b": -65.0, "c": -70.0, "d": -52.0},
+             {"a": -58.0, "b": -62.0, "c": -75.0}, {"b": -61.0, "d": -66.0}, {"a": -49.0, "c": -71.0}]
+    rm = RadioMap.from_scans(scans, np.arange(12.0).reshape(6, 2), session_ids=list("wwwxxx"), t_ns=np.arange(6),
+                             frame="f")
+    loc = KnnLocator(rm, KnnConfig(metric="eq9", k=2))
+    q = rm.fingerprints.rows(np.arange(3))
+    col = {b: rm.column(b) for b in "abcd"}
+    none, only_c, c_and_d = (np.zeros(rm.fingerprints.n_aps, bool) for _ in range(3))
+    only_c[col["c"]] = c_and_d[col["c"]] = c_and_d[col["d"]] = True
+    assert not np.array_equal(loc.distances(_without_columns(q, c_and_d)), loc.distances(_without_columns(q, only_c)))
+    for before, after in ((none, only_c), (only_c, c_and_d), (c_and_d, only_c), (c_and_d, none)):
+        d0 = loc.distances(_without_columns(q, before))
+        searched: list[int] = []
+        real = loc.distances
+        loc.distances = lambda m: searched.append(len(m)) or real(m)  # type: ignore[method-assign]
+        try:
+            out, d = _distances_again(loc, q, d0, before, after)
+        finally:
+            del loc.distances
+        assert np.array_equal(d, loc.distances(_without_columns(q, after)))
+        assert np.array_equal(out.extra_n, _without_columns(q, after).extra_n)
+        changed = before != after
+        assert searched == [sum(any(changed[col[b]] for b in s) for s in scans[:3])]
 
 
 def test_a_worse_score_never_gets_a_narrower_circle_and_old_records_still_read(walks: list) -> None:

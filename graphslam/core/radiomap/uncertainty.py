@@ -137,7 +137,8 @@ def calibrate_uncertainty(
     # out and the APs only they heard moved outside the index: what a map without them gives
     # (``RadioMap.reindex``), without building one per walk.
     loc = KnnLocator(rm, cfg, threads=1)
-    heard = rm.fingerprints.values.tocoo()
+    values = rm.fingerprints.values
+    heard = np.bincount(values.indices, minlength=rm.fingerprints.n_aps)  # fingerprints hearing each AP
     order = np.argsort(codes, kind="stable")
     first = np.searchsorted(codes[order], np.arange(len(names) + 1))
     tree = cKDTree(rm.xy)
@@ -149,17 +150,25 @@ def calibrate_uncertainty(
         own = codes == code
         removed = {"covered": own}
         if bins > 1 and uncovered_radius_m > 0:
-            walk = cKDTree(rm.xy[own_rows])
-            removed["uncovered"] = own | np.isfinite(walk.query(rm.xy, distance_upper_bound=uncovered_radius_m)[0])
-        near = cKDTree(rm.xy[~own]).query(rm.xy[rows], distance_upper_bound=near_m)[0] <= near_m
+            # only fingerprints in the walk's box widened by the radius can be that close (a large map's
+            # other places are not searched)
+            lo, hi = rm.xy[own_rows].min(axis=0) - uncovered_radius_m, rm.xy[own_rows].max(axis=0) + uncovered_radius_m
+            box = np.flatnonzero(((rm.xy >= lo) & (rm.xy <= hi)).all(axis=1))
+            unc = own.copy()
+            unc[box] |= np.isfinite(cKDTree(rm.xy[own_rows]).query(rm.xy[box], distance_upper_bound=uncovered_radius_m)[0])
+            removed["uncovered"] = unc
+        near = np.array([bool((codes[np.asarray(c, np.int64)] != code).any())
+                         for c in tree.query_ball_point(rm.xy[rows], r=near_m)], bool).reshape(-1)
         dropped = None
         own_q = rm.fingerprints.rows(rows)
         for kind, gone in removed.items():
-            drop = _heard_only_by(heard, gone, rm.fingerprints.n_aps)
-            if dropped is None or not np.array_equal(drop, dropped):  # else the same query: its distances again
+            drop = _heard_only_by(values, heard, gone)
+            if dropped is None:
                 q = _without_columns(own_q, drop)
                 d_all = loc.distances(q)
-                dropped = drop
+            elif not np.array_equal(drop, dropped):
+                q, d_all = _distances_again(loc, own_q, d_all, dropped, drop)
+            dropped = drop
             d = d_all.copy()
             d[:, gone] = np.inf
             sets[kind].append(_located(loc, q, d, rows, near, cfg.k, with_db=kind == "covered"))
@@ -239,10 +248,28 @@ def _score_bins(
     return tuple(float(v) for v in edges), tuple(float(v) for v in scales)
 
 
-def _heard_only_by(heard: sparse.coo_matrix, gone: NDArray[np.bool_], n_aps: int) -> NDArray[np.bool_]:
-    """Per AP column: no fingerprint outside ``gone`` (the removed rows) heard it (``heard``: the
-    map's fingerprints as a coo matrix)."""
-    return np.bincount(heard.col[~gone[heard.row]], minlength=n_aps) == 0
+def _heard_only_by(values: sparse.csr_matrix, heard: NDArray[np.int64], gone: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Per AP column: no fingerprint outside ``gone`` (the removed rows) heard it (``values``: the
+    map's fingerprints; ``heard``: how many of them hear each AP)."""
+    return heard - np.bincount(values[np.flatnonzero(gone)].indices, minlength=len(heard)) == 0
+
+
+def _distances_again(
+    loc: KnnLocator, q: FingerprintMatrix, d: NDArray[np.float64], dropped: NDArray[np.bool_], drop: NDArray[np.bool_]
+) -> tuple[FingerprintMatrix, NDArray[np.float64]]:
+    """(``q`` without the AP columns ``drop``, its distances) from ``d``, its distances without
+    ``dropped``: only the rows hearing an AP dropped by one and not the other are searched again (a
+    row's distances are its own, the same bits in any block; a wider removal, the uncovered set's,
+    drops a few more APs, which few of a walk's scans hear)."""
+    v = q.values
+    row = np.repeat(np.arange(len(q)), np.diff(v.indptr))
+    touched = np.flatnonzero(np.bincount(row, weights=(drop != dropped)[v.indices], minlength=len(q)))
+    out = _without_columns(q, drop)
+    if not len(touched):
+        return out, d
+    d = d.copy()
+    d[touched] = loc.distances(out.rows(touched))
+    return out, d
 
 
 def _without_columns(q: FingerprintMatrix, drop: NDArray[np.bool_]) -> FingerprintMatrix:
