@@ -32,7 +32,7 @@ FRAMES = ("aligned", "earth", "site")
 FRAME_DESCRIPTIONS = {
     "aligned": "aligned: origin at the reference walk's first pose, x along its first heading (metres)",
     "earth": "earth: x east, y north (phones' headings), origin at the reference walk's first pose",
-    "site": "site: the site frame of the control points or UWB anchors (metres)",
+    "site": "site: the site frame of the control points, UWB anchors or reference map (metres)",
 }
 
 # graphslam export: trajectory file formats (TUM and KITTI as evo reads them) and frames

@@ -345,3 +345,26 @@ def test_with_gated_edges_the_final_radius_runs_on_the_regated_graph(
     monkeypatch.setattr(align_mod, "_regated", lambda *args: None)
     order_none, active_none, converged_none = stages()
     assert converged_none and len(order_none) == 2 and active_none[1] <= active_none[0]
+
+
+def test_every_output_says_the_reference_map_placed_the_site_frame(floor: tuple, tmp_path: Path) -> None:
+    """report.json's frame description, its site rotation and survey.png's title (drawn now and again from
+    the folder) name what placed the main map: the reference map, by its file."""
+    from PIL import Image
+
+    from graphslam.viz import survey_picture
+
+    _, files, ref, _ = floor
+    out = tmp_path / "out"
+    r = run_survey(SurveyInputs.from_paths(files[1:], out=out, reference_map=ref), load_config()).report
+    assert r["frame"] == "site" and "reference map" in r["frame_description"]
+    # the walks' headings are east/north, turned EARTH from the synthetic site frame: the site is -EARTH from them
+    assert abs(r["site_from_earth_deg"] + math.degrees(EARTH)) < 3.0
+    with Image.open(out / "survey.png") as im:
+        assert "placed by the reference map reference_map.csv" in im.text["Title"]
+    assert survey_picture.scene_of_folder(out).reference_map == "reference_map.csv"
+    # without a reference (headings alone): no site rotation, and the title says nothing of one
+    plain = run_survey(SurveyInputs.from_paths(files, out=tmp_path / "plain"), load_config()).report
+    assert plain["frame"] == "earth" and "site_from_earth_deg" not in plain
+    with Image.open(tmp_path / "plain" / "survey.png") as im:
+        assert "reference map" not in im.text["Title"]

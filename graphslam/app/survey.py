@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import math
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -85,6 +86,8 @@ def build_report(
         "frame_description": FRAME_DESCRIPTIONS.get(al.frame, al.frame)
         + ("; every other component in a frame of its own (its placement relative to component 0 unknown)"
            if len(al.components) > 1 else ""),
+        # the site frame's rotation from east/north the control points or the reference map gave (degrees)
+        **({"site_from_earth_deg": round(math.degrees(al.site_from_earth), 2)} if al.site_from_earth is not None else {}),
         # the control points given (landmark id -> site x, y): survey.png draws them apart from landmarks
         **({"control_points": {k: [float(v[0]), float(v[1])] for k, v in al.control_points.items()}}
            if al.control_points else {}),

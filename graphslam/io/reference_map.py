@@ -5,8 +5,8 @@ Two forms, both fingerprints at known site positions (metres):
 - a CSV with the header ``fingerprint_id,x,y,bssid,rssi_dbm`` and one row per reading (standard CSV
   quoting): every row of one ``fingerprint_id`` gives the same ``x, y``; ``rssi_dbm`` in dBm;
 - a radio map graphslam wrote (``radio_map.parquet`` of a previous survey) whose frame is ``site``
-  (control points or UWB anchors): a map in an ``aligned`` or ``earth`` frame has no known place in
-  the site and is refused.
+  (control points, UWB anchors or a reference map): a map in an ``aligned`` or ``earth`` frame has no
+  known place in the site and is refused.
 
 A UTF-8 byte-order mark and blank lines are accepted. Anything else (another header, a missing or
 extra column, an empty id or BSSID, a coordinate or RSS that is not a finite number, two positions
@@ -53,7 +53,7 @@ def _from_radio_map(path: Path) -> RadioMap:
         raise InputError(path, f"not a readable radio map ({' '.join(str(e).split())})") from None
     if rm.frame != "site":
         raise InputError(path, f"a radio map in the {rm.frame!r} frame: a reference must be in the site frame (a survey "
-                         "with control points or UWB anchors)", field="metadata.frame")
+                         "with control points, UWB anchors or a reference map)", field="metadata.frame")
     if not len(rm):
         raise InputError(path, "no fingerprint: the reference map is empty")
     return rm

@@ -85,6 +85,7 @@ class SurveyScene:
     control_points: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     # the UWB anchors whose ranges placed the main map in the site frame (id -> site x, y)
     anchors: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    reference_map: str = ""  # the file name of the reference map the main map is placed on ("": none)
 
     def main_ids(self) -> list[str]:
         """The walks of the main map (component 0), in ``tracks`` order."""
@@ -128,7 +129,16 @@ def scene_of_alignment(
         tracks, al.session_ids, al.reference, dict(al.unaligned), rows_xy, edges, marks, T,
         _landmark_text(marks.stats.as_dict() if marks is not None else None), survey.n_steps, max_edges, (),
         comps, al.frame, dict(al.control_points), anchors,
+        _reference_name(al.reference_map.metadata.get("source") if al.reference_map is not None else None,
+                        al.reference_map is not None),
     )
+
+
+def _reference_name(source: object, used: bool) -> str:
+    """The name a picture gives the reference map the main map is placed on ("" when none is)."""
+    if not used:
+        return ""
+    return Path(str(source)).name if source else "reference map"
 
 
 def _anchors(survey: Survey | None, ids: Sequence[str]) -> dict[str, tuple[float, float]]:
@@ -201,10 +211,11 @@ def scene_of_folder(
     control = {str(k): (float(v[0]), float(v[1])) for k, v in cps.items()}
     uwb = report.get("uwb") if isinstance(report.get("uwb"), dict) else {}
     anchors = _anchors(survey, [str(a) for a in uwb.get("anchors") or []]) if frame == "site" else {}
+    ref = report.get("reference_map") if isinstance(report.get("reference_map"), dict) else {}
     return _scene(
         {sid: np.asarray(t.xy) for sid, t in pose_tracks.items()}, ids, reference, unaligned, rows_xy, edges,
         marks, T, _landmark_text(lm), n_poses, max_edges, tuple(notes), comps if len(comps) > 1 else (), frame,
-        control, anchors,
+        control, anchors, _reference_name(ref.get("source"), frame == "site" and ref.get("used") is True),
     )
 
 
@@ -213,7 +224,7 @@ def _scene(
     edges: WifiEdgeRows | None, marks: LandmarkMarks | None, T: NDArray | None, landmark_text: str, n_poses: int,
     max_edges: int, notes: tuple[str, ...], components: tuple[tuple[int, tuple[str, ...], str], ...] = (),
     frame: str = "aligned", control_points: Mapping[str, tuple[float, float]] | None = None,
-    anchors: Mapping[str, tuple[float, float]] | None = None,
+    anchors: Mapping[str, tuple[float, float]] | None = None, reference_map: str = "",
 ) -> SurveyScene:
     if edges is None or not len(edges.a):
         seg, state, counts = np.zeros((0, 2, 2)), np.zeros(0, np.int8), (0, 0, 0)
@@ -228,7 +239,7 @@ def _scene(
     return SurveyScene(
         tracks, session_colours(ids), reference, unaligned, seg, state, counts, marks, T, landmark_text,
         len(ids), n_poses, notes, components if len(components) > 1 else (), frame, dict(control_points or {}),
-        dict(anchors or {}),
+        dict(anchors or {}), reference_map,
     )
 
 
@@ -486,6 +497,14 @@ def _faint(c: tuple[int, int, int], a: float = 0.55) -> tuple[int, int, int]:
     return (r, g, b)
 
 
+def _site_placers(scene: SurveyScene) -> str:
+    """What placed the main map in the site frame, as the title says it."""
+    given = ((f"reference map {scene.reference_map}", scene.reference_map), ("control points", scene.control_points),
+             ("UWB anchors", scene.anchors))
+    placers = [name for name, there in given if there]
+    return " and the ".join(placers) if placers else "control points, UWB anchors or a reference map"
+
+
 def _title(scene: SurveyScene, plan: FloorPlan | None, in_site: bool) -> list[str]:
     others = scene.other_components()
     counts = main_map_counts(scene.n_sessions, len(scene.main_ids()), sum(len(w) for _, w, _ in others), len(others),
@@ -499,9 +518,7 @@ def _title(scene: SurveyScene, plan: FloorPlan | None, in_site: bool) -> list[st
     else:
         frame = f"{scene.frame} frame (trajectories.csv, metres): " + {
             "earth": "north-up (x east, y north, from the phones' headings), origin = first pose of the reference walk",
-            "site": "placed by the " + ("UWB anchors" if scene.anchors and not scene.control_points else
-                                        "control points" if scene.control_points and not scene.anchors else
-                                        "control points or UWB anchors"),
+            "site": "placed by the " + _site_placers(scene),
         }.get(scene.frame, "origin = first pose of the reference walk, x along its first heading")
         if plan is not None:
             frame += "; the floor plan is NOT registered to it (no landmark fit)"

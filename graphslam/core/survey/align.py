@@ -92,8 +92,12 @@ class Alignment:
     # the walks of ``tracks`` by component; empty: every aligned walk is in component 0
     component_list: tuple[Component, ...] = ()
     # "aligned": the reference walk's first pose; "earth": east/north (x east, y north) from the
-    # phones' headings, origin at the reference walk's first pose; "site": control points or UWB anchors
+    # phones' headings, origin at the reference walk's first pose; "site": control points, UWB anchors
+    # or a reference map
     frame_name: str = "aligned"
+    # rad: the site frame's rotation from east/north (the headings' frame), when control points or a
+    # reference map placed the main map (None: another frame, or UWB anchors)
+    site_from_earth: float | None = None
     control_digest: str = ""  # ``incremental.control_points_digest`` of the control points used
     # the control points given: landmark id -> site (x, y) (pictures draw them apart from landmarks)
     control_points: Mapping[str, tuple[float, float]] = field(default_factory=dict)
@@ -144,7 +148,7 @@ class Alignment:
 
     @property
     def frame(self) -> str:
-        """Frame of component 0: "site" (control points or UWB anchors), "earth" (east/north, from
+        """Frame of component 0: "site" (control points, UWB anchors or a reference map), "earth" (east/north, from
         the phones' headings) or "aligned" (the reference walk's first pose)."""
         if self.uwb is not None and self.uwb.frame == "site":
             return "site"
@@ -478,6 +482,7 @@ def build_problem(
         heading=None if split is None else split.heading,
         ties=None if split is None else split.ties,
         frame_name="aligned" if split is None else split.frame_name,
+        site_from_earth=None if split is None else split.site_from_earth,
         control_digest=incremental.control_points_digest(control_points),
         control_points=dict(control_points or {}),
     )
@@ -732,6 +737,7 @@ def solve(
         uwb=problem.uwb.summary() if problem.uwb is not None else None,
         component_list=problem.components,
         frame_name=problem.frame_name,
+        site_from_earth=problem.site_from_earth,
         control_digest=problem.control_digest,
         control_points=problem.control_points,
         solver=solver,

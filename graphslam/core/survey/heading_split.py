@@ -101,6 +101,7 @@ class ComponentSplit:
     magnetic: MagneticLinks | None = None  # the links the placement used (their node pairs: the graph's factors)
     anchors: ReferenceLinks | None = None  # the reference map component 0 is placed on
     unused_reference: bool = False  # a reference map was given and no walk registers onto it
+    site_from_earth: float | None = None  # rad: the site frame's rotation from east/north (frame "site")
 
 
 def split_by_heading(
@@ -206,7 +207,7 @@ def split_by_heading(
     log.info("heading placement: %d components, the main map holds %d of %d walks", cp.n_components, main, len(survey))
     return ComponentSplit(pl, cp.component, comps, ref_walk, fixed, heading, ties, frame,
                           magnetic=None if units is None else units.links, anchors=reference,
-                          unused_reference=unused_reference)
+                          unused_reference=unused_reference, site_from_earth=phi if frame == "site" else None)
 
 
 def _magnetic_units(
@@ -343,7 +344,7 @@ def split_incremental(
     reference = int(np.flatnonzero(component == 0)[0]) if (component == 0).any() else 0
     frame = "earth" if ties is None else "site"  # the previous survey's (its control points are these)
     return ComponentSplit(pl, component, comps, reference, np.array(fixed, np.int64), heading, ties, frame,
-                          magnetic=links)
+                          magnetic=links, site_from_earth=phi if frame == "site" else None)
 
 
 def _place_by_links(

@@ -71,6 +71,7 @@ class Problem:
     heading: HeadingTerms | None = None
     ties: ControlTies | None = None  # control points: position priors (component 0 in the site frame)
     frame_name: str = "aligned"
+    site_from_earth: float | None = None  # rad: the site frame's rotation from east/north (headings + ties/reference)
     control_digest: str = ""  # of the control points given (``incremental.control_points_digest``)
     control_points: Mapping[str, tuple[float, float]] = field(default_factory=dict)
 
