@@ -368,3 +368,14 @@ def test_every_output_says_the_reference_map_placed_the_site_frame(floor: tuple,
     assert plain["frame"] == "earth" and "site_from_earth_deg" not in plain
     with Image.open(tmp_path / "plain" / "survey.png") as im:
         assert "reference map" not in im.text["Title"]
+
+
+def test_the_report_says_how_far_apart_the_reference_measured_its_places(floor: tuple, tmp_path: Path) -> None:
+    from graphslam.core.survey.reference import place_spacing
+
+    grid = np.array([(x, y) for x in (0.0, 4.0, 8.0) for y in (0.0, 4.0, 8.0)])
+    assert place_spacing(np.repeat(grid, 3, axis=0)) == 4.0  # three scans at each point: one place
+    assert place_spacing(np.zeros((5, 2))) is None
+    _, files, ref, _ = floor
+    r = run_survey(SurveyInputs.from_paths(files[1:], reference_map=ref, picture=False), load_config()).report
+    assert r["reference_map"]["spacing_m"] == round(place_spacing(read_reference_map(ref).xy), 2) > 0

@@ -134,7 +134,7 @@ def build_report(
     elif al.unused_reference is not None:
         report["reference_map"] = {
             "source": al.unused_reference.metadata.get("source"), "fingerprints": len(al.unused_reference),
-            "walks_placed_on_it": 0, "used": False,
+            "spacing_m": _spacing(al.unused_reference), "walks_placed_on_it": 0, "used": False,
             "reason": "no walk registers onto it unambiguously: the survey is in a frame of its own",
         }
     if al.placement is not None:
@@ -188,6 +188,7 @@ def reference_report(al: Alignment) -> dict[str, Any]:
     return {
         "source": ref.metadata.get("source"),
         "fingerprints": len(ref),
+        "spacing_m": _spacing(ref),
         "used": True,
         "walks_placed_on_it": len(al.components[0].walks) if al.components else 0,
         "edges": int(len(pairs)),
@@ -195,6 +196,14 @@ def reference_report(al: Alignment) -> dict[str, Any]:
             "median": round(float(np.median(d)), 3), "p90": round(float(np.percentile(d, 90)), 3),
         },
     }
+
+
+def _spacing(ref: Any) -> float | None:
+    """report.json's ``reference_map.spacing_m``: how far apart the places it measured are (median, m)."""
+    from graphslam.core.survey.reference import place_spacing
+
+    s = place_spacing(np.asarray(ref.xy))
+    return None if s is None else round(s, 2)
 
 
 def main_alignment(al: Alignment) -> Alignment:

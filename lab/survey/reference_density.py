@@ -53,7 +53,9 @@ def main(folder: Path) -> None:
                 per_walk.update(c.site_per_walk_mean_m if c.site_per_walk_mean_m is not None else c.per_walk_mean_m)
             c0 = comps[0]
             mean = c0.site.mean_m if c0.site is not None else c0.landmarks.mean_m
-            print(json.dumps({"reference": name, "fingerprints": len(keep), "walks": len(res.survey),
+            print(json.dumps({"reference": name, "fingerprints": len(keep),
+                              "spacing_m": (res.report.get("reference_map") or {}).get("spacing_m"),
+                              "walks": len(res.survey),
                               "main": len(al.components[0].walks), "frame": al.frame,
                               "main_mean_m": round(float(mean), 2),
                               "walks_over_6m": int(sum(v > 6.0 for v in per_walk.values())),
