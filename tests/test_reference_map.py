@@ -379,3 +379,44 @@ def test_the_report_says_how_far_apart_the_reference_measured_its_places(floor: 
     _, files, ref, _ = floor
     r = run_survey(SurveyInputs.from_paths(files[1:], reference_map=ref, picture=False), load_config()).report
     assert r["reference_map"]["spacing_m"] == round(place_spacing(read_reference_map(ref).xy), 2) > 0
+
+
+def test_votes_onto_a_sparse_reference_spread_as_far_as_its_places(floor: tuple, tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """A match onto a reference says its scan is somewhere in the matched place's cell: the placement's and
+    the site rotation's vote kernel widens with the places' spacing (in quadrature with the WiFi's own
+    blur); a dense reference's hardly moves."""
+    import graphslam.core.survey.components as components
+    import graphslam.core.survey.reference as reference
+    from graphslam.core.survey.placement import GrowthParams
+
+    base = GrowthParams()
+    grid = np.array([(x, y) for x in np.arange(0.0, 40.0, 8.0) for y in (0.0, 8.0)])
+    assert reference.reference_params(base, grid).blur_m == pytest.approx(math.hypot(base.blur_m, 8.0 / math.sqrt(12)))
+    dense = np.column_stack([np.arange(0.0, 30.0, 0.5), np.zeros(60)])
+    assert reference.reference_params(base, dense).blur_m == pytest.approx(base.blur_m, abs=0.01)
+    assert reference.reference_params(base, np.zeros((3, 2))) is base  # one place: nothing to say
+    # the survey's two votes onto a reference take it: a reference of every 10th scan of the corridor walk
+    _, files, ref, survey = floor
+    sparse = tmp_path / "sparse.csv"
+    with open(ref, newline="") as src, open(sparse, "w", newline="") as dst:
+        rows = list(csv.reader(src))
+        keep = {f"fp{k}" for k in range(0, len(survey.sessions[0].scans), 10)}
+        csv.writer(dst).writerows([rows[0]] + [r for r in rows[1:] if r[0] in keep])
+    want = reference.reference_params(base, read_reference_map(sparse).xy).blur_m
+    assert want > base.blur_m + 0.2
+    seen: dict[str, float] = {}  # the first call's blur: the votes onto the reference
+    grow, profile = components.grow_placement, reference.hough_profile
+
+    def placement(*a, **k):  # noqa: ANN002, ANN003, ANN202
+        seen.setdefault("placement", a[4].blur_m)
+        return grow(*a, **k)
+
+    def rotation(src, dst, w, thetas, p):  # noqa: ANN001, ANN202
+        seen.setdefault("rotation", p.blur_m)
+        return profile(src, dst, w, thetas, p)
+
+    monkeypatch.setattr(components, "grow_placement", placement)
+    monkeypatch.setattr(reference, "hough_profile", rotation)
+    run_survey(SurveyInputs.from_paths(files[1:], reference_map=sparse, picture=False), load_config())
+    assert seen == {"placement": pytest.approx(want), "rotation": pytest.approx(want)}
