@@ -1,10 +1,13 @@
 """How sparse a surveyed reference can be: the floor's ``reference_map.csv`` thinned (every 2nd and 4th
-fingerprint in file order; at least 4 m and 8 m apart, chosen greedily in file order, as a professional
-survey's grid would be), the crowd walks (those the reference was not made from) surveyed on each, scored
-in the site frame with no fit (ground truth only scores): the main map's walks, their landmark mean, the
-walks over 6 m, and the site frame's rotation from east/north the crowd's matches gave.
+fingerprint in file order; at least 2, 4 and 8 m apart, chosen greedily in file order, as a professional
+survey's grid would be), the crowd walks (those the reference was not made from; or, in a folder
+``lab/survey/reference_scale.py --out`` wrote, its ``crowd/``) surveyed on each, scored in the site frame
+with no fit (ground truth only scores): the main map's walks, their landmark mean, the walks over 6 m, the
+reference's ``spacing_m`` and the site frame's rotation from east/north the crowd's matches gave.
 
     python lab/survey/reference_density.py ../shared/data/ipin2023/b100_f-2
+    python lab/survey/reference_scale.py --scenario paper --size 4 --rounds 1 --out /tmp/rs4 && \
+        python lab/survey/reference_density.py /tmp/rs4
 """
 
 from __future__ import annotations
@@ -35,8 +38,9 @@ def main(folder: Path) -> None:
     ids = list(dict.fromkeys(r["fingerprint_id"] for r in rows))
     pos = {r["fingerprint_id"]: (float(r["x"]), float(r["y"])) for r in rows}
     variants = {"all": set(ids), "every 2nd": set(ids[::2]), "every 4th": set(ids[::4]),
-                "at least 4 m apart": _spaced(ids, pos, 4.0), "at least 8 m apart": _spaced(ids, pos, 8.0)}
-    crowd = crowd_walks(folder, src)
+                "at least 2 m apart": _spaced(ids, pos, 2.0), "at least 4 m apart": _spaced(ids, pos, 4.0),
+                "at least 8 m apart": _spaced(ids, pos, 8.0)}
+    crowd = tuple(sorted((folder / "crowd").glob("*.mcap"))) if (folder / "crowd").is_dir() else crowd_walks(folder, src)
     cfg = load_config(None)
     with tempfile.TemporaryDirectory() as tmp:
         for name, keep in variants.items():
