@@ -28,7 +28,6 @@ from numpy.typing import NDArray
 from graphslam.core.radiomap.similarity import Matches
 from graphslam.core.survey.initialise import fit_se2, se2_apply, se2_compose
 from graphslam.core.survey.placement import GrowthParams, GrowthResult, grow_placement
-from graphslam.core.survey.reference import reference_params
 
 if TYPE_CHECKING:
     from graphslam.core.survey.magnetic import LinkUnits
@@ -244,8 +243,7 @@ def _on_reference(
     mr = Matches(np.concatenate([rm.i, m.i[one]]), np.concatenate([rm.j + n_rows, m.j[one]]),
                  np.concatenate([rm.similarity, m.similarity[one]]))
     initial = {n_u: np.zeros(3), **tied_u}
-    # the votes onto the reference as finely as its places are spaced (``reference_params``)
-    res = grow_placement(n_u + 1, scan, pts, mr, reference_params(params, ref_xy), initial=initial,
+    res = grow_placement(n_u + 1, scan, pts, mr, params, initial=initial,
                          rotation_sigma=np.concatenate([sigma_u, [1e-6]]))
     main = res.placed[:n_u]
     for u, why in sorted(res.reasons.items()):

@@ -12,8 +12,7 @@ tool's) is held fixed in the site frame. The crowd's walks are tied to it as the
    reference, summed over units (``site_rotation``).
 3. **Placement**: the reference is a placed, held body; units join it by map growth on their reference
    matches alone (``graphslam.core.survey.components.place_units``) — the repetitions of a route,
-   held together by the field, vote as one. Units that match no reference place stay apart. Votes onto
-   the reference (here and in 2) are blurred by its places' spacing as well (``reference_params``).
+   held together by the field, vote as one. Units that match no reference place stay apart.
 4. **Factors**: a crowd fingerprint and a reference fingerprint whose eq.-9 distance is below the
    crowd fingerprint's own median-window threshold (the edge rule between walks, ``edges``) get the
    same fuzzy WiFi factor as two crowd fingerprints, with the reference end fixed
@@ -106,7 +105,9 @@ def reference_links(
 
 def place_spacing(xy: NDArray[np.float64]) -> float | None:
     """The median distance (m) from each place a reference measured (its distinct positions: several
-    fingerprints at one point are one place) to the nearest other place; None for fewer than two places."""
+    fingerprints at one point are one place) to the nearest other place; None for fewer than two places.
+    How finely it can place a walk: measured on IPIN 2023 floor -2's reference thinned, walks join it as
+    well up to ~2.2 m and far fewer, or wrongly, beyond ~4.5 m (``lab/survey/reference_density.py``)."""
     from scipy.spatial import cKDTree
 
     places = np.unique(np.asarray(xy, float).reshape(-1, 2), axis=0)
@@ -114,20 +115,6 @@ def place_spacing(xy: NDArray[np.float64]) -> float | None:
         return None
     d, _ = cKDTree(places).query(places, k=2)
     return float(np.median(d[:, 1]))
-
-
-def reference_params(params: GrowthParams, xy: NDArray[np.float64]) -> GrowthParams:
-    """``params`` for votes onto a reference at ``xy``: a match says its scan is somewhere in the matched
-    place's cell, uniform over the places' spacing s (standard deviation s / sqrt(12)), on top of the
-    WiFi's own blur (``blur_m``): the two in quadrature. A sparse reference's votes spread wider, so it
-    needs more agreeing scans to place a walk (the margin is a vote density). Dense references barely
-    change (IPIN 2023 floor -2's: 0.46 m, 1.5 -> 1.506 m); thinned to places 4.6 and 8.6 m apart it
-    placed 6 walks at 3.95 m and 16 walks 10 of them over 6 m off, and now none: the survey says the
-    reference is not used (``lab/survey/reference_density.py``)."""
-    s = place_spacing(xy)
-    if s is None:
-        return params
-    return replace(params, blur_m=float(np.hypot(params.blur_m, s / np.sqrt(12.0))))
 
 
 def site_rotation(
@@ -139,7 +126,6 @@ def site_rotation(
     frame (east/north); ``unit_of_row``: its unit."""
     if not len(links.match_i):
         return 0.0, 0.0
-    params = reference_params(params, links.xy)
     w = np.power(np.clip(links.similarity, 0.0, 1.0), params.weight_power)
     u = unit_of_row[links.match_i]
     order = np.argsort(u, kind="stable")
