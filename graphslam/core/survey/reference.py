@@ -106,8 +106,9 @@ def reference_links(
 def place_spacing(xy: NDArray[np.float64]) -> float | None:
     """The median distance (m) from each place a reference measured (its distinct positions: several
     fingerprints at one point are one place) to the nearest other place; None for fewer than two places.
-    How finely it can place a walk: measured on IPIN 2023 floor -2's reference thinned, walks join it as
-    well up to ~2.2 m and far fewer, or wrongly, beyond ~4.5 m (``lab/survey/reference_density.py``)."""
+    What it does to a survey on it (IPIN 2023 floor -2's reference thinned): walks join as well up to
+    2.2 m with several passes' scans near each place, far fewer at 2.9-4.6 m with one, and at 8.6 m
+    wrongly (``lab/survey/reference_density.py``; the simulator's richer WiFi places every walk at 8.5 m)."""
     from scipy.spatial import cKDTree
 
     places = np.unique(np.asarray(xy, float).reshape(-1, 2), axis=0)
