@@ -379,3 +379,40 @@ def test_the_report_says_how_far_apart_the_reference_measured_its_places(floor: 
     _, files, ref, _ = floor
     r = run_survey(SurveyInputs.from_paths(files[1:], reference_map=ref, picture=False), load_config()).report
     assert r["reference_map"]["spacing_m"] == round(place_spacing(read_reference_map(ref).xy), 2) > 0
+
+
+def test_a_reference_from_a_louder_device_gives_the_same_survey(floor: tuple, tmp_path: Path) -> None:
+    """The reference's device hears every AP a constant louder or weaker than the crowd's phones: the
+    offset is estimated from the best matches and taken off for the WiFi edges (the placement's power
+    cosine cancels it by itself), so the survey is the one a same-device reference gives."""
+    from graphslam.core.radiomap.fingerprints import FingerprintMatrix as FM
+    from graphslam.core.radiomap.similarity import Matches
+    from graphslam.core.survey.reference import louder, rss_offset_db
+
+    crowd = FM.from_scans([{"a": -60.0, "b": -70.0, "c": -80.0}, {"a": -50.0, "d": -75.0}])
+    ref = FM.from_scans([{"a": -53.0, "b": -63.0, "c": -73.0, "e": -40.0}, {"a": -43.0, "d": -68.0, "e": -30.0}],
+                        bssids=crowd.bssids + ("e",))
+    crowd = FM(ref.bssids, sparse_hstack(crowd.values, 1), crowd.missing_dbm, crowd.extra_sq, crowd.extra_n)
+    top = Matches(np.array([0, 0, 1]), np.array([1, 0, 1]), np.array([0.5, 0.9, 0.8]))  # best: 0 -> 0, 1 -> 1
+    assert rss_offset_db(crowd, ref, top, min_common=2) == pytest.approx(7.0)
+    assert rss_offset_db(crowd, ref, top, min_common=4) == 0.0  # no pair shares four APs
+    quiet = louder(ref, -45.0)  # readings at or below the missing level (-110 dBm) are no readings
+    assert quiet.values[0].nnz == 3 and quiet.values[1].nnz == 2
+    # a survey on the reference read 8 dB louder: the same walks where they were, its offset 8 dB more
+    _, files, ref_csv, _ = floor
+    loud = tmp_path / "loud.csv"
+    with open(ref_csv, newline="") as src, open(loud, "w", newline="") as dst:
+        rows = list(csv.reader(src))
+        csv.writer(dst).writerows([rows[0]] + [r[:4] + [f"{float(r[4]) + 8.0:g}"] for r in rows[1:]])
+    same, louder_run = (run_survey(SurveyInputs.from_paths(files[1:], reference_map=r, picture=False), load_config())
+                        for r in (ref_csv, loud))
+    a, b = same.report["reference_map"], louder_run.report["reference_map"]
+    assert b["rss_offset_db"] == pytest.approx(a["rss_offset_db"] + 8.0, abs=0.02) and b["edges"] == a["edges"]
+    for sid, tr in same.alignment.tracks.items():
+        np.testing.assert_allclose(louder_run.alignment.tracks[sid].xy, tr.xy, atol=1e-6)
+
+
+def sparse_hstack(m, extra_columns: int):  # noqa: ANN001, ANN201 - a test helper: columns of zeros on the right
+    from scipy import sparse
+
+    return sparse.hstack([m, sparse.csr_matrix((m.shape[0], extra_columns))]).tocsr()

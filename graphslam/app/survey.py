@@ -189,6 +189,8 @@ def reference_report(al: Alignment) -> dict[str, Any]:
         "source": ref.metadata.get("source"),
         "fingerprints": len(ref),
         "spacing_m": _spacing(ref),
+        # its readings minus the crowd's at one place (dB), taken off for its WiFi edges
+        "rss_offset_db": ref.metadata.get("rss_offset_db"),
         "used": True,
         "walks_placed_on_it": len(al.components[0].walks) if al.components else 0,
         "edges": int(len(pairs)),

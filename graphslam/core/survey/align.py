@@ -338,6 +338,8 @@ def build_problem(
                 scale_db=pc.similarity_scale_db, max_per_fingerprint=cfg.edges.max_per_fingerprint,
                 min_common_aps=cfg.edges.min_common_aps,
             )
+            # the offset found travels with the reference: report.json and the radio map say it
+            reference = reference.with_metadata(rss_offset_db=round(anchors.rss_offset_db, 2))
         split = split_by_heading(survey, fp, dr_xyh, node_sess, cfg, control_points, seed=seed, reference=anchors)
         placement, transforms = split.placement, split.placement.transforms
         included = np.ones(n_s, bool)

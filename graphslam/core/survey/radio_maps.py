@@ -79,7 +79,8 @@ def with_reference(crowd: RadioMap, ref: RadioMap) -> RadioMap:
     fm = FingerprintMatrix(bssids, sparse.vstack([a.values, b.values]).tocsr(), a.missing_dbm,
                            np.concatenate([a.extra_sq, b.extra_sq]), np.concatenate([a.extra_n, b.extra_n]))
     labels = None if crowd.floors is None else [*crowd.floors.tolist(), *([""] * len(ref))]
-    meta = {**dict(crowd.metadata), "reference": {"source": ref.metadata.get("source"), "fingerprints": len(ref)}}
+    meta = {**dict(crowd.metadata), "reference": {"source": ref.metadata.get("source"), "fingerprints": len(ref),
+                                                  "rss_offset_db": ref.metadata.get("rss_offset_db")}}
     return RadioMap.from_fingerprints(
         fm, np.concatenate([crowd.xy, ref.xy]), session_ids=[*crowd.session_ids.tolist(), *ref.session_ids.tolist()],
         t_ns=np.concatenate([crowd.t_ns, ref.t_ns]), frame=crowd.frame, floors=labels, metadata=meta,

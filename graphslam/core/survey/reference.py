@@ -17,6 +17,10 @@ tool's) is held fixed in the site frame. The crowd's walks are tied to it as the
    crowd fingerprint's own median-window threshold (the edge rule between walks, ``edges``) get the
    same fuzzy WiFi factor as two crowd fingerprints, with the reference end fixed
    (``reference_edges``); the ones the placement puts beyond the gate are left out, as between walks.
+   The reference's device may hear every AP louder or weaker than the crowd's phones by about one
+   constant: the power cosine of 1 cancels it, eq. 9 does not. It is estimated where the two are most
+   alike (``rss_offset_db``: every crowd fingerprint's best match) and taken off the reference's
+   readings for the edges.
 
 Frames: site (the reference's, metres); the crowd's dead reckoning turned by the headings (east/north)
 and by the site's rotation.
@@ -33,7 +37,7 @@ from scipy import sparse
 
 from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix
 from graphslam.core.radiomap.radiomap import RadioMap
-from graphslam.core.radiomap.similarity import PowerCosine, top_matches_between
+from graphslam.core.radiomap.similarity import Matches, PowerCosine, top_matches_between
 from graphslam.core.survey.edges import nearest_per_row
 from graphslam.core.survey.placement import GrowthParams, hough_profile
 
@@ -64,6 +68,7 @@ class ReferenceLinks:
     edge_i: NDArray[np.int64]  # (E,) crowd fingerprint of a reference edge
     edge_j: NDArray[np.int64]  # (E,) its reference fingerprint
     edge_d: NDArray[np.float64]  # (E,) eq.-9 distance (dB)
+    rss_offset_db: float = 0.0  # the reference's readings minus the crowd's at one place (taken off for the edges)
 
     def __len__(self) -> int:
         return len(self.xy)
@@ -81,8 +86,9 @@ def reference_links(
     pc = PowerCosine.of(FingerprintMatrix(bssids, sparse.vstack([c.values, r.values]).tocsr(), c.missing_dbm), scale_db)
     top = top_matches_between(PowerCosine(pc.unit[: len(c)], scale_db), PowerCosine(pc.unit[len(c):], scale_db),
                               matches_per_fingerprint)
+    offset = rss_offset_db(c, r, top)
     ei, ej, ed = [], [], []
-    engine = DistanceEngine(r)
+    engine = DistanceEngine(louder(r, -offset))  # the reference at the crowd's level (module docstring, 4)
     limit = np.where(np.isfinite(thresholds), thresholds, np.nan)  # no threshold (NaN or inf): no edge
     for a in range(0, len(c), block_rows):
         b = min(len(c), a + block_rows)
@@ -97,10 +103,40 @@ def reference_links(
         return np.concatenate(parts).astype(dtype) if parts else np.zeros(0, dtype)
 
     out = ReferenceLinks(np.asarray(ref.xy, float), top.i, top.j, top.similarity,
-                         cat(ei, np.int64), cat(ej, np.int64), cat(ed, np.float64))
-    log.info("reference map: %d fingerprints; %d placement matches and %d edges from the crowd's %d fingerprints",
-             len(out), len(out.match_i), len(out.edge_i), len(c))
+                         cat(ei, np.int64), cat(ej, np.int64), cat(ed, np.float64), offset)
+    log.info("reference map: %d fingerprints; %d placement matches and %d edges from the crowd's %d fingerprints; "
+             "its readings %+.1f dB from the crowd's", len(out), len(out.match_i), len(out.edge_i), len(c), offset)
     return out
+
+
+def rss_offset_db(crowd: FingerprintMatrix, ref: FingerprintMatrix, top: Matches, min_common: int = 3) -> float:
+    """How much louder (dB) the reference hears an AP than the crowd at one place: over every crowd
+    fingerprint's most similar reference fingerprint (``top``: the placement's matches, one AP index)
+    sharing at least ``min_common`` APs, the median of their mean reading difference over the APs both
+    heard. 0 when no pair qualifies. On IPIN 2023 floor -2: +5.3 dB (its reference made of repetition
+    1's scans), and +5 dB more for every 5 dB added to the reference's readings."""
+    if not len(top.i):
+        return 0.0
+    order = np.lexsort((-top.similarity, top.i))
+    first = order[np.concatenate([[True], top.i[order][1:] != top.i[order][:-1]])]
+    a, b = crowd.values[top.i[first]], ref.values[top.j[first]]
+    both = a.multiply(b) > 0  # APs both heard
+    n = np.asarray(both.sum(axis=1)).ravel()
+    diff = np.asarray(b.multiply(both).sum(axis=1)).ravel() - np.asarray(a.multiply(both).sum(axis=1)).ravel()
+    ok = n >= max(1, min_common)
+    return float(np.median(diff[ok] / n[ok])) if ok.any() else 0.0
+
+
+def louder(fm: FingerprintMatrix, db: float) -> FingerprintMatrix:
+    """``fm`` with every reading ``db`` louder (negative: weaker); a reading that falls to the missing
+    level or below is no reading. APs outside the index (``extra_*``) are left as they are."""
+    if db == 0.0:
+        return fm
+    v = fm.values.copy()
+    v.data = v.data + db
+    v.data[v.data <= 0.0] = 0.0
+    v.eliminate_zeros()
+    return FingerprintMatrix(fm.bssids, v, fm.missing_dbm, fm.extra_sq, fm.extra_n)
 
 
 def place_spacing(xy: NDArray[np.float64]) -> float | None:
