@@ -114,7 +114,7 @@ def test_refused_before_any_work(recordings: Path, tmp_path: Path, capsys: pytes
     assert sorted(p.name for p in recordings.iterdir()) == ["a.mcap", "b.mcap"]
 
 
-@pytest.mark.parametrize("where", ["writing", "final exchange", "final rename"])
+@pytest.mark.parametrize("where", ["writing", "the radio map beside the other files", "final exchange", "final rename"])
 def test_a_failure_leaves_the_previous_set(
     recordings: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, where: str
 ) -> None:
@@ -128,6 +128,15 @@ def test_a_failure_leaves_the_previous_set(
             raise OSError(28, "No space left on device")
 
         monkeypatch.setattr(app_survey, "write_aligned", broken)
+        msg = fails(capsys, "survey", recordings, "--out", out, "--no-progress", "--set", "wifi.d_max_m=25")
+        assert "cannot write the outputs (No space left on device)" in msg
+    elif where == "the radio map beside the other files":  # built in a worker thread while they are written
+        import graphslam.core.survey.radio_maps as radio_maps
+
+        def failing(*a: object, **k: object) -> None:
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(radio_maps, "crowdsourced_radio_map", failing)
         msg = fails(capsys, "survey", recordings, "--out", out, "--no-progress", "--set", "wifi.d_max_m=25")
         assert "cannot write the outputs (No space left on device)" in msg
     elif where == "final exchange":  # the one-step swap (Linux renameat2)

@@ -11,6 +11,7 @@ import logging
 import math
 import time
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping, Sequence
@@ -542,25 +543,31 @@ def write_outputs(
     try:
         names = {k: v for k, v in OUTPUT_FILES.items()
                  if (k != "radio_map_surveyed" or surveyed) and (k != "recordings_cache" or recording_keys is not None)}
-        component = al.component_of()
-        write_trajectories(al.tracks, stage.path / names["trajectories"], component, al.frame)
-        write_aligned(al.tracks, stage.path / names["aligned"], frame_id=al.frame,
-                      frame_ids={sid: component_frame_id(al, k) for sid, k in component.items()})
-        main = main_alignment(al)  # the radio map and its edges: component 0 only
-        _write_radio_map(survey, main, cfg, stage.path / names["radio_map"])
-        _write_wifi_edges(main, cfg, stage.path / names["wifi_edges"])
-        if not _write_magnetic_map(survey, al, cfg, stage.path / names["magnetic_map"]):
-            names.pop("magnetic_map")
-        if surveyed:  # evaluation: the same fingerprints at their ground-truth positions
-            from graphslam.core.survey.radio_maps import surveyed_radio_map
-            from graphslam.io.radiomap_io import write_radio_map
+        from graphslam.core.survey.radio_maps import crowdsourced_radio_map
+        from graphslam.io.radiomap_io import write_radio_map
 
-            write_radio_map(surveyed_radio_map(_without_other_components(survey, al), al, cfg),
-                            stage.path / names["radio_map_surveyed"])
-        atomic_write_text(stage.path / names["config"], cfg.to_yaml())
-        write_survey_state(stage.path / names["state"], survey, al, cfg)
-        if recording_keys is not None:
-            write_recording_cache(stage.path / names["recordings_cache"], survey, recording_keys)
+        main = main_alignment(al)  # the radio map and its edges: component 0 only
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="radio-map") as pool:
+            # the radio map's self-calibration, most of a large survey's writing, runs beside the other
+            # files (its searches release the GIL); an error in either waits for it, then discards the stage
+            radio_map = pool.submit(crowdsourced_radio_map, survey, main, cfg)
+            component = al.component_of()
+            write_trajectories(al.tracks, stage.path / names["trajectories"], component, al.frame)
+            write_aligned(al.tracks, stage.path / names["aligned"], frame_id=al.frame,
+                          frame_ids={sid: component_frame_id(al, k) for sid, k in component.items()})
+            _write_wifi_edges(main, cfg, stage.path / names["wifi_edges"])
+            if not _write_magnetic_map(survey, al, cfg, stage.path / names["magnetic_map"]):
+                names.pop("magnetic_map")
+            if surveyed:  # evaluation: the same fingerprints at their ground-truth positions
+                from graphslam.core.survey.radio_maps import surveyed_radio_map
+
+                write_radio_map(surveyed_radio_map(_without_other_components(survey, al), al, cfg),
+                                stage.path / names["radio_map_surveyed"])
+            atomic_write_text(stage.path / names["config"], cfg.to_yaml())
+            write_survey_state(stage.path / names["state"], survey, al, cfg)
+            if recording_keys is not None:
+                write_recording_cache(stage.path / names["recordings_cache"], survey, recording_keys)
+            write_radio_map(radio_map.result(), stage.path / names["radio_map"])
         if before_publish is not None:
             before_publish(stage.path)
         atomic_write_json(stage.path / names["report"], report)
@@ -612,8 +619,3 @@ def _write_magnetic_map(survey: Survey, al: Alignment, cfg: GraphSlamConfig, pat
     return True
 
 
-def _write_radio_map(survey: Survey, al: Alignment, cfg: GraphSlamConfig, path: Path) -> None:
-    from graphslam.core.survey.radio_maps import crowdsourced_radio_map
-    from graphslam.io.radiomap_io import write_radio_map
-
-    write_radio_map(crowdsourced_radio_map(survey, al, cfg), path)
