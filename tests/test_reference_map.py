@@ -362,12 +362,21 @@ def test_every_output_says_the_reference_map_placed_the_site_frame(floor: tuple,
     assert abs(r["site_from_earth_deg"] + math.degrees(EARTH)) < 3.0
     with Image.open(out / "survey.png") as im:
         assert "placed by the reference map reference_map.csv" in im.text["Title"]
-    assert survey_picture.scene_of_folder(out).reference_map == "reference_map.csv"
+    img = np.asarray(Image.open(out / "survey.png").convert("RGB")).astype(int)
+    grey = (np.abs(img - np.array(survey_picture.REFERENCE)).max(axis=2) <= 3).sum()
+    assert grey > len(read_reference_map(ref)) * 4  # its places drawn, a few pixels each
+    # drawn again from the folder: the same reference, its rows the radio map's last ones
+    again = survey_picture.scene_of_folder(out)
+    assert again.reference_map == "reference_map.csv"
+    np.testing.assert_allclose(np.sort(again.reference_xy, axis=0), np.sort(read_reference_map(ref).xy, axis=0), atol=1e-9)
+    texts = [e.text for e in survey_picture.survey_picture(again).legend]
+    assert any(t.startswith("reference map reference_map.csv: ") for t in texts)
     # without a reference (headings alone): no site rotation, and the title says nothing of one
     plain = run_survey(SurveyInputs.from_paths(files, out=tmp_path / "plain"), load_config()).report
     assert plain["frame"] == "earth" and "site_from_earth_deg" not in plain
     with Image.open(tmp_path / "plain" / "survey.png") as im:
         assert "reference map" not in im.text["Title"]
+    assert not len(survey_picture.scene_of_folder(tmp_path / "plain").reference_xy)
 
 
 def test_the_report_says_how_far_apart_the_reference_measured_its_places(floor: tuple, tmp_path: Path) -> None:

@@ -57,6 +57,7 @@ EDGE_COLOURS = ((70, 170, 90), (255, 160, 0), (220, 40, 40))  # inactive, ramp, 
 MAGENTA = (215, 0, 215)
 CONTROL = (0, 90, 255)  # control points (given) and their marks: not the landmarks' black and magenta
 ANCHOR = (230, 110, 0)  # UWB anchors
+REFERENCE = (95, 95, 95)  # a reference map's places (held): under the walks, darker than the edges
 EDGE_NAMES = ("inactive", "ramp", "saturated")
 PICTURE = "survey.png"
 
@@ -86,6 +87,8 @@ class SurveyScene:
     # the UWB anchors whose ranges placed the main map in the site frame (id -> site x, y)
     anchors: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     reference_map: str = ""  # the file name of the reference map the main map is placed on ("": none)
+    # its fingerprints' site positions (drawn under the walks)
+    reference_xy: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
 
     def main_ids(self) -> list[str]:
         """The walks of the main map (component 0), in ``tracks`` order."""
@@ -131,6 +134,7 @@ def scene_of_alignment(
         comps, al.frame, dict(al.control_points), anchors,
         _reference_name(al.reference_map.metadata.get("source") if al.reference_map is not None else None,
                         al.reference_map is not None),
+        np.asarray(al.reference_map.xy, float) if al.reference_map is not None else None,
     )
 
 
@@ -181,13 +185,17 @@ def scene_of_folder(
         ids = [s.session_id for s in survey]
     ids = list(dict.fromkeys([str(i) for i in ids] + list(pose_tracks) + list(unaligned)))
     reference = str(report.get("reference_session") or next(iter(pose_tracks)))
-    rows_xy, edges = np.zeros((0, 2)), None
+    rows_xy, edges, ref_xy = np.zeros((0, 2)), None, None
     if (d / "wifi_edges.parquet").exists() and (d / "radio_map.parquet").exists():
         from graphslam.io.edges_io import read_wifi_edges
         from graphslam.io.radiomap_io import read_radio_map
 
-        rows_xy = np.asarray(read_radio_map(d / "radio_map.parquet").xy)
+        rm = read_radio_map(d / "radio_map.parquet")
+        rows_xy = np.asarray(rm.xy)
         edges = read_wifi_edges(d / "wifi_edges.parquet", len(rows_xy))
+        held = rm.metadata.get("reference")  # a reference map's rows come last (``with_reference``)
+        n_ref = int(held.get("fingerprints") or 0) if isinstance(held, dict) else 0
+        ref_xy = rows_xy[len(rows_xy) - n_ref:] if 0 < n_ref <= len(rows_xy) else None
     else:
         notes.append("WiFi edges not shown: no wifi_edges.parquet + radio_map.parquet in the folder")
     marks = landmark_marks(traj.of_component(0), survey)
@@ -215,7 +223,7 @@ def scene_of_folder(
     return _scene(
         {sid: np.asarray(t.xy) for sid, t in pose_tracks.items()}, ids, reference, unaligned, rows_xy, edges,
         marks, T, _landmark_text(lm), n_poses, max_edges, tuple(notes), comps if len(comps) > 1 else (), frame,
-        control, anchors, _reference_name(ref.get("source"), frame == "site" and ref.get("used") is True),
+        control, anchors, _reference_name(ref.get("source"), frame == "site" and ref.get("used") is True), ref_xy,
     )
 
 
@@ -225,6 +233,7 @@ def _scene(
     max_edges: int, notes: tuple[str, ...], components: tuple[tuple[int, tuple[str, ...], str], ...] = (),
     frame: str = "aligned", control_points: Mapping[str, tuple[float, float]] | None = None,
     anchors: Mapping[str, tuple[float, float]] | None = None, reference_map: str = "",
+    reference_xy: NDArray | None = None,
 ) -> SurveyScene:
     if edges is None or not len(edges.a):
         seg, state, counts = np.zeros((0, 2, 2)), np.zeros(0, np.int8), (0, 0, 0)
@@ -240,6 +249,7 @@ def _scene(
         tracks, session_colours(ids), reference, unaligned, seg, state, counts, marks, T, landmark_text,
         len(ids), n_poses, notes, components if len(components) > 1 else (), frame, dict(control_points or {}),
         dict(anchors or {}), reference_map,
+        np.zeros((0, 2)) if reference_xy is None or not reference_map else np.asarray(reference_xy, float).reshape(-1, 2),
     )
 
 
@@ -298,6 +308,8 @@ def survey_picture(scene: SurveyScene, *, floor_plan: FloorPlan | None = None, s
     to_panel = None if site_drawn else scene.site_from_output
     control = _site_points(scene.control_points, site_drawn, to_panel)
     anchors = _site_points(scene.anchors, site_drawn, to_panel)
+    # a reference map's places (site positions; a survey placed on one is in the site frame)
+    ref_places = np.unique(scene.reference_xy, axis=0) if len(scene.reference_xy) and site_drawn else None
     plan_box = np.array([[0.0, 0.0], [floor_plan.width_m, floor_plan.height_m]]) if floor_plan is not None else None
     w, h = size_px
     pic = Picture(size_px, title_lines=_title(scene, floor_plan, in_site), legend_x=int(0.685 * w),
@@ -305,7 +317,7 @@ def survey_picture(scene: SurveyScene, *, floor_plan: FloorPlan | None = None, s
     top = 16 + 20 * len(pic.title_lines)
     right = int(0.665 * w)
     bottom = h - 30 - (INSET_STRIP_PX if others else 0)
-    panel = pic.panel((62, top, right, bottom), bounds_of(*lines, truth, plan_box, control[1], anchors[1]))
+    panel = pic.panel((62, top, right, bottom), bounds_of(*lines, truth, plan_box, control[1], anchors[1], ref_places))
     legend = pic.legend
 
     if floor_plan is not None:
@@ -325,6 +337,10 @@ def survey_picture(scene: SurveyScene, *, floor_plan: FloorPlan | None = None, s
         shown = "all drawn" if n_drawn == n_edges else f"{n_drawn:,} drawn"
         legend[-1].text += f" (of {n_edges:,}; {shown})"
 
+    if ref_places is not None:  # under the walks that were placed on them
+        panel.points(ref_places, REFERENCE, radius=2, kind="square", outline=REFERENCE)
+        legend.append(LegendEntry(f"reference map {scene.reference_map}: {len(scene.reference_xy):,} fingerprints at "
+                                  f"{len(ref_places):,} places (held)", REFERENCE, "square"))
     if est is not None and truth is not None:  # under the walks: big errors must not hide them
         panel.faint_segments(np.stack([est, truth], axis=1), MAGENTA, alpha=0.45)
     n_walks = len(scene.tracks)
