@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections import defaultdict
 from pathlib import Path
@@ -345,3 +346,32 @@ def test_top_access_points_and_colours() -> None:
     assert col.shape == (4, 3) and (col[0] == col[1]).all() and (col[2] == col[3]).all()
     c = rl.session_colours(["a", "b", "c"])
     assert len(set(c.values())) == 3
+
+
+def test_a_reference_map_is_its_own_layer(tmp_path: Path) -> None:
+    """A survey on a reference map logs the reference's fingerprints (held, site frame) apart from the
+    crowd's, from the alignment and again from the output folder (the radio map's last rows)."""
+    from graphslam.app.survey import run_survey
+    from graphslam.app.survey_inputs import SurveyInputs
+    from graphslam.config import load_config
+    from graphslam.io.mcap_writer import write_session
+    from graphslam.io.reference_map import read_reference_map
+    from test_magnetic import corridor as magnetic_corridor
+    from test_reference_map import reference_csv
+
+    survey = magnetic_corridor()
+    (tmp_path / "walks").mkdir()
+    files = [write_session(s, tmp_path / "walks" / f"{s.session_id}.mcap") for s in survey]
+    ref = reference_csv(tmp_path / "reference_map.csv", survey)
+    res = run_survey(SurveyInputs.from_paths(files[1:], out=tmp_path / "out", reference_map=ref, picture=False),
+                     load_config())
+    want = np.asarray(read_reference_map(ref).xy)
+    rl.log_survey(tmp_path / "a.rrd", res.survey, res.alignment, load_config())
+    rl.write_survey_view(tmp_path / "out", tmp_path / "b.rrd")
+    for rrd in (Rrd(tmp_path / "a.rrd"), Rrd(tmp_path / "b.rrd")):
+        got = np.array(rrd.static["/" + rl.REFERENCE_MAP]["Points2D:positions"][0])
+        np.testing.assert_allclose(got, want, atol=1e-4)
+        assert set(rrd.static["/" + rl.REFERENCE_MAP]["Points2D:labels"][0]) == {"reference_map.csv"}
+    plain = Rrd(tmp_path / "c.rrd") if rl.log_survey(tmp_path / "c.rrd", res.survey,
+                                                      dataclasses.replace(res.alignment, reference_map=None)) else None
+    assert "/" + rl.REFERENCE_MAP not in plain.entities

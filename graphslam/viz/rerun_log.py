@@ -80,6 +80,7 @@ TRAJECTORIES = "world/aligned/trajectories"
 REFERENCE = "world/aligned/reference_pose"
 EDGES = "world/aligned/wifi_edges"
 FINGERPRINTS = "world/aligned/radio_map/fingerprints"
+REFERENCE_MAP = "world/aligned/reference_map"  # a reference map's fingerprints, held (site frame)
 APS = "world/aligned/radio_map/ap"
 HEATMAPS = "world/aligned/radio_map/heatmap"
 MAGNETIC = "world/aligned/magnetic_map"
@@ -187,6 +188,8 @@ def log_survey(
     _edge_layers(lg, alignment, cfg, max_edges)
     fm = alignment.fingerprints.fingerprints
     _radio_layers(lg, alignment.fingerprint_xy(), fm, top_aps, cfg.fingerprint.min_rssi_dbm)
+    if alignment.reference_map is not None:
+        _reference_map_layer(lg, np.asarray(alignment.reference_map.xy), alignment.reference_map.metadata.get("source"))
     if alignment.magnetic is not None:
         from graphslam.core.survey.radio_maps import crowdsourced_magnetic_map
 
@@ -292,6 +295,10 @@ def write_survey_view(
         try:
             rm = read_radio_map(rm_path)
             _radio_layers(lg, np.asarray(rm.xy), rm.fingerprints, top_aps, rm.min_rssi_dbm)
+            held = rm.metadata.get("reference")  # a reference map's rows come last (``with_reference``)
+            n_ref = int(held.get("fingerprints") or 0) if isinstance(held, dict) else 0
+            if 0 < n_ref <= len(rm):
+                _reference_map_layer(lg, np.asarray(rm.xy)[len(rm) - n_ref:], held.get("source"))
         except GraphSlamError as e:  # optional file: show the rest, say why the map is missing
             problems.append(f"radio_map.parquet not shown: {e}")
     mm_path = d / "magnetic_map.parquet"
@@ -410,6 +417,13 @@ def _reference_layer(lg: _Log, xyh: NDArray, session_id: str) -> None:
                         radii=rr.components.Radius.ui_points(2.5), labels=[f"reference: {session_id}"],
                         draw_order=_Z_REF)
     lg.static(REFERENCE, 1, arrow)
+
+
+def _reference_map_layer(lg: _Log, xy: NDArray, source: object) -> None:
+    """The reference map the main map is placed on: its fingerprints' site positions, dark grey."""
+    name = Path(str(source)).name if source else "reference map"
+    lg.static(REFERENCE_MAP, len(xy), _points(xy, (70, 70, 70), 2.5, _Z_FP + 0.5, [name] * len(xy)))
+    lg.notes.append(f"- reference map {name}: {len(xy):,} fingerprints, held (dark grey, /{REFERENCE_MAP})")
 
 
 def _edge_layers(lg: _Log, al: Alignment, cfg: GraphSlamConfig, max_edges: int) -> None:
