@@ -49,6 +49,7 @@ from graphslam.core.survey.align import Alignment, IterationRecord
 from graphslam.core.survey.factors import edge_state
 from graphslam.core.radiomap.field import readings_field
 from graphslam.core.radiomap.magnetic_map import MagneticMap
+from graphslam.core.survey.radio_maps import held_reference, reference_label
 from graphslam.core.radiomap.fingerprints import DEFAULT_MIN_RSSI_DBM, FingerprintMatrix
 from graphslam.core.common.geometry import se2_apply
 from graphslam.core.types import PoseTrack, Survey
@@ -189,7 +190,8 @@ def log_survey(
     fm = alignment.fingerprints.fingerprints
     _radio_layers(lg, alignment.fingerprint_xy(), fm, top_aps, cfg.fingerprint.min_rssi_dbm)
     if alignment.reference_map is not None:
-        _reference_map_layer(lg, np.asarray(alignment.reference_map.xy), alignment.reference_map.metadata.get("source"))
+        _reference_map_layer(lg, np.asarray(alignment.reference_map.xy),
+                             reference_label(alignment.reference_map.metadata.get("source")))
     if alignment.magnetic is not None:
         from graphslam.core.survey.radio_maps import crowdsourced_magnetic_map
 
@@ -295,10 +297,9 @@ def write_survey_view(
         try:
             rm = read_radio_map(rm_path)
             _radio_layers(lg, np.asarray(rm.xy), rm.fingerprints, top_aps, rm.min_rssi_dbm)
-            held = rm.metadata.get("reference")  # a reference map's rows come last (``with_reference``)
-            n_ref = int(held.get("fingerprints") or 0) if isinstance(held, dict) else 0
-            if 0 < n_ref <= len(rm):
-                _reference_map_layer(lg, np.asarray(rm.xy)[len(rm) - n_ref:], held.get("source"))
+            held = held_reference(rm)
+            if held is not None:
+                _reference_map_layer(lg, *held)
         except GraphSlamError as e:  # optional file: show the rest, say why the map is missing
             problems.append(f"radio_map.parquet not shown: {e}")
     mm_path = d / "magnetic_map.parquet"
@@ -419,9 +420,8 @@ def _reference_layer(lg: _Log, xyh: NDArray, session_id: str) -> None:
     lg.static(REFERENCE, 1, arrow)
 
 
-def _reference_map_layer(lg: _Log, xy: NDArray, source: object) -> None:
+def _reference_map_layer(lg: _Log, xy: NDArray, name: str) -> None:
     """The reference map the main map is placed on: its fingerprints' site positions, dark grey."""
-    name = Path(str(source)).name if source else "reference map"
     lg.static(REFERENCE_MAP, len(xy), _points(xy, (70, 70, 70), 2.5, _Z_FP + 0.5, [name] * len(xy)))
     lg.notes.append(f"- reference map {name}: {len(xy):,} fingerprints, held (dark grey, /{REFERENCE_MAP})")
 

@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graphslam.config import GraphSlamConfig
-from graphslam.core.survey.radio_maps import WifiEdgeRows, crowdsourced_edges
+from graphslam.core.survey.radio_maps import WifiEdgeRows, crowdsourced_edges, held_reference, reference_label
 from graphslam.core.survey.align import Alignment
 from graphslam.core.survey.evaluate import Evaluation
 from graphslam.core.common.geometry import se2_apply
@@ -132,17 +132,9 @@ def scene_of_alignment(
         tracks, al.session_ids, al.reference, dict(al.unaligned), rows_xy, edges, marks, T,
         _landmark_text(marks.stats.as_dict() if marks is not None else None), survey.n_steps, max_edges, (),
         comps, al.frame, dict(al.control_points), anchors,
-        _reference_name(al.reference_map.metadata.get("source") if al.reference_map is not None else None,
-                        al.reference_map is not None),
+        reference_label(al.reference_map.metadata.get("source")) if al.reference_map is not None else "",
         np.asarray(al.reference_map.xy, float) if al.reference_map is not None else None,
     )
-
-
-def _reference_name(source: object, used: bool) -> str:
-    """The name a picture gives the reference map the main map is placed on ("" when none is)."""
-    if not used:
-        return ""
-    return Path(str(source)).name if source else "reference map"
 
 
 def _anchors(survey: Survey | None, ids: Sequence[str]) -> dict[str, tuple[float, float]]:
@@ -193,9 +185,8 @@ def scene_of_folder(
         rm = read_radio_map(d / "radio_map.parquet")
         rows_xy = np.asarray(rm.xy)
         edges = read_wifi_edges(d / "wifi_edges.parquet", len(rows_xy))
-        held = rm.metadata.get("reference")  # a reference map's rows come last (``with_reference``)
-        n_ref = int(held.get("fingerprints") or 0) if isinstance(held, dict) else 0
-        ref_xy = rows_xy[len(rows_xy) - n_ref:] if 0 < n_ref <= len(rows_xy) else None
+        held = held_reference(rm)
+        ref_xy = None if held is None else held[0]
     else:
         notes.append("WiFi edges not shown: no wifi_edges.parquet + radio_map.parquet in the folder")
     marks = landmark_marks(traj.of_component(0), survey)
@@ -223,7 +214,8 @@ def scene_of_folder(
     return _scene(
         {sid: np.asarray(t.xy) for sid, t in pose_tracks.items()}, ids, reference, unaligned, rows_xy, edges,
         marks, T, _landmark_text(lm), n_poses, max_edges, tuple(notes), comps if len(comps) > 1 else (), frame,
-        control, anchors, _reference_name(ref.get("source"), frame == "site" and ref.get("used") is True), ref_xy,
+        control, anchors, reference_label(ref.get("source")) if frame == "site" and ref.get("used") is True else "",
+        ref_xy,
     )
 
 

@@ -3,6 +3,7 @@ and the magnetic map beside them."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -86,6 +87,21 @@ def with_reference(crowd: RadioMap, ref: RadioMap) -> RadioMap:
         t_ns=np.concatenate([crowd.t_ns, ref.t_ns]), frame=crowd.frame, floors=labels, metadata=meta,
         min_rssi_dbm=crowd.min_rssi_dbm,
     )
+
+
+def reference_label(source: object) -> str:
+    """How outputs name a reference map: its file's name ("reference map" when it has none)."""
+    return Path(str(source)).name if source else "reference map"
+
+
+def held_reference(rm: RadioMap) -> tuple[NDArray[np.float64], str] | None:
+    """(site positions, label) of the reference map's rows in a survey's radio map (``with_reference``
+    appends them last and counts them in ``metadata.reference``); None when it holds none."""
+    held = rm.metadata.get("reference")
+    n = int(held.get("fingerprints") or 0) if isinstance(held, dict) else 0
+    if not 0 < n <= len(rm):
+        return None
+    return np.asarray(rm.xy, float)[len(rm) - n:], reference_label(held.get("source"))
 
 
 def surveyed_radio_map(survey: Survey, al: Alignment, cfg: GraphSlamConfig) -> RadioMap:
