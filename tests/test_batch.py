@@ -43,26 +43,26 @@ def test_batch_surveys_every_floor_and_reports_the_broken_one(
     # the main map first, counted as `survey` counts it
     assert list(rows[0])[:9] == ["floor", "status", "error", "walks", "main", "other_walks", "other_components",
                                  "unaligned", "main_map"]
-    assert set(rows[0]) == {*list(rows[0])[:9], "aligned", "seconds", "warning"}
+    assert set(rows[0]) == {*list(rows[0])[:9], "aligned", "frame", "seconds", "warning"}
     ok = [r for r in rows if r["status"] == "ok"]
     assert len(ok) == 2 and all(r["error"] is None and r["walks"] == 6 and r["aligned"] >= 1 for r in ok)
     assert all(r["warning"] is None and 2 * r["main"] >= r["walks"] for r in ok)
     for r in ok:
         assert r["main"] + r["other_walks"] + r["unaligned"] == r["walks"] and r["aligned"] == r["main"] + r["other_walks"]
         report = json.loads((out / r["floor"] / "report.json").read_text())
-        assert r["main"] == report["components"][0]["n_walks"]
+        assert r["main"] == report["components"][0]["n_walks"] and r["frame"] == report["frame"]
         assert r["main_map"] == (f"main map: {r['main']} of {r['walks']} walks; {r['other_walks']} in "
                                  f"{r['other_components']} other component{'' if r['other_components'] == 1 else 's'}; "
                                  f"{r['unaligned']} unaligned")
     bad = rows[2]
     bad_file = sorted((sites / "b2/F1").glob("*.mcap"))[1]
-    assert bad["status"] == "failed" and str(bad_file) in bad["error"] and bad["walks"] == 0
+    assert bad["status"] == "failed" and str(bad_file) in bad["error"] and bad["walks"] == 0 and bad["frame"] is None
     # each floor's outputs at its relative path; none for the failed floor
     assert (out / "b1/F1/radio_map.parquet").is_file() and (out / "b1/F2/report.json").is_file()
     assert not (out / "b2/F1/report.json").exists()
     printed = capsys.readouterr().out
     assert f"failed: b2/F1: {bad_file}" in printed
-    assert all(f"ok: {r['floor']}: {r['main_map']}\n" in printed for r in ok)
+    assert all(f"ok: {r['floor']}: {r['main_map']}; frame {r['frame']}\n" in printed for r in ok)
     # the next night: floors surveyed before are updated in place, the broken one is tried in full again
     assert _run(["survey-batch", str(sites), "--out", str(out), "--workers", "1", "--no-progress", "--update"]) == 1
     for rel in ("b1/F1", "b1/F2"):

@@ -298,7 +298,7 @@ def test_batch_counts_partial_floors_and_takes_each_floors_control_points(
     assert str(broken / "control_points.csv") in rows["broken"]["error"] and "[field y]" in rows["broken"]["error"]
     stdout = capsys.readouterr().out
     assert "3 floors: 1 ok, 1 partial, 1 failed" in stdout
-    assert f"partial: sparse: {rows['sparse']['main_map']} (under half of the walks in the main map" in stdout
+    assert f"partial: sparse: {rows['sparse']['main_map']}; frame {rows['sparse']['frame']} (under half of the walks in the main map" in stdout
     assert rows["sparse"]["main_map"].startswith("main map: 2 of 6 walks; ")
     # partial floors alone: exit code 0
     (broken / "control_points.csv").unlink()

@@ -4,6 +4,7 @@ it in the site frame, its fingerprints in the output map, bad files."""
 from __future__ import annotations
 
 import csv
+import importlib.util
 import json
 import math
 from pathlib import Path
@@ -425,3 +426,28 @@ def sparse_hstack(m, extra_columns: int):  # noqa: ANN001, ANN201 - a test helpe
     from scipy import sparse
 
     return sparse.hstack([m, sparse.csr_matrix((m.shape[0], extra_columns))]).tocsr()
+
+
+@pytest.mark.skipif(importlib.util.find_spec("distributed") is None, reason="the batch extra (Dask) is not installed")
+def test_survey_batch_surveys_a_floor_on_the_reference_map_its_folder_holds(floor: tuple, tmp_path: Path) -> None:
+    """A real local Dask cluster: a floor folder holding reference_map.csv is surveyed on it (site frame,
+    its report names the file), the same walks without one by their headings (earth frame), and a broken
+    reference_map.csv fails its floor alone, the file and field named."""
+    _, files, ref, _ = floor
+    sites = tmp_path / "sites"
+    for name in ("surveyed", "plain", "broken"):
+        (sites / name).mkdir(parents=True)
+        for f in files:
+            (sites / name / f.name).write_bytes(f.read_bytes())
+    (sites / "surveyed" / "reference_map.csv").write_bytes(ref.read_bytes())
+    (sites / "broken" / "reference_map.csv").write_text("fingerprint_id,x,y,bssid,rssi_dbm\nfp0,1.0,north,aa:bb,-60\n")
+    out = tmp_path / "out"
+    assert cli_main(["survey-batch", str(sites), "--out", str(out), "--workers", "2", "--no-progress"]) == 1
+    rows = {r["floor"]: r for r in json.loads((out / "summary.json").read_text())}
+    assert {k: (r["status"], r["frame"]) for k, r in rows.items()} == {
+        "surveyed": ("ok", "site"), "plain": ("ok", "earth"), "broken": ("failed", None)}
+    report = json.loads((out / "surveyed" / "report.json").read_text())
+    assert report["frame"] == "site" and report["reference_map"]["source"].endswith("reference_map.csv")
+    assert "reference_map" not in json.loads((out / "plain" / "report.json").read_text())
+    assert str(sites / "broken" / "reference_map.csv") in rows["broken"]["error"] and "[field y]" in rows["broken"]["error"]
+    assert not (out / "broken").exists()  # nothing written for the failed floor

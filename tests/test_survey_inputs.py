@@ -11,7 +11,7 @@ import pytest
 
 import graphslam as gs
 from graphslam.app.survey import run_survey
-from graphslam.app.survey_inputs import CONTROL_POINTS_FILE, SurveyInputs
+from graphslam.app.survey_inputs import CONTROL_POINTS_FILE, REFERENCE_MAP_FILE, SurveyInputs
 from graphslam.config import GraphSlamConfig
 from graphslam.errors import InputError
 from graphslam.io.mcap_writer import write_session
@@ -49,17 +49,21 @@ def test_paths_are_held_as_path_objects(tmp_path: Path) -> None:
         held.out = tmp_path  # type: ignore[misc]  # frozen
 
 
-def test_a_floor_folder_brings_its_control_points_and_its_previous_output(floor: tuple, tmp_path: Path) -> None:
+def test_a_floor_folder_brings_its_control_points_reference_map_and_previous_output(floor: tuple, tmp_path: Path) -> None:
     folder, _ = floor
     plain = SurveyInputs.for_floor(folder, tmp_path / "out", update=True)
-    assert plain.control_points is None and plain.previous is None  # no control_points.csv, no previous output
+    # no control_points.csv, no reference_map.csv, no previous output
+    assert plain.control_points is None and plain.reference_map is None and plain.previous is None
     site = tmp_path / "site"
     site.mkdir()
     (site / CONTROL_POINTS_FILE).write_text("landmark_id,x,y\nL1,1,2\n")
+    (site / REFERENCE_MAP_FILE).write_text("fingerprint_id,x,y,bssid,rssi_dbm\nfp0,1,2,aa:bb,-60\n")
     (tmp_path / "out" / "survey_state.npz").parent.mkdir()
     (tmp_path / "out" / "survey_state.npz").write_bytes(b"")
     inputs = SurveyInputs.for_floor(site, tmp_path / "out", update=True, picture=False)
     assert inputs.control_points == site / CONTROL_POINTS_FILE and inputs.previous == tmp_path / "out"
+    assert inputs.reference_map == site / REFERENCE_MAP_FILE
+    assert SurveyInputs.for_floor(site, reference_map=None).reference_map is None  # an option given wins
     assert not inputs.picture and inputs.recordings == (site,)
     assert SurveyInputs.for_floor(site, tmp_path / "out").previous is None  # no update asked for
 

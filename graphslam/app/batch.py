@@ -11,7 +11,8 @@ A floor surveyed whose main map (component 0) holds under half of its walks is `
 (``graphslam.app.survey.main_map_warning``, the rule ``graphslam survey`` warns by; the text is
 the row's ``warning``): its outputs are written, the batch still succeeds. A floor folder
 holding ``control_points.csv`` is surveyed with those control points (``survey
---control-points``).
+--control-points``), one holding ``reference_map.csv`` on that surveyed map (``survey
+--reference-map``); the row's ``frame`` says which frame the floor's main map came out in.
 
 Failures stay per floor: bad input or a solver error is the floor's ``error`` (the message
 names the file); a worker that dies while surveying a floor (OOM killer, a lost machine)
@@ -73,6 +74,9 @@ class FloorRow:
     unaligned: int = 0
     main_map: str = ""  # the same counts as `survey`'s first line ("main map: 8 of 40 walks; ...")
     aligned: int = 0  # walks aligned, in any component (main + other_walks)
+    # the main map's frame, as report.json's: "site" (control points or a reference map placed it),
+    # "earth" (the phones' headings) or "aligned"; None for a failed floor
+    frame: str | None = None
     seconds: float = 0.0
     warning: str | None = None  # why the floor is partial
 
@@ -122,7 +126,7 @@ def survey_floor(floor_dir: str, out_dir: str, config_json: str, floor: str, upd
         counts = {"walks": r["sessions"], "main": comps[0]["n_walks"] if comps else 0,
                   "other_walks": sum(c["n_walks"] for c in comps[1:]), "other_components": max(0, len(comps) - 1),
                   "unaligned": len(r["unaligned"]), "main_map": report_main_map_counts(r),
-                  "aligned": r["aligned_sessions"]}
+                  "aligned": r["aligned_sessions"], "frame": r["frame"]}
         warning = main_map_warning(r)
     except GraphSlamError as e:
         error = str(e)

@@ -13,7 +13,7 @@ from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 
-from graphslam.app.survey_inputs import CONTROL_POINTS_FILE, SurveyInputs
+from graphslam.app.survey_inputs import CONTROL_POINTS_FILE, REFERENCE_MAP_FILE, SurveyInputs
 from graphslam.config import GraphSlamConfig
 from graphslam.core.progress import progress_over
 from graphslam.core.summary import main_map_counts
@@ -22,7 +22,6 @@ log = logging.getLogger(__name__)
 
 
 REAL_VARIANTS = ("headings", "no_magnetic", "no_headings", "control_points", "reference_map")
-REFERENCE_MAP_FILE = "reference_map.csv"  # in a floor folder: a surveyed radio map of that floor
 BIG_COMPONENT_WALKS = 5  # walks_in_components_of_5_or_more
 # ... and of 4 or more: the size the survey's targets are stated for
 COMPONENT_SIZES = (4, BIG_COMPONENT_WALKS)

@@ -165,7 +165,8 @@ def survey_batch(
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Progress bar over floors."),
 ) -> None:
     """Survey every floor under SITES_ROOT as one task each on Dask; OUT_ROOT/summary.json lists them.
-    A floor folder holding control_points.csv is surveyed with it (survey --control-points). A floor
+    A floor folder holding control_points.csv is surveyed with it (survey --control-points), one holding
+    reference_map.csv on that map (survey --reference-map); each row says its main map's frame. A floor
     whose main map holds under half of its walks is "partial". Exit code 0: no floor failed (ok or
     partial); 1: some failed (their error in summary.json); 2: bad arguments."""
     from tqdm import tqdm
@@ -197,7 +198,7 @@ def survey_batch(
         if row.status == "failed":
             typer.echo(f"failed: {row.floor}: {row.error}")
         else:
-            typer.echo(f"{row.status}: {row.floor}: {row.main_map}"
+            typer.echo(f"{row.status}: {row.floor}: {row.main_map}; frame {row.frame}"  # as `survey`'s first line
                        + (" (under half of the walks in the main map: its report.json, components and unaligned)"
                           if row.status == "partial" else ""))
     if res.failed:
