@@ -8,10 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 
 import graphslam as gs
 from graphslam.app.survey import run_survey
-from graphslam.app.survey_inputs import CONTROL_POINTS_FILE, REFERENCE_MAP_FILE, SurveyInputs
+from graphslam.app.survey_inputs import CONTROL_POINTS_FILE, FLOOR_PLAN_FILE, REFERENCE_MAP_FILE, SurveyInputs
 from graphslam.config import GraphSlamConfig
 from graphslam.errors import InputError
 from graphslam.io.mcap_writer import write_session
@@ -64,8 +65,28 @@ def test_a_floor_folder_brings_its_control_points_reference_map_and_previous_out
     assert inputs.control_points == site / CONTROL_POINTS_FILE and inputs.previous == tmp_path / "out"
     assert inputs.reference_map == site / REFERENCE_MAP_FILE
     assert SurveyInputs.for_floor(site, reference_map=None).reference_map is None  # an option given wins
+    assert inputs.floor_plan is None  # no floor_image.png
     assert not inputs.picture and inputs.recordings == (site,)
     assert SurveyInputs.for_floor(site, tmp_path / "out").previous is None  # no update asked for
+
+
+def test_a_floor_folder_brings_its_floor_plan_when_its_size_is_beside_it(floor: tuple, tmp_path: Path) -> None:
+    """survey-batch draws a floor's survey.png over the floor_image.png of its folder (the ILC layout: its
+    size in floor_info.json beside it); an image without its size is left out, not a failed floor."""
+    folder, _ = floor
+    site = tmp_path / "site"
+    site.mkdir()
+    for f in folder.glob("*.mcap"):
+        (site / f.name).write_bytes(f.read_bytes())
+    Image.new("RGB", (300, 40), (255, 220, 120)).save(site / FLOOR_PLAN_FILE)  # a colour no walk has
+    assert SurveyInputs.for_floor(site).floor_plan is None  # no floor_info.json yet
+    (site / "floor_info.json").write_text(json.dumps({"map_info": {"width": 90.0, "height": 12.0}}))
+    inputs = SurveyInputs.for_floor(site, tmp_path / "out")
+    assert inputs.floor_plan == site / FLOOR_PLAN_FILE and inputs.floor_size is None
+    run_survey(inputs)
+    with Image.open(tmp_path / "out" / "survey.png") as im:
+        img = np.asarray(im.convert("RGB")).astype(int)
+    assert (np.abs(img - np.array([255, 225, 140])).max(axis=2) <= 12).sum() > 2_000  # the plan, at alpha 0.85
 
 
 def test_a_missing_reference_map_fails_before_any_work(floor: tuple, tmp_path: Path) -> None:

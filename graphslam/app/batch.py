@@ -12,7 +12,8 @@ A floor surveyed whose main map (component 0) holds under half of its walks is `
 the row's ``warning``): its outputs are written, the batch still succeeds. A floor folder
 holding ``control_points.csv`` is surveyed with those control points (``survey
 --control-points``), one holding ``reference_map.csv`` on that surveyed map (``survey
---reference-map``); the row's ``frame`` says which frame the floor's main map came out in.
+--reference-map``), one holding ``floor_image.png`` and ``floor_info.json`` gets its survey.png over
+that plan (``survey --floor-plan``); the row's ``frame`` says which frame the floor's main map came out in.
 
 Failures stay per floor: bad input or a solver error is the floor's ``error`` (the message
 names the file); a worker that dies while surveying a floor (OOM killer, a lost machine)

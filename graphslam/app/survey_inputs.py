@@ -15,6 +15,7 @@ from typing import Any, Mapping, Sequence
 
 CONTROL_POINTS_FILE = "control_points.csv"  # in a floor folder: that floor's control points (survey-batch, bench real)
 REFERENCE_MAP_FILE = "reference_map.csv"  # in a floor folder: a surveyed radio map of that floor (survey-batch, bench real)
+FLOOR_PLAN_FILE = "floor_image.png"  # in a floor folder: its plan, under survey.png (survey-batch; the ILC layout)
 
 ControlPoints = Mapping[str, tuple[float, float]]  # landmark id -> site (x, y), metres
 
@@ -83,12 +84,15 @@ class SurveyInputs:
     def for_floor(cls, folder: str | Path, out: str | Path | None = None, *, update: bool = False,
                   **options: Any) -> SurveyInputs:
         """A floor folder's recordings as ``survey-batch`` surveys them: with the folder's
-        ``control_points.csv`` and ``reference_map.csv`` when it holds them; ``update``: seeded by the
+        ``control_points.csv`` and ``reference_map.csv`` when it holds them, and its ``floor_image.png``
+        under the picture when ``floor_info.json`` (its size) is beside it; ``update``: seeded by the
         previous output in ``out`` when there is one (``survey --update``; none: a full survey)."""
+        from graphslam.io.floor_plan import FLOOR_INFO_FILE
         from graphslam.io.survey_state import STATE_FILE
 
         folder = Path(folder)
-        cp, ref = folder / CONTROL_POINTS_FILE, folder / REFERENCE_MAP_FILE
+        cp, ref, plan = folder / CONTROL_POINTS_FILE, folder / REFERENCE_MAP_FILE, folder / FLOOR_PLAN_FILE
         previous = Path(out) if update and out is not None and (Path(out) / STATE_FILE).is_file() else None
-        found = {"control_points": cp if cp.is_file() else None, "reference_map": ref if ref.is_file() else None}
+        found = {"control_points": cp if cp.is_file() else None, "reference_map": ref if ref.is_file() else None,
+                 "floor_plan": plan if plan.is_file() and (folder / FLOOR_INFO_FILE).is_file() else None}
         return cls((folder,), out, **{**found, "previous": previous, **options})

@@ -166,7 +166,8 @@ def survey_batch(
 ) -> None:
     """Survey every floor under SITES_ROOT as one task each on Dask; OUT_ROOT/summary.json lists them.
     A floor folder holding control_points.csv is surveyed with it (survey --control-points), one holding
-    reference_map.csv on that map (survey --reference-map); each row says its main map's frame. A floor
+    reference_map.csv on that map (survey --reference-map), floor_image.png with floor_info.json under its
+    survey.png (survey --floor-plan); each row says its main map's frame. A floor
     whose main map holds under half of its walks is "partial". Exit code 0: no floor failed (ok or
     partial); 1: some failed (their error in summary.json); 2: bad arguments."""
     from tqdm import tqdm

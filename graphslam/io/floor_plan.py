@@ -23,6 +23,9 @@ class FloorPlan:
     pixels: tuple[int, int]  # (columns, rows)
 
 
+FLOOR_INFO_FILE = "floor_info.json"  # beside a floor plan image: its size in metres (the ILC layout)
+
+
 def load_floor_plan(path: str | Path | None, size: tuple[float, float] | None) -> FloorPlan | None:
     """The floor plan image and its size in metres.
 
@@ -37,7 +40,7 @@ def load_floor_plan(path: str | Path | None, size: tuple[float, float] | None) -
     if not p.is_file():
         raise InputError(p, "floor plan image not found")
     if size is None:
-        info = p.parent / "floor_info.json"
+        info = p.parent / FLOOR_INFO_FILE
         try:
             mi = json.loads(info.read_text(encoding="utf-8"))["map_info"]
             size = (float(mi["width"]), float(mi["height"]))
