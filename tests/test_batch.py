@@ -168,3 +168,21 @@ def test_batch_surveys_the_largest_floors_first(sites: Path, tmp_path: Path) -> 
     size = {rel: sum(f.stat().st_size for f in (sites / rel).glob("*.mcap")) for rel in done}
     assert len(set(size.values())) == len(done)  # the fixture's floors differ in size
     assert done == sorted(done, key=lambda rel: -size[rel]) != sorted(done)  # not the folders' order
+
+
+def test_linked_floor_folders_are_floors_each_real_folder_once(tmp_path: Path) -> None:
+    """A site assembled of symbolic links to floors on another disk is surveyed; a link back up the tree,
+    or a second link to a floor, does not make a floor twice (nor a walk without end)."""
+    store, sites = tmp_path / "disk2", tmp_path / "sites"
+    for name in ("F1", "F2"):
+        (store / name).mkdir(parents=True)
+        (store / name / "a.mcap").write_bytes(b"")
+    (sites / "b1").mkdir(parents=True)
+    (sites / "b1" / "F1").symlink_to(store / "F1", target_is_directory=True)
+    (sites / "b1" / "F2").symlink_to(store / "F2", target_is_directory=True)
+    (sites / "b1" / "again").symlink_to(store / "F1", target_is_directory=True)  # the same floor twice
+    (store / "F2" / "up").symlink_to(sites, target_is_directory=True)  # a loop
+    from graphslam.app.batch import find_floors
+
+    floors = find_floors(sites, tmp_path / "out")
+    assert [f.relative_to(sites).as_posix() for f in floors] == ["b1/F1", "b1/F2"]

@@ -236,3 +236,18 @@ def test_a_floor_that_knows_one_weak_access_point_of_the_query_does_not_answer(t
         p = c.post("/v1/locate", json={"readings": q}).json()["positions"][0]
     assert p["floor"] == "floor_0" and p["floor_scores"]["leak"] > p["floor_scores"]["floor_0"]
     assert p["floor_scores"]["floor_0"] == pytest.approx(own[0])  # a floor that knows every AP: unchanged
+
+
+def test_linked_floor_folders_are_served_each_real_folder_once(tmp_path: Path, floors: dict) -> None:
+    """A site whose floors are symbolic links (to survey-batch's outputs elsewhere) is served; a link back
+    up the tree or a survey's hidden stage is not a floor."""
+    from graphslam.service.site import find_floor_maps
+
+    store = _site(tmp_path / "outputs", floors)
+    site = tmp_path / "site"
+    site.mkdir()
+    for name in floors:
+        (site / name).symlink_to(store / name, target_is_directory=True)
+    (store / "floor_1" / "up").symlink_to(site, target_is_directory=True)  # a loop
+    found = find_floor_maps(site)
+    assert list(found) == ["floor_0", "floor_1"] and found["floor_1"] == site / "floor_1" / "radio_map.parquet"

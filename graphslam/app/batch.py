@@ -46,6 +46,7 @@ from graphslam.app.survey_inputs import SurveyInputs
 from graphslam.config import GraphSlamConfig, config_from_dict
 from graphslam.errors import ConfigError, GraphSlamError, InputError, require_extra
 from graphslam.io.atomic import atomic_write_json, kill_point
+from graphslam.io.paths import walk_folders
 
 log = logging.getLogger(__name__)
 
@@ -89,17 +90,15 @@ def check_sites_root(sites_root: Path) -> None:
 
 
 def find_floors(sites_root: Path, out_root: Path) -> list[Path]:
-    """Folders under ``sites_root`` (itself included) that hold ``.mcap`` files directly, sorted;
-    nothing inside ``out_root`` (its aligned.mcap files are outputs, not floors)."""
+    """Folders under ``sites_root`` (itself included; linked folders too, each real folder once) that hold
+    ``.mcap`` files directly, sorted; nothing inside ``out_root`` (its aligned.mcap files are outputs, not floors)."""
     check_sites_root(sites_root)
     out = out_root.resolve()
     floors = []
-    for d, dirs, files in os.walk(sites_root):
-        here = Path(d)
+    for here, dirs, files in walk_folders(sites_root):  # linked floor folders too, each once
         if here.resolve() == out or out in here.resolve().parents:
             dirs[:] = []
             continue
-        dirs.sort()
         if any(f.endswith(".mcap") for f in files):
             floors.append(here)
     if not floors:

@@ -3,8 +3,9 @@ refuse a missing input (one line, exit code 2) before importing any of the work'
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Iterator
 
 from graphslam.errors import InputError
 
@@ -34,3 +35,19 @@ def expand_paths(paths: Iterable[str | Path]) -> list[Path]:
     if not unique:
         raise InputError(", ".join(map(str, paths)) or "<none>", "no recordings given")
     return unique
+
+
+def walk_folders(root: str | Path) -> Iterator[tuple[Path, list[str], list[str]]]:
+    """``os.walk(root)`` top-down, sub-folders sorted, following symbolic links to folders (a site
+    assembled of links to floors on other disks) and entering each real folder once (a link back up the
+    tree ends there). Yields (folder, its sub-folder names, its file names); emptying the sub-folder list
+    in place prunes the walk below that folder, as with ``os.walk``."""
+    seen: set[str] = set()
+    for d, dirs, files in os.walk(root, followlinks=True):
+        real = os.path.realpath(d)
+        if real in seen:
+            dirs[:] = []
+            continue
+        seen.add(real)
+        dirs.sort()
+        yield Path(d), dirs, files

@@ -38,6 +38,7 @@ from fastapi_offline import FastAPIOffline
 from pydantic import BaseModel, Field
 
 from graphslam.errors import InputError
+from graphslam.io.paths import walk_folders
 from graphslam.service.app import (
     HEATMAP_RESPONSES,
     INLINE_MAX,
@@ -98,10 +99,13 @@ def find_floor_maps(site: str | Path) -> dict[str, Path]:
     if not root.is_dir():
         raise InputError(root, "not a folder (expected a site: one folder per floor, each holding radio_map.parquet)")
     floors: dict[str, Path] = {}
-    for f in sorted(root.rglob(FLOOR_MAP_FILE)):
+    found = []
+    for here, dirs, files in walk_folders(root):  # linked floor folders too, each once
+        dirs[:] = [d for d in dirs if not d.startswith(".")]  # a survey's stage or old set (graphslam.io.atomic.FolderStage)
+        if FLOOR_MAP_FILE in files and (here / FLOOR_MAP_FILE).is_file():
+            found.append(here / FLOOR_MAP_FILE)
+    for f in sorted(found):
         rel = f.parent.relative_to(root)
-        if any(part.startswith(".") for part in rel.parts) or not f.is_file():
-            continue  # a survey's stage or old set (graphslam.io.atomic.FolderStage)
         name = rel.as_posix() if rel.parts else root.resolve().name
         if name in floors:  # the folder's own map and a sub-folder of its name
             raise InputError(f, f"a second floor named {name!r} (rename one of the two folders)")
