@@ -115,12 +115,6 @@ class GrowthResult:
     reasons: dict[int, str]  # unplaced walk -> why
 
 
-def _rotate(xy: NDArray, theta: NDArray) -> NDArray:
-    """(R, n, 2): ``xy`` rotated by each angle."""
-    c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
-    return np.stack([c * xy[None, :, 0] - s * xy[None, :, 1], s * xy[None, :, 0] + c * xy[None, :, 1]], axis=-1)
-
-
 def hough_se2(
     src_xy: NDArray, dst_xy: NDArray, weight: NDArray, params: GrowthParams
 ) -> tuple[NDArray, float, float]:
@@ -146,11 +140,16 @@ def hough_se2(
     T = cand[r0]
     # runner-up: best other rotation's peak that moves the walk, or the best cell of the same
     # rotation outside the distinct radius
-    at_best = _rotate(src_xy, thetas[r0:r0 + 1])[0] + T[:2]
+    # x and y apart (contiguous (R, n) arrays; the same sums as a norm over a stacked last axis)
+    sx, sy = src_xy[:, 0], src_xy[:, 1]
+    c0, s0 = np.cos(thetas[r0:r0 + 1]), np.sin(thetas[r0:r0 + 1])
+    bx, by = c0 * sx - s0 * sy + T[0], s0 * sx + c0 * sy + T[1]
     moved = np.empty(n_rot)
     for a, b in _chunks(n_rot, len(src_xy)):
-        rot = _rotate(src_xy, thetas[a:b])
-        moved[a:b] = np.linalg.norm(rot + cand[a:b, None, :2] - at_best[None], axis=2).mean(1)
+        c, s = np.cos(thetas[a:b])[:, None], np.sin(thetas[a:b])[:, None]
+        dx = c * sx - s * sy + cand[a:b, 0:1] - bx
+        dy = s * sx + c * sy + cand[a:b, 1:2] - by
+        moved[a:b] = np.sqrt(dx * dx + dy * dy).mean(1)
     others = best_val[moved > params.distinct_m]
     second = float(others.max()) if len(others) else 0.0
     grid = votes[r0].copy()
