@@ -4,6 +4,7 @@ it in the site frame, its fingerprints in the output map, bad files."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import importlib.util
 import json
 import math
@@ -198,13 +199,32 @@ def test_an_update_on_a_reference_is_solved_in_full(floor: tuple, tmp_path: Path
     assert r["components"][0]["n_walks"] == 4
 
 
-def test_the_reference_needs_the_headings(floor: tuple, tmp_path: Path) -> None:
-    _, files, ref, _ = floor
-    from graphslam.errors import SolverError
-
-    with pytest.raises(SolverError, match="headings"):
-        run_survey(SurveyInputs.from_paths(files[1:], reference_map=ref, picture=False),
-                   load_config(None, {"heading": {"enabled": False}}))
+def test_walks_without_headings_are_registered_onto_the_reference_over_every_rotation(
+    floor: tuple, tmp_path: Path
+) -> None:
+    """A foot-mounted module's walks (no /phone/heading: each dead reckoning in a frame of its own, here
+    turned by its own angle) are placed on the reference all the same, in its site frame."""
+    _, _, ref, survey = floor
+    paths = []
+    for k, s in enumerate(survey.sessions[1:]):
+        a = 0.7 + 1.1 * k  # each walk's dead reckoning turned its own way: no common frame to start from
+        c, sn = math.cos(a), math.sin(a)
+        xy = np.asarray(s.steps.xy) @ np.array([[c, sn], [-sn, c]])
+        steps = dataclasses.replace(s.steps, xy=xy, heading=np.asarray(s.steps.heading) + a)
+        paths.append(write_session(dataclasses.replace(s, steps=steps, heading=None), tmp_path / f"{s.session_id}.mcap"))
+    res = run_survey(SurveyInputs.from_paths(paths, out=tmp_path / "out", reference_map=ref, picture=False),
+                     load_config())
+    r = res.report
+    assert r["frame"] == "site" and r["registration"]["method"] == "reference" and r.get("site_from_earth_deg") is None
+    assert r["components"][0]["n_walks"] == 4 and r["reference_map"]["walks_placed_on_it"] == 4
+    assert r["components"][0]["links"]["reference"] > 0
+    for s in survey.sessions[1:]:  # no fit: where the truth has them
+        est = res.alignment.tracks[s.session_id].xy
+        assert np.linalg.norm(est - s.ground_truth.xy, axis=1).mean() < 1.5, s.session_id
+    assert read_radio_map(tmp_path / "out" / "radio_map.parquet").frame == "site"
+    # the same walks without the reference: no site frame (and no error)
+    alone = run_survey(SurveyInputs.from_paths(paths, picture=False), load_config()).report
+    assert alone["frame"] != "site" and "reference_map" not in alone
 
 
 def test_the_site_rotation_comes_from_the_crowds_matches(floor: tuple, tmp_path: Path) -> None:

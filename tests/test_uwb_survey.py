@@ -174,3 +174,21 @@ def test_survey_job_writes_site_frame_outputs(crowd, tmp_path: Path) -> None:  #
     with open(tmp_path / "out" / "aligned.mcap", "rb") as fh:
         _, _, msg = next(make_reader(fh).iter_messages())
     assert json.loads(msg.data)["frame_id"] == "site"
+
+
+def test_uwb_ranges_and_a_reference_map_are_refused_together(crowd) -> None:  # type: ignore[no-untyped-def]
+    """The ranges place the walks themselves (and with anchors fix the site frame): a reference map as
+    well is refused with its reason, not silently dropped; with UWB off the reference is used."""
+    from graphslam.core.radiomap.radiomap import RadioMap
+    from graphslam.errors import SolverError
+
+    survey = crowd.survey
+    s = survey.sessions[0]
+    t = s.ground_truth.t_ns
+    scans = [sc for sc in s.scans if sc.readings]
+    xy = np.array([s.ground_truth.xy[int(np.argmin(np.abs(t - sc.t_ns)))] for sc in scans])
+    ref = RadioMap.from_scans([dict(sc.readings) for sc in scans], xy, session_ids="reference",
+                              t_ns=[sc.t_ns for sc in scans], frame="site")
+    with pytest.raises(SolverError, match="UWB"):
+        align(survey, GraphSlamConfig(), reference=ref)
+    assert align(survey, GraphSlamConfig(uwb=UwbConfig(enabled=False)), reference=ref).frame == "site"

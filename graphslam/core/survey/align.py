@@ -29,7 +29,7 @@ from graphslam.core.survey import incremental
 from graphslam.core.survey.association import FingerprintNodes, associate
 from graphslam.core.survey.chains import expand
 from graphslam.core.survey.components import Component
-from graphslam.core.survey.heading_split import ComponentSplit, split_by_heading, split_incremental
+from graphslam.core.survey.heading_split import ComponentSplit, split_by_heading, split_incremental, split_on_reference
 from graphslam.core.survey.edges import WifiEdges, propose_edges, window_thresholds
 from graphslam.core.survey.graph import (
     dead_reckoned_nodes,
@@ -246,7 +246,8 @@ def build_problem(
     points (``graphslam survey --control-points``): the walks that mark them are tied there and
     component 0 is in the site frame (``graphslam.core.survey.control``; needs the headings).
     ``reference``: a surveyed radio map in the site frame, held; component 0 is placed on it and tied to
-    it by WiFi edges (``graphslam.core.survey.reference``; needs the headings).
+    it by WiFi edges (``graphslam.core.survey.reference``; walks without the phones' headings are
+    registered onto it over every rotation, ``split_on_reference``).
 
     ``warm`` (``graphslam survey --update``, see ``graphslam.core.survey.incremental``): walks
     solved before start from their previous solution, only the new walks' fingerprints are
@@ -303,14 +304,34 @@ def build_problem(
             "control points need the phones' headings (/phone/heading on every walk, optimizer.initialization "
             f"auto or heading); this survey resolves to {method!r}"
         )
-    if reference is not None and (method != "heading" or warm is not None):
-        raise SolverError(
-            "a reference map needs the phones' headings (/phone/heading on every walk, optimizer.initialization "
-            f"auto or heading) and a full survey (no --update); this survey resolves to {method!r}"
-            + (" with --update" if warm is not None else "")
-        )
+    if reference is not None and warm is not None:
+        raise SolverError("a reference map needs a full survey (no --update): a survey on one is solved in full")
+    if reference is not None and cfg.uwb.enabled and any(s.uwb_ranges is not None and len(s.uwb_ranges) for s in survey):
+        raise SolverError("a reference map and UWB ranges do not go together: the ranges place the walks themselves "
+                          "(set uwb.enabled false to survey on the reference)")
     split: ComponentSplit | None = None
-    if warm is not None and method == "registration":  # --update: new walks registered to the solved ones
+    anchors = None
+    unused: RadioMap | None = None  # a reference map given that no walk registers onto (walks without headings)
+    if reference is not None:
+        pc = cfg.placement
+        anchors = reference_links(
+            fp.fingerprints, thr, reference, matches_per_fingerprint=pc.matches_per_fingerprint,
+            scale_db=pc.similarity_scale_db, max_per_fingerprint=cfg.edges.max_per_fingerprint,
+            min_common_aps=cfg.edges.min_common_aps,
+        )
+        # the offset found travels with the reference: report.json and the radio map say it
+        reference = reference.with_metadata(rss_offset_db=round(anchors.rss_offset_db, 2))
+        if method != "heading":  # no headings: each walk registered onto the reference over every rotation
+            split = split_on_reference(survey, fp, dr_xyh, node_sess, cfg, anchors)
+            if split is None:
+                unused, reference, anchors = reference, None, None
+            else:
+                method = "reference"
+    if split is not None:  # placed on the reference map (above)
+        placement, transforms = split.placement, split.placement.transforms
+        included = np.ones(n_s, bool)
+        ref = split.reference
+    elif warm is not None and method == "registration":  # --update: new walks registered to the solved ones
         placement = incremental.place_new_walks(warm, n_s, node_sess, dr_xyh[:, :2], ea, eb)
         included = placement.placed.copy()
         transforms = placement.transforms
@@ -330,16 +351,6 @@ def build_problem(
         ref = split.reference
     elif method == "heading":
         seed = _reference_index(survey, cfg) if cfg.optimizer.reference_session is not None else None
-        anchors = None
-        if reference is not None:
-            pc = cfg.placement
-            anchors = reference_links(
-                fp.fingerprints, thr, reference, matches_per_fingerprint=pc.matches_per_fingerprint,
-                scale_db=pc.similarity_scale_db, max_per_fingerprint=cfg.edges.max_per_fingerprint,
-                min_common_aps=cfg.edges.min_common_aps,
-            )
-            # the offset found travels with the reference: report.json and the radio map say it
-            reference = reference.with_metadata(rss_offset_db=round(anchors.rss_offset_db, 2))
         split = split_by_heading(survey, fp, dr_xyh, node_sess, cfg, control_points, seed=seed, reference=anchors)
         placement, transforms = split.placement, split.placement.transforms
         included = np.ones(n_s, bool)
@@ -474,7 +485,7 @@ def build_problem(
         gated_wifi_pairs=gated_wifi.reshape(-1, 2),
         gated_anchor_pairs=gated_anchor,
         reference_map=reference if split is not None and split.anchors is not None else None,
-        unused_reference=reference if split is not None and split.unused_reference else None,
+        unused_reference=unused if unused is not None else reference if split is not None and split.unused_reference else None,
         free=free,
         uwb=uwb,
         method=method,

@@ -95,7 +95,7 @@ class ComponentSplit:
     components: tuple[Component, ...]
     reference: int  # session index of component 0's seed (its first pose: the frame's origin without ties)
     fixed_nodes: NDArray[np.int64]
-    heading: HeadingTerms
+    heading: HeadingTerms | None  # None: walks without the phones' headings (``split_on_reference``)
     ties: ControlTies | None
     frame_name: str
     magnetic: MagneticLinks | None = None  # the links the placement used (their node pairs: the graph's factors)
@@ -226,6 +226,45 @@ def _magnetic_units(
              int((np.bincount(units.unit) > 1).sum()))
     return units
 
+
+
+def split_on_reference(
+    survey: Survey, fp: FingerprintNodes, dr_xyh: NDArray, node_sess: NDArray, cfg: GraphSlamConfig,
+    reference: ReferenceLinks,
+) -> ComponentSplit | None:
+    """Walks without the phones' headings (a foot-mounted module's, or a phone's without its azimuth)
+    placed on a reference map: each walk a rigid body in its own dead reckoning, registered onto the held
+    reference over every rotation (map growth by its reference matches, and a walk by its WiFi matches
+    into the walks placed before it; ``heading.min_margin``: a search of every rotation finds runner-ups
+    that one near a heading would not). No heading prior, no magnetic units (the field's links need each
+    walk's rotation into east/north). The walks left form components among themselves, each in a frame
+    of its own. None when no walk registers onto the reference. Frames: site (component 0)."""
+    n = len(survey)
+    pc = cfg.placement
+    matches = PowerCosine.of(fp.fingerprints, pc.similarity_scale_db).top_matches(fp.session, pc.matches_per_fingerprint)
+    params = GrowthParams.from_config(cfg, min_margin=cfg.heading.min_margin)  # rotation_window_deg None: all
+    cp = place_units(
+        n, fp.session, dr_xyh[fp.node, :2], matches, params, singleton_units(np.zeros(n)),
+        rotation_sigma=np.full(n, np.inf),  # no rotation prior
+        reference=(reference.xy, Matches(reference.match_i, reference.match_j, reference.similarity)),
+    )
+    if not (cp.component == 0).any():
+        log.warning("reference map: no walk registers onto it unambiguously; the survey does not use it")
+        return None
+    ids = [s_.session_id for s_ in survey]
+    comps = tuple(
+        Component(k, tuple(ids[w] for w in cp.walks_of(k)), cp.reasons.get(k, "")) for k in range(cp.n_components)
+    )
+    # held: component 0 by the reference; every other component by its seed walk's first pose
+    fixed = np.array([int(fp.offsets[sd]) for sd in cp.seeds if sd >= 0], np.int64)
+    pl = Placement(
+        cp.transforms, np.ones(n, bool), np.full(n, -1, np.int64), np.full(n, -1, np.int64),
+        method="reference", support=cp.support, margin=cp.margin, consistency=cp.consistency,
+    )
+    log.info("reference map, no headings: %d components, the main map holds %d of %d walks", cp.n_components,
+             int((cp.component == 0).sum()), n)
+    return ComponentSplit(pl, cp.component, comps, int(cp.walks_of(0)[0]), fixed, None, None, "site",
+                          anchors=reference)
 
 def split_incremental(
     survey: Survey, fp: FingerprintNodes, dr_xyh: NDArray, node_sess: NDArray, cfg: GraphSlamConfig,
