@@ -197,6 +197,12 @@ def test_an_update_on_a_reference_is_solved_in_full(floor: tuple, tmp_path: Path
                    load_config()).report
     assert r["update"]["mode"] == "full" and "reference" in r["update"]["reason"]
     assert r["components"][0]["n_walks"] == 4
+    # without the reference this time: the state holds neither it nor the site's rotation from east/north, so
+    # the floor is solved in full without it and says its frame as it is (not the site frame the walks had)
+    r = run_survey(SurveyInputs.from_paths(files[1:], out=tmp_path / "again", previous=out, picture=False),
+                   load_config()).report
+    assert r["update"]["mode"] == "full" and "placed on a reference map" in r["update"]["reason"]
+    assert r["frame"] == "earth" and "reference_map" not in r
 
 
 def test_walks_without_headings_are_registered_onto_the_reference_over_every_rotation(
@@ -225,6 +231,13 @@ def test_walks_without_headings_are_registered_onto_the_reference_over_every_rot
     # the same walks without the reference: no site frame (and no error)
     alone = run_survey(SurveyInputs.from_paths(paths, picture=False), load_config()).report
     assert alone["frame"] != "site" and "reference_map" not in alone
+    # a reference no walk registers onto (its first 6 m) is not used, and the report says so
+    rows = list(csv.reader(open(ref)))
+    tiny = tmp_path / "tiny.csv"
+    with open(tiny, "w", newline="") as fh:
+        csv.writer(fh).writerows([rows[0]] + [row for row in rows[1:] if float(row[1]) < 6.0])
+    r = run_survey(SurveyInputs.from_paths(paths, reference_map=tiny, picture=False), load_config()).report
+    assert r["frame"] != "site" and r["reference_map"]["used"] is False and r["registration"]["method"] != "reference"
 
 
 def test_the_site_rotation_comes_from_the_crowds_matches(floor: tuple, tmp_path: Path) -> None:

@@ -75,6 +75,11 @@ def mismatch(
         return "the previous survey's registration was unreliable: which walks it aligns depends on all of them"
     if control_points_digest(control_points) != previous.control_digest:
         return "the control points differ from the previous run's"
+    if previous.frame == "site" and not control_points and not any(s.uwb_anchors for s in survey):
+        # a site frame without control points or UWB anchors: a reference map placed it, and the state holds
+        # neither the reference nor its rotation from east/north; new walks would be placed without them
+        # (given again, the floor is solved in full on it: align_update)
+        return "the previous survey was placed on a reference map, which this run does not give (--reference-map)"
     if initialization(cfg, survey) == "heading":
         if previous.component is None:
             return "the previous survey state holds no components (written by an older version)"

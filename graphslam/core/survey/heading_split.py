@@ -227,7 +227,6 @@ def _magnetic_units(
     return units
 
 
-
 def split_on_reference(
     survey: Survey, fp: FingerprintNodes, dr_xyh: NDArray, node_sess: NDArray, cfg: GraphSlamConfig,
     reference: ReferenceLinks,
@@ -265,6 +264,7 @@ def split_on_reference(
              int((cp.component == 0).sum()), n)
     return ComponentSplit(pl, cp.component, comps, int(cp.walks_of(0)[0]), fixed, None, None, "site",
                           anchors=reference)
+
 
 def split_incremental(
     survey: Survey, fp: FingerprintNodes, dr_xyh: NDArray, node_sess: NDArray, cfg: GraphSlamConfig,
