@@ -220,8 +220,8 @@ class HeadingConfig(_Strict):
         12.0, gt=0, le=180, description="the placement searches rotations this far either side of the heading"
     )
     min_margin: float = Field(
-        1.0, ge=0, description="with headings, the placement's min_margin: a walk joins a component only when its "
-        "best placement beats the runner-up by this vote weight (else it stands apart)",
+        1.0, ge=0, description="with headings (and onto a reference map without them), the placement's min_margin: a "
+        "walk joins a component only when its best placement beats the runner-up by this vote weight (else it stands apart)",
     )
     wifi_gate_m: float = Field(
         30.0, ge=0, description="with headings, a WiFi edge enters the optimiser only when the placement puts its two "
