@@ -3,6 +3,8 @@ control points (graphslam.core.survey.heading / components / control, solver una
 
 from __future__ import annotations
 
+import dataclasses
+
 import gtsam
 import numpy as np
 import pytest
@@ -179,11 +181,24 @@ def test_tie_walks_finds_the_site_rotation_from_a_walk_with_two_points() -> None
     assert np.linalg.norm(placed - sv.sessions[0].ground_truth.xy, axis=1).max() < 0.5
 
 
-def test_control_points_need_headings() -> None:
-    plain = Survey(tuple(session(f"p{k}", loop(80, 10.0 * k), 10**18 + k * 10**12) for k in range(2)))
-    lm = plain.sessions[0].landmarks[0]
-    with pytest.raises(SolverError, match="control points need the phones' headings"):
-        align(plain, CFG, control_points={lm.landmark_id: (lm.x, lm.y)})
+def test_control_points_without_headings_tie_a_walk_by_two_marks() -> None:
+    """Walks without headings (a foot-mounted module's): a walk marking two control points apart is tied
+    rigidly in the site frame, the others join by WiFi over every rotation; one mark alone cannot place a
+    walk (its rotation is unknown), and the survey says so."""
+    sv = survey_with_headings(3)
+    plain = Survey(tuple(dataclasses.replace(s, heading=None) for s in sv.sessions))
+    lm0 = plain.sessions[0].landmarks
+    one = {lm0[0].landmark_id: (lm0[0].x, lm0[0].y)}
+    with pytest.raises(SolverError, match="marks two of them at least 5 m apart"):
+        align(plain, CFG, control_points=one)
+    two = {**one, lm0[3].landmark_id: (lm0[3].x, lm0[3].y)}
+    al = align(plain, CFG, control_points=two)
+    assert al.frame == "site" and al.placement is not None and al.placement.method == "control_points"
+    assert al.site_from_earth is None and "w0" in al.components[0].walks
+    for s in plain:
+        if s.session_id in al.components[0].walks:  # the site frame itself: no fit
+            err = np.linalg.norm(al.tracks[s.session_id].xy - s.ground_truth.xy, axis=1)
+            assert err.mean() < 1.5, s.session_id
 
 
 def test_the_report_says_how_the_heading_placement_placed_each_walk() -> None:

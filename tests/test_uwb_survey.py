@@ -177,8 +177,9 @@ def test_survey_job_writes_site_frame_outputs(crowd, tmp_path: Path) -> None:  #
 
 
 def test_uwb_ranges_and_a_reference_map_are_refused_together(crowd) -> None:  # type: ignore[no-untyped-def]
-    """The ranges place the walks themselves (and with anchors fix the site frame): a reference map as
-    well is refused with its reason, not silently dropped; with UWB off the reference is used."""
+    """The ranges place the walks themselves (and with anchors fix the site frame): a reference map or
+    control points as well are refused with their reason, not silently dropped; with UWB off the
+    reference is used."""
     from graphslam.core.radiomap.radiomap import RadioMap
     from graphslam.errors import SolverError
 
@@ -189,6 +190,9 @@ def test_uwb_ranges_and_a_reference_map_are_refused_together(crowd) -> None:  # 
     xy = np.array([s.ground_truth.xy[int(np.argmin(np.abs(t - sc.t_ns)))] for sc in scans])
     ref = RadioMap.from_scans([dict(sc.readings) for sc in scans], xy, session_ids="reference",
                               t_ns=[sc.t_ns for sc in scans], frame="site")
-    with pytest.raises(SolverError, match="UWB"):
+    with pytest.raises(SolverError, match="a reference map and UWB ranges"):
         align(survey, GraphSlamConfig(), reference=ref)
+    mark = s.landmarks[0]
+    with pytest.raises(SolverError, match="control points and UWB ranges"):
+        align(survey, GraphSlamConfig(), control_points={mark.landmark_id: (mark.x, mark.y)})
     assert align(survey, GraphSlamConfig(uwb=UwbConfig(enabled=False)), reference=ref).frame == "site"

@@ -281,7 +281,7 @@ def _confidence_separation(al: Any, per_walk: Mapping[str, float]) -> dict[str, 
     right = {sid: e <= RIGHT_WALK_M for sid, e in per_walk.items() if sid in al.tracks}
     out: dict[str, Any] = {"right": int(sum(right.values())), "wrong": int(sum(not r for r in right.values()))}
     figures = {}
-    if pl is not None and pl.method in ("growth", "heading", "reference"):
+    if pl is not None and pl.method in ("growth", "heading", "reference", "control_points"):
         figures = {"support": pl.support, "margin": pl.margin, "consistency": pl.consistency}
     elif pl is not None:
         figures = {"registration_inliers": pl.inliers.astype(float)}

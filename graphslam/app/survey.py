@@ -285,7 +285,7 @@ def _placement_report(al: Alignment) -> dict[str, Any]:
     component = al.component_of()
     for s in range(len(ids)):
         row: dict[str, Any] = {"session_id": ids[s], "aligned": ids[s] in al.tracks, "component": component.get(ids[s])}
-        if pl.method in ("growth", "heading", "reference"):
+        if pl.method in ("growth", "heading", "reference", "control_points"):
             # support: vote weight per fingerprint; margin: over the runner-up placement (seed: null);
             # consistency: share of the walk's match weight whose partners end within placement.consistent_m
             row.update(support=num(pl.support, s), margin=num(pl.margin, s), consistency=num(pl.consistency, s))

@@ -1,6 +1,6 @@
 """What a surveyed reference map gives a crowd and what it costs: the crowd walks of a floor (those
 the reference was not made from) surveyed alone, on the reference, on the reference with control
-points, with control points alone, and on the reference with the headings off (walks without them), scored
+points, with control points alone, and the last three with the headings off (walks without them), scored
 per component (ground truth only scores); then
 ``graphslam survey`` of the crowd with and without ``--reference-map`` as whole processes,
 alternating, the median wall time of each.
@@ -51,7 +51,8 @@ def main(folder: Path, rounds: int = 5) -> None:
         print(json.dumps({"variant": name, **score(inputs, cfg)}), flush=True)
     # walks without the phones' headings (a foot-mounted module's): the headings switched off stand in
     no_headings = load_config(None, {"heading": {"enabled": False}})
-    print(json.dumps({"variant": "reference, no headings", **score(variants["reference"], no_headings)}), flush=True)
+    for name in ("reference", "reference + control points", "control points"):
+        print(json.dumps({"variant": f"{name}, no headings", **score(variants[name], no_headings)}), flush=True)
     cli = [sys.executable, "-m", "graphslam", "-q", "survey", *map(str, crowd)]
     walls: dict[str, list[float]] = {"crowd alone": [], "reference": []}
     with tempfile.TemporaryDirectory() as tmp:

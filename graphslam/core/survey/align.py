@@ -29,7 +29,7 @@ from graphslam.core.survey import incremental
 from graphslam.core.survey.association import FingerprintNodes, associate
 from graphslam.core.survey.chains import expand
 from graphslam.core.survey.components import Component
-from graphslam.core.survey.heading_split import ComponentSplit, split_by_heading, split_incremental, split_on_reference
+from graphslam.core.survey.heading_split import ComponentSplit, split_by_heading, split_incremental, split_without_headings
 from graphslam.core.survey.edges import WifiEdges, propose_edges, window_thresholds
 from graphslam.core.survey.graph import (
     dead_reckoned_nodes,
@@ -244,10 +244,11 @@ def build_problem(
 
     ``control_points``: landmark id -> site (x, y) of the landmarks a user names as control
     points (``graphslam survey --control-points``): the walks that mark them are tied there and
-    component 0 is in the site frame (``graphslam.core.survey.control``; needs the headings).
+    component 0 is in the site frame (``graphslam.core.survey.control``; without the headings a walk is tied by
+    two marks, ``split_without_headings``).
     ``reference``: a surveyed radio map in the site frame, held; component 0 is placed on it and tied to
     it by WiFi edges (``graphslam.core.survey.reference``; walks without the phones' headings are
-    registered onto it over every rotation, ``split_on_reference``).
+    registered onto it over every rotation, ``split_without_headings``).
 
     ``warm`` (``graphslam survey --update``, see ``graphslam.core.survey.incremental``): walks
     solved before start from their previous solution, only the new walks' fingerprints are
@@ -299,16 +300,13 @@ def build_problem(
     method = initialization(cfg, survey)
     if warm is not None and (method != "heading" or warm.component is None):
         method = "registration"  # an update without headings: new walks registered to the solved ones
-    if control_points and method != "heading" and warm is None:
-        raise SolverError(
-            "control points need the phones' headings (/phone/heading on every walk, optimizer.initialization "
-            f"auto or heading); this survey resolves to {method!r}"
-        )
+    ranged = cfg.uwb.enabled and any(s.uwb_ranges is not None and len(s.uwb_ranges) for s in survey)
     if reference is not None and warm is not None:
         raise SolverError("a reference map needs a full survey (no --update): a survey on one is solved in full")
-    if reference is not None and cfg.uwb.enabled and any(s.uwb_ranges is not None and len(s.uwb_ranges) for s in survey):
-        raise SolverError("a reference map and UWB ranges do not go together: the ranges place the walks themselves "
-                          "(set uwb.enabled false to survey on the reference)")
+    if (reference is not None or (control_points and warm is None)) and ranged:
+        raise SolverError(f"{'a reference map' if reference is not None else 'control points'} and UWB ranges do not "
+                          "go together: the ranges place the walks themselves (set uwb.enabled false to use "
+                          f"{'it' if reference is not None else 'them'})")
     split: ComponentSplit | None = None
     anchors = None
     unused: RadioMap | None = None  # a reference map given that no walk registers onto (walks without headings)
@@ -321,13 +319,20 @@ def build_problem(
         )
         # the offset found travels with the reference: report.json and the radio map say it
         reference = reference.with_metadata(rss_offset_db=round(anchors.rss_offset_db, 2))
-        if method != "heading":  # no headings: each walk registered onto the reference over every rotation
-            split = split_on_reference(survey, fp, dr_xyh, node_sess, cfg, anchors)
-            if split is None:
-                unused, reference, anchors = reference, None, None
-            else:
-                method = "reference"
-    if split is not None:  # placed on the reference map (above)
+    if warm is None and method != "heading" and (reference is not None or control_points):
+        # no headings: walks tied rigidly by two marks, the others registered over every rotation
+        split = split_without_headings(survey, fp, dr_xyh, node_sess, cfg, control_points, anchors)
+        if split is None and control_points:
+            raise SolverError(
+                "control points without the phones' headings need a walk that marks two of them at least 5 m apart"
+                + (" or registers onto the reference map" if reference is not None else "")
+                + f" (this survey resolves to optimizer.initialization {method!r})"
+            )
+        if split is None:
+            unused, reference, anchors = reference, None, None
+        else:
+            method = split.placement.method
+    if split is not None:  # placed in the site frame without headings (above)
         placement, transforms = split.placement, split.placement.transforms
         included = np.ones(n_s, bool)
         ref = split.reference

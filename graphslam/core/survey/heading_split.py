@@ -95,7 +95,7 @@ class ComponentSplit:
     components: tuple[Component, ...]
     reference: int  # session index of component 0's seed (its first pose: the frame's origin without ties)
     fixed_nodes: NDArray[np.int64]
-    heading: HeadingTerms | None  # None: walks without the phones' headings (``split_on_reference``)
+    heading: HeadingTerms | None  # None: walks without the phones' headings (``split_without_headings``)
     ties: ControlTies | None
     frame_name: str
     magnetic: MagneticLinks | None = None  # the links the placement used (their node pairs: the graph's factors)
@@ -227,42 +227,59 @@ def _magnetic_units(
     return units
 
 
-def split_on_reference(
+def split_without_headings(
     survey: Survey, fp: FingerprintNodes, dr_xyh: NDArray, node_sess: NDArray, cfg: GraphSlamConfig,
-    reference: ReferenceLinks,
+    control_points: Mapping[str, tuple[float, float]] | None = None, reference: ReferenceLinks | None = None,
 ) -> ComponentSplit | None:
-    """Walks without the phones' headings (a foot-mounted module's, or a phone's without its azimuth)
-    placed on a reference map: each walk a rigid body in its own dead reckoning, registered onto the held
-    reference over every rotation (map growth by its reference matches, and a walk by its WiFi matches
-    into the walks placed before it; ``heading.min_margin``: a search of every rotation finds runner-ups
-    that one near a heading would not). No heading prior, no magnetic units (the field's links need each
-    walk's rotation into east/north). The walks left form components among themselves, each in a frame
-    of its own. None when no walk registers onto the reference. Frames: site (component 0)."""
+    """Walks without the phones' headings (a foot-mounted module's, or a phone's without its azimuth) in
+    the site frame of control points and/or a reference map: each walk a rigid body in its own dead
+    reckoning. A walk marking two control points at least ``min_baseline_m`` apart is tied rigidly by its
+    marks (``tie_walks``); the others join by map growth over every rotation (``heading.min_margin``: a
+    search of every rotation finds runner-ups that one near a heading would not) — onto the held
+    reference by their reference matches, onto placed walks by their WiFi matches. No heading prior, no
+    magnetic units (the field's links need each walk's rotation into east/north); a walk with one mark is
+    tied by it once it is placed (its mark's prior in the solve). The walks left form components among
+    themselves, each in a frame of its own. None when nothing ties a walk to the site frame (no walk
+    marks two points apart and none registers onto the reference). Frames: site (component 0)."""
     n = len(survey)
     pc = cfg.placement
+    ties = tie_arrays = None
+    if control_points:
+        ties = control_ties(survey, control_points, fp.offsets)
+        rigid = tie_walks(ties, dr_xyh, node_sess, None).transforms  # the walks two marks place (no heading)
+        sel = np.isin(ties.session, list(rigid))
+        if sel.any():
+            tie_arrays = (ties.session[sel], dr_xyh[ties.node[sel], :2], ties.xy[sel])
+    if tie_arrays is None and reference is None:
+        return None
     matches = PowerCosine.of(fp.fingerprints, pc.similarity_scale_db).top_matches(fp.session, pc.matches_per_fingerprint)
     params = GrowthParams.from_config(cfg, min_margin=cfg.heading.min_margin)  # rotation_window_deg None: all
     cp = place_units(
         n, fp.session, dr_xyh[fp.node, :2], matches, params, singleton_units(np.zeros(n)),
-        rotation_sigma=np.full(n, np.inf),  # no rotation prior
-        reference=(reference.xy, Matches(reference.match_i, reference.match_j, reference.similarity)),
+        rotation_sigma=np.full(n, np.inf), ties=tie_arrays,  # no rotation prior
+        reference=None if reference is None else (
+            reference.xy, Matches(reference.match_i, reference.match_j, reference.similarity)),
     )
     if not (cp.component == 0).any():
-        log.warning("reference map: no walk registers onto it unambiguously; the survey does not use it")
-        return None
+        return None  # no walk registers onto the reference (and none is tied)
+    if ties is not None:  # the marks of the main map's walks tie them in the solve (the others stand apart)
+        on = cp.component[ties.session] == 0
+        ties = ControlTies(ties.session[on], ties.node[on], ties.xy[on],
+                           tuple(t for t, k in zip(ties.landmark_id, on.tolist()) if k))
     ids = [s_.session_id for s_ in survey]
     comps = tuple(
         Component(k, tuple(ids[w] for w in cp.walks_of(k)), cp.reasons.get(k, "")) for k in range(cp.n_components)
     )
-    # held: component 0 by the reference; every other component by its seed walk's first pose
+    # held: component 0 by the ties or the reference; every other component by its seed walk's first pose
     fixed = np.array([int(fp.offsets[sd]) for sd in cp.seeds if sd >= 0], np.int64)
     pl = Placement(
         cp.transforms, np.ones(n, bool), np.full(n, -1, np.int64), np.full(n, -1, np.int64),
-        method="reference", support=cp.support, margin=cp.margin, consistency=cp.consistency,
+        method="reference" if reference is not None else "control_points", support=cp.support, margin=cp.margin,
+        consistency=cp.consistency,
     )
-    log.info("reference map, no headings: %d components, the main map holds %d of %d walks", cp.n_components,
+    log.info("site frame without headings: %d components, the main map holds %d of %d walks", cp.n_components,
              int((cp.component == 0).sum()), n)
-    return ComponentSplit(pl, cp.component, comps, int(cp.walks_of(0)[0]), fixed, None, None, "site",
+    return ComponentSplit(pl, cp.component, comps, int(cp.walks_of(0)[0]), fixed, None, ties, "site",
                           anchors=reference)
 
 
