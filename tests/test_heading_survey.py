@@ -181,7 +181,7 @@ def test_tie_walks_finds_the_site_rotation_from_a_walk_with_two_points() -> None
     assert np.linalg.norm(placed - sv.sessions[0].ground_truth.xy, axis=1).max() < 0.5
 
 
-def test_control_points_without_headings_tie_a_walk_by_two_marks() -> None:
+def test_control_points_without_headings_tie_a_walk_by_two_marks(caplog: pytest.LogCaptureFixture) -> None:
     """Walks without headings (a foot-mounted module's): a walk marking two control points apart is tied
     rigidly in the site frame, the others join by WiFi over every rotation; one mark alone cannot place a
     walk (its rotation is unknown), and the survey says so."""
@@ -192,7 +192,9 @@ def test_control_points_without_headings_tie_a_walk_by_two_marks() -> None:
     with pytest.raises(SolverError, match="marks two of them at least 5 m apart"):
         align(plain, CFG, control_points=one)
     two = {**one, lm0[3].landmark_id: (lm0[3].x, lm0[3].y)}
+    caplog.clear()
     al = align(plain, CFG, control_points=two)
+    assert "east/north" not in caplog.text  # no heading, so no rotation is taken from one
     assert al.frame == "site" and al.placement is not None and al.placement.method == "control_points"
     assert al.site_from_earth is None and "w0" in al.components[0].walks
     for s in plain:

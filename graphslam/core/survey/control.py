@@ -99,7 +99,7 @@ def tie_walks(
                 wts.append(span)
     fixed = bool(offs)
     phi = float(np.angle((np.array(wts) * np.exp(1j * np.array(offs))).sum())) if fixed else 0.0
-    if not fixed and len(ties):
+    if not fixed and len(ties) and rotation is not None:  # without headings no rotation is taken from them
         log.warning(
             "no walk marks two control points %.0f m apart: the site frame's rotation is taken as east/north "
             "(the phones' headings)", min_baseline_m,
