@@ -14,7 +14,10 @@ sample of walks.
 main map of a survey of the other routes) against the same fingerprints at their oracle positions
 (each walk's PDR fitted to its own landmarks): the same coverage, the survey's geometry or the
 truth's. Per map kind: the share of landmarks at steps flagged outside, the others' mean error and
-share inside the 95 % ellipse, and the self-calibration's covariance scale.
+share inside the 95 % ellipse, and the self-calibration's covariance scale; for the crowdsourced maps also
+that share with each covariance widened by the map's true displacement (what a placement covariance from
+the survey could at best add: the rms displacement of the 10 map fingerprints nearest the estimate, or of
+the whole map; once and twice that variance).
 
 python lab/radiomap/outside.py statistic ../shared/data/ipin2023/b100_f-2 ../shared/data/ilc20/site1 [--seeds 0,1,2]
     [--statistics rss_diff_db] [--max-sessions 12 --max-queries 300]
@@ -101,6 +104,8 @@ def crowd(folder: str) -> None:
         train = [w for i, w in enumerate(walks) if i not in set(test)]
         rm, info = gs.crowdsourced_map(train, cfg)
         maps = {"crowdsourced": rm, "same walks at oracle positions": _oracle_positions(rm, gs.oracle_radio_map(train))}
+        disp = np.linalg.norm(rm.xy - maps["same walks at oracle positions"].xy, axis=1)  # truth: scores only
+        near_map = cKDTree(rm.xy)
         for kind, m in maps.items():
             try:
                 models = gs.ApModels.fit(m)
@@ -119,6 +124,12 @@ def crowd(folder: str) -> None:
                 d.setdefault("err", []).append(np.linalg.norm(err, axis=1))
                 d.setdefault("inside", []).append(gs.ellipse_coverage(err, cov))
                 d.setdefault("outside", []).append(tr.outside[np.maximum(np.searchsorted(tr.t_ns, t, side="right") - 1, 0)])
+                if kind == "crowdsourced":
+                    _, nn = near_map.query(err + marks, k=min(10, len(rm.xy)))
+                    d.setdefault("err_xy", []).append(err)
+                    d.setdefault("cov", []).append(cov)
+                    d.setdefault("disp_near", []).append(np.sqrt((disp[nn] ** 2).mean(axis=1)))
+                    d.setdefault("disp_map", []).append(np.full(len(t), np.sqrt((disp**2).mean())))
             print(json.dumps({"fold": fold, "map": kind, "walks_in_map": info["main_map"],
                               "covariance_scale": round(d["scale"][-1], 2) if d["scale"][-1] else None}), flush=True)
     for kind, d in got.items():
@@ -129,6 +140,16 @@ def crowd(folder: str) -> None:
                           "not_outside": {"n": int(keep.sum()), "mean_m": round(float(e[keep].mean()), 2),
                                           "inside_95": round(float(ins[keep].mean()), 3)},
                           "covariance_scale_median": round(float(np.median([s for s in d["scale"] if s])), 2)}))
+        if "disp_near" in d:  # the covariances widened by the map's true displacement (module docstring)
+            exy, cov = np.concatenate(d["err_xy"]), np.concatenate(d["cov"])
+            widened = {}
+            for name in ("disp_near", "disp_map"):
+                v = np.concatenate(d[name]) ** 2
+                for f in (1, 2):
+                    inside = gs.ellipse_coverage(exy, cov + (f * v)[:, None, None] * np.eye(2))
+                    widened[f"{name}_x{f}"] = round(float(inside[keep].mean()), 3)
+            print(json.dumps({"map": kind, "not_outside_inside_95_widened": widened,
+                              "displacement_near_median_m": round(float(np.median(np.concatenate(d["disp_near"])[keep])), 2)}))
 
 
 def main() -> None:
