@@ -118,7 +118,8 @@ def test_report_has_the_frame_and_every_component(split_run: tuple) -> None:
     comps = report["components"]
     assert [c["index"] for c in comps] == [0, 1, 2] and [c["n_walks"] for c in comps] == [2, 3, 1]
     assert all(set(c) == {"index", "walks", "n_walks", "reason", "links"} for c in comps)
-    assert all(set(c["links"]) == {"wifi", "magnetic", "uwb", "control_points", "reference"} for c in comps)
+    assert all(set(c["links"]) == {"wifi", "magnetic", "uwb", "control_points", "reference", "reference_magnetic"}
+               for c in comps)
     assert comps[0]["reason"] == "" and comps[1]["reason"] == REASON
     walks = [w for c in comps for w in c["walks"]]
     assert sorted(walks) == sorted(read_trajectories(out / "trajectories.csv"))  # each aligned walk once

@@ -198,6 +198,26 @@ def reference_report(al: Alignment) -> dict[str, Any]:
         "edge_distance_m": None if not len(d) else {
             "median": round(float(np.median(d)), 3), "p90": round(float(np.percentile(d, 90)), 3),
         },
+        "field": _field_report(al),
+    }
+
+
+def _field_report(al: Alignment) -> dict[str, Any] | None:
+    """report.json's ``reference_map.field``: the reference's magnetic field (a previous survey's magnetic map)
+    and the crowd's magnetic factors to it; None when the reference has none or the field is off."""
+    ties = al.field_ties
+    if ties is None:
+        return None
+    d = np.linalg.norm(al.node_xyh[ties.pairs[:, 0], :2] - ties.xy[ties.pairs[:, 1]], axis=1)
+    return {
+        "walks": int(ties.reference_walks),
+        "links": int(ties.links),
+        "crowd_walks": len(ties.walks),
+        "factors": len(ties),
+        "threshold": round(float(ties.threshold), 3),  # the score a window match needed (from surrogates)
+        "factor_distance_m": None if not len(d) else {
+            "median": round(float(np.median(d)), 3), "p90": round(float(np.percentile(d, 90)), 3),
+        },
     }
 
 
@@ -365,12 +385,13 @@ def _run_survey(inputs: SurveyInputs, cfg: GraphSlamConfig, progress: ProgressCa
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     cp_source, cp = _read_control_points(inputs.control_points)  # a bad file fails before the work
-    reference = None
+    reference = reference_field = None
     if inputs.reference_map is not None:  # a bad file fails before the work
-        from graphslam.io.reference_map import read_reference_map
+        from graphslam.io.reference_map import read_reference_field, read_reference_map
 
         reference = read_reference_map(inputs.reference_map, min_rssi_dbm=cfg.fingerprint.min_rssi_dbm,
                                        missing_dbm=cfg.fingerprint.missing_rssi_dbm)
+        reference_field = read_reference_field(inputs.reference_map)
     previous = None
     if update is not None:  # read first: a bad previous output fails before the work
         from graphslam.app.update import align_update, load_previous
@@ -388,9 +409,11 @@ def _run_survey(inputs: SurveyInputs, cfg: GraphSlamConfig, progress: ProgressCa
     update_info = None
     if previous is not None:
         alignment, cfg, update_info = align_update(survey, cfg, previous, previous_dir=update, progress=progress,
-                                                   control_points=cp, reference=reference)
+                                                   control_points=cp, reference=reference,
+                                                   reference_field=reference_field)
     else:
-        alignment = align(survey, cfg, progress=progress, control_points=cp, reference=reference)
+        alignment = align(survey, cfg, progress=progress, control_points=cp, reference=reference,
+                          reference_field=reference_field)
     timings.update({f"align.{k}": v for k, v in alignment.timings_s.items()})
 
     t = time.perf_counter()

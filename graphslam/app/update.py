@@ -20,6 +20,7 @@ import numpy as np
 from graphslam.config import REMOVED_OPTIMIZER_KEYS, GraphSlamConfig
 
 if TYPE_CHECKING:
+    from graphslam.core.radiomap.magnetic_map import MagneticMap
     from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.survey.align import Alignment, ProgressCallback, align, build_problem, initialization, solve
 from graphslam.core.survey.incremental import (
@@ -115,10 +116,12 @@ def align_update(
     progress: ProgressCallback | None = None,
     control_points: Mapping[str, tuple[float, float]] | None = None,
     reference: RadioMap | None = None,
+    reference_field: MagneticMap | None = None,
 ) -> tuple[Alignment, GraphSlamConfig, dict[str, Any]]:
     """(alignment, effective config, the report's ``update`` section); ``control_points`` (landmark
-    id -> site x, y) are passed on to the solver either way; with a ``reference`` map the floor is
-    solved in full (the reference places every walk: a new walk's placement can move old ones)."""
+    id -> site x, y) are passed on to the solver either way; with a ``reference`` map (and its
+    ``reference_field``) the floor is solved in full (the reference places every walk: a new walk's
+    placement can move old ones)."""
     prev_ids = set(previous.session_ids)
     prev_aligned = {sid for sid, ok in zip(previous.session_ids, previous.aligned.tolist()) if ok}
     info: dict[str, Any] = {
@@ -131,7 +134,8 @@ def align_update(
         reason = "a survey on a reference map is solved in full (the reference places every walk)"
     if reason is not None:
         log.warning("--update: full re-solve: %s", reason)
-        al = align(survey, cfg, progress=progress, control_points=control_points, reference=reference)
+        al = align(survey, cfg, progress=progress, control_points=control_points, reference=reference,
+                   reference_field=reference_field)
         info.update(mode="full", reason=reason, resolved={"nodes": al.n_nodes, "of_nodes": al.n_nodes})
         return al, cfg, info
     # the previous reference walk stays the reference: the solution keeps its frame

@@ -6,7 +6,8 @@ Two forms, both fingerprints at known site positions (metres):
   quoting): every row of one ``fingerprint_id`` gives the same ``x, y``; ``rssi_dbm`` in dBm;
 - a radio map graphslam wrote (``radio_map.parquet`` of a previous survey) whose frame is ``site``
   (control points, UWB anchors or a reference map): a map in an ``aligned`` or ``earth`` frame has no
-  known place in the site and is refused.
+  known place in the site and is refused. The survey's ``magnetic_map.parquet`` beside it, when there is
+  one, is the reference's magnetic field (``read_reference_field``).
 
 A UTF-8 byte-order mark and blank lines are accepted. Anything else (another header, a missing or
 extra column, an empty id or BSSID, a coordinate or RSS that is not a finite number, two positions
@@ -23,11 +24,13 @@ from pathlib import Path
 import numpy as np
 
 from graphslam.core.radiomap.fingerprints import FingerprintMatrix
+from graphslam.core.radiomap.magnetic_map import MagneticMap
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.errors import GraphSlamError, InputError
 
 HEADER = ("fingerprint_id", "x", "y", "bssid", "rssi_dbm")
 REFERENCE_SESSION = "reference"  # the session id of the reference's rows in the survey's radio map
+FIELD_FILE = "magnetic_map.parquet"  # a previous survey's field, beside its radio map
 BULK_MIN_BYTES = 1 << 20  # smaller files: line by line (Arrow's first call costs ~20 ms, a 150 kB file 10 ms)
 
 
@@ -42,6 +45,30 @@ def read_reference_map(path: str | Path, *, min_rssi_dbm: float = -100.0, missin
     if magic == b"PAR1":
         return _from_radio_map(path)
     return _from_csv(path, min_rssi_dbm, missing_dbm)
+
+
+def read_reference_field(path: str | Path) -> MagneticMap | None:
+    """The magnetic field of the reference map at ``path``: for a radio map graphslam wrote, the same
+    survey's ``magnetic_map.parquet`` beside it (site frame), None when it has none (or for a CSV). An
+    ``InputError`` naming that file when it is not a magnetic map, was changed, or is in another frame."""
+    path = Path(path)
+    with open(path, "rb") as fh:
+        if fh.read(4) != b"PAR1":
+            return None
+    field_path = path.with_name(FIELD_FILE)
+    if not field_path.is_file():
+        return None
+    from graphslam.io.magnetic_map_io import read_magnetic_map
+
+    try:
+        field = read_magnetic_map(field_path)
+    except GraphSlamError as e:
+        raise InputError(field_path, f"the reference map's field: not a readable magnetic map "
+                         f"({' '.join(str(e).split())})") from None
+    if field.frame != "site":
+        raise InputError(field_path, f"the reference map's field is in the {field.frame!r} frame, its radio map in the "
+                         "site frame: not one survey's", field="metadata.frame")
+    return field
 
 
 def _from_radio_map(path: Path) -> RadioMap:

@@ -17,6 +17,7 @@ docs/rerun.md for what each shows)::
     /world/aligned/radio_map/heatmap/<rank>_<bssid>       their RSS heatmaps (image), uncertain cells faded
     /world/aligned/magnetic_map/{magnitude,vertical}      the main map's field per step (colour-mapped, µT)
     /world/aligned/magnetic_pairs            the magnetic factors: step pairs a magnetic link says are one place
+    /world/aligned/reference_field           a reference's field: its samples the crowd is tied to, and the factors
     /world/aligned/convergence/<session>     walks at the initial guess and after each LM stage (timed)
     /world/aligned/locate/estimate, /world/locate/{truth,error}   kNN answers (``log_locate_results``)
     /raw/<session>                           each walk in its own dead-reckoning frame, laid on a grid
@@ -86,6 +87,7 @@ APS = "world/aligned/radio_map/ap"
 HEATMAPS = "world/aligned/radio_map/heatmap"
 MAGNETIC = "world/aligned/magnetic_map"
 MAGNETIC_PAIRS = "world/aligned/magnetic_pairs"
+REFERENCE_FIELD = "world/aligned/reference_field"
 CONVERGENCE = "world/aligned/convergence"
 LOCATE_ESTIMATE = "world/aligned/locate/estimate"
 LOCATE = "world/locate"
@@ -199,6 +201,7 @@ def log_survey(
         if mm is not None:
             _magnetic_layers(lg, mm)
         _magnetic_pair_layers(lg, alignment)
+    _reference_field_layers(lg, alignment)
     _optimiser_layers(lg, alignment.iterations)
     _convergence_layers(lg, alignment, colours)
     lg.notes[:0] = _survey_summary(survey, alignment)
@@ -530,6 +533,22 @@ def _magnetic_pair_layers(lg: _Log, al: Alignment) -> None:
     n_links = len(al.magnetic) if al.magnetic is not None else 0
     lg.notes.append(f"- magnetic factors: {len(seg):,} step pairs of {n_links} magnetic links (purple) under "
                     f"/{MAGNETIC_PAIRS}.")
+
+
+def _reference_field_layers(lg: _Log, al: Alignment) -> None:
+    """A reference's field (a previous survey's magnetic map): the magnetic factors from crowd poses to its
+    held samples, as segments, and those samples."""
+    ties = al.field_ties
+    if ties is None or not len(ties):
+        return
+    seg = np.stack([al.node_xyh[ties.pairs[:, 0], :2], ties.xy[ties.pairs[:, 1]]], axis=1)
+    seg = seg[np.isfinite(seg).all(axis=(1, 2))]
+    lg.static(f"{REFERENCE_FIELD}/factors", len(seg), _segments(seg, (140, 60, 200), 0.5, _Z_EDGES))
+    held = np.unique(ties.pairs[:, 1])
+    lg.static(f"{REFERENCE_FIELD}/samples", len(held),
+              rr.Points2D(ties.xy[held], colors=[(90, 90, 90)], radii=rr.components.Radius.ui_points(2.0), draw_order=_Z_AP))
+    lg.notes.append(f"- the reference's field: {len(seg):,} magnetic factors (purple) of {ties.links} links from "
+                    f"{len(ties.walks)} crowd walks to {len(held):,} of its samples (grey), held, under /{REFERENCE_FIELD}.")
 
 
 def _optimiser_layers(lg: _Log, iterations: Sequence[IterationRecord]) -> None:

@@ -26,8 +26,10 @@ def score(inputs: SurveyInputs, cfg) -> dict:
     for c in comps:
         per_walk.update(c.site_per_walk_mean_m if c.site_per_walk_mean_m is not None else c.per_walk_mean_m)
     mean = c0.site.mean_m if c0.site is not None else c0.landmarks.mean_m
+    field = (res.report.get("reference_map") or {}).get("field")  # a previous survey's magnetic field, if used
     return {"walks": len(res.survey), "main": len(al.components[0].walks), "frame": al.frame,
-            "main_mean_m": round(float(mean), 2), "walks_over_6m": int(sum(v > 6.0 for v in per_walk.values()))}
+            "main_mean_m": round(float(mean), 2), "walks_over_6m": int(sum(v > 6.0 for v in per_walk.values())),
+            "field": None if field is None else {k: field[k] for k in ("walks", "links", "crowd_walks", "factors")}}
 
 
 def main(folder: Path) -> None:

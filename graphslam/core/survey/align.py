@@ -44,13 +44,14 @@ from graphslam.core.survey.graph import (
     values_to_xyh,
 )
 from graphslam.core.survey.initialise import Placement, connected_to, register_walks, se2_apply_poses
-from graphslam.core.survey.magnetic import MagneticLinks, factor_pairs
-from graphslam.core.survey.reference import reference_links
+from graphslam.core.survey.magnetic import MagneticLinks, MagneticParams, factor_pairs
+from graphslam.core.survey.reference import FieldTies, field_ties, reference_links
 from graphslam.core.survey.problem import Problem
 from graphslam.core.types import PoseTrack, Survey
 from graphslam.errors import SolverError
 
 if TYPE_CHECKING:
+    from graphslam.core.radiomap.magnetic_map import MagneticMap
     from graphslam.core.uwb.survey import UwbSummary
 
 log = logging.getLogger(__name__)
@@ -109,6 +110,7 @@ class Alignment:
     ties: ControlTies | None = None  # control-point marks tied to the site frame
     reference_map: RadioMap | None = None  # the surveyed map component 0 is placed on (site frame)
     anchor_pairs: NDArray[np.int64] | None = None  # (E, 2) its WiFi edges: (step node, reference fingerprint)
+    field_ties: FieldTies | None = None  # the reference's field: its samples and the crowd's magnetic factors to them
     unused_reference: RadioMap | None = None  # a reference map given that no walk registers onto
     # WiFi and reference edges that joined after a solve brought them within the tight gate (``_regated``)
     regated_edges: tuple[int, int] = (0, 0)
@@ -120,12 +122,14 @@ class Alignment:
 
     def links_by_component(self) -> list[dict[str, int]]:
         """Per component (0 first): what links its walks, by kind — WiFi edges and magnetic links
-        (walk pairs) in the optimiser, UWB ranges, control-point marks, WiFi edges to a reference map."""
+        (walk pairs) in the optimiser, UWB ranges, control-point marks, WiFi edges to a reference map and
+        magnetic factors to its field."""
         comp = self.component_of()
         ids = self.session_ids
         walk_comp = np.array([comp.get(sid, -1) for sid in ids], np.int64)
         n = len(self.components)
-        out = [{"wifi": 0, "magnetic": 0, "uwb": 0, "control_points": 0, "reference": 0} for _ in range(n)]
+        out = [{"wifi": 0, "magnetic": 0, "uwb": 0, "control_points": 0, "reference": 0, "reference_magnetic": 0}
+               for _ in range(n)]
         fp = self.fingerprints
         if len(self.edges):
             used = np.ones(len(self.edges), bool) if self.used_edges is None else self.used_edges
@@ -142,6 +146,8 @@ class Alignment:
                 out[int(k)]["control_points"] = int(c)
         if self.anchor_pairs is not None and len(self.anchor_pairs) and n:  # the reference holds component 0
             out[0]["reference"] = int(len(self.anchor_pairs))
+        if self.field_ties is not None and n:  # magnetic factors to the reference's field (component 0's)
+            out[0]["reference_magnetic"] = int(len(self.field_ties))
         if self.uwb is not None and n:  # UWB surveys are one component
             out[0]["uwb"] = int(self.uwb.anchor_ranges + self.uwb.peer_ranges)
         return out
@@ -239,6 +245,7 @@ def build_problem(
     *,
     control_points: Mapping[str, tuple[float, float]] | None = None,
     reference: RadioMap | None = None,
+    reference_field: MagneticMap | None = None,
 ) -> Problem:
     """Steps 1-3 of the method: fingerprints on nodes, WiFi edges, initial placement.
 
@@ -248,7 +255,9 @@ def build_problem(
     two marks, ``split_without_headings``).
     ``reference``: a surveyed radio map in the site frame, held; component 0 is placed on it and tied to
     it by WiFi edges (``graphslam.core.survey.reference``; walks without the phones' headings are
-    registered onto it over every rotation, ``split_without_headings``).
+    registered onto it over every rotation, ``split_without_headings``). ``reference_field``: the
+    reference's magnetic field (a previous survey's magnetic map, site frame): component 0's walks are tied
+    to it by magnetic factors once placed (``graphslam.core.survey.reference.field_ties``).
 
     ``warm`` (``graphslam survey --update``, see ``graphslam.core.survey.incremental``): walks
     solved before start from their previous solution, only the new walks' fingerprints are
@@ -455,6 +464,16 @@ def build_problem(
         if warm is None:
             gated_a = on & ~keep & (gap <= cfg.heading.wifi_gate_m)
             gated_anchor = np.column_stack([node[gated_a], a.edge_j[gated_a]]).astype(np.int64)
+    field_pairs, ties_to_field = np.zeros((0, 2), np.int64), None
+    if split is not None and split.anchors is not None and reference_field is not None and cfg.magnetic.enabled:
+        ties_to_field = field_ties(
+            survey, fp.offsets, transforms, split.component == 0, reference_field, MagneticParams.from_config(cfg.magnetic),
+            dr_xy=dr_xyh[:, :2], node_walk=node_sess, max_offset_m=cfg.magnetic.d_max_m,
+            per_place=cfg.magnetic.partners_per_place,
+        )
+        # the field's samples are held nodes after the reference's fingerprints
+        field_pairs = ties_to_field.pairs + np.array([0, len(anchor_xy)])
+        anchor_xy = np.concatenate([anchor_xy, ties_to_field.xy])
     magnetic_pairs = np.zeros((0, 2), np.int64)
     if split is not None and split.magnetic is not None and len(split.magnetic):
         mag = split.magnetic
@@ -487,6 +506,8 @@ def build_problem(
         magnetic=None if split is None else split.magnetic,
         anchor_xy=anchor_xy,
         anchor_pairs=anchor_pairs,
+        field_pairs=field_pairs,
+        field_ties=ties_to_field,
         gated_wifi_pairs=gated_wifi.reshape(-1, 2),
         gated_anchor_pairs=gated_anchor,
         reference_map=reference if split is not None and split.anchors is not None else None,
@@ -542,14 +563,16 @@ def align(
     *,
     control_points: Mapping[str, tuple[float, float]] | None = None,
     reference: RadioMap | None = None,
+    reference_field: MagneticMap | None = None,
 ) -> Alignment:
     """Align all walks of ``survey`` into the frame of the reference walk's first pose
     (``warm``: re-solve only around the walks new since a previous solution, see ``build_problem``;
     ``control_points``: landmark id -> site (x, y); ``reference``: a surveyed radio map in the site
-    frame; both passed on to ``build_problem``)."""
+    frame, ``reference_field`` its magnetic field; passed on to ``build_problem``)."""
     cfg = config or GraphSlamConfig()
     t0 = time.perf_counter()
-    problem = build_problem(survey, cfg, warm, control_points=control_points, reference=reference)
+    problem = build_problem(survey, cfg, warm, control_points=control_points, reference=reference,
+                            reference_field=reference_field)
     return solve(problem, cfg, progress, t0=t0)
 
 
@@ -616,7 +639,7 @@ def solve(
                 pg, chains = pose_graph(pb, cfg)
                 native = None
             else:
-                if len(pb.anchor_pairs):
+                if len(pb.anchor_pairs) or len(pb.field_pairs):
                     raise SolverError("a reference map is solved by graphslam's own LM (optimizer.solver auto "
                                       "or cholmod), not optimizer.solver gtsam")
                 pg = None
@@ -624,11 +647,12 @@ def solve(
                 native = (imu_graph, wifi_factors, values)
         wp = pb.wifi_pairs if vectorised else solved_wifi_pairs(pb)
         mp = pb.magnetic_pairs if vectorised else solved_magnetic_pairs(pb)
-        # a reference map's fingerprints: held nodes after the steps (node N + r), WiFi edges to them
+        # a reference map's fingerprints and its field's samples: held nodes after the steps (node N + r), WiFi
+        # edges and magnetic factors to them
         return (pg, chains, native, wp[:, 0], wp[:, 1], mp[:, 0], mp[:, 1],
-                pb.anchor_pairs[:, 0], n_steps + pb.anchor_pairs[:, 1])
+                pb.anchor_pairs[:, 0], n_steps + pb.anchor_pairs[:, 1], pb.field_pairs[:, 0], n_steps + pb.field_pairs[:, 1])
 
-    pg, chains, native, ea, eb, ma, mb, ra, rb = build(problem)
+    pg, chains, native, ea, eb, ma, mb, ra, rb, fa, fb = build(problem)
     perm = S.graph_ordering(pg, settings) if vectorised else None  # CHOLMOD's, one per graph
     anchors = np.column_stack([problem.anchor_xy, np.zeros(len(problem.anchor_xy))])
     timings["build_graph"] = time.perf_counter() - t
@@ -643,8 +667,9 @@ def solve(
         imu = S.between_error(pg, xyh) + S.unary_error(pg, xyh) if vectorised else native[0].error(values)
         dm = np.linalg.norm(xyh[ma, :2] - xyh[mb, :2], axis=1)
         dr = np.linalg.norm(xyh[ra, :2] - anchors[rb - n_steps, :2], axis=1)
+        df = np.linalg.norm(xyh[fa, :2] - anchors[fb - n_steps, :2], axis=1)
         return float(imu + F.fuzzy_cost(d, cfg.wifi).sum() + F.magnetic_cost(dm, cfg.magnetic).sum()
-                     + F.fuzzy_cost(dr, cfg.wifi).sum())
+                     + F.fuzzy_cost(dr, cfg.wifi).sum() + F.magnetic_cost(df, cfg.magnetic).sum())
 
     xyh = problem.init_xyh.copy()
     values = native[2] if native is not None else None
@@ -670,7 +695,7 @@ def solve(
                 regated = (regated[0] + len(wider.wifi_pairs) - len(problem.wifi_pairs),
                            regated[1] + len(wider.anchor_pairs) - len(problem.anchor_pairs))
                 problem = wider
-                pg, chains, native, ea, eb, ma, mb, ra, rb = build(problem)
+                pg, chains, native, ea, eb, ma, mb, ra, rb, fa, fb = build(problem)
                 perm = S.graph_ordering(pg, settings) if vectorised else None
                 values = native[2] if native is not None else None
                 if regate_round < _REGATE_ROUNDS:  # another pass follows: a few iterations choose its edges
@@ -682,8 +707,10 @@ def solve(
             d = np.linalg.norm(xyh[ea, :2] - xyh[eb, :2], axis=1)
             dm = np.linalg.norm(xyh[ma, :2] - xyh[mb, :2], axis=1)
             dr = np.linalg.norm(xyh[ra, :2] - anchors[rb - n_steps, :2], axis=1)
+            df = np.linalg.norm(xyh[fa, :2] - anchors[fb - n_steps, :2], axis=1)
             # magnetic pairs saturate at their own d_max, shrinking in step with the WiFi edges' radius
-            active = np.concatenate([d <= radius, dm <= radius * cfg.magnetic.d_max_m / cfg.wifi.d_max_m, dr <= radius])
+            mag_radius = radius * cfg.magnetic.d_max_m / cfg.wifi.d_max_m
+            active = np.concatenate([d <= radius, dm <= mag_radius, dr <= radius, df <= mag_radius])
             if prev_active is not None and np.array_equal(active, prev_active) and converged:
                 continue  # LM already converged on exactly this graph
             n_active = int(active[:len(d)].sum())  # WiFi edges (the records' and the progress line's count)
@@ -767,6 +794,7 @@ def solve(
         ties=problem.ties,
         reference_map=problem.reference_map,
         anchor_pairs=problem.anchor_pairs if problem.reference_map is not None else None,
+        field_ties=problem.field_ties if problem.reference_map is not None else None,
         unused_reference=problem.unused_reference,
         regated_edges=regated,
     )

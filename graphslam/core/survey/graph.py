@@ -134,11 +134,14 @@ def pose_graph(problem: Problem, cfg: GraphSlamConfig) -> tuple[S.PoseGraph, Com
     hn, ht, hs = heading_priors(problem, nodes)
     pn, pxy, ps = point_priors(problem, cfg)
     n_w, n_m, n_r = len(problem.wifi_pairs), len(problem.magnetic_pairs), len(problem.anchor_pairs)
+    n_f = len(problem.field_pairs)
     n_steps = len(problem.init_xyh)
-    # WiFi edges, magnetic pairs, then WiFi edges to a reference map's fingerprints (held nodes after the steps)
-    anchor = problem.anchor_pairs + np.array([0, n_steps])
-    sigma, dead = np.repeat([F.wifi_sigma(cfg.wifi), cfg.magnetic.sigma_m, F.wifi_sigma(cfg.wifi)], [n_w, n_m, n_r]), \
-        np.repeat([cfg.wifi.d_min_m, cfg.magnetic.d_min_m, cfg.wifi.d_min_m], [n_w, n_m, n_r])
+    # WiFi edges, magnetic pairs, WiFi edges to a reference map's fingerprints and magnetic factors to its
+    # field's samples (held nodes after the steps)
+    anchor = np.concatenate([problem.anchor_pairs, problem.field_pairs]).reshape(-1, 2) + np.array([0, n_steps])
+    sigma = np.repeat([F.wifi_sigma(cfg.wifi), cfg.magnetic.sigma_m, F.wifi_sigma(cfg.wifi), cfg.magnetic.sigma_m],
+                      [n_w, n_m, n_r, n_f])
+    dead = np.repeat([cfg.wifi.d_min_m, cfg.magnetic.d_min_m, cfg.wifi.d_min_m, cfg.magnetic.d_min_m], [n_w, n_m, n_r, n_f])
     graph = S.PoseGraph(
         n_nodes=n_steps + len(problem.anchor_xy),
         variables=nodes[~np.isin(nodes, held)].astype(np.int64),
@@ -148,10 +151,10 @@ def pose_graph(problem: Problem, cfg: GraphSlamConfig) -> tuple[S.PoseGraph, Com
         between_sqrt_info=sqrt_info,
         # WiFi edges, then magnetic pairs (each kind its sigma and dead zone)
         range_pairs=np.concatenate([problem.wifi_pairs, mag_pairs, anchor]).astype(np.int64).reshape(-1, 2),
-        range_sigma=F.wifi_sigma(cfg.wifi) if not (n_m or n_r) else sigma,
-        range_dead_zone_m=cfg.wifi.d_min_m if not (n_m or n_r) else dead,
+        range_sigma=F.wifi_sigma(cfg.wifi) if not (n_m or n_r or n_f) else sigma,
+        range_dead_zone_m=cfg.wifi.d_min_m if not (n_m or n_r or n_f) else dead,
         range_offsets=None if mag_offsets is None else np.concatenate(
-            [np.zeros((n_w, 4)), mag_offsets, np.zeros((n_r, 4))]),
+            [np.zeros((n_w, 4)), mag_offsets, np.zeros((n_r + n_f, 4))]),
         heading_nodes=hn,
         heading_target=ht,
         heading_sigma=hs,
@@ -172,6 +175,7 @@ def kept_nodes(problem: Problem, *, magnetic: bool = True) -> NDArray[np.bool_]:
     if magnetic:
         keep[problem.magnetic_pairs.ravel()] = True
     keep[problem.anchor_pairs[:, 0]] = True
+    keep[problem.field_pairs[:, 0]] = True
     keep[problem.held_nodes] = True
     if problem.ties is not None:
         keep[problem.ties.node] = True

@@ -25,6 +25,7 @@ from graphslam.core.types import Survey
 
 if TYPE_CHECKING:
     from graphslam.core.radiomap.radiomap import RadioMap
+    from graphslam.core.survey.reference import FieldTies
     from graphslam.core.uwb.survey import UwbTerms
 
 
@@ -55,6 +56,10 @@ class Problem:
     anchor_xy: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
     anchor_pairs: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), np.int64))
     reference_map: RadioMap | None = None  # the reference map itself (its fingerprints join the output map)
+    # the reference's field (graphslam.core.survey.reference.field_ties): magnetic factors (crowd step node,
+    # row of anchor_xy: the field's samples follow the reference's fingerprints there)
+    field_pairs: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    field_ties: FieldTies | None = None
     # the tied component's WiFi edges (and reference edges) the placement put beyond the tight gate
     # (``control_points.wifi_gate_m``) but within the headings' one: they join when a solve brings them within it
     gated_wifi_pairs: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), np.int64))

@@ -21,6 +21,14 @@ tool's) is held fixed in the site frame. The crowd's walks are tied to it as the
    constant: the power cosine of 1 cancels it, eq. 9 does not. It is estimated where the two are most
    alike (``rss_offset_db``: every crowd fingerprint's best match) and taken off the reference's
    readings for the edges.
+5. **The reference's field** (a previous graphslam survey's ``magnetic_map.parquet``: its walks' field at
+   their solved positions): each walk of the reference is a held sequence of the field along its path
+   (``field_sequences``). Once the crowd is placed, every window of a placed crowd walk is compared with
+   the reference's stretches near where the placement puts it, with the threshold from surrogates and
+   the link rule between walks (``graphslam.core.survey.magnetic``); a link whose stretches lie within
+   ``magnetic.d_max_m`` of each other gives magnetic factors from the crowd's steps to the reference's
+   held samples (``field_ties``). The field corrects a placement by metres where WiFi leaves it loose;
+   it places no walk (a walk the WiFi does not place has no place to search from).
 
 Frames: site (the reference's, metres); the crowd's dead reckoning turned by the headings (east/north)
 and by the site's rotation.
@@ -36,10 +44,16 @@ from numpy.typing import NDArray
 from scipy import sparse
 
 from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix
+from graphslam.core.radiomap.magnetic_map import MagneticMap
 from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.radiomap.similarity import Matches, PowerCosine, top_matches_between
 from graphslam.core.survey.edges import nearest_per_row
+from graphslam.core.survey.magnetic import (
+    N_FEATURES, MagneticParams, MagneticSequences, factor_pairs, null_threshold, walk_links, walk_sequences, window_matches,
+    windows,
+)
 from graphslam.core.survey.placement import GrowthParams, hough_profile
+from graphslam.core.types import Survey
 
 log = logging.getLogger(__name__)
 
@@ -183,3 +197,109 @@ def site_rotation(
     total = profile(fine, params)
     best = int(np.argmax(total))
     return float(np.arctan2(np.sin(fine[best]), np.cos(fine[best]))), float(total[best])
+
+
+def field_sequences(field: MagneticMap, sample_m: float, first_node: int) -> MagneticSequences:
+    """The reference's walks (``field``'s samples of one ``session_id``, in time order) resampled every
+    ``sample_m`` of their path (site frame), as ``walk_sequences`` does a crowd walk's dead reckoning;
+    sample ``q``'s node is ``first_node + q`` (held nodes: ``field_ties``)."""
+    ids = np.asarray(field.session_ids)
+    parts_f, parts_xy, parts_s, sizes = [], [], [], []
+    for sid in dict.fromkeys(ids.tolist()):
+        rows = np.flatnonzero(ids == sid)
+        rows = rows[np.argsort(np.asarray(field.t_ns)[rows], kind="stable")]
+        xy, f = np.asarray(field.xy)[rows], np.asarray(field.features)[rows]
+        d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+        on = np.concatenate([[True], np.diff(d) > 1e-6])  # standing still is one place
+        d, xy, f = d[on], xy[on], f[on]
+        if len(d) < 2:
+            continue
+        q = np.arange(0.0, d[-1] + 1e-9, sample_m)
+        parts_f.append(np.column_stack([np.interp(q, d, f[:, c]) for c in range(N_FEATURES)]))
+        parts_xy.append(np.column_stack([np.interp(q, d, xy[:, 0]), np.interp(q, d, xy[:, 1])]))
+        parts_s.append(q)
+        sizes.append(len(q))
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    n = int(offsets[-1])
+
+    def cat(parts: list, shape: tuple[int, ...]) -> NDArray:
+        return np.concatenate(parts) if parts else np.zeros((0, *shape))
+
+    return MagneticSequences(offsets, cat(parts_f, (N_FEATURES,)), cat(parts_xy, (2,)),
+                             first_node + np.arange(n, dtype=np.int64), cat(parts_s, ()))
+
+
+@dataclass(frozen=True, eq=False)
+class FieldTies:
+    """Magnetic factors from placed crowd walks to a reference's field (module docstring, 5)."""
+
+    xy: NDArray[np.float64]  # (Q, 2) the reference's field samples (site frame), held
+    pairs: NDArray[np.int64]  # (P, 2) (crowd step node, row of ``xy``)
+    links: int  # crowd walk - reference walk links kept
+    walks: NDArray[np.int64]  # crowd walks with a factor
+    reference_walks: int  # the reference's walks with a sequence
+    threshold: float  # the score a window match needed
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+
+def field_ties(
+    survey: Survey, node_offsets: NDArray[np.int64], transforms: NDArray[np.float64], placed: NDArray[np.bool_],
+    field: MagneticMap, p: MagneticParams, *, dr_xy: NDArray[np.float64], node_walk: NDArray[np.int64],
+    max_offset_m: float, per_place: int,
+) -> FieldTies:
+    """Magnetic factors of the walks ``placed`` marks (``transforms``: dead reckoning -> site) to the
+    reference's field (module docstring, 5). Every window of a placed walk is compared with the stretches
+    of each reference walk that pass within ``p.search_m`` of it (the nearest sample anchors the search);
+    a link (the window-match rule between walks) whose stretches lie within ``max_offset_m`` of each other
+    gives its node pairs, thinned as between walks (``factor_pairs``: ``per_place`` partners a place).
+    ``dr_xy``, ``node_walk``: every step node's dead-reckoned position and walk."""
+    from scipy.spatial import cKDTree
+
+    n_nodes, n_walks = int(node_offsets[-1]), len(survey)
+    crowd = walk_sequences(survey, node_offsets, p.sample_m)
+    ref = field_sequences(field, p.sample_m, first_node=n_nodes)
+    empty = FieldTies(ref.xy, np.zeros((0, 2), np.int64), 0, np.zeros(0, np.int64), ref.n_walks, 1.0)
+    if not len(crowd.features) or not len(ref.features) or not placed.any():
+        return empty
+    walk = crowd.walk_of()
+    T = transforms[walk]
+    c, s = np.cos(T[:, 2]), np.sin(T[:, 2])
+    site = np.column_stack([c * crowd.xy[:, 0] - s * crowd.xy[:, 1] + T[:, 0],
+                            s * crowd.xy[:, 0] + c * crowd.xy[:, 1] + T[:, 1]])
+    seq = MagneticSequences(
+        np.concatenate([crowd.offsets, crowd.offsets[-1] + ref.offsets[1:]]),
+        np.concatenate([crowd.features, ref.features]), np.concatenate([site, ref.xy]),
+        np.concatenate([crowd.node, ref.node]), np.concatenate([crowd.path_m, ref.path_m]),
+    )
+    win = windows(seq, p)
+    # anchors: each placed crowd window's centre and, per reference walk, its nearest sample within search_m
+    on = (win.walk < n_walks) & placed[np.minimum(win.walk, n_walks - 1)]
+    centre = win.start[on] + (p.window - 1) // 2
+    ref_walk = np.repeat(np.arange(ref.n_walks), np.diff(ref.offsets))
+    k = int(min(len(ref.xy), 32))
+    d, j = cKDTree(ref.xy).query(seq.xy[centre], k=k, distance_upper_bound=p.search_m)
+    d, j = np.reshape(d, (len(centre), k)), np.reshape(j, (len(centre), k))
+    a, b = np.repeat(centre, k), j.ravel()
+    ok = np.isfinite(d.ravel())
+    a, b = a[ok], b[ok]
+    key = a * (ref.n_walks + 1) + ref_walk[b]
+    _, first = np.unique(key, return_index=True)  # query order: the nearest per (window, reference walk)
+    aa, ab = a[first], b[first] + int(crowd.offsets[-1])
+    if not len(aa):
+        return empty
+    threshold = null_threshold(seq, win, p, aa, ab)
+    links = walk_links(seq, win, window_matches(seq, win, p, aa, ab), np.zeros(seq.n_walks), threshold, p)
+    links = links.subset(np.linalg.norm(links.translation, axis=1) <= max_offset_m)
+    if not len(links):
+        return replace(empty, threshold=threshold)
+    # thinned as between walks: the reference's samples are nodes of walks of their own after the steps
+    xy_all = np.concatenate([dr_xy, ref.xy])
+    walk_all = np.concatenate([node_walk, n_walks + ref_walk])
+    pn = links.pair_nodes[factor_pairs(links, xy_all, walk_all, p.pair_every_m, per_place)]
+    pairs = np.column_stack([pn[:, 0], pn[:, 1] - n_nodes]).astype(np.int64)
+    out = FieldTies(ref.xy, pairs, int(len(links)), np.unique(node_walk[pairs[:, 0]]), ref.n_walks, threshold)
+    log.info("reference field: %d walks of it; %d links to %d crowd walks (window matches above %.3f), %d factors",
+             ref.n_walks, out.links, len(out.walks), threshold, len(out))
+    return out
