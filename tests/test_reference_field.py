@@ -24,7 +24,7 @@ from graphslam.core.types import Survey
 from graphslam.errors import InputError
 from graphslam.io.magnetic_map_io import write_magnetic_map
 from graphslam.io.mcap_writer import write_session
-from graphslam.io.reference_map import read_reference_field
+from graphslam.io.reference_map import read_reference_field, read_reference_map
 
 
 def _field_of(survey: Survey, walks: list[int]) -> MagneticMap:
@@ -131,6 +131,11 @@ def test_a_csv_reference_has_no_field_and_a_bad_field_file_is_one_line(previous:
     write_magnetic_map(MagneticMap(mm.session_ids, mm.t_ns, mm.xy, mm.features, frame="earth"), copy / "magnetic_map.parquet")
     with pytest.raises(InputError, match="frame"):
         read_reference_field(copy / "radio_map.parquet")
+    # another survey's field beside the radio map (a walk the radio map does not hold)
+    write_magnetic_map(mm, copy / "magnetic_map.parquet")  # walk w0's: the previous survey surveyed w1 and w2
+    with pytest.raises(InputError, match="'w0'.*not one survey's"):
+        read_reference_field(copy / "radio_map.parquet", read_reference_map(copy / "radio_map.parquet"))
+    assert read_reference_field(prev / "radio_map.parquet", read_reference_map(prev / "radio_map.parquet")) is not None
 
 
 def test_rerun_shows_the_factors_to_the_reference_field(previous: tuple, tmp_path: Path) -> None:

@@ -391,7 +391,7 @@ def _run_survey(inputs: SurveyInputs, cfg: GraphSlamConfig, progress: ProgressCa
 
         reference = read_reference_map(inputs.reference_map, min_rssi_dbm=cfg.fingerprint.min_rssi_dbm,
                                        missing_dbm=cfg.fingerprint.missing_rssi_dbm)
-        reference_field = read_reference_field(inputs.reference_map)
+        reference_field = read_reference_field(inputs.reference_map, reference)
     previous = None
     if update is not None:  # read first: a bad previous output fails before the work
         from graphslam.app.update import align_update, load_previous

@@ -47,10 +47,11 @@ def read_reference_map(path: str | Path, *, min_rssi_dbm: float = -100.0, missin
     return _from_csv(path, min_rssi_dbm, missing_dbm)
 
 
-def read_reference_field(path: str | Path) -> MagneticMap | None:
+def read_reference_field(path: str | Path, reference: RadioMap | None = None) -> MagneticMap | None:
     """The magnetic field of the reference map at ``path``: for a radio map graphslam wrote, the same
     survey's ``magnetic_map.parquet`` beside it (site frame), None when it has none (or for a CSV). An
-    ``InputError`` naming that file when it is not a magnetic map, was changed, or is in another frame."""
+    ``InputError`` naming that file when it is not a magnetic map, was changed, is in another frame, or
+    holds a walk ``reference`` (the radio map read from ``path``) does not: another survey's."""
     path = Path(path)
     with open(path, "rb") as fh:
         if fh.read(4) != b"PAR1":
@@ -68,6 +69,11 @@ def read_reference_field(path: str | Path) -> MagneticMap | None:
     if field.frame != "site":
         raise InputError(field_path, f"the reference map's field is in the {field.frame!r} frame, its radio map in the "
                          "site frame: not one survey's", field="metadata.frame")
+    if reference is not None:
+        foreign = sorted(set(np.asarray(field.session_ids).tolist()) - set(np.asarray(reference.session_ids).tolist()))
+        if foreign:
+            raise InputError(field_path, f"the reference map's field holds walk {foreign[0]!r}, which {path.name} does "
+                             f"not ({len(foreign)} such): not one survey's", field="session_id")
     return field
 
 
