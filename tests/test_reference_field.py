@@ -113,6 +113,8 @@ def test_a_csv_reference_has_no_field_and_a_bad_field_file_is_one_line(previous:
                                                                         capsys: pytest.CaptureFixture) -> None:
     prev, files = previous
     assert read_reference_field(prev.parent / "ref.csv") is None
+    with pytest.raises(InputError, match="gone.parquet"):
+        read_reference_field(tmp_path / "gone.parquet")
     copy = tmp_path / "copy"
     copy.mkdir()
     (copy / "radio_map.parquet").write_bytes((prev / "radio_map.parquet").read_bytes())

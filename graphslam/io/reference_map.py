@@ -53,9 +53,12 @@ def read_reference_field(path: str | Path, reference: RadioMap | None = None) ->
     ``InputError`` naming that file when it is not a magnetic map, was changed, is in another frame, or
     holds a walk ``reference`` (the radio map read from ``path``) does not: another survey's."""
     path = Path(path)
-    with open(path, "rb") as fh:
-        if fh.read(4) != b"PAR1":
-            return None
+    try:
+        with open(path, "rb") as fh:
+            if fh.read(4) != b"PAR1":
+                return None
+    except OSError as e:
+        raise InputError(path, f"cannot read: {e.strerror or e}") from None
     field_path = path.with_name(FIELD_FILE)
     if not field_path.is_file():
         return None
