@@ -4,6 +4,7 @@ reference, counted in the report."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -148,3 +149,24 @@ def test_rerun_shows_the_factors_to_the_reference_field(previous: tuple, tmp_pat
                                        picture=False), load_config())
     paths = {str(p) for p in rerun.RrdReader(rrd).store().schema().entity_paths()}
     assert {"/world/aligned/reference_field/factors", "/world/aligned/reference_field/samples"} <= paths
+
+
+def test_the_field_factors_alone_hold_the_crowd_in_the_site_frame(previous: tuple) -> None:
+    # the reference's WiFi edges taken out and the placement moved 3 m along the corridor: only the magnetic
+    # factors to the held field samples place the walks in the site frame, and the solve brings them back
+    from graphslam.core.survey.align import build_problem, solve
+
+    prev, _ = previous
+    survey = corridor()
+    crowd = Survey(tuple(survey.sessions[k] for k in (0, 3, 4)))
+    ref = read_reference_map(prev / "radio_map.parquet")
+    cfg = load_config()
+    pb = build_problem(crowd, cfg, reference=ref, reference_field=read_reference_field(prev / "radio_map.parquet", ref))
+    assert len(pb.field_pairs) > 10
+    none = np.zeros((0, 2), np.int64)
+    moved = pb.init_xyh + np.array([3.0, 0.0, 0.0])
+    al = solve(dataclasses.replace(pb, anchor_pairs=none, gated_anchor_pairs=none, init_xyh=moved), cfg)
+    true = np.concatenate([s.ground_truth.xy for s in crowd])
+    placed = np.isfinite(al.node_xyh[:, 0])
+    err = np.linalg.norm(al.node_xyh[placed, :2] - true[placed], axis=1)
+    assert np.median(err) < 1.0
