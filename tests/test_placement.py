@@ -151,7 +151,8 @@ def test_growth_places_repeated_walks_and_leaves_an_unmatched_one_out(lonely: bo
         assert not res.placed[3] and "no WiFi matches" in res.reasons[3]
 
 
-def test_normal_equations_equal_an_explicit_jacobian() -> None:
+@pytest.mark.parametrize("inside", [True, False])  # matches inside one walk (summed generically), or none
+def test_normal_equations_equal_an_explicit_jacobian(inside: bool) -> None:
     # J^T W J and J^T W r accumulated per walk pair must equal the dense products of the stacked
     # Jacobian: gap r = p_a - p_b, d r / d(x, y, theta) = +[I | d_a] (walk a), -[I | d_b] (walk b)
     from graphslam.core.survey.placement import _normal_equations
@@ -159,6 +160,9 @@ def test_normal_equations_equal_an_explicit_jacobian() -> None:
     rng = np.random.default_rng(3)
     F, m = 4, 60
     ka, kb = rng.integers(-1, F, m), rng.integers(-1, F, m)
+    if not inside:  # the diagonal blocks' terms apart from the others' (each match's sides in two walks)
+        kb = np.where((kb == ka) & (ka >= 0), (ka + 1) % F, kb)
+    assert ((ka == kb) & (ka >= 0)).any() == inside
     da, db, r = rng.normal(size=(m, 2)), rng.normal(size=(m, 2)), rng.normal(size=(m, 2))
     w = rng.uniform(0.1, 2.0, m)
     J = np.zeros((2 * m, 3 * F))

@@ -307,12 +307,20 @@ class _NormalEquations:
         match = np.concatenate([np.arange(m), np.arange(m)])
         free = np.flatnonzero(k >= 0)
         self.g_k, self.g_row, self.g_sign, self.g_match = k[free], free, sign[free], match[free]
+        # a match's side with itself adds to its walk's diagonal block: those terms are the free side rows
+        # above (e_1 = e_2, s_1 s_2 = 1); the two sides together add to the off-diagonal blocks of their
+        # walks, or to a diagonal one for a match inside one walk (then every term is summed generically,
+        # to keep each block's sum in one order)
+        both = np.flatnonzero((ka >= 0) & (kb >= 0))
+        self.split = not bool((ka[both] == kb[both]).any())
         row1, row2 = [], []
         for s1 in (0, m):
             for s2 in (0, m):
-                both = np.flatnonzero((k[s1:s1 + m] >= 0) & (k[s2:s2 + m] >= 0))
-                row1.append(both + s1)
-                row2.append(both + s2)
+                if self.split and s1 == s2:
+                    continue
+                pick = both if s1 != s2 else np.flatnonzero(k[s1:s1 + m] >= 0)
+                row1.append(pick + s1)
+                row2.append(pick + s2)
         self.row1, self.row2 = np.concatenate(row1), np.concatenate(row2)
         self.h_sign, self.h_match = sign[self.row1] * sign[self.row2], match[self.row1]
         self.pair = k[self.row1] * n_free + k[self.row2]
@@ -337,10 +345,23 @@ class _NormalEquations:
         H[:, :, 2, 0] = acc(self.pair, ww * e1x, nf * nf).reshape(nf, nf)
         H[:, :, 2, 1] = acc(self.pair, ww * e1y, nf * nf).reshape(nf, nf)
         H[:, :, 2, 2] = acc(self.pair, ww * (e1x * e2x + e1y * e2y), nf * nf).reshape(nf, nf)
-        w = self.g_sign * wt[self.g_match]
+        ws = wt[self.g_match]
+        ex, ey = dx[self.g_row], dy[self.g_row]
+        if self.split:  # the diagonal blocks' side-with-itself terms (the off-diagonal sums add nothing there)
+            d = np.arange(nf)
+            one = acc(self.g_k, ws, nf)
+            H[d, d, 0, 0] += one
+            H[d, d, 1, 1] += one
+            t0, t1 = acc(self.g_k, ws * ex, nf), acc(self.g_k, ws * ey, nf)
+            H[d, d, 0, 2] += t0
+            H[d, d, 2, 0] += t0
+            H[d, d, 1, 2] += t1
+            H[d, d, 2, 1] += t1
+            H[d, d, 2, 2] += acc(self.g_k, ws * (ex * ex + ey * ey), nf)
+        w = self.g_sign * ws
         wrx, wry = w * rx[self.g_match], w * ry[self.g_match]
         g = np.column_stack([acc(self.g_k, wrx, nf), acc(self.g_k, wry, nf),
-                             acc(self.g_k, wrx * dx[self.g_row] + wry * dy[self.g_row], nf)])
+                             acc(self.g_k, wrx * ex + wry * ey, nf)])
         return H.transpose(0, 2, 1, 3).reshape(3 * nf, 3 * nf), g.reshape(3 * nf)
 
 
