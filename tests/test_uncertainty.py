@@ -195,6 +195,21 @@ def test_the_calibration_equals_locating_each_walk_on_a_map_of_the_others(walks:
         assert u is not None and u.n == len(rm) and u.scale == pytest.approx(want, rel=1e-9)
 
 
+def test_walks_located_a_batch_at_a_time_or_alone_give_the_same_calibration(walks: list, monkeypatch: pytest.MonkeyPatch) -> None:
+    # each row's answer is its own: the walks of one batch located together (the default on a small map)
+    # give the calibration of every walk located alone, bit for bit, its three sets and the outside test
+    import graphslam.core.radiomap.uncertainty as U
+
+    rm = oracle_radio_map(walks)
+    assert U.BATCH_CELLS // len(rm) >= len(rm)  # one batch holds every walk's scans
+    together = calibrate_uncertainty(rm)
+    monkeypatch.setattr(U, "BATCH_CELLS", 1)  # a batch of one walk
+    alone = calibrate_uncertainty(rm)
+    assert together is not None and together.outside is not None and len(together.score_edges) > 0
+    assert together.outside.detection > 0.1  # the outside scans' own RSS distances (not zeros: none flagged)
+    assert together == alone
+
+
 def _readings(rm) -> list[dict[str, float]]:
     v = rm.fingerprints.values
     return [{rm.bssids[j]: float(x + rm.missing_dbm) for j, x in zip(v.indices[v.indptr[i]:v.indptr[i + 1]],

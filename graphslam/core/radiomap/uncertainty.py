@@ -68,6 +68,7 @@ SCORE_BINS = 5  # quantile bins of the calibration scans' scores
 OUTSIDE_RADIUS_M = 10.0  # the outside set: map fingerprints this close to the scan removed
 NEAR_M = 3.0  # the outside test's covered scans: within this of another walk's fingerprint
 FALSE_ALARM = 0.05  # share of those the outside test flags
+BATCH_CELLS = 1 << 21  # query x fingerprint distances of a batch of walks located together (16 MB of float64 a set)
 
 
 def leave_one_session_out(
@@ -135,49 +136,30 @@ def calibrate_uncertainty(
     per = max(1, max_queries // len(sessions))
     # One locator on the whole map; each walk's scans searched with the removed fingerprints masked
     # out and the APs only they heard moved outside the index: what a map without them gives
-    # (``RadioMap.reindex``), without building one per walk.
+    # (``RadioMap.reindex``), without building one per walk. Walks are located a batch at a time (each
+    # row's answer is its own, the same bits in any batch), the batch's distances bounded to ``BATCH_CELLS``.
     loc = KnnLocator(rm, cfg, threads=1)
     values = rm.fingerprints.values
     heard = np.bincount(values.indices, minlength=rm.fingerprints.n_aps)  # fingerprints hearing each AP
     order = np.argsort(codes, kind="stable")
     first = np.searchsorted(codes[order], np.arange(len(names) + 1))
     tree = cKDTree(rm.xy)
-    # per set: (error norms, spreads, scores, near another walk, rss_diff_db) of the located scans
-    sets: dict[str, list[tuple[NDArray, NDArray, NDArray, NDArray, NDArray]]] = {"covered": [], "uncovered": [], "outside": []}
+    picks: list[tuple[int, NDArray[np.int64], NDArray[np.int64]]] = []  # (walk, its rows, its scans drawn)
     for code in sessions:
         own_rows = order[first[code] : first[code + 1]]  # ascending: a stable sort of the codes
-        rows = np.sort(rng.choice(own_rows, per, replace=False)) if len(own_rows) > per else own_rows
-        own = codes == code
-        removed = {"covered": own}
-        if bins > 1 and uncovered_radius_m > 0:
-            # only fingerprints in the walk's box widened by the radius can be that close (a large map's
-            # other places are not searched)
-            lo, hi = rm.xy[own_rows].min(axis=0) - uncovered_radius_m, rm.xy[own_rows].max(axis=0) + uncovered_radius_m
-            box = np.flatnonzero(((rm.xy >= lo) & (rm.xy <= hi)).all(axis=1))
-            unc = own.copy()
-            unc[box] |= np.isfinite(cKDTree(rm.xy[own_rows]).query(rm.xy[box], distance_upper_bound=uncovered_radius_m)[0])
-            removed["uncovered"] = unc
-        near = np.array([bool((codes[np.asarray(c, np.int64)] != code).any())
-                         for c in tree.query_ball_point(rm.xy[rows], r=near_m)], bool).reshape(-1)
-        dropped = None
-        own_q = rm.fingerprints.rows(rows)
-        for kind, gone in removed.items():
-            drop = _heard_only_by(values, heard, gone)
-            if dropped is None:
-                q = _without_columns(own_q, drop)
-                d_all = loc.distances(q)
-            elif not np.array_equal(drop, dropped):
-                q, d_all = _distances_again(loc, own_q, d_all, dropped, drop)
-            dropped = drop
-            d = d_all.copy()
-            d[:, gone] = np.inf
-            sets[kind].append(_located(loc, q, d, rows, near, cfg.k, with_db=kind == "covered"))
-            if kind == "covered" and outside_radius_m > 0:
-                # outside: each scan without the fingerprints within outside_radius_m of it (the APs only
-                # they heard stay in the index, heard by no fingerprint left: as far for eq. 9)
-                disc = tree.query_ball_point(rm.xy[rows], r=outside_radius_m)
-                d[np.repeat(np.arange(len(rows)), [len(c) for c in disc]), np.concatenate(disc).astype(np.int64)] = np.inf
-                sets["outside"].append(_located(loc, q, d, rows, near, cfg.k, with_db=True))
+        picks.append((int(code), own_rows,
+                      np.sort(rng.choice(own_rows, per, replace=False)) if len(own_rows) > per else own_rows))
+    # per set: (error norms, spreads, scores, near another walk, rss_diff_db) of the located scans
+    sets: dict[str, list[tuple[NDArray, NDArray, NDArray, NDArray, NDArray]]] = {"covered": [], "uncovered": [], "outside": []}
+    per_batch = max(1, BATCH_CELLS // max(len(rm), 1))
+    batch: list[tuple[int, NDArray[np.int64], NDArray[np.int64]]] = []
+    for i, pick in enumerate(picks):
+        batch.append(pick)
+        if i + 1 == len(picks) or sum(len(b[2]) for b in batch) + len(picks[i + 1][2]) > per_batch:
+            for kind, found in _calibration_batch(rm, loc, tree, codes, values, heard, batch, bins > 1 and uncovered_radius_m > 0,
+                                                  uncovered_radius_m, outside_radius_m, near_m, cfg.k).items():
+                sets[kind].append(found)
+            batch = []
     if not sets["covered"]:
         return None
     covered = [np.concatenate(v) for v in zip(*sets["covered"])]
@@ -199,6 +181,64 @@ def calibrate_uncertainty(
         out_e, _, _, _, out_db = (np.concatenate(v) for v in zip(*sets["outside"]))
         outside = _outside_test(covered[4][covered[3]], out_db, out_e, outside_radius_m, near_m, false_alarm)
     return KnnUncertainty(cfg.metric, cfg.k, cfg.weighted, scale, floor_m, n, coverage, edges, scales, outside)
+
+
+def _calibration_batch(
+    rm: RadioMap, loc: KnnLocator, tree: cKDTree, codes: NDArray[np.int64], values: sparse.csr_matrix,
+    heard: NDArray[np.int64], batch: list[tuple[int, NDArray[np.int64], NDArray[np.int64]]], uncovered: bool,
+    uncovered_radius_m: float, outside_radius_m: float, near_m: float, k: int,
+) -> dict[str, tuple[NDArray, NDArray, NDArray, NDArray, NDArray]]:
+    """``calibrate_uncertainty``'s sets of a batch of walks ((walk, its rows, its scans drawn) each): a
+    walk's scans searched on the whole map, its removed fingerprints masked and the rows that heard an AP
+    only they heard searched again without it; the batch located per set in one pass."""
+    found: dict[str, list[tuple[FingerprintMatrix, NDArray, NDArray, NDArray]]] = {"covered": [], "uncovered": [], "outside": []}
+    for code, own_rows, picked in batch:
+        own = codes == code
+        removed = {"covered": own}
+        if uncovered:
+            # only fingerprints in the walk's box widened by the radius can be that close (a large map's
+            # other places are not searched)
+            lo, hi = rm.xy[own_rows].min(axis=0) - uncovered_radius_m, rm.xy[own_rows].max(axis=0) + uncovered_radius_m
+            box = np.flatnonzero(((rm.xy >= lo) & (rm.xy <= hi)).all(axis=1))
+            unc = own.copy()
+            unc[box] |= np.isfinite(cKDTree(rm.xy[own_rows]).query(rm.xy[box], distance_upper_bound=uncovered_radius_m)[0])
+            removed["uncovered"] = unc
+        near = np.array([bool((codes[np.asarray(c, np.int64)] != code).any())
+                         for c in tree.query_ball_point(rm.xy[picked], r=near_m)], bool).reshape(-1)
+        own_q = rm.fingerprints.rows(picked)
+        dropped = None
+        for kind, gone in removed.items():
+            drop = _heard_only_by(values, heard, gone)
+            if dropped is None:  # one walk's scans searched together: the APs they hear, not the map's
+                q = _without_columns(own_q, drop)
+                d_all = loc.distances(q)
+            elif not np.array_equal(drop, dropped):
+                q, d_all = _distances_again(loc, own_q, d_all, dropped, drop)
+            dropped = drop
+            d = d_all.copy()
+            d[:, gone] = np.inf
+            found[kind].append((q, d, picked, near))
+            if kind == "covered" and outside_radius_m > 0:
+                # outside: each scan without the fingerprints within outside_radius_m of it (the APs only
+                # they heard stay in the index, heard by no fingerprint left: as far for eq. 9)
+                disc = tree.query_ball_point(rm.xy[picked], r=outside_radius_m)
+                d = d.copy()
+                d[np.repeat(np.arange(len(picked)), [len(c) for c in disc]), np.concatenate(disc).astype(np.int64)] = np.inf
+                found["outside"].append((q, d, picked, near))
+    return {kind: _located(loc, _stacked([f[0] for f in parts]), np.concatenate([f[1] for f in parts]),
+                           np.concatenate([f[2] for f in parts]), np.concatenate([f[3] for f in parts]), k,
+                           with_db=kind != "uncovered")
+            for kind, parts in found.items() if parts}
+
+
+def _stacked(parts: list[FingerprintMatrix]) -> FingerprintMatrix:
+    """The rows of ``parts`` (one AP index) one after another."""
+    if len(parts) == 1:
+        return parts[0]
+    return FingerprintMatrix(parts[0].bssids, sparse.vstack([p.values for p in parts], format="csr"),
+                             parts[0].missing_dbm, np.concatenate([p.extra_sq for p in parts]),
+                             np.concatenate([p.extra_n for p in parts]))
+
 
 
 def _located(
