@@ -434,13 +434,16 @@ def _run_survey(inputs: SurveyInputs, cfg: GraphSlamConfig, progress: ProgressCa
     if update_info is not None:
         report["update"] = {**update_info, "walks_from_cache": recordings.cached}
 
-    def finish(folder: Path | None) -> None:
-        """The last of the run, before its set is published: survey.png into the stage, the
-        Rerun child waited for, report.json's timings (written last, with the set)."""
-        if folder is not None and inputs.picture:
+    def picture(folder: Path) -> None:
+        """survey.png into the stage (drawn while the radio map's calibration runs on the other thread)."""
+        if inputs.picture:
             _write_picture(folder, survey, alignment, cfg, evaluation, plan, files, timings)
             if "picture" in files:
                 files["picture"] = Path(out_dir) / files["picture"].name  # where it is once published
+
+    def finish() -> None:
+        """The last of the run, before its set is published: the Rerun child waited for,
+        report.json's timings (written last, with the set)."""
         if viz is not None:
             t_wait = time.perf_counter()
             timings["rerun"] = viz.wait()  # log_survey itself, in the child
@@ -452,20 +455,21 @@ def _run_survey(inputs: SurveyInputs, cfg: GraphSlamConfig, progress: ProgressCa
         t = time.perf_counter()
 
         def before_publish(stage: Path) -> None:
-            timings["write"] = time.perf_counter() - t
-            finish(stage)
+            # the writing's own time: the picture, drawn meanwhile, has its own figure
+            timings["write"] = time.perf_counter() - t - timings.get("picture", 0.0)
+            finish()
 
         try:
             with Task("write"):
                 files |= write_outputs(Path(out_dir), survey, alignment, report, cfg, surveyed=inputs.surveyed,
-                                       before_publish=before_publish, recording_keys=recordings.keys)
+                                       before_publish=before_publish, recording_keys=recordings.keys, beside=picture)
         except BaseException:
             if viz is not None:  # let the child finish (and clean up its temp file) before failing
                 with contextlib.suppress(Exception):
                     viz.wait()
             raise
     else:
-        finish(None)
+        finish()
     warning = main_map_warning(report)
     if warning is not None:
         log.warning("%s", warning)
@@ -553,13 +557,16 @@ def _check_outputs(inputs: SurveyInputs) -> None:
 def write_outputs(
     out_dir: Path, survey: Survey, al: Alignment, report: dict, cfg: GraphSlamConfig, *, surveyed: bool = False,
     before_publish: Callable[[Path], None] | None = None, recording_keys: Mapping[str, str] | None = None,
+    beside: Callable[[Path], None] | None = None,
 ) -> dict[str, Path]:
     """Write every output into a staging folder beside ``out_dir``, then swap it in as a whole
     (``FolderStage``): ``out_dir`` holds this run's files (no ``radio_map_surveyed.parquet`` left
     from an earlier run) and the other commands' files it held, rebuilt for the new map
     (``graphslam.app.derived``, listed in report.json's ``derived_files``), or, if anything fails or
-    the process is killed, exactly what it held before. ``before_publish(stage folder)`` runs after
-    the data files and before report.json (which it may still change) is written, the last file.
+    the process is killed, exactly what it held before. ``beside(stage folder)`` runs on this thread
+    once the other data files are written, while the radio map is still being built (a file of its
+    own into the stage: the picture); ``before_publish(stage folder)`` runs after the data files and
+    before report.json (which it may still change) is written, the last file.
     ``recording_keys`` (session id -> file key, ``read_recordings``): the recordings cache is written
     for them, else none."""
     stage = FolderStage.create(out_dir, OWNED_FILES)
@@ -590,6 +597,8 @@ def write_outputs(
             write_survey_state(stage.path / names["state"], survey, al, cfg)
             if recording_keys is not None:
                 write_recording_cache(stage.path / names["recordings_cache"], survey, recording_keys)
+            if beside is not None:
+                beside(stage.path)
             write_radio_map(radio_map.result(), stage.path / names["radio_map"])
         if before_publish is not None:
             before_publish(stage.path)
