@@ -11,7 +11,6 @@ import logging
 import math
 import time
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping, Sequence
@@ -573,14 +572,17 @@ def write_outputs(
     try:
         names = {k: v for k, v in OUTPUT_FILES.items()
                  if (k != "radio_map_surveyed" or surveyed) and (k != "recordings_cache" or recording_keys is not None)}
+        from graphslam.core.radiomap.uncertainty import calibrate_uncertainty, with_calibration
         from graphslam.core.survey.radio_maps import crowdsourced_radio_map
+        from graphslam.io.forked import ForkedCall, ForkedCallError
         from graphslam.io.radiomap_io import write_radio_map
 
         main = main_alignment(al)  # the radio map and its edges: component 0 only
-        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="radio-map") as pool:
-            # the radio map's self-calibration, most of a large survey's writing, runs beside the other
-            # files (its searches release the GIL); an error in either waits for it, then discards the stage
-            radio_map = pool.submit(crowdsourced_radio_map, survey, main, cfg)
+        radio_map = crowdsourced_radio_map(survey, main, cfg, calibrate=False)
+        # the radio map's self-calibration, most of a large survey's writing, runs beside the other files and
+        # the picture, on the other core (a forked child; a thread where there is none); an error in either
+        # stops it, then discards the stage
+        with ForkedCall(calibrate_uncertainty, radio_map, fallback="thread") as calibration:
             component = al.component_of()
             write_trajectories(al.tracks, stage.path / names["trajectories"], component, al.frame)
             write_aligned(al.tracks, stage.path / names["aligned"], frame_id=al.frame,
@@ -599,7 +601,12 @@ def write_outputs(
                 write_recording_cache(stage.path / names["recordings_cache"], survey, recording_keys)
             if beside is not None:
                 beside(stage.path)
-            write_radio_map(radio_map.result(), stage.path / names["radio_map"])
+            try:
+                uncertainty = calibration.result()
+            except ForkedCallError as e:  # the child failed (a fork's hazard): measured here instead
+                log.warning("radio map calibration: the child process failed (%s); calibrating here", e)
+                uncertainty = calibrate_uncertainty(radio_map)
+            write_radio_map(with_calibration(radio_map, uncertainty), stage.path / names["radio_map"])
         if before_publish is not None:
             before_publish(stage.path)
         atomic_write_json(stage.path / names["report"], report)

@@ -436,7 +436,11 @@ METADATA_KEY = "knn_uncertainty"  # the radio map's metadata: the calibration of
 def with_uncertainty(rm: RadioMap, config: KnnConfig | None = None) -> RadioMap:
     """``rm`` with the calibration of ``config`` (default: the default kNN) in its metadata (unchanged
     when none can be measured)."""
-    u = calibrate_uncertainty(rm, config)
+    return with_calibration(rm, calibrate_uncertainty(rm, config))
+
+
+def with_calibration(rm: RadioMap, u: KnnUncertainty | None) -> RadioMap:
+    """``rm`` with the calibration ``u`` (``calibrate_uncertainty`` of it) in its metadata; ``rm`` for None."""
     return rm if u is None else rm.with_metadata(**{METADATA_KEY: u.as_dict()})
 
 
@@ -454,5 +458,5 @@ def map_uncertainty(rm: RadioMap, config: KnnConfig) -> KnnUncertainty | None:
 
 __all__ = [
     "AccuracyCells", "FALSE_ALARM", "KnnUncertainty", "METADATA_KEY", "NEAR_M", "OUTSIDE_RADIUS_M", "OutsideTest", "R95", "calibrate_uncertainty", "expected_accuracy",
-    "leave_one_session_out", "map_uncertainty", "with_uncertainty",
+    "leave_one_session_out", "map_uncertainty", "with_calibration", "with_uncertainty",
 ]

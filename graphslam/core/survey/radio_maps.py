@@ -52,11 +52,13 @@ def _build(survey: Survey, al: Alignment, xy: NDArray, frame: str, cfg: GraphSla
 
 
 def crowdsourced_radio_map(
-    survey: Survey, al: Alignment, cfg: GraphSlamConfig, *, site_from_aligned: NDArray | None = None
+    survey: Survey, al: Alignment, cfg: GraphSlamConfig, *, site_from_aligned: NDArray | None = None,
+    calibrate: bool = True,
 ) -> RadioMap:
     """Every fingerprint of an aligned walk at its optimised position, in the survey's frame
     (``Alignment.frame``: the name report.json gives it), or in the site frame when
-    ``site_from_aligned`` is given (e.g. from an evaluation fit)."""
+    ``site_from_aligned`` is given (e.g. from an evaluation fit); with the default kNN's uncertainty
+    calibrated on it unless ``calibrate`` is false (``graphslam.core.radiomap.uncertainty.with_calibration``)."""
     xy = al.fingerprint_xy()
     frame = al.frame  # the survey's own (report.json's): aligned, earth or site
     if site_from_aligned is not None:
@@ -66,7 +68,7 @@ def crowdsourced_radio_map(
     if al.reference_map is not None:  # a survey on a reference map: its fingerprints join the crowd's
         rm = with_reference(rm, al.reference_map)
     # the default kNN's uncertainty, measured on the map (leave one walk out), rides along
-    return with_uncertainty(rm)
+    return with_uncertainty(rm) if calibrate else rm
 
 
 def with_reference(crowd: RadioMap, ref: RadioMap) -> RadioMap:
