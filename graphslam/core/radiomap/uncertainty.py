@@ -68,7 +68,9 @@ SCORE_BINS = 5  # quantile bins of the calibration scans' scores
 OUTSIDE_RADIUS_M = 10.0  # the outside set: map fingerprints this close to the scan removed
 NEAR_M = 3.0  # the outside test's covered scans: within this of another walk's fingerprint
 FALSE_ALARM = 0.05  # share of those the outside test flags
-BATCH_CELLS = 1 << 21  # query x fingerprint distances of a batch of walks located together (16 MB of float64 a set)
+# query x fingerprint distances of a batch of walks located together (2 MB of float64 a set): where one walk's
+# alone are more, it is located alone (the per-call cost is small beside its searches, and a copy is not)
+BATCH_CELLS = 1 << 18
 
 
 def leave_one_session_out(
@@ -191,7 +193,9 @@ def _calibration_batch(
     """``calibrate_uncertainty``'s sets of a batch of walks ((walk, its rows, its scans drawn) each): a
     walk's scans searched on the whole map, its removed fingerprints masked and the rows that heard an AP
     only they heard searched again without it; the batch located per set in one pass."""
-    found: dict[str, list[tuple[FingerprintMatrix, NDArray, NDArray, NDArray]]] = {"covered": [], "uncovered": [], "outside": []}
+    found: dict[str, list[tuple[FingerprintMatrix, NDArray, NDArray, NDArray]]] = {"covered": [], "uncovered": []}
+    discs: list[tuple[NDArray, NDArray]] = []  # the outside set's removals: (row in the batch, fingerprint)
+    at = 0
     for code, own_rows, picked in batch:
         own = codes == code
         removed = {"covered": own}
@@ -222,22 +226,29 @@ def _calibration_batch(
                 # outside: each scan without the fingerprints within outside_radius_m of it (the APs only
                 # they heard stay in the index, heard by no fingerprint left: as far for eq. 9)
                 disc = tree.query_ball_point(rm.xy[picked], r=outside_radius_m)
-                d = d.copy()
-                d[np.repeat(np.arange(len(picked)), [len(c) for c in disc]), np.concatenate(disc).astype(np.int64)] = np.inf
-                found["outside"].append((q, d, picked, near))
-    return {kind: _located(loc, _stacked([f[0] for f in parts]), np.concatenate([f[1] for f in parts]),
-                           np.concatenate([f[2] for f in parts]), np.concatenate([f[3] for f in parts]), k,
-                           with_db=kind != "uncovered")
-            for kind, parts in found.items() if parts}
+                discs.append((at + np.repeat(np.arange(len(picked)), [len(c) for c in disc]),
+                              np.concatenate(disc).astype(np.int64)))
+        at += len(picked)
+    out: dict[str, tuple[NDArray, NDArray, NDArray, NDArray, NDArray]] = {}
+    for kind, parts in found.items():
+        if parts:
+            stacked = _stacked(parts)
+            out[kind] = _located(loc, *stacked, k, with_db=kind == "covered")
+            if kind == "covered" and discs:  # located: its distances are the outside set's, masked
+                q, d, rows, near = stacked
+                d[np.concatenate([r for r, _ in discs]), np.concatenate([c for _, c in discs])] = np.inf
+                out["outside"] = _located(loc, q, d, rows, near, k, with_db=True)
+    return out
 
 
-def _stacked(parts: list[FingerprintMatrix]) -> FingerprintMatrix:
-    """The rows of ``parts`` (one AP index) one after another."""
+def _stacked(parts: list[tuple[FingerprintMatrix, NDArray, NDArray, NDArray]]) -> tuple[FingerprintMatrix, NDArray, NDArray, NDArray]:
+    """(queries, distances, rows, near) of ``parts``' walks one after another (one walk's as they are)."""
     if len(parts) == 1:
         return parts[0]
-    return FingerprintMatrix(parts[0].bssids, sparse.vstack([p.values for p in parts], format="csr"),
-                             parts[0].missing_dbm, np.concatenate([p.extra_sq for p in parts]),
-                             np.concatenate([p.extra_n for p in parts]))
+    qs = [p[0] for p in parts]
+    q = FingerprintMatrix(qs[0].bssids, sparse.vstack([p.values for p in qs], format="csr"), qs[0].missing_dbm,
+                          np.concatenate([p.extra_sq for p in qs]), np.concatenate([p.extra_n for p in qs]))
+    return q, *(np.concatenate([p[i] for p in parts]) for i in (1, 2, 3))
 
 
 
