@@ -123,6 +123,25 @@ def test_the_crowd_is_placed_on_the_reference_in_the_site_frame(floor: tuple, tm
     assert rm.metadata["reference"]["fingerprints"] == len(survey.sessions[0].scans)
 
 
+def test_a_large_crowd_and_reference_are_linked_on_a_thread_as_in_turn(floor: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    # the links run beside the crowd's own edges from LINKS_THREAD_MIN_PAIRS crowd x reference pairs: the
+    # same links, the same survey, bit for bit
+    import threading
+
+    from graphslam.core.survey import reference as R
+
+    _, files, ref, _ = floor
+    where: list[str] = []
+    links = R.reference_links
+    monkeypatch.setattr(R, "reference_links", lambda *a, **k: where.append(threading.current_thread().name) or links(*a, **k))
+    inputs = SurveyInputs.from_paths(files[1:], reference_map=ref, picture=False)
+    in_turn = run_survey(inputs, load_config()).alignment
+    monkeypatch.setattr(R, "LINKS_THREAD_MIN_PAIRS", 0)
+    beside = run_survey(inputs, load_config()).alignment
+    assert where[0] == threading.main_thread().name and where[1].startswith("reference-links")
+    assert np.array_equal(in_turn.anchor_pairs, beside.anchor_pairs) and np.array_equal(in_turn.node_xyh, beside.node_xyh)
+
+
 def test_a_walk_that_matches_no_reference_place_stays_apart(floor: tuple, tmp_path: Path) -> None:
     d, files, _, survey = floor
     # a reference of the corridor's first 40 m only; a walk of a corridor 25 m away shares nothing with it

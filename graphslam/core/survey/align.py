@@ -45,7 +45,7 @@ from graphslam.core.survey.graph import (
 )
 from graphslam.core.survey.initialise import Placement, connected_to, register_walks, se2_apply_poses
 from graphslam.core.survey.magnetic import MagneticLinks, MagneticParams, factor_pairs
-from graphslam.core.survey.reference import FieldTies, field_ties, reference_links
+from graphslam.core.survey.reference import FieldTies, ReferenceLinksJob, field_ties
 from graphslam.core.survey.problem import Problem
 from graphslam.core.types import PoseTrack, Survey
 from graphslam.errors import SolverError
@@ -278,8 +278,22 @@ def build_problem(
     timings["associate"] = time.perf_counter() - t
     task.end()
 
+    ranged = cfg.uwb.enabled and any(s.uwb_ranges is not None and len(s.uwb_ranges) for s in survey)
+    if reference is not None and warm is not None:
+        raise SolverError("a reference map needs a full survey (no --update): a survey on one is solved in full")
+    if (reference is not None or (control_points and warm is None)) and ranged:
+        raise SolverError(f"{'a reference map' if reference is not None else 'control points'} and UWB ranges do not "
+                          "go together: the ranges place the walks themselves (set uwb.enabled false to use "
+                          f"{'it' if reference is not None else 'them'})")
+
     t = time.perf_counter()
     thr = window_thresholds(fp, cfg.edges.window_steps)
+    # the crowd's ties to a reference map: on a thread beside the crowd's own edges where its products are large
+    links = None if reference is None else ReferenceLinksJob(
+        fp.fingerprints, thr, reference, matches_per_fingerprint=cfg.placement.matches_per_fingerprint,
+        scale_db=cfg.placement.similarity_scale_db, max_per_fingerprint=cfg.edges.max_per_fingerprint,
+        min_common_aps=cfg.edges.min_common_aps,
+    )
     if warm is not None:  # --update: the same edges, computed from the new walks' rows only
         edges = incremental.update_edges(fp, thr, warm, cfg.edges)
     else:
@@ -309,23 +323,11 @@ def build_problem(
     method = initialization(cfg, survey)
     if warm is not None and (method != "heading" or warm.component is None):
         method = "registration"  # an update without headings: new walks registered to the solved ones
-    ranged = cfg.uwb.enabled and any(s.uwb_ranges is not None and len(s.uwb_ranges) for s in survey)
-    if reference is not None and warm is not None:
-        raise SolverError("a reference map needs a full survey (no --update): a survey on one is solved in full")
-    if (reference is not None or (control_points and warm is None)) and ranged:
-        raise SolverError(f"{'a reference map' if reference is not None else 'control points'} and UWB ranges do not "
-                          "go together: the ranges place the walks themselves (set uwb.enabled false to use "
-                          f"{'it' if reference is not None else 'them'})")
     split: ComponentSplit | None = None
     anchors = None
     unused: RadioMap | None = None  # a reference map given that no walk registers onto (walks without headings)
-    if reference is not None:
-        pc = cfg.placement
-        anchors = reference_links(
-            fp.fingerprints, thr, reference, matches_per_fingerprint=pc.matches_per_fingerprint,
-            scale_db=pc.similarity_scale_db, max_per_fingerprint=cfg.edges.max_per_fingerprint,
-            min_common_aps=cfg.edges.min_common_aps,
-        )
+    if links is not None:
+        anchors = links.result()
         # the offset found travels with the reference: report.json and the radio map say it
         reference = reference.with_metadata(rss_offset_db=round(anchors.rss_offset_db, 2))
     if warm is None and method != "heading" and (reference is not None or control_points):
