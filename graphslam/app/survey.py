@@ -434,7 +434,7 @@ def _run_survey(inputs: SurveyInputs, cfg: GraphSlamConfig, progress: ProgressCa
         report["update"] = {**update_info, "walks_from_cache": recordings.cached}
 
     def picture(folder: Path) -> None:
-        """survey.png into the stage (drawn while the radio map's calibration runs on the other thread)."""
+        """survey.png into the stage (drawn while the radio map is calibrated: a forked child, or a thread)."""
         if inputs.picture:
             _write_picture(folder, survey, alignment, cfg, evaluation, plan, files, timings)
             if "picture" in files:
