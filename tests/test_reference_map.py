@@ -96,11 +96,12 @@ def test_a_well_formed_reference_is_read_in_bulk_as_line_by_line(floor: tuple, t
     grouped = tmp_path / "grouped.csv"
     grouped.write_text("fingerprint_id,x,y,bssid,rssi_dbm\n0,1_5,2,aa,-50\n")
     assert _parsed_fast(grouped) is None and read_reference_map(grouped).xy.tolist() == [[15.0, 2.0]]
-    # a file of at least BULK_MIN_BYTES takes the bulk reading alone
+    # a well-formed file takes the bulk reading alone, threaded from THREADED_MIN_BYTES or not
     import graphslam.io.reference_map as reference_map
 
-    monkeypatch.setattr(reference_map, "BULK_MIN_BYTES", 0)
     monkeypatch.setattr(reference_map, "_parsed_checked", None)
+    assert read_reference_map(tricky).metadata["fingerprint_ids"] == ["b 1", "z"]
+    monkeypatch.setattr(reference_map, "THREADED_MIN_BYTES", 0)
     assert read_reference_map(tricky).metadata["fingerprint_ids"] == ["b 1", "z"]
 
 

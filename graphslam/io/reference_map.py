@@ -31,7 +31,8 @@ from graphslam.errors import GraphSlamError, InputError
 HEADER = ("fingerprint_id", "x", "y", "bssid", "rssi_dbm")
 REFERENCE_SESSION = "reference"  # the session id of the reference's rows in the survey's radio map
 FIELD_FILE = "magnetic_map.parquet"  # a previous survey's field, beside its radio map
-BULK_MIN_BYTES = 1 << 20  # smaller files: line by line (Arrow's first call costs ~20 ms, a 150 kB file 10 ms)
+# from this size Arrow parses on its threads (a smaller file is parsed sooner than they start)
+THREADED_MIN_BYTES = 1 << 20
 
 
 def read_reference_map(path: str | Path, *, min_rssi_dbm: float = -100.0, missing_dbm: float = -110.0) -> RadioMap:
@@ -96,14 +97,11 @@ def _from_radio_map(path: Path) -> RadioMap:
 
 
 def _from_csv(path: Path, min_rssi_dbm: float, missing_dbm: float) -> RadioMap:
-    # a large well-formed file parsed by Arrow (a professional survey can hold millions of readings:
-    # ~4x the line parser's speed); anything it does not take, or the checks below find, is read again
-    # line by line for the error (or accepted there: Python's float() takes a little more than Arrow's)
-    try:
-        big = path.stat().st_size >= BULK_MIN_BYTES
-    except OSError:  # gone since it was found: the line parser says so
-        big = False
-    parsed = _parsed_fast(path) if big else None
+    # a well-formed file parsed by Arrow (a professional survey can hold millions of readings: ~4x the
+    # line parser's speed; IPIN's 150 kB 3 against 10 ms, and the survey imports Arrow for its outputs
+    # anyway); anything it does not take, or the checks below find, is read again line by line for the
+    # error (or accepted there: Python's float() takes a little more than Arrow's)
+    parsed = _parsed_fast(path)
     order, xy, row, code, names, rssi = parsed if parsed is not None else _parsed_checked(path)
     fm = FingerprintMatrix.from_readings(row, code, names, rssi, len(order), missing_dbm=missing_dbm,
                                          min_rssi_dbm=min_rssi_dbm)
@@ -133,7 +131,8 @@ def _parsed_fast(path: Path) -> Parsed | None:
         return None
     try:
         table = pacsv.read_csv(
-            pa.BufferReader(data), read_options=pacsv.ReadOptions(encoding="utf8"),
+            pa.BufferReader(data), read_options=pacsv.ReadOptions(encoding="utf8",
+                                                                  use_threads=len(data) >= THREADED_MIN_BYTES),
             convert_options=pacsv.ConvertOptions(column_types=types, strings_can_be_null=False,
                                                  quoted_strings_can_be_null=False),
         )
@@ -146,8 +145,10 @@ def _parsed_fast(path: Path) -> Parsed | None:
         return None
 
     def codes(name: str) -> tuple[list[str], np.ndarray]:  # (values in order of first appearance, each row's)
-        enc = table.column(name).combine_chunks().dictionary_encode()
-        return enc.dictionary.to_pylist(), enc.indices.to_numpy(zero_copy_only=False).astype(np.int64)
+        # a dict, not Arrow's dictionary_encode: its first call initialises Arrow's compute kernels (~25 ms)
+        values = table.column(name).to_pylist()
+        index = {v: k for k, v in enumerate(dict.fromkeys(values))}
+        return list(index), np.fromiter(map(index.__getitem__, values), np.int64, len(values))
 
     ids, fid = codes("fingerprint_id")
     names, bcode = codes("bssid")
