@@ -477,25 +477,37 @@ class _Objective:
                              np.full(int(self.hk.sum() + self.pk.sum()), -1, np.int64)])
         self.var_of = var_of
         self.normal = _NormalEquations(len(g.variables), va, vb)
+        # each factor end's pose: one gather from the variables, the held ends' constant poses put back
+        self._bp = (self._gather(self.bp[:, 0]), self._gather(self.bp[:, 1]))
+        self._rp = (self._gather(self.rp[:, 0]), self._gather(self.rp[:, 1]))
+        self._hp = (self._gather(g.heading_nodes), self._gather(g.point_nodes))
 
-    def poses(self, v: NDArray, nodes: NDArray) -> NDArray:
-        x = v.reshape(-1, 3)
+    def _gather(self, nodes: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+        """(variable of each node, 0 where held; the held ones' rows; their poses) for ``_poses``."""
         k = self.var_of[nodes]
-        return np.where((k >= 0)[:, None], x[np.maximum(k, 0)], self.held[nodes])
+        held = np.flatnonzero(k < 0)
+        return np.maximum(k, 0), held, self.held[nodes[held]]
+
+    @staticmethod
+    def _poses(v: NDArray, gather: tuple[NDArray, NDArray, NDArray]) -> NDArray:
+        k, held, at = gather
+        x = v.reshape(-1, 3)[k]
+        x[held] = at
+        return x
 
     def _unary(self, v: NDArray) -> tuple[NDArray, NDArray]:
         g = self.g
-        rh = heading_residuals(self.poses(v, g.heading_nodes), g.heading_target, g.heading_sigma)
-        rp = point_residuals(self.poses(v, g.point_nodes), g.point_xy, g.point_sigma)
+        rh = heading_residuals(self._poses(v, self._hp[0]), g.heading_target, g.heading_sigma)
+        rp = point_residuals(self._poses(v, self._hp[1]), g.point_xy, g.point_sigma)
         return rh, rp
 
     def error(self, v: NDArray) -> float:
         g = self.g
         rb, _, _ = between_residuals(
-            self.poses(v, self.bp[:, 0]), self.poses(v, self.bp[:, 1]), g.between_measured, g.between_sqrt_info,
+            self._poses(v, self._bp[0]), self._poses(v, self._bp[1]), g.between_measured, g.between_sqrt_info,
             jacobians=False,
         )
-        xa, xb = self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1])
+        xa, xb = self._poses(v, self._rp[0]), self._poses(v, self._rp[1])
         rr, _, _ = range_residuals(xa, xb, self.rs, self.rd, jacobians=False)
         if self.carried is not None and len(self.carried):
             c = self.carried
@@ -507,9 +519,9 @@ class _Objective:
     def linearise(self, v: NDArray) -> tuple[NDArray, NDArray, float]:
         g = self.g
         rb, Jba, Jbb = between_residuals(
-            self.poses(v, self.bp[:, 0]), self.poses(v, self.bp[:, 1]), g.between_measured, g.between_sqrt_info
+            self._poses(v, self._bp[0]), self._poses(v, self._bp[1]), g.between_measured, g.between_sqrt_info
         )
-        xa, xb = self.poses(v, self.rp[:, 0]), self.poses(v, self.rp[:, 1])
+        xa, xb = self._poses(v, self._rp[0]), self._poses(v, self._rp[1])
         JbaT, JbbT = np.transpose(Jba, (0, 2, 1)), np.transpose(Jbb, (0, 2, 1))
         rr, Jra, Jrb = range_residuals(xa, xb, self.rs, self.rd)
         Hr = range_hessian(xa, xb, rr, Jrb, self.rs)
