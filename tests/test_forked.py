@@ -62,7 +62,7 @@ def test_a_child_still_running_when_the_caller_fails_is_stopped() -> None:
 def test_where_no_child_can_be_forked_the_call_runs_here(fallback: str, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(forked, "can_fork", lambda: False)  # e.g. a Dask worker (daemonic: no children)
     call = ForkedCall(_where, 2.0, fallback=fallback)
-    assert not call.forked and (call._future is not None) == (fallback == "thread")
+    assert not call.forked and call._here is not None and call._here.threaded == (fallback == "thread")
     assert call.result() == (os.getpid(), 4.0)
     with pytest.raises(ValueError, match="no"):  # the call's own exception, not a child's report
         ForkedCall(_fails, fallback=fallback).result()

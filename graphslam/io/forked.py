@@ -10,10 +10,10 @@ thread, or inline when its result is asked for (``fallback``): ``result()`` is t
 from __future__ import annotations
 
 import multiprocessing as mp
-from concurrent.futures import Future, ThreadPoolExecutor
 from multiprocessing.connection import Connection
 from typing import Any, Callable, Literal
 
+from graphslam.core.common.deferred import Deferred
 from graphslam.errors import GraphSlamError
 
 WAIT_TIMEOUT_S = 600.0  # far above any call's time: a child forked from a threaded process could deadlock
@@ -45,19 +45,16 @@ class ForkedCall:
 
     def __init__(self, fn: Callable[..., Any], *args: Any, fallback: Literal["thread", "inline"] = "inline",
                  **kwargs: Any) -> None:
-        self._call: tuple | None = (fn, args, kwargs)
         self._proc: Any = None
-        self._pool: ThreadPoolExecutor | None = None
-        self._future: Future | None = None
+        self._here: Deferred | None = None  # the call in this process, where no child can be forked
         if can_fork():
             ctx = mp.get_context("fork")
             self._recv, send = ctx.Pipe(duplex=False)
             self._proc = ctx.Process(target=_child, args=(send, fn, args, kwargs), daemon=True)
             self._proc.start()
             send.close()
-        elif fallback == "thread":
-            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=getattr(fn, "__name__", "call"))
-            self._future = self._pool.submit(fn, *args, **kwargs)
+        else:
+            self._here = Deferred(fn, *args, thread=fallback == "thread", **kwargs)
 
     @property
     def forked(self) -> bool:
@@ -66,17 +63,10 @@ class ForkedCall:
     def result(self, timeout_s: float = WAIT_TIMEOUT_S) -> Any:
         """The call's value; its exception where it ran in this process; ``ForkedCallError`` for a child
         that failed, died or did not answer within ``timeout_s``."""
-        if self._future is not None:
-            try:
-                return self._future.result()
-            finally:
-                self._close(stop=False)
+        if self._here is not None:
+            return self._here.result()
         if self._proc is None:
-            if self._call is None:
-                raise ForkedCallError("the call's result was already taken")
-            fn, args, kwargs = self._call
-            self._call = None
-            return fn(*args, **kwargs)
+            raise ForkedCallError("the call's value was already taken")
         status, value = "error", f"no answer from the child process in {timeout_s:.0f} s"
         try:
             if self._recv.poll(timeout_s):
@@ -91,15 +81,14 @@ class ForkedCall:
 
     def _close(self, stop: bool) -> None:
         """Wait for the thread or the child (``stop``: the child is stopped first), once."""
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-            self._pool = None
+        if self._here is not None:
+            self._here.close()
         if self._proc is not None:
             self._recv.close()
             if stop and self._proc.is_alive():
                 self._proc.terminate()
             self._proc.join()
-            self._proc, self._call = None, None
+            self._proc = None
 
     def __enter__(self) -> "ForkedCall":
         return self

@@ -45,7 +45,7 @@ from graphslam.core.survey.graph import (
 )
 from graphslam.core.survey.initialise import Placement, connected_to, register_walks, se2_apply_poses
 from graphslam.core.survey.magnetic import MagneticLinks, MagneticParams, factor_pairs
-from graphslam.core.survey.reference import FieldTies, ReferenceLinksJob, field_ties
+from graphslam.core.survey.reference import FieldTies, field_ties, reference_links_job
 from graphslam.core.survey.problem import Problem
 from graphslam.core.types import PoseTrack, Survey
 from graphslam.errors import SolverError
@@ -289,7 +289,7 @@ def build_problem(
     t = time.perf_counter()
     thr = window_thresholds(fp, cfg.edges.window_steps)
     # the crowd's ties to a reference map: on a thread beside the crowd's own edges where its products are large
-    links = None if reference is None else ReferenceLinksJob(
+    links = None if reference is None else reference_links_job(
         fp.fingerprints, thr, reference, matches_per_fingerprint=cfg.placement.matches_per_fingerprint,
         scale_db=cfg.placement.similarity_scale_db, max_per_fingerprint=cfg.edges.max_per_fingerprint,
         min_common_aps=cfg.edges.min_common_aps,

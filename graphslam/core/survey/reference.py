@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import logging
 import os
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -46,6 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 
+from graphslam.core.common.deferred import Deferred
 from graphslam.core.radiomap.fingerprints import DistanceEngine, FingerprintMatrix
 from graphslam.core.radiomap.magnetic_map import MagneticMap
 from graphslam.core.radiomap.radiomap import RadioMap
@@ -126,32 +127,18 @@ def reference_links(
     return out
 
 
-# crowd x reference fingerprint pairs from which ``ReferenceLinksJob`` runs on a thread: the links' products
+# crowd x reference fingerprint pairs from which ``reference_links_job`` runs on a thread: the links' products
 # (power cosine, eq. 9) release the GIL and overlap the crowd's own edge search (paper size 4, ~9M pairs:
 # 4.48 -> 4.31 s; size 12, ~80M: 14.3 -> 13.2 s); IPIN 2023 floor -2's 0.55M pairs: slower on a thread
 LINKS_THREAD_MIN_PAIRS = 4_000_000
 
 
-class ReferenceLinksJob:
+def reference_links_job(crowd: FingerprintMatrix, thresholds: NDArray[np.float64], ref: RadioMap,
+                        **kwargs: Any) -> Deferred[ReferenceLinks]:
     """``reference_links(crowd, thresholds, ref, **kwargs)``, started on a thread now when the crowd and the
-    reference are large (``LINKS_THREAD_MIN_PAIRS``), else computed when ``result()`` asks for it."""
-
-    def __init__(self, crowd: FingerprintMatrix, thresholds: NDArray[np.float64], ref: RadioMap, **kwargs: Any) -> None:
-        self._call = (crowd, thresholds, ref, kwargs)
-        self._pool: ThreadPoolExecutor | None = None
-        self._future: Future | None = None
-        if len(crowd) * len(ref) >= LINKS_THREAD_MIN_PAIRS:
-            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="reference-links")
-            self._future = self._pool.submit(reference_links, crowd, thresholds, ref, **kwargs)
-
-    def result(self) -> ReferenceLinks:
-        if self._future is None or self._pool is None:
-            crowd, thresholds, ref, kwargs = self._call
-            return reference_links(crowd, thresholds, ref, **kwargs)
-        try:
-            return self._future.result()
-        finally:
-            self._pool.shutdown()
+    reference are large (``LINKS_THREAD_MIN_PAIRS``), else computed when its ``result()`` is asked for."""
+    return Deferred(reference_links, crowd, thresholds, ref, thread=len(crowd) * len(ref) >= LINKS_THREAD_MIN_PAIRS,
+                    name="reference-links", **kwargs)
 
 
 def rss_offset_db(crowd: FingerprintMatrix, ref: FingerprintMatrix, top: Matches, min_common: int = 3) -> float:
