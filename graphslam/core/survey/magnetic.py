@@ -121,6 +121,23 @@ class MagneticSequences:
     def has_field(self) -> NDArray[np.bool_]:
         return np.diff(self.offsets) > 0
 
+    @classmethod
+    def of_walks(cls, walks: list[tuple[NDArray, NDArray, NDArray, NDArray] | None]) -> "MagneticSequences":
+        """Walk by walk: (features (n, 3), xy (n, 2), node (n,), path_m (n,)); None: a walk without samples."""
+        parts = [w for w in walks if w is not None]
+        sizes = [0 if w is None else len(w[3]) for w in walks]
+
+        def cat(k: int, shape: tuple[int, ...], dtype: object) -> NDArray:
+            return np.concatenate([w[k] for w in parts]).astype(dtype) if parts else np.zeros((0, *shape), dtype)
+
+        return cls(np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64), cat(0, (N_FEATURES,), np.float64),
+                   cat(1, (2,), np.float64), cat(2, (), np.int64), cat(3, (), np.float64))
+
+
+def along(q: NDArray[np.float64], d: NDArray[np.float64], values: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``values`` (n, C), given at the increasing path distances ``d``, interpolated at the distances ``q``."""
+    return np.column_stack([np.interp(q, d, values[:, c]) for c in range(values.shape[1])])
+
 
 def step_features(survey: Survey) -> list[NDArray[np.float64] | None]:
     """Per walk: (n_steps, 3) features at every step (None: no ``/phone/magnetic``). A step without a
@@ -151,11 +168,11 @@ def step_features(survey: Survey) -> list[NDArray[np.float64] | None]:
 def walk_sequences(survey: Survey, node_offsets: NDArray[np.int64], sample_m: float) -> MagneticSequences:
     """Every walk's features every ``sample_m`` of its dead-reckoned path (module docstring, 1)."""
     feats = step_features(survey)
-    parts_f, parts_xy, parts_node, parts_s, sizes = [], [], [], [], []
+    walks: list[tuple[NDArray, NDArray, NDArray, NDArray] | None] = []
     for s, (sess, f) in enumerate(zip(survey, feats)):
         xy = np.asarray(sess.steps.xy)
         if f is None or len(xy) < 2:
-            sizes.append(0)
+            walks.append(None)
             continue
         d_all = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
         # a step's message is the field averaged since the previous step: it belongs mid-way between them
@@ -166,22 +183,12 @@ def walk_sequences(survey: Survey, node_offsets: NDArray[np.int64], sample_m: fl
         keep = np.concatenate([[True], np.diff(d_all) > 1e-6])
         d, xy_k, k = d_all[keep], xy[keep], np.flatnonzero(keep)
         if len(d) < 2:
-            sizes.append(0)
+            walks.append(None)
             continue
         q = np.arange(0.0, d[-1] + 1e-9, sample_m)
-        parts_f.append(np.column_stack([np.interp(q, mid[on], f[on, c]) for c in range(N_FEATURES)]))
-        parts_xy.append(np.column_stack([np.interp(q, d, xy_k[:, 0]), np.interp(q, d, xy_k[:, 1])]))
         step = np.rint(np.interp(q, d, k.astype(float))).astype(np.int64)
-        parts_node.append(node_offsets[s] + step)
-        parts_s.append(q)
-        sizes.append(len(q))
-    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-
-    def cat(parts: list, shape: tuple[int, ...], dtype: object) -> NDArray:
-        return np.concatenate(parts).astype(dtype) if parts else np.zeros((0, *shape), dtype)
-
-    return MagneticSequences(offsets, cat(parts_f, (N_FEATURES,), np.float64), cat(parts_xy, (2,), np.float64),
-                             cat(parts_node, (), np.int64), cat(parts_s, (), np.float64))
+        walks.append((along(q, mid[on], f[on]), along(q, d, xy_k), node_offsets[s] + step, q))
+    return MagneticSequences.of_walks(walks)
 
 
 @dataclass(frozen=True, eq=False)

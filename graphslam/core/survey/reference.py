@@ -53,7 +53,7 @@ from graphslam.core.radiomap.radiomap import RadioMap
 from graphslam.core.radiomap.similarity import Matches, PowerCosine, top_matches_between
 from graphslam.core.survey.edges import nearest_per_row
 from graphslam.core.survey.magnetic import (
-    N_FEATURES, MagneticParams, MagneticSequences, factor_pairs, null_threshold, walk_links, walk_sequences, window_matches,
+    MagneticParams, MagneticSequences, along, factor_pairs, null_threshold, walk_links, walk_sequences, window_matches,
     windows,
 )
 from graphslam.core.survey.placement import GrowthParams, hough_profile
@@ -227,7 +227,8 @@ def field_sequences(field: MagneticMap, sample_m: float, first_node: int) -> Mag
     ``sample_m`` of their path (site frame), as ``walk_sequences`` does a crowd walk's dead reckoning;
     sample ``q``'s node is ``first_node + q`` (held nodes: ``field_ties``)."""
     ids = np.asarray(field.session_ids)
-    parts_f, parts_xy, parts_s, sizes = [], [], [], []
+    walks: list[tuple[NDArray, NDArray, NDArray, NDArray] | None] = []
+    n = 0
     for sid in dict.fromkeys(ids.tolist()):
         rows = np.flatnonzero(ids == sid)
         rows = rows[np.argsort(np.asarray(field.t_ns)[rows], kind="stable")]
@@ -238,18 +239,9 @@ def field_sequences(field: MagneticMap, sample_m: float, first_node: int) -> Mag
         if len(d) < 2:
             continue
         q = np.arange(0.0, d[-1] + 1e-9, sample_m)
-        parts_f.append(np.column_stack([np.interp(q, d, f[:, c]) for c in range(N_FEATURES)]))
-        parts_xy.append(np.column_stack([np.interp(q, d, xy[:, 0]), np.interp(q, d, xy[:, 1])]))
-        parts_s.append(q)
-        sizes.append(len(q))
-    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-    n = int(offsets[-1])
-
-    def cat(parts: list, shape: tuple[int, ...]) -> NDArray:
-        return np.concatenate(parts) if parts else np.zeros((0, *shape))
-
-    return MagneticSequences(offsets, cat(parts_f, (N_FEATURES,)), cat(parts_xy, (2,)),
-                             first_node + np.arange(n, dtype=np.int64), cat(parts_s, ()))
+        walks.append((along(q, d, f), along(q, d, xy), first_node + n + np.arange(len(q), dtype=np.int64), q))
+        n += len(q)
+    return MagneticSequences.of_walks(walks)
 
 
 @dataclass(frozen=True, eq=False)
